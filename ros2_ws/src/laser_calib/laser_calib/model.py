@@ -1,0 +1,125 @@
+"""Robot description and the geometric parameter vector (conventions.md).
+
+The parameter vector of a robot holds its nominal D-H values in the order of
+the error vector, so that a corrected model is simply ``nominal + errors``:
+
+    [a_1, d_1, alpha_1, theta0_1, ..., a_N, d_N, alpha_N, theta0_N,
+     slm_a, slm_d, slm_alpha, slm_beta, slm_theta]           shape (4N+5,)
+
+and the errors are [Δa_1, Δd_1, Δα_1, Δθ_1, ..., Δx_s, Δz_s, Δrx_s, Δry_s, Δrz_s].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Mapping
+
+import numpy as np
+
+PAPER = "paper"        # T_i = Trans(x,a) Trans(z,d) Rot(x,alpha) Rot(z,theta)
+STANDARD = "standard"  # T_i = Trans(z,d) Rot(z,theta) Trans(x,a) Rot(x,alpha)
+CONVENTIONS = (PAPER, STANDARD)
+
+LINK_PARAMS = ("a", "d", "alpha", "theta")
+SLM_PARAMS = ("slm_x", "slm_z", "slm_rx", "slm_ry", "slm_rz")
+
+
+@dataclass(frozen=True)
+class Joint:
+    a: float
+    d: float
+    alpha: float
+    theta0: float
+    min: float
+    max: float
+
+
+@dataclass(frozen=True)
+class Slm:
+    a: float
+    d: float
+    alpha: float
+    theta: float
+    beta: float = 0.0
+
+
+@dataclass(frozen=True)
+class Laser:
+    gamma: float
+    beta: float = 0.0
+
+
+@dataclass(frozen=True)
+class Screen:
+    half_y: float = 1.0
+    half_z: float = 1.0
+
+
+@dataclass(frozen=True)
+class Robot:
+    name: str
+    joints: tuple[Joint, ...]
+    slm: Slm
+    lasers: tuple[Laser, ...]
+    screen: Screen = Screen()
+    gravity: tuple[float, float, float] = (0.0, 0.0, -1.0)
+    convention: str = PAPER
+    # Keys this module does not interpret (effects, frames): kept verbatim on write.
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def n_params(self) -> int:
+        return 4 * self.n_joints + 5
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return param_names(self.n_joints)
+
+    @property
+    def q_min(self) -> np.ndarray:
+        return np.array([j.min for j in self.joints])
+
+    @property
+    def q_max(self) -> np.ndarray:
+        return np.array([j.max for j in self.joints])
+
+    def vector(self) -> np.ndarray:
+        """Nominal parameter vector, shape (4N+5,)."""
+        links = [(j.a, j.d, j.alpha, j.theta0) for j in self.joints]
+        s = self.slm
+        return np.array([v for link in links for v in link] + [s.a, s.d, s.alpha, s.beta, s.theta])
+
+    def with_vector(self, params: np.ndarray) -> "Robot":
+        """The same robot with its D-H values replaced by ``params`` (4N+5,)."""
+        params = np.asarray(params, dtype=float)
+        if params.shape != (self.n_params,):
+            raise ValueError(f"parameter vector has shape {params.shape}, expected ({self.n_params},)")
+        joints = tuple(
+            replace(j, a=params[4 * i], d=params[4 * i + 1], alpha=params[4 * i + 2], theta0=params[4 * i + 3])
+            for i, j in enumerate(self.joints)
+        )
+        a, d, alpha, beta, theta = params[4 * self.n_joints:]
+        return replace(self, joints=joints, slm=Slm(a=a, d=d, alpha=alpha, theta=theta, beta=beta))
+
+    def with_errors(self, errors: np.ndarray) -> "Robot":
+        """The corrected robot: nominal values plus the geometric errors (4N+5,)."""
+        return self.with_vector(self.vector() + np.asarray(errors, dtype=float))
+
+    def laser_angles(self) -> np.ndarray:
+        """(L, 2) array of (gamma, beta) per laser."""
+        return np.array([(laser.gamma, laser.beta) for laser in self.lasers], dtype=float)
+
+
+def param_names(n_joints: int) -> tuple[str, ...]:
+    names = [f"{p}{i + 1}" for i in range(n_joints) for p in LINK_PARAMS]
+    return tuple(names) + SLM_PARAMS
+
+
+def param_kinds(n_joints: int) -> np.ndarray:
+    """'length' or 'angle' per error, shape (4N+5,): selects units and tolerances."""
+    link = ["length", "length", "angle", "angle"] * n_joints
+    return np.array(link + ["length", "length", "angle", "angle", "angle"])
