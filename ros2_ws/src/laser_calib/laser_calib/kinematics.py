@@ -110,12 +110,13 @@ def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twist
     jac1 = None
     if twists:
         jac1 = np.zeros((n_poses, 6, robot.n_params))
-        for kind, u, o, index in before:
-            if kind == TRANS:
-                jac1[:, :3, index] = u
-            else:
-                jac1[:, :3, index] = np.cross(u, origin - o)
-                jac1[:, 3:, index] = u
+        trans = [index for kind, _, _, index in before if kind == TRANS]
+        rots = [index for kind, _, _, index in before if kind == ROT]
+        jac1[:, :3, trans] = np.stack([u for kind, u, _, _ in before if kind == TRANS], axis=-1)
+        u = np.stack([u for kind, u, _, _ in before if kind == ROT], axis=-1)          # (P,3,K)
+        lever = origin[:, :, None] - np.stack([o for kind, _, o, _ in before if kind == ROT], axis=-1)
+        jac1[:, :3, rots] = np.cross(u, lever, axis=1)
+        jac1[:, 3:, rots] = u
     return ChainState(origin, rotation, beams, joint_origin, joint_axis, jac1)
 
 
