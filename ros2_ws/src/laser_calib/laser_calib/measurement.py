@@ -61,7 +61,14 @@ class SpotModel:
         self.scales = geometric_scales(robot.n_joints)
 
     def residuals(self, x: np.ndarray, jacobian: bool = True) -> Residuals:
-        prediction = predict(self.robot, self.samples.q, x, jacobian=jacobian)
+        return self.evaluate(x, None, jacobian)
+
+    def evaluate(self, errors: np.ndarray, dq: np.ndarray | None, jacobian: bool = True) -> Residuals:
+        """Residuals with errors (n,) or per pose (P,n), and joint offsets dq (P,N)
+        added to the readings (effects use this: the Jacobians then hold at the
+        offset pose, and jac_q is d predicted / d q there)."""
+        q = self.samples.q if dq is None else self.samples.q + dq
+        prediction = predict(self.robot, q, errors, jacobian=jacobian)
         return spot_residuals(self.samples, prediction.spots, prediction.k, prediction.jacobian,
                               self.robot, jacobian)
 
