@@ -1,0 +1,336 @@
+"""Arm backend for Dynamixel X-series servos over Protocol 2.0 (dynamixel_sdk).
+
+Joint reading and servo ticks are related per joint by
+
+    q = (ticks - zero_ticks) / ticks_per_rad        [rad]
+
+and joint velocity is Present Velocity (0.229 rev/min per unit of the servo
+shaft, 4096 ticks/rev) divided by ticks_per_rad [rad/s]. Arrays are (N,) in the
+order of ``DynamixelConfig.joints``.
+
+Every communication failure stops the arm (torque off, best effort) and raises
+:class:`DynamixelError` with one line naming the servo and the fault. Each
+exchange is bounded by the SDK's packet timeout and retried at most
+``ATTEMPTS`` times, so no call hangs. Sync writes get no status packets, so a
+dead servo shows up on the next ``read()``, not on ``command()``.
+"""
+
+from __future__ import annotations
+
+import logging
+import termios
+import threading
+from contextlib import contextmanager
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Iterator, Sequence
+
+import dynamixel_sdk as dxl
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+ADDR_TORQUE_ENABLE = 64
+ADDR_HARDWARE_ERROR_STATUS = 70
+ADDR_PROFILE_VELOCITY = 112
+ADDR_GOAL_POSITION = 116
+ADDR_PRESENT_VELOCITY = 128
+ADDR_PRESENT_POSITION = 132
+# Present Velocity (128..131) and Present Position (132..135) are adjacent: one sync read gets both.
+STATE_ADDRESS = ADDR_PRESENT_VELOCITY
+STATE_LENGTH = 8
+
+ATTEMPTS = 3  # per exchange; only a fault persisting through all of them is reported
+STOP_LOCK_TIMEOUT = 2.0  # [s] longer than any exchange in flight on another thread
+VELOCITY_UNIT = 0.229 * 4096 / 60.0  # [ticks/s] per Present Velocity unit
+
+ERRBIT_ALERT = 0x80
+INSTRUCTION_ERRORS = {
+    1: "result fail",
+    2: "instruction error",
+    3: "CRC error in the instruction packet",
+    4: "data range error",
+    5: "data length error",
+    6: "data limit error",
+    7: "access error",
+}
+HARDWARE_ERRORS = {
+    0x01: "input voltage",
+    0x04: "overheating",
+    0x08: "motor encoder",
+    0x10: "electrical shock",
+    0x20: "overload",
+}
+
+
+class StuffedPacketHandler(dxl.Protocol2PacketHandler):
+    """Protocol2PacketHandler whose instruction packets really are byte-stuffed.
+
+    In dynamixel_sdk 4.1.0, addStuffing returns a new list when stuffing lengthens the packet, but
+    txPacket ignores the return value and sends the unstuffed original: an instruction whose data holds
+    FF FF FD (e.g. Goal Position -131073 ticks) would break the protocol. Stuffing in place fixes that.
+    """
+
+    def addStuffing(self, packet: list[int]) -> list[int]:
+        packet[:] = super().addStuffing(packet)
+        return packet
+
+
+class DynamixelError(RuntimeError):
+    """A communication failure, in one line naming the servo (when one is at fault) and the fault."""
+
+    def __init__(self, message: str, servo_id: int | None = None):
+        super().__init__(message)
+        self.servo_id = servo_id
+
+
+@dataclass(frozen=True)
+class DynamixelJointConfig:
+    """One joint: servo ``id``, q = (ticks - zero_ticks) / ticks_per_rad, limits min <= q <= max [rad]."""
+
+    id: int
+    ticks_per_rad: float
+    zero_ticks: int
+    min: float
+    max: float
+
+
+@dataclass(frozen=True)
+class DynamixelConfig:
+    """Bus and joints; ``profile_velocity`` in Profile Velocity units (0.229 rev/min, 0 = no limit)."""
+
+    port: str
+    baudrate: int
+    joints: tuple[DynamixelJointConfig, ...]
+    profile_velocity: int
+
+    def __post_init__(self) -> None:
+        ids = [joint.id for joint in self.joints]
+        if not ids:
+            raise ValueError("Dynamixel config: no joints")
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"Dynamixel config: duplicate servo IDs in {ids}")
+        for joint in self.joints:
+            if not 0 <= joint.id <= dxl.MAX_ID:
+                raise ValueError(f"Dynamixel config: servo ID {joint.id} outside 0..{dxl.MAX_ID}")
+            if joint.ticks_per_rad == 0 or not joint.min < joint.max:
+                raise ValueError(f"Dynamixel config: servo {joint.id} needs ticks_per_rad != 0 and min < max")
+
+
+class DynamixelArm:
+    """N Dynamixel servos as one arm; use as a context manager or call open() and close().
+
+    Thread-safe: a lock serialises bus access, so a node may call read(),
+    command() and stop() from different callbacks.
+    """
+
+    def __init__(self, config: DynamixelConfig, joint_names: Sequence[str] | None = None):
+        n = len(config.joints)
+        self.config = config
+        self.joint_names: tuple[str, ...] = (
+            tuple(joint_names) if joint_names is not None else tuple(f"joint{i + 1}" for i in range(n))
+        )
+        if len(self.joint_names) != n:
+            raise ValueError(f"{len(self.joint_names)} joint names for {n} joints")
+        self._ids = [joint.id for joint in config.joints]
+        self._ticks_per_rad = np.array([joint.ticks_per_rad for joint in config.joints], dtype=float)
+        self._zero_ticks = np.array([joint.zero_ticks for joint in config.joints], dtype=float)
+        self._port = dxl.PortHandler(config.port)
+        self._packet = StuffedPacketHandler()
+        self._reader = dxl.GroupSyncRead(self._port, self._packet, STATE_ADDRESS, STATE_LENGTH)
+        for servo_id in self._ids:
+            self._reader.addParam(servo_id)
+        self._writer = dxl.GroupSyncWrite(self._port, self._packet, ADDR_GOAL_POSITION, 4)
+        self._lock = threading.RLock()
+
+    def __enter__(self) -> "DynamixelArm":
+        try:
+            self.open()
+        except BaseException:
+            # __exit__ is not called when __enter__ raises: release the port here.
+            self.close()
+            raise
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def open(self) -> None:
+        """Open the port, ping every servo, set the profile velocity and enable torque."""
+        with self._lock:
+            try:
+                # setBaudRate opens (or reopens) the port at that rate; False means an unsupported rate.
+                if not self._port.setBaudRate(self.config.baudrate):
+                    raise DynamixelError(
+                        f"Dynamixel port {self.config.port}: unsupported baud rate {self.config.baudrate}"
+                    )
+            except OSError as exc:
+                raise DynamixelError(f"Dynamixel port {self.config.port}: cannot open ({exc})") from exc
+            with self._io_errors():
+                for servo_id in self._ids:
+                    self._ping(servo_id)
+                ticks, _ = self._read_state()
+                # Goal = present before torque on, so enabling torque cannot jump to a stale goal.
+                self._write_goal(ticks)
+                for servo_id in self._ids:
+                    self._write(servo_id, ADDR_PROFILE_VELOCITY, 4, self.config.profile_velocity)
+                for servo_id in self._ids:
+                    self._write(servo_id, ADDR_TORQUE_ENABLE, 1, 1)
+
+    def command(self, q: np.ndarray) -> None:
+        """Send goal joint positions ``q`` (N,) [rad]; ValueError naming the joint if outside its limits."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != self._ticks_per_rad.shape:
+            raise ValueError(f"command has shape {q.shape}, expected {self._ticks_per_rad.shape}")
+        for name, value, joint in zip(self.joint_names, q, self.config.joints):
+            if not joint.min <= value <= joint.max:  # also refuses NaN
+                limits = f"[{joint.min:.6g}, {joint.max:.6g}]"
+                raise ValueError(f"{name}: command {value:.6g} rad outside limits {limits}")
+        ticks = np.rint(self._zero_ticks + q * self._ticks_per_rad).astype(np.int64)
+        with self._lock:
+            self._require_open()
+            with self._io_errors():
+                self._write_goal(ticks)
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        """Joint positions q (N,) [rad] and velocities (N,) [rad/s], from one sync read."""
+        with self._lock:
+            self._require_open()
+            with self._io_errors():
+                ticks, velocity_units = self._read_state()
+        q = (ticks - self._zero_ticks) / self._ticks_per_rad
+        return q, velocity_units * VELOCITY_UNIT / self._ticks_per_rad
+
+    def stop(self) -> None:
+        """Torque off on every servo, best effort: never raises, returns within about N packet timeouts."""
+        if not self._lock.acquire(timeout=STOP_LOCK_TIMEOUT):
+            logger.error("Dynamixel stop: bus still busy after %.1f s; torque left as is", STOP_LOCK_TIMEOUT)
+            return
+        try:
+            if not self._port.is_open:
+                return
+            # The lock means no exchange is in flight; one aborted by an exception may have left the SDK's
+            # busy flag set, which would make every packet below fail with "port busy".
+            self._port.is_using = False
+            # One broadcast first: it reaches every servo that hears the bus, whatever its replies do.
+            self._packet.write1ByteTxOnly(self._port, dxl.BROADCAST_ID, ADDR_TORQUE_ENABLE, 0)
+            for servo_id in self._ids:
+                result, _ = self._packet.write1ByteTxRx(self._port, servo_id, ADDR_TORQUE_ENABLE, 0)
+                if result != dxl.COMM_SUCCESS:
+                    logger.warning("Dynamixel stop: servo %d did not confirm torque off", servo_id)
+        except Exception as exc:  # stop() runs on error paths: it must not mask the fault being reported
+            logger.warning("Dynamixel stop failed: %s", exc)
+        finally:
+            self._lock.release()
+
+    def close(self) -> None:
+        """Torque off (best effort) and release the port; idempotent."""
+        self.stop()
+        with self._lock:
+            if self._port.is_open:
+                self._port.closePort()
+
+    def _require_open(self) -> None:
+        if not self._port.is_open:
+            raise DynamixelError(f"Dynamixel port {self.config.port}: not open")
+
+    def _fail(self, message: str, servo_id: int | None = None) -> DynamixelError:
+        """Stop the arm, then return the error for the caller to raise."""
+        self.stop()
+        return DynamixelError(message, servo_id)
+
+    def _servo_fault(self, servo_id: int, fault: str) -> DynamixelError:
+        return self._fail(f"Dynamixel servo {servo_id}: {fault}", servo_id)
+
+    @contextmanager
+    def _io_errors(self) -> Iterator[None]:
+        """Turn an error of the serial port (e.g. adapter unplugged) into a DynamixelError."""
+        try:
+            yield
+        except (OSError, termios.error) as exc:  # pyserial raises both, termios.error from tcflush
+            raise self._fail(f"Dynamixel port {self.config.port}: serial I/O error ({exc})") from exc
+
+    def _comm_fault(self, result: int) -> str:
+        if result == dxl.COMM_RX_TIMEOUT:
+            return "no answer (status packet timeout)"
+        if result == dxl.COMM_RX_CORRUPT:
+            return "corrupt status packet (CRC mismatch or truncated)"
+        return self._packet.getTxRxResult(result).removeprefix("[TxRxResult] ")
+
+    def _check_status(self, servo_id: int, error: int) -> None:
+        """Raise if a status packet's error byte reports a hardware alert or a refused instruction."""
+        if error & ERRBIT_ALERT:
+            status, result, _ = self._packet.read1ByteTxRx(self._port, servo_id, ADDR_HARDWARE_ERROR_STATUS)
+            if result == dxl.COMM_SUCCESS:
+                names = ", ".join(name for bit, name in HARDWARE_ERRORS.items() if status & bit) or "unknown"
+                detail = f"Hardware Error Status 0x{status:02X} ({names})"
+            else:
+                detail = f"Hardware Error Status unreadable ({self._comm_fault(result)})"
+            raise self._servo_fault(servo_id, f"hardware error bit set in status packet, {detail}")
+        if error:
+            fault = INSTRUCTION_ERRORS.get(error, f"error 0x{error:02X}")
+            raise self._servo_fault(servo_id, f"instruction refused ({fault})")
+
+    def _ping(self, servo_id: int) -> None:
+        for _ in range(ATTEMPTS):
+            _, result, error = self._packet.ping(self._port, servo_id)
+            if result == dxl.COMM_SUCCESS:
+                self._check_status(servo_id, error)
+                return
+        raise self._servo_fault(servo_id, f"ping failed: {self._comm_fault(result)}")
+
+    def _write(self, servo_id: int, address: int, length: int, value: int) -> None:
+        data = list(value.to_bytes(length, "little", signed=value < 0))
+        for _ in range(ATTEMPTS):
+            result, error = self._packet.writeTxRx(self._port, servo_id, address, length, data)
+            if result == dxl.COMM_SUCCESS:
+                self._check_status(servo_id, error)
+                return
+        raise self._servo_fault(servo_id, f"write of address {address} failed: {self._comm_fault(result)}")
+
+    def _write_goal(self, ticks: np.ndarray) -> None:
+        """Sync write Goal Position ``ticks`` (N,) to all servos; no status packets come back."""
+        self._writer.clearParam()
+        for servo_id, goal in zip(self._ids, ticks):
+            self._writer.addParam(servo_id, list(int(goal).to_bytes(4, "little", signed=True)))
+        result = self._writer.txPacket()
+        if result != dxl.COMM_SUCCESS:
+            fault = self._comm_fault(result)
+            raise self._fail(f"Dynamixel bus {self.config.port}: goal sync write failed: {fault}")
+
+    def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """Present Position [ticks] and Present Velocity [units], each (N,), from one sync read."""
+        for _ in range(ATTEMPTS):
+            failed_id, result, replies = self._sync_read_once()
+            if result == dxl.COMM_SUCCESS:
+                break
+        else:
+            where = f"Dynamixel bus {self.config.port}" if failed_id is None else f"Dynamixel servo {failed_id}"
+            raise self._fail(f"{where}: sync read failed: {self._comm_fault(result)}", failed_id)
+        for servo_id, _, error in replies:
+            self._check_status(servo_id, error)
+        ticks = [_int32(data, ADDR_PRESENT_POSITION - STATE_ADDRESS) for _, data, _ in replies]
+        velocity = [_int32(data, ADDR_PRESENT_VELOCITY - STATE_ADDRESS) for _, data, _ in replies]
+        return np.array(ticks, dtype=float), np.array(velocity, dtype=float)
+
+    def _sync_read_once(self) -> tuple[int | None, int, list[tuple[int, bytes, int]]]:
+        """One sync read: (failed servo ID or None, SDK result, [(servo ID, 8 state bytes, error byte)])."""
+        result = self._reader.txPacket()
+        if result != dxl.COMM_SUCCESS:
+            return None, result, []
+        # GroupSyncRead.rxPacket drops each status packet's error byte and does not say which servo
+        # failed, so the status packets are collected here, one servo after the other.
+        replies = []
+        for servo_id in self._ids:
+            data, result, error = self._packet.readRx(self._port, servo_id, STATE_LENGTH)
+            if result != dxl.COMM_SUCCESS:
+                return servo_id, result, replies
+            replies.append((servo_id, bytes(data), error))
+        return None, result, replies
+
+
+def _int32(data: bytes, offset: int) -> int:
+    """The signed 4-byte little-endian register at ``offset`` of ``data``."""
+    return int.from_bytes(data[offset : offset + 4], "little", signed=True)

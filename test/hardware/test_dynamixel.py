@@ -1,0 +1,239 @@
+"""DynamixelArm and the real dynamixel_sdk against the Protocol 2.0 emulator on a pty."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, Callable, Iterator
+
+import dynamixel_sdk as dxl
+import numpy as np
+import pytest
+from dynamixel_emulator import (
+    ADDR_FIRMWARE_VERSION,
+    ADDR_GOAL_POSITION,
+    ADDR_PRESENT_POSITION,
+    ADDR_PROFILE_VELOCITY,
+    INST_SYNC_READ,
+    MODEL_NUMBER,
+    DynamixelEmulator,
+)
+
+from laser_calib.hardware.dynamixel_arm import (
+    ATTEMPTS,
+    DynamixelArm,
+    DynamixelConfig,
+    DynamixelError,
+    DynamixelJointConfig,
+    StuffedPacketHandler,
+)
+
+IDS = (1, 2, 3)
+TICKS_PER_RAD = 4096 / (2 * np.pi)
+PROFILE_VELOCITY = 100  # 100 * 0.229 rev/min = 2.4 rad/s: a 1 rad move takes ~0.4 s
+FAULT_DEADLINE = 3.0  # [s] a fault must be reported well within this
+
+
+def arm_config(port: str, zero_ticks: int = 2048) -> DynamixelConfig:
+    joints = tuple(
+        DynamixelJointConfig(id=i, ticks_per_rad=TICKS_PER_RAD, zero_ticks=zero_ticks, min=-1.5, max=1.5)
+        for i in IDS
+    )
+    return DynamixelConfig(port=port, baudrate=1_000_000, joints=joints, profile_velocity=PROFILE_VELOCITY)
+
+
+def run_within(seconds: float, call: Callable[[], Any]) -> tuple[Any, BaseException | None]:
+    """(result, exception) of ``call``; fails the test instead of hanging if it runs longer than ``seconds``."""
+    outcome: dict[str, Any] = {"result": None, "error": None}
+
+    def target() -> None:
+        try:
+            outcome["result"] = call()
+        except BaseException as exc:  # handed back to the test thread
+            outcome["error"] = exc
+
+    worker = threading.Thread(target=target, daemon=True)
+    worker.start()
+    worker.join(seconds)
+    assert not worker.is_alive(), f"call still running after {seconds} s"
+    return outcome["result"], outcome["error"]
+
+
+@pytest.fixture
+def emulator() -> Iterator[DynamixelEmulator]:
+    with DynamixelEmulator(IDS) as emu:
+        yield emu
+
+
+@pytest.fixture
+def sdk(emulator: DynamixelEmulator) -> Iterator[tuple[dxl.PortHandler, Any]]:
+    port = dxl.PortHandler(emulator.port)
+    assert port.setBaudRate(1_000_000)
+    yield port, dxl.PacketHandler(2.0)
+    port.closePort()
+
+
+@pytest.fixture
+def arm(emulator: DynamixelEmulator) -> Iterator[DynamixelArm]:
+    with DynamixelArm(arm_config(emulator.port)) as opened:
+        yield opened
+
+
+def test_sdk_ping_read_write(emulator: DynamixelEmulator, sdk: tuple[dxl.PortHandler, Any]) -> None:
+    port, packet = sdk
+    for servo_id in IDS:
+        assert packet.ping(port, servo_id) == (MODEL_NUMBER, dxl.COMM_SUCCESS, 0)
+    assert packet.ping(port, 9)[1] == dxl.COMM_RX_TIMEOUT
+    assert packet.read1ByteTxRx(port, 2, ADDR_FIRMWARE_VERSION) == (6, dxl.COMM_SUCCESS, 0)
+    assert packet.write4ByteTxRx(port, 2, ADDR_PROFILE_VELOCITY, 321) == (dxl.COMM_SUCCESS, 0)
+    assert packet.read4ByteTxRx(port, 2, ADDR_PROFILE_VELOCITY) == (321, dxl.COMM_SUCCESS, 0)
+    assert emulator.read(2, ADDR_PROFILE_VELOCITY, 4) == 321
+    # Present Position is read-only: the servo answers with an access error and keeps its value.
+    assert packet.write4ByteTxRx(port, 2, ADDR_PRESENT_POSITION, 0) == (dxl.COMM_SUCCESS, 7)
+    assert emulator.present_position(2) == 2048
+
+
+def test_sdk_sync_write_and_sync_read(emulator: DynamixelEmulator, sdk: tuple[dxl.PortHandler, Any]) -> None:
+    port, packet = sdk
+    goals = {1: 1000, 2: -5000, 3: 4095}
+    writer = dxl.GroupSyncWrite(port, packet, ADDR_GOAL_POSITION, 4)
+    for servo_id, goal in goals.items():
+        assert writer.addParam(servo_id, list(goal.to_bytes(4, "little", signed=True)))
+    assert writer.txPacket() == dxl.COMM_SUCCESS
+    reader = dxl.GroupSyncRead(port, packet, ADDR_GOAL_POSITION, 4)
+    for servo_id in IDS:
+        reader.addParam(servo_id)
+    assert reader.txRxPacket() == dxl.COMM_SUCCESS
+    for servo_id, goal in goals.items():
+        raw = reader.getData(servo_id, ADDR_GOAL_POSITION, 4)
+        assert int.from_bytes(raw.to_bytes(4, "little"), "little", signed=True) == goal
+        # Torque is off, so the servos hold still whatever the goal.
+        assert emulator.present_position(servo_id) == 2048
+
+
+STUFFED_TICKS = -131073  # little-endian FF FF FD FF: on the wire it must read FF FF FD FD FF
+
+
+def test_sdk_byte_stuffing_round_trip(emulator: DynamixelEmulator, sdk: tuple[dxl.PortHandler, Any]) -> None:
+    port, packet = sdk
+    register = STUFFED_TICKS & 0xFFFFFFFF
+    result = StuffedPacketHandler().write4ByteTxRx(port, 1, ADDR_GOAL_POSITION, register)
+    assert result == (dxl.COMM_SUCCESS, 0)
+    assert b"\xff\xff\xfd\xfd\xff" in emulator.requests[-1]  # stuffed by the SDK, undone by the emulator
+    assert emulator.read(1, ADDR_GOAL_POSITION, 4, signed=True) == STUFFED_TICKS
+    assert packet.read4ByteTxRx(port, 1, ADDR_GOAL_POSITION) == (register, dxl.COMM_SUCCESS, 0)
+    assert b"\xff\xff\xfd\xfd\xff" in emulator.replies[-1]  # stuffed by the emulator, undone by the SDK
+
+
+def test_arm_byte_stuffing_round_trip() -> None:
+    with DynamixelEmulator(IDS, initial_ticks=STUFFED_TICKS) as emulator:
+        with DynamixelArm(arm_config(emulator.port, zero_ticks=STUFFED_TICKS)) as arm:
+            q, _ = arm.read()
+            np.testing.assert_array_equal(q, 0.0)
+            assert b"\xff\xff\xfd\xfd\xff" in emulator.replies[-1]  # sync read status packet
+            arm.command(np.full(3, 0.1))
+            arm.read()  # answered only once the emulator has taken the sync write before it
+            assert all(emulator.read(i, ADDR_GOAL_POSITION, 4, signed=True) != STUFFED_TICKS for i in IDS)
+            arm.command(np.zeros(3))
+            arm.read()
+            assert b"\xff\xff\xfd\xfd\xff" in emulator.requests[-2]  # the sync write instruction
+            assert all(emulator.read(i, ADDR_GOAL_POSITION, 4, signed=True) == STUFFED_TICKS for i in IDS)
+
+
+def test_arm_reaches_pose_and_settles(emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    assert arm.joint_names == ("joint1", "joint2", "joint3")
+    assert all(emulator.torque_enabled(i) for i in IDS)
+    assert all(emulator.read(i, ADDR_PROFILE_VELOCITY, 4) == PROFILE_VELOCITY for i in IDS)
+    q0, v0 = arm.read()
+    np.testing.assert_allclose(q0, 0.0, atol=1e-12)
+    np.testing.assert_allclose(v0, 0.0, atol=1e-12)
+
+    target = np.array([0.5, -0.8, 1.2])
+    arm.command(target)
+    time.sleep(0.05)
+    q, velocity = arm.read()
+    assert np.all(np.sign(velocity) == np.sign(target)), "the joints move toward the goal, taking time"
+    assert np.all(np.abs(q) < np.abs(target))
+
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        q, velocity = arm.read()
+        if np.allclose(q, target, atol=1.0 / TICKS_PER_RAD) and np.allclose(velocity, 0.0):
+            break
+        time.sleep(0.02)
+    np.testing.assert_allclose(q, target, atol=1.0 / TICKS_PER_RAD)  # within rounding to one tick
+    np.testing.assert_allclose(velocity, 0.0, atol=1e-12)
+
+
+def test_limits_refused(emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    with pytest.raises(ValueError, match="joint2"):
+        arm.command(np.array([0.0, 1.6, 0.0]))
+    with pytest.raises(ValueError, match="joint3"):
+        arm.command(np.array([0.0, 0.0, np.nan]))
+    with pytest.raises(ValueError, match="shape"):
+        arm.command(np.zeros(2))
+    assert all(emulator.read(i, ADDR_GOAL_POSITION, 4, signed=True) == 2048 for i in IDS)
+
+
+def silence(emulator: DynamixelEmulator, servo_id: int) -> None:
+    emulator.servos[servo_id].silent = True
+
+
+def corrupt_crc(emulator: DynamixelEmulator, servo_id: int) -> None:
+    emulator.servos[servo_id].corrupt_crc = True
+
+
+def overload(emulator: DynamixelEmulator, servo_id: int) -> None:
+    emulator.set_hardware_error(servo_id, 0x20)
+
+
+@pytest.mark.parametrize(
+    ("inject", "servo_id", "fault"),
+    [
+        (silence, 2, "no answer"),
+        (corrupt_crc, 3, "CRC"),
+        (overload, 1, "hardware error bit set in status packet, Hardware Error Status 0x20 (overload)"),
+    ],
+)
+def test_fault_raises_and_stops(
+    emulator: DynamixelEmulator,
+    arm: DynamixelArm,
+    inject: Callable[[DynamixelEmulator, int], None],
+    servo_id: int,
+    fault: str,
+) -> None:
+    arm.command(np.array([0.3, 0.3, 0.3]))
+    assert all(emulator.torque_enabled(i) for i in IDS)
+    inject(emulator, servo_id)
+    _, error = run_within(FAULT_DEADLINE, arm.read)
+    assert isinstance(error, DynamixelError), error
+    message = str(error)
+    assert f"servo {servo_id}:" in message and fault in message and "\n" not in message
+    assert error.servo_id == servo_id
+    for i in IDS:
+        if not emulator.servos[i].silent:
+            assert not emulator.torque_enabled(i), f"servo {i} still has torque on"
+
+
+def test_retries_are_bounded(emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    silence(emulator, 2)
+    emulator.requests.clear()
+    _, error = run_within(FAULT_DEADLINE, arm.read)
+    assert isinstance(error, DynamixelError), error
+    sync_reads = [frame for frame in emulator.requests if frame[7] == INST_SYNC_READ]
+    assert len(sync_reads) == ATTEMPTS
+
+
+def test_open_with_silent_servo_fails_fast(emulator: DynamixelEmulator) -> None:
+    silence(emulator, 3)
+    arm = DynamixelArm(arm_config(emulator.port))
+    _, error = run_within(FAULT_DEADLINE, arm.__enter__)
+    assert isinstance(error, DynamixelError) and "servo 3: ping failed: no answer" in str(error)
+
+
+def test_bus_gone_raises_and_stop_never_raises(emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    emulator.close()
+    _, error = run_within(FAULT_DEADLINE, arm.read)
+    assert isinstance(error, DynamixelError), error
+    _, error = run_within(FAULT_DEADLINE, arm.stop)
+    assert error is None
