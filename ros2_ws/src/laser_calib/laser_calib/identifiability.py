@@ -49,7 +49,7 @@ class Identifiability:
 
 def describe(vector: np.ndarray, names: tuple[str, ...], threshold: float = 0.05) -> str:
     v = vector / np.abs(vector).max()
-    v = v * np.sign(v[np.argmax(np.abs(v))])
+    v = v * np.sign(v[np.flatnonzero(np.abs(v) > threshold)[0]])  # first term positive: one canonical text
     terms = [f"{c:+.2f} {names[i]}" for i, c in enumerate(v) if abs(c) > threshold]
     return " ".join(terms)
 

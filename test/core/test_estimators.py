@@ -1,0 +1,128 @@
+"""LM and the paper's EKF: same minimum, estimates consistent with their covariance.
+
+Tolerances come from the reported covariance: for an efficient, unbiased
+estimator (x_hat - x)^T Sigma^-1 (x_hat - x) follows chi^2 with as many degrees
+of freedom as free parameters; the bounds are its 99.9 % quantiles.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from laser_calib.estimation import EstimateOptions, estimate, prior_sigmas
+from laser_calib.estimators import EkfOptions, Problem
+from laser_calib.measurement import NoiseModel, SpotModel
+from laser_calib.simulation import NoiseSpec, paper_session
+
+
+def _options(session, **kw):
+    return EstimateOptions(spot_sigma=session.noise.spot_sigma, joint_sigma=session.noise.joint_sigma, **kw)
+
+
+def _mahalanobis(est, truth):
+    free = est.identifiable
+    delta = (est.errors - truth)[free]
+    cov = est.fit.covariance[np.ix_(free, free)]
+    return float(delta @ np.linalg.solve(cov, delta))
+
+
+def _gauge_truth(session, est):
+    """True errors in the estimate's gauge: a parameter held at nominal hands its
+    value to the partner that carries the sum (the 4-DOF pairs d1+d2, d4+slm_z)."""
+    truth = session.errors.copy()
+    names = list(est.names)
+    for fixed, text in est.identifiability.merged.items():
+        partner = text.split("from ")[1].split(";")[0].split(", ")[0]
+        truth[names.index(partner)] += truth[names.index(fixed)]
+        truth[names.index(fixed)] = 0.0
+    return truth
+
+
+@pytest.mark.parametrize("case", ["paper-7dof", "paper-4dof"])
+def test_lm_estimates_are_consistent_with_their_covariance(case):
+    d2 = []
+    for seed in range(8):
+        session = paper_session(case, seed)
+        est = estimate(session.nominal, session.samples, _options(session))
+        assert est.fit.converged and not est.warnings
+        d2.append(_mahalanobis(est, _gauge_truth(session, est)))
+        dof = int(est.identifiable.sum())
+        assert d2[-1] < chi2.ppf(0.999, dof), (seed, d2[-1])
+    # the mean of 8 chi^2_dof / dof has std sqrt(2 / dof / 8); allow 4 of them
+    assert abs(np.mean(d2) / dof - 1) < 4 * np.sqrt(2 / dof / 8)
+
+
+def test_ekf_reaches_the_lm_minimum():
+    session = paper_session("paper-7dof", 11)
+    cal = session.samples.subset(session.cases["case2"][0])
+    lm = estimate(session.nominal, cal, _options(session))
+    ekf = estimate(session.nominal, cal, _options(session, method="ekf", ekf=EkfOptions(r=None)))
+    assert ekf.fit.converged
+    # The EKF stops when its state changes by < 1e-7: far inside a tenth of a standard deviation.
+    assert np.all(np.abs(ekf.errors - lm.errors) < 0.1 * lm.std)
+    assert ekf.fit.cost == pytest.approx(lm.fit.cost, rel=1e-6)
+
+
+def test_paper_ekf_settings_converge():
+    """Q = R = 1e-4 I, stop below 1e-7: the fixed point is the least-squares one."""
+    session = paper_session("paper-4dof", 2)
+    est = estimate(session.nominal, session.samples, _options(session, method="ekf"))
+    # R = 1e-4 I is a spot sigma of 10 mm; the joint noise is kept in both
+    lm = estimate(session.nominal, session.samples,
+                  EstimateOptions(spot_sigma=0.01, joint_sigma=session.noise.joint_sigma))
+    assert est.fit.converged and est.fit.iterations < 5000
+    # Converging linearly, the last 1e-7 step leaves more than 1e-7 to go: compare in std units.
+    assert np.all(np.abs(est.errors - lm.errors)[lm.identifiable] < 0.05 * lm.std[lm.identifiable])
+
+
+def test_prior_adds_its_information():
+    """With the prior, the normal matrix at the same x gains diag(1 / tolerance^2)
+    exactly, and no standard deviation grows."""
+    session = paper_session("paper-7dof", 4)
+    cal = session.samples.subset(session.cases["case1"][0])
+    model = SpotModel(session.nominal, cal)
+    options = _options(session, prior=True)
+    sigma = prior_sigmas(model, 33, options)
+    noise = NoiseModel(options.spot_sigma, options.joint_sigma)
+    x = session.errors
+    _, jac_plain, _, _ = Problem(model, noise, np.ones(33, bool)).stack(x)
+    _, jac_prior, _, _ = Problem(model, noise, np.ones(33, bool), sigma).stack(x)
+    gained = (jac_prior.T @ jac_prior - jac_plain.T @ jac_plain) / np.outer(model.scales, model.scales)
+    tol = np.where(np.array(model.scales) == 0.010, 0.010, np.deg2rad(1.0))
+    assert np.allclose(gained, np.diag(1 / tol ** 2), rtol=1e-9, atol=1e-6 / tol.min() ** 2)
+    plain = estimate(session.nominal, cal, _options(session))
+    with_prior = estimate(session.nominal, cal, options)
+    assert np.all(with_prior.std <= plain.std * 1.001)
+
+
+def test_sigma_is_estimated_from_the_residual():
+    noise = NoiseSpec(spot=0.002, joint=0.0)
+    session = paper_session("paper-7dof", 5, noise=noise)
+    est = estimate(session.nominal, session.samples, EstimateOptions())
+    assert est.sigma_estimated
+    # relative std of a sigma estimate with ~200 dof is ~1/sqrt(2*200) = 5 %: allow 3 of them
+    assert est.sigma == pytest.approx(noise.spot_sigma, rel=0.15)
+
+
+def test_robust_rejects_a_wrong_detection():
+    session = paper_session("paper-7dof", 6)
+    spots = session.samples.spots.copy()
+    spots[17, 1] += [0.03, -0.02]  # one spot 36 mm off: a reflection taken for the laser
+    samples = replace(session.samples, spots=spots)
+    plain = estimate(session.nominal, samples, _options(session))
+    robust = estimate(session.nominal, samples, _options(session, robust=True))
+    assert robust.rejected == ((17, 1),)
+    assert any("exceeds the noise model" in w for w in plain.warnings)
+    assert _mahalanobis(robust, session.errors) < chi2.ppf(0.999, 33)
+    assert _mahalanobis(plain, session.errors) > _mahalanobis(robust, session.errors)
+
+
+def test_fixed_parameters_stay_nominal_and_are_reported_without_value():
+    session = paper_session("paper-7dof", 8)
+    est = estimate(session.nominal, session.samples, _options(session, fixed=("a1", "theta7")))
+    names = list(est.names)
+    for name in ("a1", "theta7"):
+        assert np.isnan(est.errors[names.index(name)]) and not est.identifiable[names.index(name)]
+        assert est.values[names.index(name)] == 0.0
