@@ -31,8 +31,8 @@ from .measurement import MeasurementModel, NoiseModel, Residuals, whiten
 @dataclass(frozen=True)
 class LmOptions:
     max_iter: int = 100
-    step_tol: float = 1e-10   # stop when the scaled step norm falls below this
-    cost_tol: float = 1e-14   # ... or the relative cost decrease does
+    step_tol: float = 1e-8    # stop when the step norm (in 10 mm / 1 deg units) falls below this
+    cost_tol: float = 1e-10   # ... or the relative cost decrease does
     damping: float = 1e-3     # initial lambda
 
 
@@ -142,11 +142,17 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
     damping = options.damping
     converged = False
     iterations = 0
-    for iterations in range(1, options.max_iter + 1):
+    eye = np.eye(jac.shape[1])
+    while iterations < options.max_iter and not converged:
+        iterations += 1
         gradient = jac.T @ r
         normal = jac.T @ jac
         while True:
-            step = np.linalg.solve(normal + damping * np.eye(len(gradient)), gradient)
+            step = np.linalg.solve(normal + damping * eye, gradient)
+            # A step this small (scaled units: 1e-8 of 10 mm / 1 deg) changes nothing that matters.
+            if np.linalg.norm(step) < options.step_tol:
+                converged = True
+                break
             trial = x.copy()
             trial[problem.free] += step * problem.scales
             r_trial, jac_trial, whitener_trial, res_trial = problem.stack(trial)
@@ -154,19 +160,14 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
             if cost_trial <= cost:
                 break
             damping *= 10.0
-            if damping > 1e12:
-                break
-        if cost_trial > cost:  # no step lowers the cost: at a minimum
-            converged = True
+        if converged:
             break
         decrease = cost - cost_trial
         x, r, jac, whitener, res, cost = trial, r_trial, jac_trial, whitener_trial, res_trial, cost_trial
         history.append(x.copy())
         costs.append(cost)
         damping = max(damping / 10.0, 1e-12)
-        if np.linalg.norm(step) < options.step_tol or decrease <= options.cost_tol * max(cost, 1e-300):
-            converged = True
-            break
+        converged = decrease <= options.cost_tol * max(cost, 1e-300)
     return Fit(x, problem.covariance(jac), problem.free, cost, 2 * cost, problem.n_values(res), iterations,
                converged, np.array(history), np.array(costs), problem.excluded)
 

@@ -1,0 +1,21 @@
+"""Shared helpers of the benchmarks: import path, results folder, markdown tables."""
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+CORE = ROOT / "ros2_ws" / "src" / "laser_calib"
+if str(CORE) not in sys.path:
+    sys.path.insert(0, str(CORE))
+
+import laser_calib  # noqa: E402,F401  (first: it pins BLAS to one thread before numpy loads)
+
+
+def write_results(name: str, data: dict, table: str) -> None:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{name}.json").write_text(json.dumps(data, indent=2))
+    (RESULTS / f"{name}.md").write_text(table)
+    print(table)
+    print(f"wrote {RESULTS / name}.json and .md")
