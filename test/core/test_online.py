@@ -1,0 +1,33 @@
+"""The online EKF (one pose per step) against the offline estimate with the same prior."""
+
+import numpy as np
+
+from laser_calib.estimation import EstimateOptions, estimate
+from laser_calib.online import OnlineEkf
+from laser_calib.simulation import paper_session
+
+
+def test_online_ekf_ends_near_the_offline_map_estimate():
+    session = paper_session("paper-7dof", 2)
+    options = EstimateOptions(spot_sigma=session.noise.spot_sigma, joint_sigma=session.noise.joint_sigma,
+                              prior=True)
+    online = OnlineEkf(session.nominal, options)
+    assert not online.identifiable.any()
+    for q, spots in zip(session.samples.q, session.samples.spots):
+        online.update(q, spots)
+    offline = estimate(session.nominal, session.samples, options)
+    # Same posterior, linearised once per pose instead of iterated: within one std.
+    assert np.all(np.abs(online.errors - offline.errors) < offline.std)
+    assert np.allclose(online.std, offline.std, rtol=0.2)
+    assert online.identifiable.all() and online.n_samples == len(session.samples)
+
+
+def test_online_ekf_skips_unseen_spots_and_resets():
+    session = paper_session("paper-4dof", 3)
+    online = OnlineEkf(session.nominal, EstimateOptions(spot_sigma=0.001))
+    online.update(session.samples.q[0], np.full((2, 2), np.nan))
+    assert np.all(online.errors == 0) and online.n_samples == 1
+    online.update(session.samples.q[1], session.samples.spots[1])
+    assert np.any(online.errors != 0)
+    online.reset()
+    assert online.n_samples == 0 and np.all(online.errors == 0)
