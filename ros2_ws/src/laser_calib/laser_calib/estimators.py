@@ -31,8 +31,8 @@ from .measurement import MeasurementModel, NoiseModel, Residuals, whiten
 @dataclass(frozen=True)
 class LmOptions:
     max_iter: int = 100
-    step_tol: float = 1e-8    # stop when the step norm (in 10 mm / 1 deg units) falls below this
-    cost_tol: float = 1e-10   # ... or the relative cost decrease does
+    step_tol: float = 1e-4    # stop when the step is shorter than this many standard deviations
+    cost_tol: float = 1e-12   # ... or the relative cost decrease falls below this
     damping: float = 1e-3     # initial lambda
 
 
@@ -108,10 +108,15 @@ class Problem:
 
     def stack(self, x: np.ndarray, whitener: np.ndarray | None = None):
         """Whitened residuals (M,) and Jacobian in free, scaled parameters (M,k),
-        prior rows appended; also the whitener used and the residual object."""
+        prior rows appended; also the whitener used and the residual object.
+        Without a whitener, the one of x itself (its joint-noise covariance)."""
         res = self.residuals(x, True)
         if whitener is None:
             whitener = self.noise.whitener(res)
+        r, jac = self.whitened(x, res, whitener)
+        return r, jac, whitener, res
+
+    def whitened(self, x: np.ndarray, res: Residuals, whitener: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r, jac = whiten(res, whitener)
         jac = jac[:, self.free] * self.scales
         prior = np.isfinite(self.prior_sigma) & self.free
@@ -121,7 +126,7 @@ class Problem:
             rows = np.zeros((prior.sum(), self.free.sum()))
             rows[np.arange(prior.sum()), np.flatnonzero(prior[self.free])] = self.scales[prior[self.free]] / sigma
             jac = np.vstack([jac, rows])
-        return r, jac, whitener, res
+        return r, jac
 
     def n_values(self, res: Residuals) -> int:
         return int(res.valid.sum()) * res.r.shape[2]
@@ -135,6 +140,9 @@ class Problem:
 
 
 def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = LmOptions()) -> Fit:
+    """Iteratively reweighted LM: a trial is compared with the current point under
+    the current point's noise weights (the joint-noise covariance depends on x);
+    the weights are renewed at each accepted point."""
     x = np.array(x0, dtype=float)
     r, jac, whitener, res = problem.stack(x)
     cost = 0.5 * r @ r
@@ -149,13 +157,15 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
         normal = jac.T @ jac
         while True:
             step = np.linalg.solve(normal + damping * eye, gradient)
-            # A step this small (scaled units: 1e-8 of 10 mm / 1 deg) changes nothing that matters.
-            if np.linalg.norm(step) < options.step_tol:
+            # The step's length in standard deviations of the estimate (the information
+            # metric): below step_tol it changes nothing that the data can tell.
+            if np.sqrt(step @ normal @ step) < options.step_tol:
                 converged = True
                 break
             trial = x.copy()
             trial[problem.free] += step * problem.scales
-            r_trial, jac_trial, whitener_trial, res_trial = problem.stack(trial)
+            res_trial = problem.residuals(trial, True)
+            r_trial, _ = problem.whitened(trial, res_trial, whitener)
             cost_trial = 0.5 * r_trial @ r_trial
             if cost_trial <= cost:
                 break
@@ -163,7 +173,10 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
         if converged:
             break
         decrease = cost - cost_trial
-        x, r, jac, whitener, res, cost = trial, r_trial, jac_trial, whitener_trial, res_trial, cost_trial
+        x, res = trial, res_trial
+        whitener = problem.noise.whitener(res)
+        r, jac = problem.whitened(x, res, whitener)
+        cost = 0.5 * r @ r
         history.append(x.copy())
         costs.append(cost)
         damping = max(damping / 10.0, 1e-12)

@@ -38,7 +38,8 @@ class Identifiability:
                  " k  singular value (scaled)"]
         lines += [f"{k + 1:2d}  {s:.4g}" for k, s in enumerate(self.singular_values)]
         if self.null_combinations:
-            lines += ["", "combinations the data cannot see (coefficients in units of 10 mm / 1 deg):"]
+            lines += ["", "directions that move no spot (coefficients in units of 10 mm / 1 deg; "
+                      "+1 d1 -1 d2 means only the sum d1 + d2 is seen):"]
             lines += [f"  {text}" for text in self.null_combinations]
             lines += ["", "fixed at nominal (merged):"]
             lines += [f"  {name}: {how}" for name, how in self.merged.items()]
@@ -66,7 +67,7 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
     scaled = jacobian * scales
     candidates = np.flatnonzero(~fixed)
-    singular = np.linalg.svd(scaled[:, candidates], compute_uv=False)
+    _, singular, vt = np.linalg.svd(scaled[:, candidates], full_matrices=False)
     top = singular[0] if singular.size and singular[0] > 0 else 1.0
     rank = int((singular > rel_tol * top).sum())
 
@@ -80,7 +81,8 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     free = np.zeros(n, bool)
     free[kept] = True
 
-    _, _, vt = np.linalg.svd(scaled[:, candidates])
+    if vt.shape[0] < len(candidates):  # fewer values than parameters: complete the basis
+        vt = np.linalg.svd(scaled[:, candidates])[2]
     null = vt[rank:].T  # (len(candidates), n - rank) in scaled coordinates
     null_full = np.zeros((n, null.shape[1]))
     null_full[candidates] = null
