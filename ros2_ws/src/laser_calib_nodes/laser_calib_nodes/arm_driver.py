@@ -1,0 +1,193 @@
+"""arm_driver: joint goals in, joint states out, over a simulated or a Dynamixel arm.
+
+Subscribes  joint_trajectory (trajectory_msgs/JointTrajectory): the positions of
+            the LAST point are the goal; the arm moves there on its own
+            profile (the intermediate points and all timing fields are
+            ignored). joint_names may list the joints in any order; empty means
+            the driver's order. A goal outside the joint limits, with NaN or of
+            the wrong size is refused with one log line; the arm keeps its goal.
+Publishes   joint_states (sensor_msgs/JointState) at ``rate`` Hz: position
+            (rad) and velocity (rad/s) as read from the arm.
+            sim/true_spots (laser_calib_interfaces/SpotPair), backend 'sim' only:
+            the true spots of the two lasers (true robot at the true joint
+            angles, laser_calib.kinematics.predict), stamped like the joint
+            state of the same instant. Private to the simulation: camera_sim
+            renders them; nothing else may use them.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from laser_calib.robot_file import load_robot, save_robot
+from laser_calib.simulation import NoiseSpec, true_errors
+
+from . import common
+from .backends import SimArm, dynamixel_backend
+
+
+class ArmDriver(Node):
+    def __init__(self):
+        super().__init__("arm_driver")
+        declare = lambda *a, **k: common.declare(self, *a, **k)  # noqa: E731
+        backend = declare("backend", "sim", "Arm backend: 'sim' (simulated true robot) or 'dynamixel'.")
+        self.robot, robot_path = common.robot_param(self)
+        n = self.robot.n_joints
+        names = declare("joint_names", Parameter.Type.STRING_ARRAY,
+                        "Joint names, base to tip (default joint1..jointN).", type_=Parameter.Type.STRING_ARRAY)
+        self.joint_names = list(names) if names else common.default_joint_names(n)
+        if len(self.joint_names) != n:
+            raise common.NodeError(f"parameter joint_names: {len(self.joint_names)} names, "
+                                   f"robot '{self.robot.name}' has {n} joints", 2)
+        rate = declare("rate", 50.0, "Joint state publishing rate, Hz.")
+        if not rate > 0:
+            raise common.NodeError(f"parameter rate: must be positive, got {rate}", 2)
+
+        # simulation
+        true_path = declare("sim.true_robot", "", "Sim: true robot model file; empty: nominal + sim.errors.")
+        errors_kind = declare("sim.errors", "paper",
+                              "Sim: true errors when sim.true_robot is empty: 'paper' (+10 mm, +1 deg on every "
+                              "parameter) or 'random' (uniform within those sizes, seeded).")
+        seed = declare("sim.seed", 0, "Sim: random seed (errors, joint disturbance, reading noise).")
+        speed = declare("sim.joint_speed", 1.0, "Sim: maximum joint speed, rad/s.")
+        tau = declare("sim.time_constant", 0.05, "Sim: settling time constant near the goal, s.")
+        disturbance = declare("sim.joint_disturbance", float(NoiseSpec().joint),
+                              "Sim: half-width of the uniform joint disturbance drawn per goal, rad "
+                              "(the paper's 0.1 deg).")
+        read_noise = declare("sim.read_noise", 0.0, "Sim: joint reading noise, rad (one sigma).")
+        true_out = declare("sim.true_robot_out", "", "Sim: write the true robot model to this file (for evaluation).")
+
+        # dynamixel
+        port = declare("dynamixel.port", "/dev/ttyUSB0", "Dynamixel: serial port.")
+        baud = declare("dynamixel.baudrate", 57600, "Dynamixel: baud rate.")
+        ids = declare("dynamixel.ids", Parameter.Type.INTEGER_ARRAY, "Dynamixel: servo id per joint, base to tip.",
+                      type_=Parameter.Type.INTEGER_ARRAY)
+        tpr = declare("dynamixel.ticks_per_rad", Parameter.Type.DOUBLE_ARRAY,
+                      "Dynamixel: ticks per rad per joint (sign gives the direction); default 4096/(2 pi).",
+                      type_=Parameter.Type.DOUBLE_ARRAY)
+        zero = declare("dynamixel.zero_ticks", Parameter.Type.INTEGER_ARRAY,
+                       "Dynamixel: ticks at q = 0 per joint; default 2048.", type_=Parameter.Type.INTEGER_ARRAY)
+        q_min = declare("dynamixel.min", Parameter.Type.DOUBLE_ARRAY,
+                        "Dynamixel: lower joint limit per joint, rad; default the robot file's.",
+                        type_=Parameter.Type.DOUBLE_ARRAY)
+        q_max = declare("dynamixel.max", Parameter.Type.DOUBLE_ARRAY,
+                        "Dynamixel: upper joint limit per joint, rad; default the robot file's.",
+                        type_=Parameter.Type.DOUBLE_ARRAY)
+        profile = declare("dynamixel.profile_velocity", 30,
+                          "Dynamixel: Profile Velocity (units of 0.229 rev/min; 0 = no limit).")
+
+        self.sim: SimArm | None = None
+        if backend == "sim":
+            rng = np.random.default_rng(seed)
+            if true_path:
+                true_robot = load_robot(true_path)
+                if true_robot.n_joints != n:
+                    raise common.NodeError(f"sim.true_robot {true_path}: {true_robot.n_joints} joints, "
+                                           f"robot {robot_path} has {n}", 2)
+            elif errors_kind in ("paper", "random"):
+                true_robot = self.robot.with_errors(true_errors(self.robot, rng if errors_kind == "random" else None))
+            else:
+                raise common.NodeError(f"parameter sim.errors: expected 'paper' or 'random', got {errors_kind!r}", 2)
+            if true_out:
+                save_robot(true_robot, true_out, header=f"True robot of the simulation: {robot_path} + "
+                                                        f"sim.errors={errors_kind}, seed {seed}")
+            self.sim = SimArm(true_robot, self.joint_names, rng, speed, tau, disturbance, read_noise)
+            self.backend = self.sim
+            from laser_calib_interfaces.msg import SpotPair
+            self.true_pub = self.create_publisher(SpotPair, common.TRUE_SPOTS, common.STREAM_QOS)
+        elif backend == "dynamixel":
+            ids = list(ids or [])
+            if not ids:
+                raise common.NodeError("parameter dynamixel.ids: give one servo id per joint", 2)
+            try:
+                self.backend = dynamixel_backend(
+                    port, baud, ids, list(tpr or [4096 / (2 * math.pi)] * n), list(zero or [2048] * n),
+                    list(q_min or self.robot.q_min), list(q_max or self.robot.q_max), profile, self.joint_names)
+            except ValueError as exc:
+                raise common.NodeError(f"dynamixel parameters: {exc}", 2) from None
+            except RuntimeError as exc:  # DynamixelError: one line naming the servo
+                raise common.NodeError(str(exc), 1) from None
+        else:
+            raise common.NodeError(f"parameter backend: expected 'sim' or 'dynamixel', got {backend!r}", 2)
+
+        self.index = {name: i for i, name in enumerate(self.joint_names)}
+        self.state_pub = self.create_publisher(JointState, common.JOINT_STATES, common.STREAM_QOS)
+        self.create_subscription(JointTrajectory, common.JOINT_TRAJECTORY, self.on_trajectory, common.COMMAND_QOS)
+        self.timer = self.create_timer(1.0 / rate, self.on_timer)
+        self.exit_code = 0
+        self.get_logger().info(f"{backend} arm '{self.robot.name}', {n} joints, publishing at {rate:g} Hz")
+
+    def on_trajectory(self, msg: JointTrajectory) -> None:
+        if not msg.points:
+            self.get_logger().error("joint_trajectory rejected: no points")
+            return
+        positions = list(msg.points[-1].positions)
+        names = list(msg.joint_names) or self.joint_names
+        if len(names) != len(positions):
+            self.get_logger().error(f"joint_trajectory rejected: {len(names)} joint names, "
+                                    f"{len(positions)} positions in the last point")
+            return
+        unknown = [name for name in names if name not in self.index]
+        if unknown or len(set(names)) != len(self.joint_names):
+            missing = sorted(set(self.joint_names) - set(names))
+            what = f"unknown joint '{unknown[0]}'" if unknown else f"missing joint '{missing[0]}'"
+            self.get_logger().error(f"joint_trajectory rejected: {what} (joints: {', '.join(self.joint_names)})")
+            return
+        goal = np.empty(len(self.joint_names))
+        for name, value in zip(names, positions):
+            goal[self.index[name]] = value
+        try:
+            self.backend.command(goal)
+        except ValueError as exc:
+            self.get_logger().error(f"joint_trajectory rejected: {exc}")
+        except RuntimeError as exc:  # hardware fault: the backend has stopped the arm
+            self.fail(str(exc))
+
+    def on_timer(self) -> None:
+        try:
+            q, velocity = self.backend.read()
+        except RuntimeError as exc:
+            self.fail(str(exc))
+            return
+        stamp = self.get_clock().now().to_msg()
+        msg = JointState()
+        msg.header.stamp = stamp
+        msg.name = self.joint_names
+        msg.position = [float(v) for v in q]
+        msg.velocity = [float(v) for v in velocity]
+        self.state_pub.publish(msg)
+        if self.sim is not None:
+            from laser_calib_interfaces.msg import SpotPair
+            spots, seen = self.sim.true_spots()
+            true = SpotPair()
+            true.header.stamp = stamp
+            true.header.frame_id = common.SCREEN_FRAME
+            true.spots = common.spots_to_msg(spots, seen)
+            self.true_pub.publish(true)
+
+    def fail(self, message: str) -> None:
+        """Hardware fault: one log line, arm stopped, node exits with code 1."""
+        self.get_logger().error(f"{message}; arm stopped")
+        self.backend.stop()
+        raise common.NodeError(message, 1)
+
+    def close(self) -> None:
+        backend = getattr(self, "backend", None)
+        if backend is not None:
+            backend.stop()
+            backend.close()
+
+
+def main(args=None) -> int:
+    return common.run(ArmDriver, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,108 @@
+"""The batch estimate as the nodes run it (ROS-free): the command line's code path.
+
+Both the estimator's Estimate service and the sequencer's local mode call
+run_and_collect, which calls laser_calib.pipeline.run_estimate (what
+`laser-calib estimate` calls) and gathers what a ROS answer carries: the
+result dictionary, the text of the files it wrote, the calibrated model.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from laser_calib.errors import InputError
+from laser_calib.estimation import METHODS, EstimateOptions
+from laser_calib.model import Robot
+from laser_calib.pipeline import run_estimate
+from laser_calib.robot_file import load_robot
+from laser_calib.samples_file import Samples
+
+FILES = ("report.md", "result.json", "robot_calibrated.yaml")
+
+
+def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool) -> EstimateOptions:
+    """EstimateOptions from ROS-style values (method '' = 'lm', spot_sigma 0 = estimate it)."""
+    method = method or "lm"
+    if method not in METHODS:
+        raise InputError("method", f"expected one of {', '.join(METHODS)}, got {method!r}")
+    if not (math.isfinite(spot_sigma) and spot_sigma >= 0):
+        raise InputError("spot_sigma", f"expected a non-negative number of metres, got {spot_sigma}")
+    return EstimateOptions(method=method, spot_sigma=spot_sigma or None, prior=bool(prior), robust=bool(robust))
+
+
+@dataclass(frozen=True)
+class Outcome:
+    result: dict
+    files: dict[str, str]
+    calibrated: Robot
+    diagnosis_json: str
+    message: str
+
+
+def run_and_collect(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
+                    diagnose: bool = False, sources: dict | None = None) -> Outcome:
+    """run_estimate into out_dir (a temporary directory when None); ValueError from
+    the estimate (too few spots, ...) becomes an InputError."""
+    with tempfile.TemporaryDirectory(prefix="laser_calib_estimate_") as tmp:
+        target = Path(out_dir) if out_dir else Path(tmp)
+        try:
+            result = run_estimate(robot, samples, options, target, sources=sources)
+        except ValueError as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise InputError("estimate", str(exc)) from None
+        files = {name: (target / name).read_text() for name in FILES}
+        calibrated = load_robot(target / "robot_calibrated.yaml")
+        diagnosis = ""
+        if diagnose:
+            diagnosis = json.dumps(run_diagnosis(robot, samples, options, result, target))
+    return Outcome(result, files, calibrated, diagnosis, summary(result, len(samples)))
+
+
+def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, result: dict, out: Path) -> dict:
+    """The core's residual diagnosis when it is there; otherwise what result.json says."""
+    try:
+        from laser_calib import diagnosis  # noqa: F401  (the core's module, when present)
+    except ImportError:
+        return {"available": False, "reason": "laser_calib.diagnosis is not installed",
+                "chi2": result.get("chi2"), "dof": result.get("dof"), "warnings": result.get("warnings", [])}
+    return diagnosis.diagnose_to_dict(robot, samples, options, result, out)  # pragma: no cover
+
+
+def summary(result: dict, n_samples: int) -> str:
+    """One line: the spot error before and after, as the command line prints it."""
+    by_model = result["spot_error"]["calibration"]
+    before, after = by_model["before"]["all"], by_model["after"]["all"]
+
+    def mm(value):
+        return "n/a" if value is None else f"{value:.3f}"
+
+    return (f"{result['method']} on {n_samples} poses: mean spot error {mm(before['mean_mm'])} mm -> "
+            f"{mm(after['mean_mm'])} mm (max {mm(before['max_mm'])} -> {mm(after['max_mm'])}; {after['n']} spots)"
+            + ("; " + "; ".join(result["warnings"]) if result.get("warnings") else ""))
+
+
+def laser_statistics(stats: dict) -> dict[str, list[float]]:
+    """Per-laser mean/std/max in metres and counts from pipeline's laser_stats (mm)."""
+    out = {"mean": [], "std": [], "max": [], "count": []}
+    for j in range(2):
+        entry = stats.get(f"laser{j + 1}", {})
+        for key in ("mean", "std", "max"):
+            value = entry.get(f"{key}_mm")
+            out[key].append(math.nan if value is None else value * 1e-3)
+        out["count"].append(int(entry.get("n", 0)))
+    return out
+
+
+def parameter_arrays(result: dict) -> tuple[list[str], np.ndarray, np.ndarray, list[bool]]:
+    names = [e["name"] for e in result["errors"]]
+    errors = np.array([math.nan if e["value"] is None else e["value"] for e in result["errors"]])
+    std = np.array([math.nan if e["std"] is None else e["std"] for e in result["errors"]])
+    identifiable = [bool(e["identifiable"]) for e in result["errors"]]
+    return names, errors, std, identifiable

@@ -1,0 +1,89 @@
+"""camera_sim: the simulated camera watching the screen.
+
+Subscribes  sim/true_spots (laser_calib_interfaces/SpotPair) from the sim arm_driver.
+Publishes   camera/image_raw (sensor_msgs/Image, bgr8) and camera/camera_info
+            (sensor_msgs/CameraInfo, plumb_bob) at ``rate`` Hz, rendered by
+            laser_calib.vision.render.render_frame from the latest true spots.
+            The image is stamped with the stamp of the true spots it shows (the
+            capture instant), which is also the stamp of a joint state.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+
+from laser_calib.vision import render
+from laser_calib.vision.camera import CameraModel, default_camera
+
+from . import common
+
+CAMERA_FRAME = "camera_optical"
+
+
+def camera_info(camera: CameraModel, stamp, frame_id: str = CAMERA_FRAME) -> CameraInfo:
+    info = CameraInfo()
+    info.header.stamp = stamp
+    info.header.frame_id = frame_id
+    info.width, info.height = int(camera.width), int(camera.height)
+    info.distortion_model = "plumb_bob"
+    info.d = [float(v) for v in camera.dist]
+    info.k = [float(v) for v in camera.K.ravel()]
+    info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    info.p = [float(v) for v in np.hstack([camera.K, np.zeros((3, 1))]).ravel()]
+    return info
+
+
+class CameraSim(Node):
+    def __init__(self):
+        super().__init__("camera_sim")
+        rate = common.declare(self, "rate", 10.0, "Frame rate, Hz.")
+        seed = common.declare(self, "seed", 1, "Random seed of the image noise (speckle, shot and read noise).")
+        spot_sigma = common.declare(self, "spot_sigma", 0.002, "Gaussian sigma of a laser spot on the screen, m.")
+        if not rate > 0:
+            raise common.NodeError(f"parameter rate: must be positive, got {rate}", 2)
+        self.camera = default_camera()
+        self.options = render.RenderOptions(spot_sigma_m=spot_sigma)
+        self.rng = np.random.default_rng(seed)
+        self.latest = None
+        self.last_stamp = None
+        from laser_calib_interfaces.msg import SpotPair
+        self.create_subscription(SpotPair, common.TRUE_SPOTS, self.on_spots, common.STREAM_QOS)
+        self.image_pub = self.create_publisher(Image, common.IMAGE, common.IMAGE_QOS)
+        self.info_pub = self.create_publisher(CameraInfo, common.CAMERA_INFO, common.IMAGE_QOS)
+        # Warm the renderer's caches (pixel maps, ~0.5 s) before the first frame is due.
+        render.render_frame(self.camera, np.zeros((2, 2)), np.zeros(2, bool), self.rng, self.options)
+        self.create_timer(1.0 / rate, self.on_timer)
+        self.get_logger().info(f"camera {self.camera.width}x{self.camera.height} at {rate:g} Hz")
+
+    def on_spots(self, msg) -> None:
+        self.latest = msg
+
+    def on_timer(self) -> None:
+        msg = self.latest
+        if msg is None or msg.header.stamp == self.last_stamp:
+            return  # no new instant of the arm to show
+        self.last_stamp = msg.header.stamp
+        spots = common.spots_from_msg(msg.spots)
+        seen = np.array([s.seen for s in msg.spots])
+        frame = render.render_frame(self.camera, np.nan_to_num(spots), seen, self.rng, self.options)
+        image = Image()
+        image.header.stamp = msg.header.stamp
+        image.header.frame_id = CAMERA_FRAME
+        image.height, image.width = frame.shape[:2]
+        image.encoding = render.ENCODING
+        image.step = frame.shape[1] * 3
+        image.data = frame.tobytes()
+        self.image_pub.publish(image)
+        self.info_pub.publish(camera_info(self.camera, msg.header.stamp))
+
+
+def main(args=None) -> int:
+    return common.run(CameraSim, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

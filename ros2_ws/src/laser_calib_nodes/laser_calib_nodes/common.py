@@ -1,0 +1,169 @@
+"""What every node shares: topic names, QoS profiles, parameter declaration,
+message conversions and the main() wrapper (exit 0 on Ctrl-C, one line on bad input)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException, Executor, SingleThreadedExecutor
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException, ParameterException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from laser_calib.errors import InputError
+from laser_calib.robot_file import load_robot
+
+from . import bag
+
+# Topic and service names (relative: a namespace or a remap moves them).
+JOINT_STATES = "joint_states"
+JOINT_TRAJECTORY = "joint_trajectory"
+TRUE_SPOTS = "sim/true_spots"          # private to the simulation: true spots for camera_sim
+IMAGE = "camera/image_raw"
+CAMERA_INFO = "camera/camera_info"
+SPOTS = "spots"                        # laser_calib_interfaces/SpotPair, every frame
+LASER_SPOT = ("laser1/spot", "laser2/spot")  # geometry_msgs/PointStamped, only when seen
+SAMPLES = "samples"
+PROGRESS = "session/progress"
+DH_PARAMETERS = "dh_parameters"
+MARKERS = "calibration_markers"
+ESTIMATE_SERVICE = "estimator/estimate"
+RESET_SERVICE = "estimator/reset"
+SCREEN_FRAME = "screen"
+
+# QoS. Results and session state are transient-local (a late subscriber gets the last one).
+STREAM_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+                        history=HistoryPolicy.KEEP_LAST)
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+# Images (4 MB) are reliable: best effort over Fast DDS loses most frames of this size.
+IMAGE_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# Every sample of a session is kept for late subscribers (an estimator started late).
+SAMPLES_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def bag_qos(profile: QoSProfile):
+    """The rosbags description of an rclpy QoS profile (for the bag's metadata)."""
+    return bag.qos(reliable=profile.reliability == ReliabilityPolicy.RELIABLE,
+                   transient_local=profile.durability == DurabilityPolicy.TRANSIENT_LOCAL, depth=profile.depth)
+
+
+class NodeError(RuntimeError):
+    """A fatal condition a node reports in one line before exiting non-zero."""
+
+    def __init__(self, message: str, code: int = 1):
+        super().__init__(message)
+        self.code = code
+
+
+def declare(node: Node, name: str, default: Any, description: str, read_only: bool = True, type_=None) -> Any:
+    """Declare a parameter with its description; return its value.
+
+    An integer given for a floating-point parameter is taken as that number
+    (``rate:=10`` works); any other type mismatch is a NodeError in one line.
+    """
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if type_ is not None:
+        return node.declare_parameter(name, type_, descriptor).value
+    descriptor.dynamic_typing = True
+    value = node.declare_parameter(name, default, descriptor).value
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if type(value) is not type(default):
+        raise NodeError(f"parameter {name}: expected {type(default).__name__}, got {type(value).__name__} "
+                        f"{value!r}", 2)
+    return value
+
+
+def robot_param(node: Node, name: str = "robot", default: str = "", description: str | None = None):
+    path = declare(node, name, default, description or
+                   "Nominal robot model file (YAML, conventions.md), e.g. config/robots/humanoid_arm_7dof.yaml.")
+    if not path:
+        raise NodeError(f"parameter '{name}' is empty: give the robot model file (YAML)", 2)
+    return load_robot(path), path
+
+
+def stamp_seconds(stamp) -> float:
+    return bag.stamp_seconds(stamp.sec, stamp.nanosec)
+
+
+def now_ns(node: Node) -> int:
+    return node.get_clock().now().nanoseconds
+
+
+def spots_to_msg(spots: np.ndarray, seen: Sequence[bool]):
+    from laser_calib_interfaces.msg import Spot
+    out = []
+    for j in range(2):
+        if seen[j] and np.isfinite(spots[j]).all():
+            out.append(Spot(y=float(spots[j][0]), z=float(spots[j][1]), seen=True))
+        else:
+            out.append(Spot(y=math.nan, z=math.nan, seen=False))
+    return out
+
+
+def spots_from_msg(spots) -> np.ndarray:
+    """(2,2) array, NaN where a laser was not seen."""
+    out = np.full((2, 2), np.nan)
+    for j, spot in enumerate(spots):
+        if spot.seen:
+            out[j] = (spot.y, spot.z)
+    return out
+
+
+def default_joint_names(n: int) -> list[str]:
+    return [f"joint{i + 1}" for i in range(n)]
+
+
+def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
+        make_executor: Callable[[], Executor] | None = None,
+        until: Callable[[Node], bool] | None = None) -> int:
+    """Initialise, spin (until ``until(node)`` when given), clean up in finally.
+
+    Exit codes: 0 normal or Ctrl-C/SIGTERM; 2 bad input (one line, no
+    traceback); a NodeError's code; 1 unexpected errors.
+    """
+    rclpy.init(args=args)
+    node = None
+    executor = None
+    code = 0
+    try:
+        node = make_node()
+        executor = make_executor() if make_executor else SingleThreadedExecutor()
+        executor.add_node(node)
+        if until is None:
+            executor.spin()
+        else:
+            while rclpy.ok() and not until(node):
+                executor.spin_once(timeout_sec=0.1)
+        code = getattr(node, "exit_code", 0)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 0
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        code = 2
+    except NodeError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        code = exc.code
+    except (ParameterException, InvalidParameterTypeException, InvalidParameterValueException) as exc:
+        print(f"error: parameter: {exc}", file=sys.stderr, flush=True)
+        code = 2
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            try:
+                if close is not None:
+                    close()
+            except Exception as exc:  # cleanup must not hide the exit code
+                print(f"warning: cleanup of {node.get_name()} failed: {exc}", file=sys.stderr, flush=True)
+            node.destroy_node()
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown()
+    return code

@@ -1,0 +1,135 @@
+"""replay: republish a recorded session's topics with their original timing.
+
+    replay BAG [--rate R] [--topics T ...] [--exclude T ...] [--wait-for T ...]
+
+Messages go out as recorded (raw CDR, same types, same QoS as offered at
+recording, header stamps untouched) at the bag's receive times, scaled by
+1/R. With --wait-for, playback starts once each named topic has a
+subscriber (so nothing is published into the void). An estimator listening to
+the replayed samples computes what it computed live.
+
+``main(argv)`` is the entry point of the `replay` executable and of
+`laser-calib replay` (the core command line calls it when rclpy is available).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from laser_calib.errors import InputError
+
+from . import bag
+
+
+def message_class(msgtype: str):
+    package, kind, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    except (ImportError, AttributeError):
+        raise InputError(msgtype, "message type not available here (build or source the workspace)") from None
+
+
+def qos_of(profiles) -> QoSProfile:
+    if not profiles:
+        return QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    p = profiles[0]
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=max(int(p.depth), 100),
+        reliability=ReliabilityPolicy.BEST_EFFORT if p.reliability.name == "BEST_EFFORT" else ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if p.durability.name == "TRANSIENT_LOCAL" else
+        DurabilityPolicy.VOLATILE)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="replay", description="Republish a recorded calibration session.")
+    parser.add_argument("bag", help="session bag directory (rosbag2, MCAP)")
+    parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1)")
+    parser.add_argument("--topics", nargs="+", help="only these topics")
+    parser.add_argument("--exclude", nargs="+", default=[], help="not these topics")
+    parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
+                        help="start once each of these topics has a subscriber")
+    parser.add_argument("--wait-timeout", type=float, default=30.0, help="for --wait-for, s (default 30)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ros_args = []
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        argv, ros_args = argv[:i], argv[i:]
+    args = build_parser().parse_args(argv)
+    if not args.rate > 0:
+        print("replay: --rate must be positive", file=sys.stderr)
+        return 2
+    try:
+        topics = bag.bag_topics(args.bag)
+        chosen = {t: v for t, v in topics.items()
+                  if (args.topics is None or t in args.topics) and t not in args.exclude}
+        missing = [t for t in (args.topics or []) if t not in topics]
+        if missing:
+            raise InputError(args.bag, f"no topic {missing[0]} in the bag (it has {', '.join(sorted(topics))})")
+        classes = {t: message_class(kind) for t, (kind, _, _) in chosen.items()}
+    except InputError as exc:
+        print(f"replay: {exc}", file=sys.stderr)
+        return 2
+
+    rclpy.init(args=["replay"] + ros_args)
+    node = rclpy.create_node("replay")
+    code = 0
+    try:
+        publishers = {t: node.create_publisher(classes[t], t, qos_of(profiles))
+                      for t, (_, _, profiles) in chosen.items()}
+        deadline = time.monotonic() + args.wait_timeout
+        for topic in args.wait_for:
+            while node.count_subscribers(topic) == 0:
+                if time.monotonic() > deadline:
+                    raise InputError(topic, f"no subscriber after {args.wait_timeout:g} s")
+                rclpy.spin_once(node, timeout_sec=0.05)
+        total = sum(count for t, (_, count, _) in chosen.items())
+        if not args.quiet:
+            print(f"replaying {total} messages on {len(chosen)} topics from {args.bag} at rate {args.rate:g}",
+                  flush=True)
+        start_wall = None
+        first = None
+        sent = 0
+        for topic, _, timestamp, raw in bag.read_messages(args.bag, list(chosen)):
+            if first is None:
+                first, start_wall = timestamp, time.monotonic()
+            target = start_wall + (timestamp - first) * 1e-9 / args.rate
+            while rclpy.ok():
+                left = target - time.monotonic()
+                if left <= 0:
+                    break
+                time.sleep(min(left, 0.05))
+            if not rclpy.ok():  # Ctrl-C / SIGTERM
+                break
+            publishers[topic].publish(raw)
+            sent += 1
+        for publisher in publishers.values():
+            if rclpy.ok() and publisher.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
+                publisher.wait_for_all_acked(Duration(seconds=5))
+        if not args.quiet:
+            print(f"replayed {sent} messages", flush=True)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 0
+    except InputError as exc:
+        print(f"replay: {exc}", file=sys.stderr)
+        code = 2
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

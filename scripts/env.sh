@@ -1,0 +1,21 @@
+# Source this file (bash) to use the workspace built by scripts/setup:
+#   source scripts/env.sh
+# It activates .venv (ROS 2 Jazzy from PyPI wheels) and the colcon install of
+# ros2_ws, so the node executables in ros2_ws/install/laser_calib_nodes/lib/
+# laser_calib_nodes/ and `python -c "import rclpy, laser_calib_interfaces"` work.
+# Traffic stays on this host unless ROS_AUTOMATIC_DISCOVERY_RANGE is already set.
+_lc_root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+if [ ! -f "$_lc_root/ros2_ws/install/setup.bash" ]; then
+  echo "env.sh: workspace not built; run scripts/setup first" >&2
+  return 1 2>/dev/null || exit 1
+fi
+_lc_nounset=$([[ $- == *u* ]] && echo 1 || true)
+set +u
+# shellcheck disable=SC1091
+source "$_lc_root/.venv/bin/activate"
+# shellcheck disable=SC1091
+source "$_lc_root/ros2_ws/install/setup.bash"
+[ -n "$_lc_nounset" ] && set -u
+export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+export LASER_CALIB_NODES="$_lc_root/ros2_ws/install/laser_calib_nodes/lib/laser_calib_nodes"
+unset _lc_root _lc_nounset
