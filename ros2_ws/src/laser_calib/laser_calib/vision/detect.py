@@ -1,0 +1,189 @@
+"""Laser spot detection: bgr8 frame -> screen (y, z) of each laser, in metres.
+
+Per laser (1: red, 2: green, see render.py):
+
+1. colour contrast: own channel minus the other (R - G for laser 1, G - R for
+   laser 2, saturating at 0). White room light, the black and white fiducials
+   and the other laser all drop out; a spot of this laser stays.
+2. find: box-filter the contrast image (a cheap matched filter for a blob of
+   sigma ~1.3 px) and take its maximum. Below ``min_peak_dn`` the laser is
+   not seen (too dim). If a second maximum outside ``exclusion_px`` reaches
+   ``ambiguity_ratio`` of the first, which spot is the laser is unknown: not
+   seen.
+3. locate: weighted least-squares fit of a Gaussian on a tilted plane to the
+   laser's own channel in a window around the maximum, using only photosites
+   of the laser's colour (Bayer mosaic) that are not saturated, weighted by the
+   camera's noise model (read noise, shot noise, speckle). Its error is close
+   to the shot- and speckle-limited floor; a thresholded centroid (tried) was
+   15-25 % worse under speckle and locked to the pixel grid by up to 0.05 px.
+   A spot whose window leaves the image, or whose fit does not settle, is
+   not seen.
+4. map: undistort the fitted centre (cv2.undistortPoints, P = K) and apply the
+   homography to screen metres. A spot outside the measuring area
+   (|y| > half_y or |z| > half_z) is not a measurement (conventions.md): not seen.
+
+A laser that is not seen is reported as NaN, never guessed.
+
+The centre of the blob in the image is not the image of the spot's centre:
+perspective and lens distortion make the blob slightly asymmetric. The shift
+is of order sigma^2 times the relative change of the pixel scale across the
+spot; for the 2 mm spot at the default geometry, the intensity centroid of the
+exact (noise-free, continuous) image, mapped back to the screen, is off by
+0.001 mm rms and 0.002 mm at most over the screen (bench/vision_bench.py
+integrates it numerically), 50 times below the detector's noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .camera import ScreenCalibration
+
+
+@dataclass(frozen=True)
+class DetectorOptions:
+    """Tuning of SpotDetector. DN: digital number of the 8-bit image.
+
+    half_y, half_z: measuring area of the screen, m (conventions.md ``screen``).
+    bayer_pattern: photosite colours of the camera, row-major over a 2 x 2
+        cell ("RGGB"), or None for a camera that measures every colour at every
+        pixel. Only photosites of the laser's own colour are fitted: the
+        demosaiced values between them are interpolations, not measurements.
+    smooth_px: side of the box filter used to find spots (~4 spot sigmas).
+    min_peak_dn: least smoothed colour contrast of a spot. Room light leaves
+        ~5 DN in the green contrast (15 DN in the bright light of calibration
+        images), sensor noise < 1 DN rms after smoothing; a spot of
+        render.RenderOptions defaults gives 25 (screen corners, where
+        vignetting dims it) to 70.
+    exclusion_px, ambiguity_ratio: a second maximum farther than exclusion_px
+        from the first and at least ambiguity_ratio of it makes the laser ambiguous.
+    window_half_px: the fit window is (2 w + 1)^2 pixels, >= 5 spot sigmas.
+    gain_e_per_dn, read_noise_dn, speckle_contrast: the noise model that
+        weights the fit: variance = read^2 + signal / gain + (contrast * spot)^2.
+        read_noise_dn includes the 8-bit quantisation (0.29 DN). Defaults are
+        those of render.RenderOptions; for a real camera take the
+        gain and read noise from its data sheet and the speckle contrast from
+        the scatter of fits to a still spot (overestimating it costs little).
+    """
+
+    half_y: float = 1.0
+    half_z: float = 1.0
+    bayer_pattern: str | None = "RGGB"
+    smooth_px: int = 5
+    min_peak_dn: float = 15.0
+    exclusion_px: int = 12
+    ambiguity_ratio: float = 0.5
+    window_half_px: int = 7
+    gain_e_per_dn: float = 10000.0 / 255.0
+    read_noise_dn: float = 0.4
+    speckle_contrast: float = 0.1
+
+
+# Channel of bgr8 that sees each laser, the channel subtracted for contrast, and its Bayer letter.
+_OWN_CHANNEL = (2, 1)
+_OTHER_CHANNEL = (1, 2)
+_COLOUR = ("R", "G")
+
+
+class SpotDetector:
+    """Finds the two laser spots in bgr8 frames (H, W, 3) uint8 of a calibrated camera."""
+
+    def __init__(self, calibration: ScreenCalibration, options: DetectorOptions = DetectorOptions()):
+        pattern = options.bayer_pattern
+        if pattern is not None and (len(pattern) != 4 or set(pattern) - set("RGB") or not {"R", "G"} <= set(pattern)):
+            raise ValueError(f"bayer_pattern must be 4 letters of R, G, B with both R and G, got {pattern!r}")
+        self.calibration = calibration
+        self.options = options
+        w = options.window_half_px
+        self._offsets = np.arange(-w, w + 1, dtype=float)
+
+    def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(spots_yz (2,2) float m, NaN where not seen; seen (2,) bool) of lasers 1 and 2."""
+        calibration = self.calibration
+        if image.shape != (calibration.height, calibration.width, 3) or image.dtype != np.uint8:
+            raise ValueError(f"expected a bgr8 image of {calibration.width} x {calibration.height}, "
+                             f"got {image.dtype} {image.shape}")
+        channels = cv2.split(image)
+        pixels = [self._locate(channels[_OWN_CHANNEL[j]], channels[_OTHER_CHANNEL[j]], _COLOUR[j])
+                  for j in range(2)]
+        spots = np.full((2, 2), np.nan)
+        found = [j for j in range(2) if pixels[j] is not None]
+        if found:
+            spots[found] = calibration.pixels_to_screen(np.array([pixels[j] for j in found]))
+        inside = (np.abs(spots[:, 0]) <= self.options.half_y) & (np.abs(spots[:, 1]) <= self.options.half_z)
+        spots[~inside] = np.nan
+        return spots, inside
+
+    def _locate(self, own: np.ndarray, other: np.ndarray, colour: str) -> np.ndarray | None:
+        """Sub-pixel (u, v) of this laser's spot, or None if there is none or it is ambiguous."""
+        o = self.options
+        contrast = cv2.blur(cv2.subtract(own, other), (o.smooth_px, o.smooth_px))
+        _, peak, _, (u, v) = cv2.minMaxLoc(contrast)
+        if peak < o.min_peak_dn:
+            return None
+        r = o.exclusion_px
+        contrast[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1] = 0
+        if cv2.minMaxLoc(contrast)[1] >= o.ambiguity_ratio * peak:
+            return None
+        w = o.window_half_px
+        height, width = own.shape
+        if u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
+            return None  # a spot cut by the image edge has no trustworthy centre
+        window = own[v - w:v + w + 1, u - w:u + w + 1].astype(float)
+        offset = self._fit(window, self._photosites(u - w, v - w, colour))
+        return None if offset is None else offset + (u, v)
+
+    def _photosites(self, col0: int, row0: int, colour: str) -> np.ndarray:
+        """(2w+1, 2w+1) bool: which pixels of the window starting at (col0, row0) measured ``colour``."""
+        size = 2 * self.options.window_half_px + 1
+        pattern = self.options.bayer_pattern
+        if pattern is None:
+            return np.ones((size, size), bool)
+        rows = (row0 + np.arange(size))[:, None] % 2
+        cols = (col0 + np.arange(size))[None, :] % 2
+        return np.array([letter == colour for letter in pattern])[2 * rows + cols]
+
+    def _fit(self, window: np.ndarray, photosites: np.ndarray) -> np.ndarray | None:
+        """Offset (du, dv) of the spot from the window centre, by a weighted Gaussian fit.
+
+        Model: A exp(-r^2 / 2 s^2) + b0 + bu du + bv dv over the unsaturated
+        photosites (a clipped core carries no shape information), weighted by
+        the noise model, re-weighted each Gauss-Newton step with the current
+        model. Start: thresholded centroid. None if the fit does not settle on
+        a plausible spot (centre inside the window, 0.4 < s < 5 px, A > 0).
+        """
+        o = self.options
+        w = o.window_half_px
+        rim = np.concatenate([window[0], window[-1], window[1:-1, 0], window[1:-1, -1]])
+        background = np.median(rim)
+        signal = window - background
+        weights = np.maximum(signal - 0.1 * signal.max(), 0.0)
+        use = photosites & (window < 255)
+        if weights.sum() <= 0.0 or use.sum() < 12:
+            return None
+        start = np.array([weights.sum(axis=0) @ self._offsets, weights.sum(axis=1) @ self._offsets]) / weights.sum()
+        du, dv = np.meshgrid(self._offsets, self._offsets)
+        du, dv, z = du[use], dv[use], window[use]
+        q = np.array([signal.max(), start[0], start[1], 1.3, background, 0.0, 0.0])
+        for _ in range(12):
+            amplitude, u0, v0, s = q[:4]
+            x, y = du - u0, dv - v0
+            gauss = np.exp(-(x * x + y * y) / (2 * s * s))
+            spot = amplitude * gauss
+            model = spot + q[4] + q[5] * du + q[6] * dv
+            sigma = np.sqrt(o.read_noise_dn ** 2 + np.maximum(model, 0.0) / o.gain_e_per_dn
+                            + (o.speckle_contrast * spot) ** 2)
+            jacobian = np.column_stack([gauss, spot * x / s ** 2, spot * y / s ** 2, spot * (x * x + y * y) / s ** 3,
+                                        np.ones_like(x), du, dv]) / sigma[:, None]
+            step = np.linalg.lstsq(jacobian, (z - model) / sigma, rcond=None)[0]
+            q = q + step
+            if np.max(np.abs(step[1:3])) < 1e-4:
+                break
+        else:
+            return None
+        if not (q[0] > 0 and 0.4 < q[3] < 5.0 and np.all(np.abs(q[1:3]) < w - 1)):
+            return None
+        return q[1:3]

@@ -1,0 +1,178 @@
+"""Vision library: rendering, spot detection and screen calibration on synthetic frames.
+
+Every frame is rendered with a fixed seed, so these tests are deterministic;
+their tolerances are derived from the noise the renderer puts in (see
+test_spot_error_within_noise_tolerance), not fitted to one run.
+"""
+
+import numpy as np
+import pytest
+
+from laser_calib.errors import InputError
+from laser_calib.vision import (DetectorOptions, RenderOptions, ScreenCalibration, SpotDetector, board_poses,
+                                calibrate_screen, default_camera, detect_fiducials, load_calibration,
+                                render_board_frame, render_fiducial_frame, render_frame, save_calibration)
+
+BOTH = np.array([True, True])
+# Calibration images are taken with the room lights up (brighter, lower-noise corners).
+CALIBRATION_LIGHT = RenderOptions(ambient_dn=150.0)
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return default_camera()
+
+
+@pytest.fixture(scope="module")
+def detector(camera):
+    return SpotDetector(camera.ideal_calibration())
+
+
+@pytest.fixture(scope="module")
+def estimated(camera):
+    rng = np.random.default_rng(11)
+    boards = [render_board_frame(camera, rvec, tvec, rng, options=CALIBRATION_LIGHT)
+              for rvec, tvec in board_poses(camera, count=15, rng=np.random.default_rng(11))]
+    screens = [render_fiducial_frame(camera, rng, CALIBRATION_LIGHT) for _ in range(5)]
+    return calibrate_screen(boards, screens)
+
+
+def _screen_grid(n: int = 21) -> np.ndarray:
+    g = np.linspace(-1.0, 1.0, n)
+    y, z = np.meshgrid(g, g)
+    return np.column_stack([y.ravel(), z.ravel()])
+
+
+def test_ideal_calibration_inverts_projection(camera):
+    points = _screen_grid()
+    back = camera.ideal_calibration().pixels_to_screen(camera.project(points))
+    assert np.max(np.abs(back - points)) < 1e-9
+
+
+def test_calibration_yaml_round_trip(camera, tmp_path):
+    calibration = camera.ideal_calibration()
+    path = tmp_path / "screen.yaml"
+    save_calibration(calibration, path)
+    loaded = load_calibration(path)
+    assert (loaded.width, loaded.height) == (calibration.width, calibration.height)
+    for name in ("K", "dist", "homography"):
+        np.testing.assert_allclose(getattr(loaded, name), getattr(calibration, name), rtol=1e-15)
+    path.write_text("image_width: 1280\nimage_height: 1024\ncamera_matrix: [1, 2]\n"
+                    "distortion: [0, 0, 0, 0, 0]\nhomography: [[1, 0, 0], [0, 1, 0], [0, 0, 1]]\n")
+    with pytest.raises(InputError, match="K must have 9 values"):
+        load_calibration(path)
+
+
+def test_spot_error_within_noise_tolerance(camera, detector):
+    # Expected error per coordinate, from the renderer's noise (RenderOptions defaults):
+    # - speckle: an independent multiplicative factor of contrast c = 0.1 on each
+    #   photosite of a Gaussian spot sampled at pitch p moves its centre by
+    #   c p / sqrt(8 pi) rms (sum I^2 x^2 / (sum I)^2). The fit uses only the
+    #   laser's own photosites: red at p = 2 px (0.040 px), green on a quincunx, p = sqrt(2) px (0.028 px).
+    # - sensor: shot noise of the ~190 DN x 39 e-/DN spot peak (s / sqrt(N_electrons),
+    #   s = 1.3 px, ~0.009 px red) and the ~1.1 DN background noise
+    #   (Cramer-Rao sigma_b p sqrt(2/pi) / A, ~0.009 px red), together <= 0.013 px.
+    # Red: sqrt(0.040^2 + 0.013^2) = 0.042 px; green: 0.030 px. A pixel covers 2.2 to
+    # 3.1 mm of screen, 2.6 mm rms over the screen: 0.11 mm (red), 0.08 mm (green).
+    # The RMS of n values scatters by 1/sqrt(2n) relative; allow 3 of those.
+    predicted_mm = np.array([0.11, 0.08])
+    rng = np.random.default_rng(1)
+    n = 30
+    truth = rng.uniform(-0.95, 0.95, (n, 2, 2))
+    errors = np.empty((n, 2, 2))
+    for k in range(n):
+        spots, seen = detector.detect(render_frame(camera, truth[k], BOTH, rng))
+        assert seen.all()
+        errors[k] = (spots - truth[k]) * 1000.0
+    rms = np.sqrt(np.mean(errors ** 2, axis=(0, 2)))
+    assert np.all(rms <= predicted_mm * (1.0 + 3.0 / np.sqrt(2 * 2 * n))), rms
+    # No bias beyond the noise of the mean plus the 0.02 mm systematic floor of a noise-free frame.
+    assert np.all(np.abs(errors.mean(axis=0)) <= 3.0 * predicted_mm[:, None] / np.sqrt(n) + 0.02)
+    assert np.max(np.abs(errors)) <= 4.5 * predicted_mm.max() * 3.1 / 2.6
+
+
+def test_lasers_are_told_apart_by_colour(camera, detector):
+    rng = np.random.default_rng(2)
+    spots = np.array([[0.4, -0.3], [-0.6, 0.5]])
+    found, seen = detector.detect(render_frame(camera, spots, BOTH, rng))
+    assert seen.all() and np.max(np.abs(found - spots)) < 1e-3
+    swapped, seen = detector.detect(render_frame(camera, spots[::-1], BOTH, rng))
+    assert seen.all() and np.max(np.abs(swapped - spots[::-1])) < 1e-3
+
+
+def test_missing_laser_is_reported_missing(camera, detector):
+    rng = np.random.default_rng(3)
+    spots = np.array([[0.1, 0.2], [-0.3, -0.4]])
+    for seen_in in ([True, False], [False, True], [False, False]):
+        found, seen = detector.detect(render_frame(camera, spots, np.array(seen_in), rng))
+        np.testing.assert_array_equal(seen, seen_in)
+        assert np.all(np.isnan(found[~seen])) and np.all(np.isfinite(found[seen]))
+
+
+def test_off_screen_spots_are_not_invented(camera, detector):
+    rng = np.random.default_rng(4)
+    # Drawn where they land: on the white fiducial border, on the wall, out of the image.
+    for spots in ([[1.04, 0.2], [-0.5, -1.03]], [[1.3, 0.0], [0.0, -1.35]], [[3.0, 0.0], [0.0, 2.5]]):
+        found, seen = detector.detect(render_frame(camera, np.array(spots), BOTH, rng))
+        assert not seen.any() and np.all(np.isnan(found))
+    # Just inside the edge is a measurement.
+    spots = np.array([[0.995, 0.3], [-0.2, -0.996]])
+    found, seen = detector.detect(render_frame(camera, spots, BOTH, rng))
+    assert seen.all() and np.max(np.abs(found - spots)) < 1e-3
+
+
+def test_dim_or_ambiguous_spot_is_not_seen(camera, detector):
+    rng = np.random.default_rng(5)
+    spots = np.array([[0.1, 0.2], [-0.3, -0.4]])
+    dim = RenderOptions(laser_radiance_dn=(60.0, 600.0))
+    found, seen = detector.detect(render_frame(camera, spots, BOTH, rng, dim))
+    np.testing.assert_array_equal(seen, [False, True])
+    # A second red spot (a reflection, say) makes laser 1 ambiguous; laser 2 is unaffected.
+    first = render_frame(camera, spots, BOTH, rng)
+    second = render_frame(camera, np.array([[-0.5, 0.6], [0.0, 0.0]]), np.array([True, False]), rng)
+    found, seen = detector.detect(np.maximum(first, second))
+    np.testing.assert_array_equal(seen, [False, True])
+
+
+def test_laser_off_frames_have_no_spots(camera, detector):
+    rng = np.random.default_rng(6)
+    for options in (RenderOptions(), CALIBRATION_LIGHT):
+        assert not detector.detect(render_fiducial_frame(camera, rng, options))[1].any()
+
+
+def test_detector_rejects_other_images(detector):
+    with pytest.raises(ValueError, match="bgr8"):
+        detector.detect(np.zeros((1024, 1280), np.uint8))
+
+
+def test_screen_calibration_recovers_homography(camera, estimated):
+    assert isinstance(estimated, ScreenCalibration)
+    np.testing.assert_allclose(estimated.K, camera.K, atol=3.0)  # px, on f = 1030 px
+    # Fiducials of a fresh frame, mapped by the estimate: each corner is located to
+    # ~0.1 px (2.6 mm/px), so ~0.26 mm rms per coordinate.
+    rng = np.random.default_rng(12)
+    pixels, known = detect_fiducials(render_fiducial_frame(camera, rng, CALIBRATION_LIGHT),
+                                     estimated.K, estimated.dist)
+    assert len(known) == 32
+    mapped = np.column_stack([pixels, np.ones(len(pixels))]) @ estimated.homography.T
+    residual = mapped[:, :2] / mapped[:, 2:] - known
+    assert np.sqrt(np.mean(residual ** 2)) < 0.35e-3
+    # The whole pixel-to-screen map against the truth: 32 corners average down the
+    # corner noise; what remains is mostly the error of the intrinsics (0.05-0.1 mm rms from 15 views).
+    points = _screen_grid()
+    error = estimated.pixels_to_screen(camera.project(points)) - points
+    assert np.sqrt(np.mean(error ** 2)) < 0.15e-3
+    assert np.max(np.abs(error)) < 0.35e-3
+
+
+def test_detection_with_estimated_calibration(camera, estimated):
+    detector = SpotDetector(estimated, DetectorOptions())
+    rng = np.random.default_rng(13)
+    truth = rng.uniform(-0.9, 0.9, (10, 2, 2))
+    errors = []
+    for spots in truth:
+        found, seen = detector.detect(render_frame(camera, spots, BOTH, rng))
+        assert seen.all()
+        errors.append(found - spots)
+    # Detector noise (<= 0.11 mm) and calibration error (< 0.15 mm) add in quadrature: 0.19 mm.
+    assert np.sqrt(np.mean(np.square(errors))) < 0.19e-3 * 1.3
