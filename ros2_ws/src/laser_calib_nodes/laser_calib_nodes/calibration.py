@@ -36,6 +36,11 @@ def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool) 
     return EstimateOptions(method=method, spot_sigma=spot_sigma or None, prior=bool(prior), robust=bool(robust))
 
 
+def online_options(spot_sigma: float) -> EstimateOptions:
+    """The estimator node's online EKF options for its spot_sigma parameter (0: the core's default)."""
+    return estimate_options("ekf", spot_sigma, False, False)
+
+
 @dataclass(frozen=True)
 class Outcome:
     result: dict

@@ -48,15 +48,11 @@ from laser_calib.kinematics import predict
 from laser_calib.samples_file import Samples
 
 from . import bag, common
-from .calibration import estimate_options, laser_statistics, parameter_arrays, run_and_collect
+from .calibration import estimate_options, laser_statistics, online_options, parameter_arrays, run_and_collect
 from .sync import StampSynchronizer
 
 MAX_MARKER_POINTS = 2000
 
-
-def online_options(spot_sigma: float):
-    """The online EKF's options for a spot_sigma parameter (0: the core's default)."""
-    return estimate_options("ekf", spot_sigma, False, False)
 LASER_COLOURS = ((1.0, 0.1, 0.1), (0.1, 0.9, 0.1))
 
 
@@ -144,8 +140,9 @@ class Estimator(Node):
         n = len(row[2])
         if n != self.robot.n_joints:
             raise InputError(where, f"{n} joint positions, robot '{self.robot.name}' has {self.robot.n_joints}")
-        if not np.isfinite(row[2]).all():
-            raise InputError(where, "joint positions not finite")
+        bad = np.flatnonzero(~np.isfinite(row[2]))
+        if bad.size:
+            raise InputError(where, f"joint_positions[{bad[0]}] is not finite ({row[2][bad[0]]})")
 
     def add(self, row) -> None:
         with self.lock:

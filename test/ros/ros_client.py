@@ -1,0 +1,206 @@
+"""ROS side of the tests, run as a subprocess in the workspace environment
+(the pytest process itself stays ROS-free). Prints one JSON document.
+
+    ros_client.py params COUNT [--timeout S]   latest dh_parameters once sample_count >= COUNT
+    ros_client.py reset                        call estimator/reset
+    ros_client.py estimate-accumulated         Estimate with use_accumulated
+    ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from laser_calib_interfaces.msg import DhParameters, Sample, Spot
+from laser_calib_interfaces.srv import Estimate
+from std_srvs.srv import Trigger
+
+TIMEOUT = 60.0
+
+
+def latched() -> QoSProfile:
+    return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def params(count: int, timeout: float) -> dict:
+    node = rclpy.create_node("test_params")
+    latest = []
+    node.create_subscription(DhParameters, "dh_parameters", latest.append, latched())
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        if latest and latest[-1].sample_count >= count:
+            m = latest[-1]
+            return {"sample_count": m.sample_count, "method": m.method, "names": list(m.names),
+                    "errors": list(m.errors), "std": list(m.std), "values": list(m.values),
+                    "identifiable": list(m.identifiable), "robot_name": m.robot_name}
+    raise SystemExit(f"no dh_parameters with sample_count >= {count} within {timeout} s "
+                     f"(last: {latest[-1].sample_count if latest else 'none'})")
+
+
+ATTEMPT = 15.0  # resend a request not answered by then (see call)
+
+
+def call(node: Node, client, request, timeout: float = TIMEOUT, attempt: float = ATTEMPT):
+    """Call and wait. A request sent right after discovery can lose its answer
+    (the server may not have matched this client's response reader yet, a known
+    DDS race), so an unanswered request is sent again after ATTEMPT seconds."""
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise SystemExit(f"service {client.srv_name} not available")
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        future = client.call_async(request)
+        rclpy.spin_until_future_complete(node, future, timeout_sec=attempt)
+        if future.done():
+            return future.result()
+        client.remove_pending_request(future)
+    raise SystemExit(f"service {client.srv_name} did not answer")
+
+
+def response_dict(r) -> dict:
+    return {"success": r.success, "message": r.message, "errors": list(r.parameters.errors),
+            "values": list(r.parameters.values), "std": list(r.parameters.std),
+            "identifiable": list(r.parameters.identifiable), "sample_count": r.parameters.sample_count,
+            "iterations": r.parameters.iterations,
+            "before_mean": np.asarray(r.before.mean).tolist(), "after_mean": np.asarray(r.after.mean).tolist(),
+            "after_max": np.asarray(r.after.max).tolist(), "after_count": np.asarray(r.after.count).tolist(), "report": r.report_markdown, "result_json": r.result_json,
+            "diagnosis_json": r.diagnosis_json}
+
+
+def reset() -> dict:
+    node = rclpy.create_node("test_reset")
+    r = call(node, node.create_client(Trigger, "estimator/reset"), Trigger.Request())
+    return {"success": r.success, "message": r.message}
+
+
+def estimate_accumulated() -> dict:
+    node = rclpy.create_node("test_estimate")
+    request = Estimate.Request()
+    request.use_accumulated = True
+    request.method = "lm"
+    return response_dict(call(node, node.create_client(Estimate, "estimator/estimate"), request))
+
+
+def sample(pose: int, q, spots) -> Sample:
+    msg = Sample()
+    msg.header.stamp.sec = 1000 + pose
+    msg.header.frame_id = "screen"
+    msg.pose = pose
+    msg.joint_positions = [float(v) for v in q]
+    msg.spots = [Spot(y=float(s[0]), z=float(s[1]), seen=bool(np.isfinite(s).all())) if np.isfinite(s).all()
+                 else Spot(y=math.nan, z=math.nan, seen=False) for s in spots]
+    return msg
+
+
+def bad_and_concurrent(robot_path: str) -> dict:
+    from laser_calib.robot_file import load_robot
+    from laser_calib.simulation import NoiseSpec, measure, sample_poses, true_errors
+    robot = load_robot(robot_path)
+    rng = np.random.default_rng(3)
+    true = robot.with_errors(true_errors(robot))
+    q = sample_poses([robot, true], 30, rng, "whole")
+    measured, _ = measure(true, q, rng, NoiseSpec())
+    good = [sample(k, measured.q[k], measured.spots[k]) for k in range(len(measured))]
+
+    def request(samples, **fields):
+        r = Estimate.Request()
+        r.samples = samples
+        r.method = fields.pop("method", "lm")
+        for key, value in fields.items():
+            setattr(r, key, value)
+        return r
+
+    wrong_count = [sample(0, measured.q[0][:-1], measured.spots[0])] + good[1:]
+    nan_joint = [sample(k, measured.q[k], measured.spots[k]) for k in range(len(measured))]
+    nan_joint[4].joint_positions[2] = math.nan
+    nan_spot = [sample(k, measured.q[k], measured.spots[k]) for k in range(len(measured))]
+    nan_spot[2].spots[0].y = math.nan  # seen, but not finite
+    cases = {
+        "empty": request([]),
+        "wrong_joint_count": request(wrong_count),
+        "nan_joint": request(nan_joint),
+        "nan_spot": request(nan_spot),
+        "bad_method": request(good, method="gauss"),
+        "negative_sigma": request(good, spot_sigma=-1.0),
+        "too_few": request(good[:2]),
+        "good_lm_1": request(good),
+        "good_lm_2": request(good),
+        "good_ekf": request(good, method="ekf", spot_sigma=0.00115),
+        "good_lm_3": request(good),
+    }
+    nodes, futures = {}, {}
+    for name in cases:
+        node = rclpy.create_node(f"client_{name}")
+        client = node.create_client(Estimate, "estimator/estimate")
+        # warm-up: an instantly refused request, until this client gets answers
+        assert not call(node, client, request([]), attempt=2.0).success
+        nodes[name] = (node, client)
+    executor = MultiThreadedExecutor(num_threads=len(cases))
+    for node, _ in nodes.values():  # after the warm-up: a node is in one executor at a time
+        executor.add_node(node)
+    barrier_time = time.monotonic()
+    sent = {}
+    for name, (node, client) in nodes.items():  # all in flight at once
+        futures[name], sent[name] = client.call_async(cases[name]), time.monotonic()
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    deadline = time.monotonic() + 120
+    resent = 0
+    while not all(f.done() for f in futures.values()):
+        if time.monotonic() > deadline:
+            raise SystemExit("not every concurrent request was answered")
+        for name, future in futures.items():  # a lost answer (discovery race): ask again
+            if not future.done() and time.monotonic() - sent[name] > 4 * ATTEMPT:
+                nodes[name][1].remove_pending_request(future)
+                futures[name], sent[name] = nodes[name][1].call_async(cases[name]), time.monotonic()
+                resent += 1
+        time.sleep(0.05)
+    out = {name: response_dict(f.result()) for name, f in futures.items()}
+    out["_elapsed"] = time.monotonic() - barrier_time
+    out["_resent"] = resent
+    # the node still serves afterwards
+    node, client = nodes["good_lm_1"]
+    after = client.call_async(cases["good_lm_1"])
+    while not after.done():
+        time.sleep(0.05)
+    out["after_all"] = response_dict(after.result())
+    executor.shutdown()
+    for name in out:
+        if isinstance(out[name], dict):
+            out[name].pop("report", None)
+    return out
+
+
+def main() -> int:
+    rclpy.init()
+    try:
+        command = sys.argv[1]
+        if command == "params":
+            timeout = float(sys.argv[3]) if len(sys.argv) > 3 else TIMEOUT
+            result = params(int(sys.argv[2]), timeout)
+        elif command == "reset":
+            result = reset()
+        elif command == "estimate-accumulated":
+            result = estimate_accumulated()
+        elif command == "bad-and-concurrent":
+            result = bad_and_concurrent(sys.argv[2])
+        else:
+            raise SystemExit(f"unknown command {command}")
+        print(json.dumps(result))
+        return 0
+    finally:
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,130 @@
+"""The ROS tests' harness: the workspace environment and node processes.
+
+Every node runs as its own process from ros2_ws/install/laser_calib_nodes/lib/
+laser_calib_nodes/ over real DDS, each test on its own ROS_DOMAIN_ID with
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. The pytest process stays ROS-free:
+ROS clients run as subprocesses (ros_client.py). Skipped, with the reason,
+only when the workspace is not built (scripts/setup).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+INSTALL = ROOT / "ros2_ws" / "install"
+BIN = INSTALL / "laser_calib_nodes" / "lib" / "laser_calib_nodes"
+ROBOT = ROOT / "config" / "robots" / "humanoid_arm_7dof.yaml"
+PARAMS = ROOT / "config" / "session.yaml"
+CLIENT = Path(__file__).resolve().parent / "ros_client.py"
+NODES = ("arm_driver", "camera_sim", "spot_detector", "sequencer", "estimator", "replay")
+
+_domains = itertools.count(random.Random(os.getpid()).randrange(0, 40) * 5)
+
+
+def workspace_missing() -> str | None:
+    missing = [name for name in NODES if not (BIN / name).exists()]
+    if missing:
+        return f"workspace not built ({BIN / missing[0]} missing): run scripts/setup"
+    if not (INSTALL / "laser_calib_interfaces").is_dir():
+        return "laser_calib_interfaces not built: run scripts/setup"
+    return None
+
+
+_ENV: dict | None = None
+
+
+def workspace_env() -> dict:
+    """os.environ plus what `source scripts/env.sh` sets."""
+    global _ENV
+    if _ENV is None:
+        out = subprocess.run(["bash", "-c", f"source '{ROOT}/scripts/env.sh' >/dev/null && env -0"],
+                             check=True, capture_output=True).stdout
+        _ENV = dict(item.split("=", 1) for item in out.decode().split("\0") if "=" in item)
+    return dict(_ENV)
+
+
+class Ros:
+    """Processes of one test on one DDS domain; all stopped (SIGINT, then SIGKILL) at the end."""
+
+    def __init__(self, tmp: Path):
+        self.tmp = tmp
+        self.domain = 10 + next(_domains) % 200
+        self.env = workspace_env()
+        self.env.update(ROS_DOMAIN_ID=str(self.domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                        PYTHONUNBUFFERED="1")
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.logs: dict[str, Path] = {}
+
+    def start(self, name: str, *ros_args: str, node: str | None = None, params: bool = True) -> subprocess.Popen:
+        """Start an executable with --ros-args (the session parameter file first)."""
+        node = node or name
+        log = self.tmp / f"{name}.log"
+        args = [str(BIN / node), "--ros-args"] + (["--params-file", str(PARAMS)] if params else []) + list(ros_args)
+        handle = open(log, "ab")
+        proc = subprocess.Popen(args, env=self.env, stdout=handle, stderr=subprocess.STDOUT, start_new_session=True)
+        handle.close()
+        self.procs[name], self.logs[name] = proc, log
+        return proc
+
+    def run(self, args: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
+        return subprocess.run(args, env=self.env, capture_output=True, text=True, timeout=timeout)
+
+    def client(self, *args: str, timeout: float = 150) -> dict:
+        result = self.run([sys.executable, str(CLIENT), *args], timeout=timeout)
+        assert result.returncode == 0, f"ros_client {args} failed:\n{result.stdout}\n{result.stderr}"
+        return json.loads(result.stdout.strip().splitlines()[-1])
+
+    def log(self, name: str) -> str:
+        return self.logs[name].read_text(errors="replace")
+
+    def wait_exit(self, name: str, timeout: float) -> int:
+        try:
+            return self.procs[name].wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"{name} still running after {timeout} s; its log:\n{self.log(name)[-3000:]}")
+
+    def stop(self, name: str, timeout: float = 10.0) -> int:
+        """SIGINT (Ctrl-C) and the exit code; SIGKILL if it does not exit."""
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        return proc.returncode
+
+    def stop_all(self) -> dict[str, int]:
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 10
+        codes = {}
+        for name, proc in self.procs.items():
+            try:
+                codes[name] = proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                codes[name] = proc.wait()
+        return codes
+
+
+def start_sim(ros: Ros, out: Path, speed: float = 4.0) -> None:
+    """The simulated arm, camera, detector and the estimator."""
+    ros.start("estimator", "-p", f"robot:={ROBOT}")
+    ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", f"sim.joint_speed:={speed}",
+              "-p", f"sim.true_robot_out:={out / 'robot_true.yaml'}")
+    ros.start("camera_sim")
+    ros.start("spot_detector")

@@ -1,0 +1,117 @@
+"""Bad input to the nodes: one clear line and a non-zero exit, never a traceback;
+and the ROS-free pieces (stamp synchronizer, pose lists, segmented bag)."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from ros_harness import ROBOT
+
+
+def last_line(ros, name: str) -> str:
+    lines = [line for line in ros.log(name).splitlines() if line.strip()]
+    assert "Traceback" not in ros.log(name), ros.log(name)
+    return lines[-1]
+
+
+def test_bad_parameters_and_files_give_one_line(ros, tmp_path):
+    bad_poses = tmp_path / "poses.csv"
+    bad_poses.write_text("pose,q1,q2,q3,q4,q5,q6,q7\n0,0,0,0,0,0,0,0\n1,0,0,x,0,0,0,0\n")
+    broken_robot = tmp_path / "robot.yaml"
+    broken_robot.write_text("name: r\njoints: []\n")
+    ros.start("seq_poses", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={tmp_path / 'o1'}",
+              "-p", f"poses_file:={bad_poses}", node="sequencer")
+    ros.start("seq_robot", "-p", f"robot:={broken_robot}", "-p", f"output_dir:={tmp_path / 'o2'}", node="sequencer")
+    ros.start("arm_type", "-p", f"robot:={ROBOT}", "-p", "rate:=fast", node="arm_driver")
+    ros.start("arm_backend", "-p", f"robot:={ROBOT}", "-p", "backend:=ur5", node="arm_driver")
+    ros.start("arm_dxl", "-p", f"robot:={ROBOT}", "-p", "backend:=dynamixel", "-p", "dynamixel.ids:=[1, 2]",
+              node="arm_driver")
+    ros.start("est_norobot", node="estimator", params=False)
+    for name in ros.procs:
+        assert ros.wait_exit(name, 60) == 2, (name, ros.log(name))
+    assert last_line(ros, "seq_poses") == f"error: {bad_poses}: line 3, field q3: not a number: 'x'"
+    assert last_line(ros, "seq_robot") == f"error: {broken_robot}: missing key 'slm'"
+    assert "rate" in last_line(ros, "arm_type") and last_line(ros, "arm_type").startswith("error: ")
+    assert "backend" in last_line(ros, "arm_backend")
+    assert "dynamixel.ticks_per_rad" in last_line(ros, "arm_dxl") or "2 entries" in last_line(ros, "arm_dxl")
+    assert "robot" in last_line(ros, "est_norobot")
+
+
+def test_synchronizer_pairs_nearest_within_tolerance():
+    from laser_calib_nodes.sync import StampSynchronizer
+    sync = StampSynchronizer(0.005)
+    out = []
+    for k in range(10):  # joint states at 50 Hz
+        out += sync.add_a(k * 0.02, f"a{k}")
+    out += sync.add_b(0.061, "b1")   # nearest a3 (0.06), within 5 ms
+    out += sync.add_b(0.071, "b2")   # 11 ms from a3 and 9 ms from a4: dropped
+    out += sync.add_b(0.5, "b3")     # no joint state there yet: waits
+    assert [(p.a, p.b) for p in out] == [("a3", "b1")]
+    assert sync.dropped == 1
+    out = sync.add_a(0.498, "late") + sync.add_a(0.52, "after")
+    assert [(p.a, p.b) for p in out] == [("late", "b3")]
+    assert math.isclose(out[0].skew, 0.002)
+
+
+def test_pose_list_errors(tmp_path):
+    from laser_calib.errors import InputError
+    from laser_calib.robot_file import load_robot
+    from laser_calib_nodes.session import generate_poses, load_poses
+    robot = load_robot(ROBOT)
+    path = tmp_path / "p.yaml"
+    path.write_text("poses:\n  - [0, 0, 0, 0, 0, 0, 0]\n  - {pose: 7, q: [0, 0, 0, 0, 0, 0]}\n")
+    with pytest.raises(InputError, match=r"poses\[1\]: 6 joint positions"):
+        load_poses(path, robot)
+    path.write_text("poses:\n  - [0, 0, 0, 0, 0, 0, 0]\n  - {pose: 7, q: [0, 3.0, 0, 0, 0, 0, 0]}\n")
+    with pytest.raises(InputError, match=r"pose 7, field q2: 3 rad outside the joint range"):
+        load_poses(path, robot)
+    poses = generate_poses(robot, 6, "small", 0, repeats=2)
+    assert len(poses) == 8 and list(poses.pose[-2:]) == [0, 5]
+    np.testing.assert_array_equal(poses.q[-1], poses.q[5])
+
+
+WRITER = textwrap.dedent("""
+    import os, sys, time
+    from laser_calib_nodes import bag
+    store = bag.typestore()
+    Sample = store.types['laser_calib_interfaces/msg/Sample']
+    Spot = store.types['laser_calib_interfaces/msg/Spot']
+    H = store.types['std_msgs/msg/Header']; T = store.types['builtin_interfaces/msg/Time']
+    import numpy as np
+    topics = {'/samples': ('laser_calib_interfaces/msg/Sample', [bag.qos(True, True, 100)])}
+    w = bag.SegmentedBagWriter(sys.argv[1] + '/bag', sys.argv[1] + '/.recording', topics, store)
+    start, n = int(sys.argv[2]), int(sys.argv[3])
+    for k in range(start, start + n):
+        m = Sample(H(T(1000 + k, 0), 'screen'), k, ['j'], np.array([0.1 * k]),
+                   [Spot(0.1, 0.2, True), Spot(float('nan'), float('nan'), False)], 3)
+        w.write('/samples', 10**9 * (1000 + k), store.serialize_cdr(m, 'laser_calib_interfaces/msg/Sample'))
+        if k == start + n - 1 and sys.argv[4] == 'kill':
+            os.kill(os.getpid(), 9)   # the last sample never gets its segment closed
+        w.rotate()
+    w.close()
+""")
+
+
+def test_segmented_bag_survives_sigkill(tmp_path):
+    from laser_calib_nodes import bag
+    from ros_harness import ROOT
+    src = ROOT / "ros2_ws" / "src"
+    env = dict(os.environ, PYTHONPATH=f"{src / 'laser_calib'}:{src / 'laser_calib_nodes'}")
+    script = tmp_path / "writer.py"
+    script.write_text(WRITER)
+    killed = subprocess.run([sys.executable, str(script), str(tmp_path), "0", "4", "kill"], env=env)
+    assert killed.returncode == -9
+    samples = bag.read_samples(tmp_path / "bag")
+    assert list(samples.pose) == [0, 1, 2]
+    done = subprocess.run([sys.executable, str(script), str(tmp_path), "3", "2", "ok"], env=env)
+    assert done.returncode == 0
+    samples = bag.read_samples(tmp_path / "bag")
+    assert list(samples.pose) == [0, 1, 2, 3, 4]
+    assert not (tmp_path / ".recording").exists()

@@ -1,0 +1,152 @@
+"""End to end: a short simulated session across processes, then its bag, its
+report, the online parameters, replay and the offline estimate from the bag."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ros_harness import BIN, ROBOT, ROOT, Ros, start_sim, workspace_missing
+
+POSES = 12
+REL = 1e-9
+
+
+def close(a, b, rel=REL) -> bool:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    both_nan = np.isnan(a) & np.isnan(b)
+    scale = np.maximum(np.abs(b), 1e-12)
+    return bool(np.all(both_nan | (np.abs(a - b) <= rel * scale)))
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    reason = workspace_missing()
+    if reason:
+        pytest.skip(reason)
+    tmp = tmp_path_factory.mktemp("session")
+    ros = Ros(tmp)
+    out = tmp / "out"
+    out.mkdir()
+    start_sim(ros, out)
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", f"poses:={POSES}",
+              "-p", "span:=whole", "-p", "seed:=3")
+    code = ros.wait_exit("sequencer", 240)
+    assert code == 0, f"sequencer exited with {code}:\n{ros.log('sequencer')[-4000:]}"
+    yield ros, out
+    codes = ros.stop_all()
+    # every node exits 0 on Ctrl-C
+    assert all(c == 0 for c in codes.values()), codes
+
+
+def test_progress_is_visible(session):
+    ros, out = session
+    log = ros.log("sequencer")
+    assert f"pose 1/{POSES}" in log and f"pose {POSES}/{POSES}" in log
+    assert "left" in log  # time left
+    assert "Traceback" not in log
+
+
+def test_bag_holds_the_session(session):
+    from laser_calib.samples_file import load_samples
+    from laser_calib_nodes import bag
+    ros, out = session
+    topics = bag.bag_topics(out / "bag")
+    assert topics["/samples"][1] == POSES
+    assert topics["/joint_trajectory"][1] == POSES
+    assert topics["/joint_states"][1] > 10 * POSES
+    assert topics["/spots"][1] >= 3 * POSES
+    assert topics["/laser1/spot"][0] == "geometry_msgs/msg/PointStamped"
+    assert topics["/dh_parameters"][1] == POSES
+    assert topics["/dh_parameters"][2][0].durability.name == "TRANSIENT_LOCAL"
+    from_bag = bag.read_samples(out / "bag")
+    from_csv = load_samples(out / "samples.csv")
+    assert list(from_bag.pose) == list(range(POSES))
+    np.testing.assert_array_equal(from_bag.stamp, from_csv.stamp)
+    np.testing.assert_array_equal(from_bag.q, from_csv.q)
+    np.testing.assert_array_equal(from_bag.spots, from_csv.spots)
+    # the point spots are in frame `screen`, x = 0
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+    with AnyReader([out / "bag"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        conns = [c for c in reader.connections if c.topic == "/laser1/spot"]
+        for conn, _, raw in list(reader.messages(connections=conns))[:5]:
+            point = reader.deserialize(raw, conn.msgtype)
+            assert point.header.frame_id == "screen" and point.point.x == 0.0
+
+
+def test_report_is_the_command_lines(session, tmp_path):
+    ros, out = session
+    for name in ("report.md", "result.json", "robot_calibrated.yaml", "convergence.png"):
+        assert (out / name).exists(), name
+    live = json.loads((out / "result.json").read_text())
+    cli = subprocess.run([str(ROOT / "scripts" / "laser-calib"), "estimate", "--robot", str(out / "robot.yaml"),
+                          "--samples", str(out / "samples.csv"), "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=120)
+    assert cli.returncode == 0, cli.stderr
+    offline = json.loads((tmp_path / "result.json").read_text())
+    values = lambda r: [np.nan if e["value"] is None else e["value"] for e in r["errors"]]  # noqa: E731
+    assert close(values(live), values(offline))
+    after = live["spot_error"]["calibration"]["after"]["all"]["mean_mm"]
+    before = live["spot_error"]["calibration"]["before"]["all"]["mean_mm"]
+    assert after < 0.1 * before  # the calibration does its job
+
+
+def test_online_parameters_match_offline_ekf(session):
+    from laser_calib.online import OnlineEkf
+    from laser_calib.robot_file import load_robot
+    from laser_calib.samples_file import load_samples
+    from laser_calib_nodes.calibration import online_options
+    ros, out = session
+    published = ros.client("params", str(POSES))
+    assert published["sample_count"] == POSES and published["method"] == "ekf"
+    robot = load_robot(ROBOT)
+    samples = load_samples(out / "samples.csv")
+    ekf = OnlineEkf(robot, online_options(0.0))
+    for k in range(len(samples)):
+        ekf.update(samples.q[k], samples.spots[k])
+    assert close(published["errors"], ekf.errors)
+    assert close(published["std"], ekf.std)
+    assert published["names"] == list(robot.param_names)
+
+
+def test_replay_and_bag_estimate_agree_with_live(session):
+    from laser_calib.robot_file import load_robot
+    from laser_calib_nodes import bag
+    from laser_calib_nodes.calibration import estimate_options, run_and_collect
+    ros, out = session
+    live_online = ros.client("params", str(POSES))
+    live_result = json.loads((out / "result.json").read_text())
+    live_errors = [np.nan if e["value"] is None else e["value"] for e in live_result["errors"]]
+
+    assert ros.client("reset")["success"]
+    replay = ros.run([str(ros_bin("replay")), str(out / "bag"), "--rate", "20", "--topics", "/samples",
+                      "--wait-for", "/samples"], timeout=120)
+    assert replay.returncode == 0, replay.stderr
+    replayed = ros.client("params", str(POSES))
+    assert close(replayed["errors"], live_online["errors"])
+    accumulated = ros.client("estimate-accumulated")
+    assert accumulated["success"], accumulated["message"]
+    assert close(accumulated["errors"], live_errors)
+
+    # laser-calib estimate --bag: the ROS-free bag reader into the command line's pipeline
+    robot = load_robot(out / "robot.yaml")
+    outcome = run_and_collect(robot, bag.read_samples(out / "bag"), estimate_options("lm", 0.0, False, False), None)
+    from_bag = [np.nan if e["value"] is None else e["value"] for e in outcome.result["errors"]]
+    assert close(from_bag, live_errors)
+
+
+def ros_bin(name: str):
+    return BIN / name
+
+
+def test_replay_bad_bag_is_one_line(session, tmp_path):
+    ros, _ = session
+    result = ros.run([str(ros_bin("replay")), str(tmp_path / "nothing")], timeout=60)
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and "no such bag" in result.stderr
+    assert "Traceback" not in result.stderr
