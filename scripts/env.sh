@@ -3,6 +3,8 @@
 # It activates .venv (ROS 2 Jazzy from PyPI wheels) and the colcon install of
 # ros2_ws, so the node executables in ros2_ws/install/laser_calib_nodes/lib/
 # laser_calib_nodes/ and `python -c "import rclpy, laser_calib_interfaces"` work.
+# Without .venv but on a ROS install (/opt/ros/<distro>, e.g. docker/Dockerfile),
+# it sources that ROS instead.
 # Traffic stays on this host unless ROS_AUTOMATIC_DISCOVERY_RANGE is already set.
 _lc_root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 if [ ! -f "$_lc_root/ros2_ws/install/setup.bash" ]; then
@@ -11,8 +13,13 @@ if [ ! -f "$_lc_root/ros2_ws/install/setup.bash" ]; then
 fi
 _lc_nounset=$([[ $- == *u* ]] && echo 1 || true)
 set +u
-# shellcheck disable=SC1091
-source "$_lc_root/.venv/bin/activate"
+if [ -x "$_lc_root/.venv/bin/python" ]; then
+  # shellcheck disable=SC1091
+  source "$_lc_root/.venv/bin/activate"
+elif [ -f "/opt/ros/${ROS_DISTRO:-jazzy}/setup.bash" ]; then
+  # shellcheck disable=SC1090
+  source "/opt/ros/${ROS_DISTRO:-jazzy}/setup.bash"
+fi
 # shellcheck disable=SC1091
 source "$_lc_root/ros2_ws/install/setup.bash"
 [ -n "$_lc_nounset" ] && set -u

@@ -1,7 +1,8 @@
 """ROS side of the tests, run as a subprocess in the workspace environment
 (the pytest process itself stays ROS-free). Prints one JSON document.
 
-    ros_client.py params COUNT [--timeout S]   latest dh_parameters once sample_count >= COUNT
+    ros_client.py params COUNT [TOPIC]         latest dh_parameters once sample_count >= COUNT
+    ros_client.py markers                      the latched calibration_markers
     ros_client.py reset                        call estimator/reset
     ros_client.py estimate-accumulated         Estimate with use_accumulated
     ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
@@ -32,10 +33,10 @@ def latched() -> QoSProfile:
     return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-def params(count: int, timeout: float) -> dict:
+def params(count: int, topic: str, timeout: float = TIMEOUT) -> dict:
     node = rclpy.create_node("test_params")
     latest = []
-    node.create_subscription(DhParameters, "dh_parameters", latest.append, latched())
+    node.create_subscription(DhParameters, topic, latest.append, latched())
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
@@ -49,6 +50,19 @@ def params(count: int, timeout: float) -> dict:
 
 
 ATTEMPT = 15.0  # resend a request not answered by then (see call)
+
+
+def markers() -> dict:
+    from visualization_msgs.msg import MarkerArray
+    node = rclpy.create_node("test_markers")
+    got = []
+    node.create_subscription(MarkerArray, "calibration_markers", got.append, latched())
+    deadline = time.monotonic() + TIMEOUT
+    while not got and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    if not got:
+        raise SystemExit("no calibration_markers")
+    return {f"{m.ns}/{m.id}": {"frame": m.header.frame_id, "points": len(m.points)} for m in got[-1].markers}
 
 
 def call(node: Node, client, request, timeout: float = TIMEOUT, attempt: float = ATTEMPT):
@@ -186,8 +200,9 @@ def main() -> int:
     try:
         command = sys.argv[1]
         if command == "params":
-            timeout = float(sys.argv[3]) if len(sys.argv) > 3 else TIMEOUT
-            result = params(int(sys.argv[2]), timeout)
+            result = params(int(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "dh_parameters")
+        elif command == "markers":
+            result = markers()
         elif command == "reset":
             result = reset()
         elif command == "estimate-accumulated":

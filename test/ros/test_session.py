@@ -33,6 +33,9 @@ def session(tmp_path_factory):
     out = tmp / "out"
     out.mkdir()
     start_sim(ros, out)
+    # a second estimator on the raw streams (joint_states + spots paired by stamp), in its own namespace
+    ros.start("estimator_stream", "-p", f"robot:={ROBOT}", "-p", "input:=stream", "-r", "__ns:=/stream",
+              "-r", "joint_states:=/joint_states", "-r", "spots:=/spots", node="estimator")
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", f"poses:={POSES}",
               "-p", "span:=whole", "-p", "seed:=3")
     code = ros.wait_exit("sequencer", 240)
@@ -112,6 +115,17 @@ def test_online_parameters_match_offline_ekf(session):
     assert close(published["errors"], ekf.errors)
     assert close(published["std"], ekf.std)
     assert published["names"] == list(robot.param_names)
+
+
+def test_stream_input_and_markers(session):
+    ros, out = session
+    stream = ros.client("params", str(POSES), "/stream/dh_parameters")
+    assert stream["sample_count"] >= POSES  # several still frames per pose, none while moving
+    assert np.isfinite(stream["errors"]).all() and stream["method"] == "ekf"
+    markers = ros.client("markers")
+    assert markers["measured/0"]["points"] == POSES and markers["predicted/1"]["points"] == POSES
+    assert markers["beams/0"]["points"] == 2
+    assert {m["frame"] for m in markers.values()} == {"screen"}
 
 
 def test_replay_and_bag_estimate_agree_with_live(session):

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from rclpy.node import Node
-from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from geometry_msgs.msg import PointStamped
 from rclpy.serialization import serialize_message
@@ -138,19 +138,21 @@ class Sequencer(Node):
         # ---- recording: every session topic, raw, into the segmented bag ----
         recorded = [
             (common.JOINT_STATES, JointState, "sensor_msgs/msg/JointState", common.STREAM_QOS),
-            (common.JOINT_TRAJECTORY, JointTrajectory, "trajectory_msgs/msg/JointTrajectory", common.COMMAND_QOS),
             (common.SPOTS, SpotPair, "laser_calib_interfaces/msg/SpotPair", common.STREAM_QOS),
             (common.LASER_SPOT[0], PointStamped, "geometry_msgs/msg/PointStamped", common.STREAM_QOS),
             (common.LASER_SPOT[1], PointStamped, "geometry_msgs/msg/PointStamped", common.STREAM_QOS),
             (common.CAMERA_INFO, CameraInfo, "sensor_msgs/msg/CameraInfo", common.IMAGE_QOS),
             (common.DH_PARAMETERS, DhParameters, "laser_calib_interfaces/msg/DhParameters", common.LATCHED_QOS),
-            (common.PROGRESS, SessionProgress, "laser_calib_interfaces/msg/SessionProgress", common.LATCHED_QOS),
         ]
         if record_images:
             recorded.append((common.IMAGE, Image, "sensor_msgs/msg/Image", common.IMAGE_QOS))
+        # This node's own topics are written to the bag as they are published (no loss at exit).
+        own = [(common.SAMPLES, "laser_calib_interfaces/msg/Sample", common.SAMPLES_QOS),
+               (common.JOINT_TRAJECTORY, "trajectory_msgs/msg/JointTrajectory", common.COMMAND_QOS),
+               (common.PROGRESS, "laser_calib_interfaces/msg/SessionProgress", common.LATCHED_QOS)]
         self.samples_topic = self.resolve_topic_name(common.SAMPLES)
         topics = {self.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, _, kind, qos in recorded}
-        topics[self.samples_topic] = ("laser_calib_interfaces/msg/Sample", [common.bag_qos(common.SAMPLES_QOS)])
+        topics.update({self.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, kind, qos in own})
         self.bag_lock = threading.Lock()
         self.bag = bag.SegmentedBagWriter(self.session.bag_dir, self.session.work_dir, topics,
                                           custom_data={"robot": self.robot.name},
@@ -161,7 +163,10 @@ class Sequencer(Node):
             self.get_logger().warning(f"bag: discarded unfinished segment {name} (the pose in progress at the crash)")
         for name, msg_type, _, qos in recorded:
             topic = self.resolve_topic_name(name)
-            self.create_subscription(msg_type, name, lambda data, t=topic: self.record(t, data), qos, raw=True)
+            # The publisher's reliability and durability, but a deep queue: the recorder must not drop
+            # (a latched topic's depth 1 would lose messages published in a burst).
+            deep = QoSProfile(depth=max(qos.depth, 200), reliability=qos.reliability, durability=qos.durability)
+            self.create_subscription(msg_type, name, lambda data, t=topic: self.record(t, data), deep, raw=True)
 
         # ---- state shared with the worker thread ----
         self.cond = threading.Condition()
@@ -271,7 +276,7 @@ class Sequencer(Node):
         point = JointTrajectoryPoint()
         point.positions = [float(v) for v in goal]
         traj.points = [point]
-        self.traj_pub.publish(traj)
+        self.publish_recorded(self.traj_pub, common.JOINT_TRAJECTORY, traj)
         command_time = common.stamp_seconds(traj.header.stamp)
 
         # settled: velocity and position measured, held for hold_time (stamps of the readings)
@@ -368,7 +373,13 @@ class Sequencer(Node):
         msg.pose = pose_id
         msg.seconds_left = progress.seconds_left() if progress else math.nan
         msg.state = state
-        self.progress_pub.publish(msg)
+        self.publish_recorded(self.progress_pub, common.PROGRESS, msg)
+
+    def publish_recorded(self, publisher, name: str, msg) -> None:
+        publisher.publish(msg)
+        with self.bag_lock:
+            if self.bag is not None:
+                self.bag.write(self.resolve_topic_name(name), common.now_ns(self), serialize_message(msg))
 
     # ---- the end: estimate and report ----
     def finish(self) -> None:
