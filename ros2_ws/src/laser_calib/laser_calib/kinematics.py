@@ -105,7 +105,7 @@ def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twist
             rotation = _rotate(rotation, axis, value)
 
     laser_rotations = [rot_x(g) @ rot_y(b) for g, b in robot.laser_angles()]
-    beams = np.stack([rotation @ r[:, 2] for r in laser_rotations], axis=1)
+    beams = np.stack([rotation @ r[:, 2] for r in laser_rotations] or [np.zeros((n_poses, 0, 3))], axis=1)
 
     jac1 = None
     if twists:

@@ -35,7 +35,7 @@ def _mapping(where: str, value: Any) -> Mapping[str, Any]:
 
 def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
     data = _mapping(source, data)
-    for key in ("name", "joints", "slm", "lasers"):
+    for key in ("name", "joints", "slm"):
         if key not in data:
             raise InputError(source, f"missing key '{key}'")
     if not isinstance(data["name"], str):
@@ -54,10 +54,12 @@ def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
     slm_map = _mapping(where, data["slm"])
     slm = Slm(*(_number(where, slm_map, k) for k in ("a", "d", "alpha", "theta")),
               beta=_number(where, slm_map, "beta", 0.0))
-    if not isinstance(data["lasers"], list) or len(data["lasers"]) != 2:
+    # No lasers: an arm measured by another sensor (sensors/); with an SLM, exactly two.
+    laser_list = data.get("lasers", [])
+    if not isinstance(laser_list, list) or len(laser_list) not in (0, 2):
         raise InputError(f"{source}: lasers", "expected a list of exactly two lasers")
     lasers = []
-    for j, entry in enumerate(data["lasers"]):
+    for j, entry in enumerate(laser_list):
         where = f"{source}: lasers[{j}]"
         entry = _mapping(where, entry)
         lasers.append(Laser(_number(where, entry, "gamma"), _number(where, entry, "beta", 0.0)))
@@ -111,7 +113,8 @@ def robot_to_dict(robot: Robot) -> dict[str, Any]:
     ]
     s = robot.slm
     data["slm"] = {"a": s.a, "d": s.d, "alpha": s.alpha, "theta": s.theta, "beta": s.beta}
-    data["lasers"] = [{"gamma": laser.gamma, "beta": laser.beta} for laser in robot.lasers]
+    if robot.lasers:
+        data["lasers"] = [{"gamma": laser.gamma, "beta": laser.beta} for laser in robot.lasers]
     data["screen"] = {"half_y": robot.screen.half_y, "half_z": robot.screen.half_z}
     data["gravity"] = list(robot.gravity)
     data.update(robot.extra)
