@@ -1,0 +1,92 @@
+"""Pose planning: constraints, the D-criterion with the full noise, the poses file."""
+
+import argparse
+
+import numpy as np
+import pytest
+
+from laser_calib import cli, real_cli
+from laser_calib.kinematics import predict
+from laser_calib.planning import PRIOR, PlanOptions, candidate_poses, d_optimal, format_poses, plan, whitened_jacobians
+from laser_calib.robot_file import save_robot
+from laser_calib.simulation import bundled_robot
+
+SPOT, JOINT = 2e-3 / np.sqrt(3), np.deg2rad(0.1) / np.sqrt(3)
+
+
+@pytest.fixture
+def run(monkeypatch):
+    """cli.main with this package's subcommands registered (until cli.py registers them itself)."""
+    build = cli.build_parser
+
+    def parser():
+        p = build()
+        sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+        if "plan" not in sub.choices:
+            real_cli.register(sub)
+        return p
+    monkeypatch.setattr(cli, "build_parser", parser)
+    return cli.main
+
+
+def log_det(g: np.ndarray) -> float:
+    info = PRIOR * np.eye(g.shape[2]) + np.einsum("pik,pil->kl", g, g)
+    return float(np.linalg.slogdet(info)[1])
+
+
+def test_whitened_jacobian_carries_spot_and_joint_noise():
+    robot = bundled_robot("paper-7dof")
+    q = candidate_poses(robot, 3, np.random.default_rng(1), 0.1)
+    g = whitened_jacobians(robot, q, SPOT, JOINT)
+    p = predict(robot, q, jacobian=True)
+    scales = np.where(np.arange(robot.n_params) % 4 < 2, 0.010, np.deg2rad(1.0))
+    scales[-5:] = [0.010, 0.010, np.deg2rad(1), np.deg2rad(1), np.deg2rad(1)]
+    for k in range(len(q)):
+        j = p.jacobian[k].reshape(4, -1) * scales
+        jq = p.jacobian[k].reshape(4, -1)[:, 3:4 * robot.n_joints:4]
+        cov = SPOT ** 2 * np.eye(4) + JOINT ** 2 * jq @ jq.T
+        assert np.allclose(g[k].T @ g[k], j.T @ np.linalg.solve(cov, j), rtol=1e-9, atol=1e-9)
+
+
+def test_plan_respects_limits_and_screen_and_beats_random_designs():
+    robot = bundled_robot("paper-7dof")
+    options = PlanOptions(12, SPOT, JOINT, candidates=400, margin=0.1, seed=3)
+    result = plan(robot, options)
+    assert result.q.shape == (12, 7) and len({tuple(r) for r in result.q}) == 12
+    assert np.all(result.q >= robot.q_min) and np.all(result.q <= robot.q_max)
+    spots = predict(robot, result.q)
+    assert spots.hit.all() and np.all(np.abs(spots.spots) <= 1.0 - 0.1)
+    # The same candidates drawn at random, many times: the plan's criterion is above all of them.
+    q = candidate_poses(robot, 400, np.random.default_rng(3), 0.1)
+    g = whitened_jacobians(robot, q, SPOT, JOINT)[:, :, result.free]
+    rng = np.random.default_rng(0)
+    best_random = max(log_det(g[rng.choice(400, 12, replace=False)]) for _ in range(50))
+    assert result.log_det == pytest.approx(log_det(whitened_jacobians(robot, result.q, SPOT, JOINT)[:, :, result.free]))
+    assert result.log_det > best_random
+    greedy, greedy_value = d_optimal(g, 12, passes=0)
+    assert result.log_det >= greedy_value - 1e-9 and log_det(g[greedy]) == pytest.approx(greedy_value)
+
+
+def test_joint_noise_steers_the_plan_to_shorter_beams():
+    robot = bundled_robot("paper-7dof")
+    full = plan(robot, PlanOptions(15, SPOT, JOINT, candidates=500, seed=1))
+    naive = plan(robot, PlanOptions(15, SPOT, 0.0, candidates=500, seed=1))
+    # Long beams turn the joint disturbance into spot motion: the full noise model avoids them.
+    assert predict(robot, full.q).k.mean() < predict(robot, naive.q).k.mean()
+
+
+def test_plan_command_writes_the_pose_list(run, tmp_path, capsys):
+    out = tmp_path / "poses.csv"
+    robot_file = tmp_path / "robot.yaml"
+    save_robot(bundled_robot("paper-4dof"), robot_file)
+    assert run(["plan", "--robot", str(robot_file), "--n", "8", "--candidates", "300", "--out", str(out)]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0] == "pose,q1,q2,q3,q4" and len(lines) == 9
+    q = np.loadtxt(out, delimiter=",", skiprows=1)
+    assert list(q[:, 0]) == list(range(8)) and predict(bundled_robot("paper-4dof"), q[:, 1:]).hit.all()
+    assert format_poses(q[:, 1:]) == out.read_text()
+    assert run(["plan", "--robot", str(robot_file), "--n", "0", "--out", str(out)]) == 2
+    assert run(["plan", "--robot", str(robot_file), "--n", "4", "--margin", "0.99", "--candidates", "50",
+                "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "at least 1" in err[0] and "inside the screen" in err[1]
