@@ -38,8 +38,12 @@ def session(tmp_path_factory):
               "-r", "joint_states:=/joint_states", "-r", "spots:=/spots", node="estimator")
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", f"poses:={POSES}",
               "-p", "span:=whole", "-p", "seed:=3")
-    code = ros.wait_exit("sequencer", 240)
-    assert code == 0, f"sequencer exited with {code}:\n{ros.log('sequencer')[-4000:]}"
+    try:
+        code = ros.wait_exit("sequencer", 240)
+        assert code == 0, f"sequencer exited with {code}:\n{ros.log('sequencer')[-4000:]}"
+    except BaseException:
+        ros.stop_all()
+        raise
     yield ros, out
     codes = ros.stop_all()
     # every node exits 0 on Ctrl-C

@@ -3,8 +3,8 @@
 Why segments. rosbags' MCAP writer keeps the open chunk (up to 1 MiB, with the
 schemas and channels) in memory and writes the summary, the footer and
 metadata.yaml only in close(). A process killed with SIGKILL therefore leaves
-an MCAP file holding little more than its magic bytes and no metadata.yaml:
-neither `ros2 bag` nor rosbags can open it. (sqlite3 storage would keep the rows
+an MCAP file with next to nothing in it (seen: empty after 2000 joint states,
+still buffered) and no metadata.yaml: neither `ros2 bag` nor rosbags opens it. (sqlite3 storage would keep the rows
 but still lack metadata.yaml, which both readers require.)
 
 So a session bag is a split rosbag2 bag, as `ros2 bag record --max-bag-duration`
@@ -45,8 +45,7 @@ from rosbags.typesys.store import Typestore
 INTERFACES = "laser_calib_interfaces"
 SAMPLES_TOPIC = "/samples"
 METADATA = "metadata.yaml"
-_ZERO = QosTime(0, 0)
-_INFINITE = QosTime(2147483647, 4294967295)  # rmw's "infinite" as ros2 bag writes it
+_INFINITE = QosTime(9223372036, 854775807)  # RMW_DURATION_INFINITE, as ros2 bag (Jazzy) writes it
 
 
 def qos(reliable: bool = True, transient_local: bool = False, depth: int = 10) -> Qos:
