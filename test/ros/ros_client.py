@@ -3,6 +3,7 @@
 
     ros_client.py params COUNT [TOPIC]         latest dh_parameters once sample_count >= COUNT
     ros_client.py markers                      the latched calibration_markers
+    ros_client.py move Q1 Q2 ...               send a joint_trajectory goal, wait until joint_states reach it
     ros_client.py reset                        call estimator/reset
     ros_client.py estimate-accumulated         Estimate with use_accumulated
     ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
@@ -63,6 +64,31 @@ def markers() -> dict:
     if not got:
         raise SystemExit("no calibration_markers")
     return {f"{m.ns}/{m.id}": {"frame": m.header.frame_id, "points": len(m.points)} for m in got[-1].markers}
+
+
+def move(goal: list[float], tolerance: float = 0.01) -> dict:
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    node = rclpy.create_node("test_move")
+    states = []
+    node.create_subscription(JointState, "joint_states", states.append, 50)
+    pub = node.create_publisher(JointTrajectory, "joint_trajectory", 10)
+    deadline = time.monotonic() + TIMEOUT
+    while (not states or pub.get_subscription_count() == 0) and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    if not states:
+        raise SystemExit("no joint_states")
+    first = list(states[-1].position)
+    traj = JointTrajectory()
+    traj.joint_names = list(states[-1].name)
+    traj.points = [JointTrajectoryPoint(positions=[float(v) for v in goal])]
+    pub.publish(traj)
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        q = np.array(states[-1].position)
+        if np.all(np.abs(q - goal) < tolerance) and np.all(np.abs(states[-1].velocity) < 1e-3):
+            return {"first": first, "reached": q.tolist(), "names": list(states[-1].name)}
+    raise SystemExit(f"goal not reached: {list(states[-1].position)}")
 
 
 def call(node: Node, client, request, timeout: float = TIMEOUT, attempt: float = ATTEMPT):
@@ -201,6 +227,8 @@ def main() -> int:
         command = sys.argv[1]
         if command == "params":
             result = params(int(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "dh_parameters")
+        elif command == "move":
+            result = move([float(v) for v in sys.argv[2:]])
         elif command == "markers":
             result = markers()
         elif command == "reset":

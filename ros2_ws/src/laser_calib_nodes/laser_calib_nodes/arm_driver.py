@@ -173,16 +173,14 @@ class ArmDriver(Node):
             self.true_pub.publish(true)
 
     def fail(self, message: str) -> None:
-        """Hardware fault: one log line, arm stopped, node exits with code 1."""
-        self.get_logger().error(f"{message}; arm stopped")
+        """Hardware fault: the arm stopped, then one line and exit code 1."""
         self.backend.stop()
-        raise common.NodeError(message, 1)
+        raise common.NodeError(f"{message}; arm stopped", 1)
 
     def close(self) -> None:
         backend = getattr(self, "backend", None)
         if backend is not None:
-            backend.stop()
-            backend.close()
+            backend.close()  # stops first
 
 
 def main(args=None) -> int:

@@ -1,0 +1,38 @@
+"""arm_driver over the Dynamixel backend, against the Protocol 2.0 servo
+emulator on a pseudo-terminal (test/dynamixel_emulator.py): joint states,
+a goal reached, and a servo fault giving one log line, torque off, exit 1."""
+
+from __future__ import annotations
+
+import math
+import time
+
+from ros_harness import ROOT
+
+ROBOT_4DOF = ROOT / "config" / "robots" / "manipulator_4dof.yaml"
+
+
+def test_dynamixel_arm_driver(ros):
+    from dynamixel_emulator import DynamixelEmulator
+    tpr = 4096 / (2 * math.pi)
+    with DynamixelEmulator(ids=(1, 2, 3, 4)) as emulator:
+        proc = ros.start("arm_driver", "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel",
+                         "-p", f"dynamixel.port:={emulator.port}", "-p", "dynamixel.baudrate:=57600",
+                         "-p", "dynamixel.ids:=[1, 2, 3, 4]", "-p", "dynamixel.profile_velocity:=0",
+                         "-p", "rate:=20.0", params=False)
+        moved = ros.client("move", "0.2", "-0.1", "0.3", "0.0")
+        assert all(abs(v) < 1e-3 for v in moved["first"])          # 2048 ticks = q 0
+        assert abs(moved["reached"][0] - 0.2) < 0.01
+        assert abs(emulator.present_position(1) - (2048 + round(0.2 * tpr))) <= 2
+        assert emulator.torque_enabled(1)
+
+        emulator.servos[3].silent = True                             # servo 3 stops answering
+        deadline = time.monotonic() + 30
+        while proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert proc.returncode == 1, ros.log("arm_driver")
+        log = ros.log("arm_driver")
+        assert "Traceback" not in log
+        errors = [line for line in log.splitlines() if "Dynamixel servo 3" in line]
+        assert errors and "arm stopped" in errors[0], log
+        assert not emulator.torque_enabled(1) and not emulator.torque_enabled(2)  # safe stop
