@@ -176,7 +176,7 @@ def bad_and_concurrent(robot_path: str) -> dict:
         "good_lm_1": request(good),
         "good_lm_2": request(good),
         "good_ekf": request(good, method="ekf", spot_sigma=0.00115),
-        "good_lm_3": request(good),
+        "good_lm_3": request(good, diagnose=True),
     }
     nodes, futures = {}, {}
     for name in cases:

@@ -71,13 +71,14 @@ def run_and_collect(robot: Robot, samples: Samples, options: EstimateOptions, ou
 
 
 def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, result: dict, out: Path) -> dict:
-    """The core's residual diagnosis when it is there; otherwise what result.json says."""
-    try:
-        from laser_calib import diagnosis  # noqa: F401  (the core's module, when present)
-    except ImportError:
-        return {"available": False, "reason": "laser_calib.diagnosis is not installed",
-                "chi2": result.get("chi2"), "dof": result.get("dof"), "warnings": result.get("warnings", [])}
-    return diagnosis.diagnose_to_dict(robot, samples, options, result, out)  # pragma: no cover
+    """laser_calib.diagnosis.diagnose (what `laser-calib diagnose` runs) on the same samples, as its JSON.
+
+    Only the JSON: its own report and calibrated robot would overwrite the estimate's.
+    """
+    from laser_calib.diagnosis import DiagnoseOptions, diagnose
+    diagnosis = diagnose(robot, samples, options=DiagnoseOptions(method=options.method,
+                                                                 spot_sigma=options.spot_sigma))
+    return diagnosis.to_json()
 
 
 def summary(result: dict, n_samples: int) -> str:

@@ -63,7 +63,8 @@ class Estimator(Node):
         self.robot, self.robot_path = common.robot_param(self)
         self.input = d("input", "samples", "'samples' (synchronized Sample messages) or 'stream' (joint_states "
                                            "and spots paired by stamp).")
-        self.sync_tol = d("sync_tolerance", 0.005, "'stream': max stamp difference of a pair, s.")
+        self.sync_tol = d("sync_tolerance", 0.02, "'stream': max stamp difference of a pair, s (at least half "
+                                                   "the joint_states period).")
         self.max_speed = d("stream.max_joint_speed", 0.002, "'stream': a pair counts only when every |joint "
                                                             "velocity| is below this, rad/s.")
         self.spot_sigma = d("spot_sigma", 0.0, "Spot sigma, m, for the online EKF and for requests with "

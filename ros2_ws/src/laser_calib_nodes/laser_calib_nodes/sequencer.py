@@ -69,7 +69,8 @@ class Sequencer(Node):
         self.settle_timeout = d("settle.timeout", 30.0, "Give up on a pose not settled after this long, s.")
         self.frames = d("frames", 3, "Spot frames averaged per pose.")
         self.frame_timeout = d("frame_timeout", 10.0, "Give up when the frames of a pose take longer, s.")
-        self.sync_tol = d("sync_tolerance", 0.005, "Max stamp difference pairing a frame with a joint state, s.")
+        self.sync_tol = d("sync_tolerance", 0.02, "Max stamp difference pairing a frame with a joint state, s "
+                                                   "(at least half the joint_states period).")
         self.wait_timeout = d("wait_timeout", 60.0, "Wait this long for the arm's joint states and the spots, s.")
         self.method = d("estimate.method", "lm", "Final estimate: 'lm' or 'ekf'.")
         self.spot_sigma = d("estimate.spot_sigma", 0.0, "Final estimate: spot sigma, m (0: estimate it).")
