@@ -71,6 +71,18 @@ def test_kill_and_resume(ros, tmp_path):
     assert (out / "report.md").exists() and (out / "robot_calibrated.yaml").exists()
     assert "finished" in (out / "session.yaml").read_text()
 
+    # the estimator (which lived through the crash) has every pose once, in order: the online EKF
+    # equals the offline one over samples.csv
+    from laser_calib.online import OnlineEkf
+    from laser_calib.robot_file import load_robot
+    from laser_calib_nodes.calibration import online_options
+    published = ros.client("params", str(POSES))
+    assert published["sample_count"] == POSES
+    ekf = OnlineEkf(load_robot(ROBOT), online_options(0.0))
+    for k in range(len(csv)):
+        ekf.update(csv.q[k], csv.spots[k])
+    np.testing.assert_allclose(published["errors"], ekf.errors, rtol=1e-9, atol=1e-15)
+
     # a finished session is not measured again
     proc = ros.start("sequencer_again", *args, node="sequencer")
     assert ros.wait_exit("sequencer_again", 60) == 2

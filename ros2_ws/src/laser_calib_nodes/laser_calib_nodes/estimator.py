@@ -81,6 +81,7 @@ class Estimator(Node):
 
         self.lock = threading.Lock()
         self.rows: list[tuple[int, float, np.ndarray, np.ndarray]] = []
+        self.keys: set[tuple[int, float]] = set()
         self.online = self.make_online()
 
         self.param_pub = self.create_publisher(DhParameters, common.DH_PARAMETERS, common.LATCHED_QOS)
@@ -113,6 +114,11 @@ class Estimator(Node):
         except InputError as exc:
             self.get_logger().error(f"ignored: {exc}")
             return
+        key = (row[0], row[1])  # (pose id, stamp): a sample published again (sequencer resumed) counts once
+        with self.lock:
+            if key in self.keys:
+                return
+            self.keys.add(key)
         self.add(row)
 
     def on_joint_state(self, msg: JointState) -> None:
@@ -211,6 +217,7 @@ class Estimator(Node):
     def on_reset(self, request, response):
         with self.lock:
             self.rows = []
+            self.keys = set()
             self.online.reset()
             if self.input == "stream":
                 self.sync.reset()

@@ -261,6 +261,11 @@ class Sequencer(Node):
         if len(self.joint_names) != self.robot.n_joints:
             raise common.NodeError(f"joint_states has {len(self.joint_names)} joints, robot '{self.robot.name}' "
                                    f"has {self.robot.n_joints}", 2)
+        if self.done_count:
+            # The samples measured before the resume, for an estimator that missed them (transient local).
+            done = self.session.samples(None)
+            for r in range(self.done_count):
+                self.sample_pub.publish(self.sample_msg(done, r))
         self.get_logger().info(f"measuring {n - self.done_count} of {n} poses into {self.session.path}")
         for step in range(self.done_count, n):
             self.measure_step(step)
@@ -351,10 +356,13 @@ class Sequencer(Node):
         msg.frames = int(self.frames)
         # The CSV row is built from the message, so bag and CSV hold identical values.
         row = bag.samples_from_rows([bag.sample_row_from_msg(msg, "sample")], "sample")
-        self.sample_pub.publish(msg)
+        # On disk first (closed segment: the pose is done), then published, then the CSV row. A crash
+        # between the steps is repaired on resume: the CSV from the bag, and the bag's samples are
+        # published again (the estimator ignores those it has).
         with self.bag_lock:
             self.bag.write(self.samples_topic, common.now_ns(self), serialize_message(msg))
-            self.bag.rotate()  # the pose is now on disk in a closed segment
+            self.bag.rotate()
+        self.sample_pub.publish(msg)
         self.session.append_sample(row)
 
     @staticmethod
