@@ -1,4 +1,4 @@
-"""Command line: laser-calib simulate | estimate | identify | slm-calibrate.
+"""Command line: laser-calib simulate | estimate | identify | slm-calibrate | import-positioner | calibrate-poses | plan.
 
 Bad input gives one line on stderr naming the file, field or pose, and exit status 2.
 """
@@ -21,7 +21,7 @@ from .pipeline import run_estimate
 from .robot_file import load_robot, save_robot
 from .samples_file import load_samples, save_samples
 from .simulation import CASES, NoiseSpec, paper_session
-from . import slm_calibration
+from . import real_cli, slm_calibration
 
 EXIT_BAD_INPUT = 2
 
@@ -162,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spot-sigma", type=_positive, default=None)
     p.add_argument("--out", required=True, help="robot file to write")
     p.set_defaults(func=cmd_slm_calibrate)
+
+    real_cli.register(sub)
     return parser
 
 
