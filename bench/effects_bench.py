@@ -1,0 +1,238 @@
+"""Effect diagnosis on both paper arms (issue 4).
+
+For every library effect on each arm: 80 calibration and 80 test poses over the
+whole workspace (effects.truth.effect_session: random geometric errors within
+10 mm / 1 deg, test rows interleaved in time with the calibration rows, a
+temperature column), spot noise uniform +-0.5 mm, joint disturbance uniform
++-0.02 deg, the effect at its typical size (the truth form's default, see each
+effect's docstring) with random signs. laser-calib's diagnose is given the
+spot and joint noise standard deviations (half-width / sqrt(3)).
+
+Per case it records the chosen effects, the verdict, the test-set RMS spot
+error of the geometric fit, of the final model and of the true effect model
+(the geometric errors plus the true effect, at its true place, fitted on the
+same calibration set), and the wall time of the whole diagnosis, and checks
+the targets: the right effect is chosen (and nothing else), the final test
+RMS is within 15 % of the true effect model's, the diagnosis takes < 30 s.
+Control cases: no effect (expect "explained", nothing added) and two effects
+outside the library, a joint error proportional to q^3 and a sudden step of a
+joint offset halfway through the session (expect "structure remains", and no
+added effect that worsens the test error).
+
+    .venv/bin/python bench/effects_bench.py [--seeds 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Callable
+
+from _common import write_results
+
+import numpy as np
+from scipy import stats
+
+from laser_calib.diagnosis import diagnose
+from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic
+from laser_calib.effects.catalog import camera_distortion, screen_shape
+from laser_calib.effects.model import EffectModel
+from laser_calib.effects.truth import (TEMPERATURE, ForeignJointError, TrueEffect, Truth, draw_truth,
+                                      effect_session, sized)
+from laser_calib.estimation import EstimateOptions, estimate_model
+from laser_calib.measurement import SpotModel
+from laser_calib.model import Robot
+from laser_calib.samples_file import Samples
+from laser_calib.simulation import NoiseSpec
+
+NOISE = NoiseSpec(spot=0.5e-3, joint=float(np.deg2rad(0.02)))
+N_CAL = N_TEST = 80
+RMS_MARGIN = 1.15
+VISIBILITY = 150.0  # chi^2 excess each simulated effect leaves in the geometric fit (effects.truth.sized)
+CUBIC = 8e-3  # rad at the ends of the joint range
+COUPLING = 5e-3  # rad per rad
+PERIOD = 10.0  # s between rows (effect_session's default)
+TIME_LIMIT = 30.0
+
+Maker = Callable[[Robot, Samples], object]
+
+# Where each effect sits on each arm: joints that move over a wide range (scale,
+# periodic), that carry a changing gravity load (compliance), any joint
+# (backlash); a link length of the upper arm; the screen and the camera.
+PLACES: dict[str, dict[str, Maker]] = {
+    "paper-7dof": {
+        "joint_scale": lambda r, c: JointScale(joint=0),
+        "compliance": lambda r, c: Compliance.make(r, c, 1),
+        "periodic": lambda r, c: Periodic(joint=4),
+        "backlash": lambda r, c: Backlash(joint=3),
+        "drift": lambda r, c: Drift.make(r, c, "a2", TEMPERATURE),
+        "screen_shape": lambda r, c: screen_shape(r),
+        "camera_distortion": lambda r, c: camera_distortion(r),
+    },
+    "paper-4dof": {
+        "joint_scale": lambda r, c: JointScale(joint=3),
+        "compliance": lambda r, c: Compliance.make(r, c, 1),
+        "periodic": lambda r, c: Periodic(joint=2),
+        "backlash": lambda r, c: Backlash(joint=1),
+        "drift": lambda r, c: Drift.make(r, c, "slm_x", "stamp"),
+        "screen_shape": lambda r, c: screen_shape(r),
+        "camera_distortion": lambda r, c: camera_distortion(r),
+    },
+}
+
+
+def cubic(robot: Robot, joint: int) -> ForeignJointError:
+    """q^3 about the middle of the joint's range, CUBIC at its ends."""
+    middle, half = (robot.q_max[joint] + robot.q_min[joint]) / 2, (robot.q_max[joint] - robot.q_min[joint]) / 2
+    return ForeignJointError("joint error ~ q^3", joint, lambda s: CUBIC * ((s.q[:, joint] - middle) / half) ** 3)
+
+
+def step(robot: Robot, joint: int) -> ForeignJointError:
+    """A joint offset that jumps by 3 mrad halfway through the session (a slipped coupling)."""
+    return ForeignJointError("joint offset steps in time", joint,
+                             lambda s: np.where(s.stamp > N_CAL * PERIOD / 2, 3e-3, 0.0))
+
+
+def coupling(robot: Robot, joint: int) -> ForeignJointError:
+    """The joint's angle follows the next joint's reading, COUPLING rad per rad
+    (a cable-driven or differential joint): no library effect of one joint has it."""
+    other = (joint + 1) % robot.n_joints
+    return ForeignJointError(f"joint error ~ q{other + 1} (coupling)", joint, lambda s: COUPLING * s.q[:, other])
+
+
+OUTSIDE = {"cubic": cubic, "step": step, "coupling": coupling}
+# Joint (0-based) of each outside effect per arm. The 4-DOF arm's joints 3 and 4
+# are parallel, so an error of joint 3 following q4 is a scale error of joint 4:
+# the coupling sits on joint 2 there.
+OUTSIDE_JOINT = {"paper-7dof": {"cubic": 0, "step": 1, "coupling": 3},
+                 "paper-4dof": {"cubic": 2, "step": 1, "coupling": 1}}
+# q^3 is not outside the library's span: periodic (1st and 2nd harmonic) plus
+# joint scale fit it to 0.5 % over any of these joint ranges, so "explained" by
+# those effects is the right answer; only its test error is checked.
+INSIDE_SPAN = {"cubic"}
+
+
+def not_worse(diagnosis) -> bool:
+    """The final model is not significantly worse than the geometric fit on the
+    test poses: one-sided Wilcoxon signed-rank test over test poses of the
+    squared spot distances, p >= 0.01."""
+    first, last = diagnosis.stages[0].test, diagnosis.stages[-1].test
+    both = np.isfinite(first) & np.isfinite(last)
+    difference = (np.where(both, last, 0.0) ** 2 - np.where(both, first, 0.0) ** 2).sum(axis=1)
+    difference = difference[difference != 0]
+    return bool(len(difference) < 6 or stats.wilcoxon(difference, alternative="greater").pvalue >= 0.01)
+
+
+def true_model_rms(session, truth: list[TrueEffect], options: EstimateOptions) -> float:
+    """Test RMS (mm) of the geometric errors plus the true effects, fitted on the calibration set."""
+    effects = [t.effect for t in truth]
+    model = EffectModel(SpotModel(session.nominal, session.cal), effects)
+    est = estimate_model(model, options)
+    test = EffectModel(SpotModel(session.nominal, session.test), effects).residuals(est.values, False)
+    d = np.linalg.norm(test.r, axis=-1)[test.valid]
+    return float(np.sqrt(np.mean(d ** 2)) * 1e3)
+
+
+def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given: str = "both") -> dict:
+    options = EstimateOptions(spot_sigma=NOISE.spot_sigma, joint_sigma=NOISE.joint_sigma)
+    robot_joint = OUTSIDE_JOINT[case].get(kind, 0)
+    truth_effects: list[Truth] = []
+
+    def make_truth(robot, errors, context, rng):
+        if kind in PLACES[case]:
+            drawn = draw_truth(PLACES[case][kind](robot, context), rng)
+            truth_effects.append(sized(robot, errors, context, drawn, NOISE, visible))
+        elif kind in OUTSIDE:
+            truth_effects.append(OUTSIDE[kind](robot, robot_joint))
+        return list(truth_effects)
+
+    session = effect_session(case, seed, make_truth, N_CAL, N_TEST, NOISE, PERIOD)
+    start = time.perf_counter()
+    diagnosis = diagnose(session.nominal, session.cal, session.test,
+                         spot_sigma=NOISE.spot_sigma if given in ("both", "spot") else None,
+                         joint_sigma=NOISE.joint_sigma if given == "both" else None)
+    elapsed = time.perf_counter() - start
+    result = diagnosis.to_json()
+    stages = result["stages"]
+    chosen = [f"{e['name']} ({e['where']}" + (f" with {e['covariate']})" if "covariate" in e else ")")
+              for e in result["effects"]]
+    row = {"arm": case, "effect": kind, "seed": seed, "noise_given": given,
+           "visibility": visible if kind in PLACES[case] else None,
+           "chosen": chosen, "verdict": result["verdict"],
+           "geometric_test_rms_mm": stages[0]["test"]["rms_mm"], "final_test_rms_mm": stages[-1]["test"]["rms_mm"],
+           "time_s": elapsed, "evidence": result["evidence"]}
+    if kind in PLACES[case]:
+        truth = truth_effects[0]
+        row["truth"] = truth.effect.label
+        row["true_values"] = truth.values.tolist()
+        row["size_in_typical"] = float(np.linalg.norm(truth.values / truth.effect.typical) / np.sqrt(truth.values.size))
+        row["true_model_test_rms_mm"] = true_model_rms(session, truth_effects, options)
+        right = [e for e in diagnosis.final.effects if e.label == truth.effect.label]
+        row["checks"] = {"right_effect": len(right) == 1 and len(diagnosis.final.effects) == 1,
+                         "rms_within_15pct": row["final_test_rms_mm"] <= RMS_MARGIN * row["true_model_test_rms_mm"],
+                         "under_30s": elapsed < TIME_LIMIT}
+        if right:
+            block = diagnosis.final.model.blocks[0]
+            est = diagnosis.final.estimate
+            n_geo = diagnosis.final.model.n_geometric
+            row["estimated_values"] = est.values[n_geo:][block].tolist()
+            row["estimated_std"] = est.std[n_geo:][block].tolist()
+    elif kind == "none":
+        row["checks"] = {"explained": result["verdict"] == "explained", "nothing_added": not chosen,
+                         "under_30s": elapsed < TIME_LIMIT}
+    else:
+        row["truth"] = f"{truth_effects[0].name} (joint {robot_joint + 1})"
+        row["checks"] = {"structure_remains": result["verdict"] == "structure remains",
+                         "no_worse_on_test": not_worse(diagnosis), "under_30s": elapsed < TIME_LIMIT}
+        if kind in INSIDE_SPAN:
+            del row["checks"]["structure_remains"]
+    return row
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["# Effect diagnosis benchmark", "",
+             f"{N_CAL} calibration and {N_TEST} test poses over the whole workspace, spot noise uniform "
+             f"+-{NOISE.spot * 1e3:g} mm, joint noise uniform +-{np.degrees(NOISE.joint):g} deg; "
+             "RMS of the Euclidean spot error on the test poses.", "",
+             "Each library effect is sized so that it leaves a chi^2 excess of "
+             f"{VISIBILITY:g} in the geometric fit (effects.truth.sized); 'noise given': what diagnose was told "
+             "(both: spot and joint sigma; spot: spot sigma only, the joint-reading noise is estimated).", "",
+             "| noise given | arm | simulated | seed | chosen | verdict | geometric (mm) | final (mm) | true model (mm) "
+             "| time (s) | checks |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        truth = r.get("truth", "none")
+        true_rms = f"{r['true_model_test_rms_mm']:.3f}" if "true_model_test_rms_mm" in r else "-"
+        checks = ", ".join(("" if ok else "FAIL ") + name for name, ok in r["checks"].items())
+        lines.append(f"| {r['noise_given']} | {r['arm']} | {truth} | {r['seed']} | {'; '.join(r['chosen']) or 'nothing'} | "
+                     f"{r['verdict']} | "
+                     f"{r['geometric_test_rms_mm']:.3f} | {r['final_test_rms_mm']:.3f} | {true_rms} | "
+                     f"{r['time_s']:.1f} | {checks} |")
+    passed = sum(all(r["checks"].values()) for r in rows)
+    lines += ["", f"{passed} of {len(rows)} cases meet every target; slowest diagnosis "
+                  f"{max(r['time_s'] for r in rows):.1f} s."]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=3, help="seeds per case (1, 2, ...)")
+    parser.add_argument("--given", nargs="+", choices=("both", "spot", "none"), default=["both", "spot"],
+                        help="noise given to diagnose: spot and joint sigma, spot sigma only, none")
+    args = parser.parse_args()
+    rows = []
+    kinds = ["none"] + list(PLACES["paper-7dof"]) + list(OUTSIDE)
+    for given in args.given:
+        for case in PLACES:
+            for kind in kinds:
+                for seed in range(1, args.seeds + 1):
+                    row = run_case(case, kind, seed, given=given)
+                    print(f"[{given}] {case} {kind} seed {seed}: chose {row['chosen'] or 'nothing'}, "
+                          f"{row['verdict']}, {row['time_s']:.1f} s, {row['checks']}", flush=True)
+                    rows.append(row)
+    write_results("effects", {"noise": {"spot_halfwidth_m": NOISE.spot, "joint_halfwidth_rad": NOISE.joint},
+                              "poses": {"calibration": N_CAL, "test": N_TEST}, "cases": rows}, table(rows))
+
+
+if __name__ == "__main__":
+    main()

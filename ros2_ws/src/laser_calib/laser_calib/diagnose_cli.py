@@ -1,0 +1,108 @@
+"""laser-calib diagnose: find what the geometric model lacks, add it, report before and after.
+
+cli.py calls register(subparsers); ``python -m laser_calib.diagnose_cli`` runs
+the subcommand alone. Bad input gives one line on stderr and exit status 2, as
+in cli.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+
+from .diagnosis import DiagnoseOptions, diagnose, write_outputs
+from .errors import InputError
+from .estimation import METHODS
+from .robot_file import load_robot
+from .samples_file import load_samples
+
+EXIT_BAD_INPUT = 2
+
+
+def _number(text: str, positive: bool) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or value < 0 or (positive and value == 0):
+        raise argparse.ArgumentTypeError(f"expected a {'positive' if positive else 'non-negative'} number, "
+                                         f"got {text}")
+    return value
+
+
+def _positive(text: str) -> float:
+    return _number(text, True)
+
+
+def _non_negative(text: str) -> float:
+    return _number(text, False)
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text}")
+    return value
+
+
+def cmd_diagnose(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot)
+    samples = load_samples(args.samples, robot)
+    test = load_samples(args.test, robot) if args.test else None
+    options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
+                              folds=args.folds, max_effects=args.max_effects, seed=args.seed)
+    print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
+          file=sys.stderr, flush=True)
+    diagnosis = diagnose(robot, samples, test, options=options)
+    result = write_outputs(diagnosis, args.out, {"robot": str(args.robot), "samples": str(args.samples),
+                                                 "test": str(args.test) if args.test else None})
+    for stage in result["stages"]:
+        where = "test" if stage["test"] else "cv"
+        s = stage[where]
+        print(f"{stage['model']}: {where} spot error mean {s['mean_mm']:.3f} mm, rms {s['rms_mm']:.3f} mm, "
+              f"max {s['max_mm']:.3f} mm")
+    print(f"verdict: {result['verdict']}. {result['evidence']}")
+    print(f"wrote {args.out}/diagnosis.json, robot_calibrated.yaml, report.md")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``diagnose`` subcommand to laser-calib's parser."""
+    p = subparsers.add_parser("diagnose", help="find and add the effects the geometric model lacks",
+                              description=__doc__.splitlines()[0])
+    p.add_argument("--robot", required=True, help="nominal robot model (YAML)")
+    p.add_argument("--samples", required=True, help="calibration samples (CSV, rows in measurement order)")
+    p.add_argument("--test", help="test samples: poses the fit never sees (CSV)")
+    p.add_argument("--spot-sigma", type=_positive, default=None,
+                   help="spot noise std per coordinate, m (default: from repeated poses, else not known)")
+    p.add_argument("--joint-sigma", type=_non_negative, default=None,
+                   help="joint reading noise std, rad (default: estimated when the level needs it)")
+    p.add_argument("--method", choices=METHODS, default="lm", help="estimator of every fit")
+    p.add_argument("--folds", type=_count, default=5, help="cross-validation folds (at least 2)")
+    p.add_argument("--max-effects", type=_count, default=4, help="effects added at most")
+    p.add_argument("--seed", type=int, default=0, help="seed of the fold split")
+    p.add_argument("--out", required=True, help="output folder")
+    p.set_defaults(func=cmd_diagnose)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="laser-calib")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["diagnose", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"laser-calib: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ValueError as exc:
+        print(f"laser-calib diagnose: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

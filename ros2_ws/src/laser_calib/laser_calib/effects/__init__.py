@@ -1,0 +1,17 @@
+"""Effects the geometric (D-H) model lacks, as parameter blocks that plug into
+the same estimators (base, joint, drift, screen), the model that carries them
+(model.EffectModel), the library of candidates and the robot-file key
+(catalog), their truth forms for the simulator (truth), residual analysis
+against the covariates of the data (residuals) and the diagnosis report (report).
+"""
+
+from .base import JOINT, PARAM, SPOT, Effect, JointEffect, ParamEffect, SpotEffect, move_directions
+from .catalog import KINDS, calibrated_model, candidates, effects_from_robot, effects_to_yaml
+from .drift import Drift
+from .joint import Backlash, Compliance, JointScale, Periodic, gravity_torques
+from .model import EffectModel
+from .screen import CameraDistortion, ScreenShape
+
+__all__ = ["JOINT", "PARAM", "SPOT", "Effect", "JointEffect", "ParamEffect", "SpotEffect", "move_directions",
+           "KINDS", "calibrated_model", "candidates", "effects_from_robot", "effects_to_yaml", "Drift", "Backlash", "Compliance",
+           "JointScale", "Periodic", "gravity_torques", "EffectModel", "CameraDistortion", "ScreenShape"]

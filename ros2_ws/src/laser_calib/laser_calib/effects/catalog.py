@@ -1,0 +1,147 @@
+"""The effect library: every candidate for a data set, and the robot file's
+``effects:`` key (docs/effects.md), read and written with validation."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from ..measurement import SpotModel
+from ..model import Robot, param_names
+from ..samples_file import Samples
+from .base import JOINT, Effect, move_directions
+from .drift import STAMP, Drift, length_params
+from .joint import JOINT_EFFECTS, Backlash, Compliance, gravity_torques
+from .model import EffectModel
+from .screen import SPOT_EFFECTS, CameraDistortion, ScreenShape
+
+KINDS: dict[str, type] = {cls.kind: cls for cls in (*JOINT_EFFECTS, Drift, *SPOT_EFFECTS)}
+MIN_MOTION = 1e-6  # rad, m or covariate unit: below this a basis is constant over the data
+
+
+def screen_shape(robot: Robot) -> ScreenShape:
+    return ScreenShape(half_y=robot.screen.half_y, half_z=robot.screen.half_z)
+
+
+def camera_distortion(robot: Robot) -> CameraDistortion:
+    return CameraDistortion(radius=max(robot.screen.half_y, robot.screen.half_z))
+
+
+def covariate_names(samples: Samples) -> list[str]:
+    """Columns a drift may follow: the stamp and every extra column that varies."""
+    names = [STAMP] + list(samples.extra)
+    values = {STAMP: samples.stamp, **samples.extra}
+    return [name for name in names if len(values[name]) and np.ptp(values[name]) > MIN_MOTION]
+
+
+def candidates(robot: Robot, samples: Samples) -> list[Effect]:
+    """Each library effect at each joint, length and covariate where the data
+    can show it: a joint that moves, a gravity torque that changes, approach
+    directions that differ, a covariate that varies."""
+    out: list[Effect] = []
+    torques = gravity_torques(robot, samples.q)
+    directions = move_directions(samples.q)
+    for i in range(robot.n_joints):
+        if np.ptp(samples.q[:, i]) <= MIN_MOTION:
+            continue
+        for cls in JOINT_EFFECTS:
+            if cls is Compliance:
+                if np.ptp(torques[:, i]) > MIN_MOTION:
+                    out.append(Compliance(joint=i, torque_span=float(np.ptp(torques[:, i]))))
+            elif cls is not Backlash or np.ptp(directions[:, i]) > 0:
+                out.append(cls(joint=i))
+    names = param_names(robot.n_joints)
+    for covariate in covariate_names(samples):
+        out += [Drift.make(robot, samples, names[j], covariate) for j in length_params(robot.n_joints)]
+    out += [screen_shape(robot), camera_distortion(robot)]
+    return out
+
+
+def same_place(a: Effect, b: Effect) -> bool:
+    """Two blocks of the same kind acting at the same place (never both in a model)."""
+    return a.kind == b.kind and a.where == b.where and getattr(a, "covariate", None) == getattr(b, "covariate", None)
+
+
+def effects_to_yaml(effects: Sequence[Effect], values: Sequence[np.ndarray]) -> list[dict[str, Any]]:
+    return [e.to_yaml(v) for e, v in zip(effects, values)]
+
+
+def _number(where: str, entry: Mapping[str, Any], key: str, default: float | None = None) -> float:
+    if key not in entry:
+        if default is not None:
+            return default
+        raise InputError(where, f"missing key '{key}'")
+    value = entry[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"{where}.{key}", f"expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _effect(robot: Robot, entry: Mapping[str, Any], where: str) -> Effect:
+    kind = entry.get("type")
+    if kind not in KINDS:
+        raise InputError(f"{where}.type", f"expected one of {', '.join(KINDS)}, got {kind!r}")
+    cls = KINDS[kind]
+    if cls.family == JOINT:
+        joint = entry.get("joint")
+        if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= robot.n_joints:
+            raise InputError(f"{where}.joint", f"expected a joint number 1..{robot.n_joints}, got {joint!r}")
+        if cls is Compliance:
+            span = _number(where, entry, "torque_span", 1.0)
+            if span <= 0:
+                raise InputError(f"{where}.torque_span", "must be positive")
+            return Compliance(joint=joint - 1, torque_span=span)
+        return cls(joint=joint - 1)
+    if cls is Drift:
+        lengths = [param_names(robot.n_joints)[j] for j in length_params(robot.n_joints)]
+        name = entry.get("parameter")
+        if name not in lengths:
+            raise InputError(f"{where}.parameter", f"expected a length ({', '.join(lengths)}), got {name!r}")
+        covariate = entry.get("covariate")
+        if not isinstance(covariate, str) or not covariate:
+            raise InputError(f"{where}.covariate", f"expected a column name, got {covariate!r}")
+        spread = _number(where, entry, "spread")
+        if spread <= 0:
+            raise InputError(f"{where}.spread", "must be positive")
+        return Drift(param=param_names(robot.n_joints).index(name), covariate=covariate,
+                     reference=_number(where, entry, "reference"), spread=spread, param_name=name)
+    if cls is ScreenShape:
+        shape = ScreenShape(_number(where, entry, "half_y", robot.screen.half_y),
+                            _number(where, entry, "half_z", robot.screen.half_z))
+        if shape.half_y <= 0 or shape.half_z <= 0:
+            raise InputError(where, "half_y and half_z must be positive")
+        return shape
+    radius = _number(where, entry, "radius", max(robot.screen.half_y, robot.screen.half_z))
+    if radius <= 0:
+        raise InputError(f"{where}.radius", "must be positive")
+    return CameraDistortion(radius)
+
+
+def effects_from_robot(robot: Robot, source: str = "<robot>") -> tuple[list[Effect], list[np.ndarray]]:
+    """The effects of a robot file's ``effects:`` key (empty if absent) and their values."""
+    entries = robot.extra.get("effects", [])
+    if not isinstance(entries, list):
+        raise InputError(f"{source}: effects", f"expected a list, got {type(entries).__name__}")
+    effects, values = [], []
+    for n, entry in enumerate(entries):
+        where = f"{source}: effects[{n}]"
+        if not isinstance(entry, Mapping):
+            raise InputError(where, f"expected a mapping, got {type(entry).__name__}")
+        effect = _effect(robot, entry, where)
+        if any(same_place(effect, other) for other in effects):
+            raise InputError(where, f"{effect.label} appears twice")
+        effects.append(effect)
+        values.append(np.array([_number(where, entry, p) for p in effect.params]))
+    return effects, values
+
+
+def calibrated_model(robot: Robot, samples: Samples, source: str = "<robot>") -> tuple[EffectModel, np.ndarray]:
+    """The model of a calibrated robot file (D-H values corrected, ``effects:``
+    key) on ``samples``, and its parameter vector x (geometric errors 0: they
+    are in the D-H values)."""
+    effects, values = effects_from_robot(robot, source)
+    model = EffectModel(SpotModel(robot, samples), effects)
+    return model, np.concatenate([np.zeros(robot.n_params), *values])

@@ -1,0 +1,216 @@
+"""The diagnosis: each library effect found on both arms and its size recovered;
+nothing added to data without effects; structure reported for effects outside
+the library; noise from repeated poses; the command line and its files.
+
+Effects are sized by visibility (effects.truth.sized): the chi^2 excess they
+leave in the geometric fit, so that every case is equally visible whatever the
+arm's lever arms; random signs and shapes come from the seed.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from laser_calib.diagnose_cli import main as diagnose_main
+from laser_calib.diagnosis import EXPLAINED, STRUCTURE, diagnose, write_outputs
+from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic, calibrated_model
+from laser_calib.effects.catalog import camera_distortion, screen_shape
+from laser_calib.effects.truth import (TEMPERATURE, ForeignJointError, draw_truth, effect_session, hooks, sized)
+from laser_calib.robot_file import load_robot, save_robot
+from laser_calib.samples_file import Samples, load_samples, save_samples
+from laser_calib.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
+
+NOISE = NoiseSpec(spot=0.5e-3, joint=float(np.deg2rad(0.02)))
+VISIBLE = 200.0
+SEED = 11
+
+# Placements: a joint where the effect shows (scale and periodic: a joint with a
+# wide range; compliance: a joint whose gravity torque changes), a length, the
+# screen and the camera.
+LIBRARY = {
+    "paper-7dof": {"joint_scale": lambda r, c: JointScale(joint=4),
+                   "compliance": lambda r, c: Compliance.make(r, c, 3),
+                   "periodic": lambda r, c: Periodic(joint=0),
+                   "backlash": lambda r, c: Backlash(joint=5),
+                   "drift": lambda r, c: Drift.make(r, c, "slm_x", "stamp"),
+                   "screen_shape": lambda r, c: screen_shape(r),
+                   "camera_distortion": lambda r, c: camera_distortion(r)},
+    "paper-4dof": {"joint_scale": lambda r, c: JointScale(joint=3),
+                   "compliance": lambda r, c: Compliance.make(r, c, 1),
+                   "periodic": lambda r, c: Periodic(joint=3),
+                   "backlash": lambda r, c: Backlash(joint=2),
+                   "drift": lambda r, c: Drift.make(r, c, "a2", TEMPERATURE),
+                   "screen_shape": lambda r, c: screen_shape(r),
+                   "camera_distortion": lambda r, c: camera_distortion(r)},
+}
+
+
+def library_session(arm, kind, n_cal=80, n_test=40, seed=SEED):
+    def make(robot, errors, context, rng):
+        return [sized(robot, errors, context, draw_truth(LIBRARY[arm][kind](robot, context), rng), NOISE, VISIBLE)]
+
+    return effect_session(arm, seed, make, n_cal, n_test, NOISE)
+
+
+def run(session, **kw):
+    return diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma,
+                    joint_sigma=NOISE.joint_sigma, **kw)
+
+
+def not_worse_on_test(diagnosis) -> bool:
+    """One-sided Wilcoxon over test poses: the final model's squared spot
+    distances are not significantly larger than the geometric fit's (p >= 0.01)."""
+    first, last = diagnosis.stages[0].test, diagnosis.stages[-1].test
+    both = np.isfinite(first) & np.isfinite(last)
+    difference = (np.where(both, last, 0.0) ** 2 - np.where(both, first, 0.0) ** 2).sum(axis=1)
+    difference = difference[difference != 0]
+    return len(difference) < 6 or stats.wilcoxon(difference, alternative="greater").pvalue >= 0.01
+
+
+@pytest.mark.parametrize("arm, kind", [(arm, kind) for arm in LIBRARY for kind in LIBRARY[arm]])
+def test_library_effect_is_found_and_its_size_recovered(arm, kind):
+    session = library_session(arm, kind)
+    truth = session.truth[0]
+    diagnosis = run(session)
+    assert [e.label for e in diagnosis.final.effects] == [truth.effect.label]
+    report = diagnosis.parameters[0]
+    reported = [(k, p) for k, p in enumerate(report["parameters"]) if p["value"] is not None]
+    assert reported, "every parameter reported as inseparable"
+    for k, p in reported:
+        assert abs(p["value"] - truth.values[k]) < 4 * p["std"], (p, truth.values[k])
+    for p in report["parameters"]:
+        assert (p["value"] is None) == ("note" in p)
+    # Held-out error goes down on the calibration poses (cross-validated) and on the test poses.
+    cv = [stage.fitted.cv for stage in diagnosis.stages]
+    assert np.nanmean(cv[-1] ** 2) < np.nanmean(cv[0] ** 2)
+    assert not_worse_on_test(diagnosis)
+
+
+@pytest.mark.parametrize("arm", list(LIBRARY))
+def test_data_without_effects_is_explained_and_nothing_is_added(arm):
+    session = effect_session(arm, SEED, lambda r, e, c, rng: [], 80, 40, NOISE)
+    diagnosis = run(session)
+    assert diagnosis.verdict == EXPLAINED, diagnosis.evidence
+    assert diagnosis.final.effects == ()
+    assert len(diagnosis.stages) == 1
+
+
+def step(robot, joint):
+    """A joint offset that jumps halfway through the session (a slipped coupling)."""
+    return ForeignJointError("step", joint, lambda s: np.where(s.stamp > s.stamp.max() / 2, 1e-3, 0.0))
+
+
+def coupling(robot, joint):
+    """The joint follows the next joint's reading (a cable-driven joint)."""
+    return ForeignJointError("coupling", joint, lambda s: 1e-3 * s.q[:, joint + 1])
+
+
+# Joint 2 on both arms: its next joint is not parallel to it (on the 4-DOF arm,
+# joints 3 and 4 are, and a joint-3 error following q4 is a joint-4 scale error).
+@pytest.mark.parametrize("arm, outside", [(arm, o) for arm in LIBRARY for o in (step, coupling)])
+def test_effect_outside_the_library_leaves_structure(arm, outside):
+    def make(robot, errors, context, rng):
+        return [sized(robot, errors, context, outside(robot, 1), NOISE, VISIBLE)]
+
+    session = effect_session(arm, SEED, make, 80, 40, NOISE)
+    diagnosis = run(session)
+    assert diagnosis.verdict == STRUCTURE
+    assert diagnosis.after.tests[0].p_adjusted < diagnosis.options.alpha
+    assert not_worse_on_test(diagnosis)
+
+
+def repeated_session(arm, truth, seed=SEED, n=40, repeats=2):
+    """Poses measured ``repeats`` times in a row (the readings repeat exactly)."""
+    rng = np.random.default_rng(seed)
+    nominal = bundled_robot(arm)
+    errors = true_errors(nominal, rng)
+    true = nominal.with_errors(errors)
+    q = np.repeat(sample_poses([nominal, true], n, rng), repeats, axis=0)
+    stamps = 10.0 * np.arange(len(q))
+    context = Samples(np.arange(len(q)), stamps, q, np.full((len(q), 2, 2), np.nan))
+    offsets, transform = hooks([sized(nominal, errors, context, t, NOISE, VISIBLE) for t in truth(nominal)])
+    samples, _ = measure(true, q, rng, NOISE, stamps, None, offsets, transform)
+    return nominal, samples
+
+
+@pytest.mark.parametrize("arm", list(LIBRARY))
+def test_noise_level_from_repeated_poses(arm):
+    """Without --spot-sigma, the scatter of repeated poses gives the noise and
+    the lack-of-fit test of the level; a coupling the library lacks is flagged."""
+    nominal, samples = repeated_session(arm, lambda robot: [])
+    diagnosis = diagnose(nominal, samples)
+    assert diagnosis.noise.level_test == "lack-of-fit F"
+    assert diagnosis.noise.repeat_dof > 0
+    assert diagnosis.verdict == EXPLAINED, diagnosis.evidence
+    nominal, samples = repeated_session(arm, lambda robot: [coupling(robot, 1)])
+    assert diagnose(nominal, samples).verdict == STRUCTURE
+
+
+def test_command_line_writes_diagnosis_robot_and_report(tmp_path):
+    session = library_session("paper-4dof", "backlash", n_cal=60, n_test=30)
+    save_robot(session.nominal, tmp_path / "robot.yaml")
+    save_samples(session.cal, tmp_path / "cal.csv")
+    save_samples(session.test, tmp_path / "test.csv")
+    out = tmp_path / "out"
+    status = diagnose_main(["--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"),
+                            "--test", str(tmp_path / "test.csv"), "--spot-sigma", str(NOISE.spot_sigma),
+                            "--joint-sigma", str(NOISE.joint_sigma), "--out", str(out)])
+    assert status == 0
+    result = json.loads((out / "diagnosis.json").read_text())
+    assert [s["model"] for s in result["stages"]] == ["geometric", "geometric + backlash (joint 3)"]
+    for stage in result["stages"]:
+        for key in ("cal", "cv", "test"):
+            assert set(stage[key]) >= {"mean_mm", "rms_mm", "max_mm"}
+    assert result["effects"][0]["name"] == "backlash" and result["effects"][0]["where"] == "joint 3"
+    assert {"name", "value", "std"} <= set(result["effects"][0]["parameters"][0])
+    assert result["verdict"] in (EXPLAINED, STRUCTURE) and result["evidence"]
+    report = (out / "report.md").read_text()
+    assert "![residual](residual.png)" in report and (out / "residual.png").exists()
+    # The calibrated robot file predicts the test poses as the final model did.
+    robot = load_robot(out / "robot_calibrated.yaml")
+    assert robot.extra["effects"][0]["type"] == "backlash"
+    test = load_samples(tmp_path / "test.csv", robot)
+    model, x = calibrated_model(robot, test)
+    res = model.residuals(x, False)
+    rms = np.sqrt(np.mean(np.linalg.norm(res.r, axis=-1)[res.valid] ** 2)) * 1e3
+    assert rms == pytest.approx(result["stages"][-1]["test"]["rms_mm"], rel=1e-6)
+
+
+@pytest.mark.parametrize("args, text", [
+    (["--samples", "missing.csv"], "missing.csv"),
+    (["--spot-sigma", "-1"], "positive"),
+    (["--folds", "1"], "folds"),
+])
+def test_command_line_bad_input_exits_2_with_one_line(tmp_path, capsys, args, text):
+    save_robot(bundled_robot("paper-4dof"), tmp_path / "robot.yaml")
+    session = effect_session("paper-4dof", 1, lambda r, e, c, rng: [], 12, 4, NOISE)
+    save_samples(session.cal, tmp_path / "cal.csv")
+    base = {"--robot": str(tmp_path / "robot.yaml"), "--samples": str(tmp_path / "cal.csv"),
+            "--out": str(tmp_path / "out")}
+    for key, value in zip(args[::2], args[1::2]):
+        base[key] = value
+    argv = [item for pair in base.items() for item in pair]
+    try:
+        status = diagnose_main(argv)
+    except SystemExit as exit_:  # argparse rejects the value itself
+        status = exit_.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2
+    assert text in err[-1]
+
+
+def test_test_set_without_a_calibration_covariate_is_bad_input():
+    session = library_session("paper-4dof", "drift", n_cal=60, n_test=20)
+    test = Samples(session.test.pose, session.test.stamp, session.test.q, session.test.spots, {})
+    with pytest.raises(ValueError, match=TEMPERATURE):
+        diagnose(session.nominal, session.cal, test, spot_sigma=NOISE.spot_sigma)
+
+
+def test_written_outputs_are_plain_json(tmp_path):
+    session = library_session("paper-7dof", "periodic", n_cal=60, n_test=20)
+    diagnosis = run(session)
+    result = write_outputs(diagnosis, tmp_path)
+    text = (tmp_path / "diagnosis.json").read_text()
+    assert "NaN" not in text and json.loads(text) == json.loads(json.dumps(result))
