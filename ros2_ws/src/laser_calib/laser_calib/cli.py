@@ -1,4 +1,4 @@
-"""Command line: laser-calib simulate | estimate | identify | slm-calibrate | import-positioner | calibrate-poses | plan.
+"""Command line: laser-calib simulate | estimate | identify | slm-calibrate | replay | import-positioner | calibrate-poses | plan.
 
 Bad input gives one line on stderr naming the file, field or pose, and exit status 2.
 """
@@ -6,7 +6,9 @@ Bad input gives one line on stderr naming the file, field or pose, and exit stat
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -64,14 +66,27 @@ def _options(args: argparse.Namespace) -> EstimateOptions:
                            robust=args.robust, fixed=tuple(args.fix), ekf=ekf)
 
 
+def _bag_samples(path: str, robot) -> object:
+    """Samples of a recorded session bag, through the nodes package's ROS-free reader."""
+    if importlib.util.find_spec("laser_calib_nodes") is None:
+        raise InputError(path, "reading bags needs the laser_calib_nodes package (use scripts/laser-calib)")
+    from laser_calib_nodes.bag import read_samples  # rosbags only: no ROS runtime
+    from .samples_file import check_joint_range
+    samples = read_samples(path)
+    if samples.n_joints != robot.n_joints:
+        raise InputError(path, f"{samples.n_joints} joints in the bag but robot '{robot.name}' has {robot.n_joints}")
+    check_joint_range(samples.q, robot, path, samples.pose)
+    return samples
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
-    samples = load_samples(args.samples, robot)
+    samples = _bag_samples(args.bag, robot) if args.bag else load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
     options = _options(args)
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
     result = run_estimate(robot, samples, options, args.out, test,
-                          sources={"robot": str(args.robot), "samples": str(args.samples),
+                          sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
                                    "test": str(args.test) if args.test else None})
     _summary(result)
     print(f"wrote {args.out}/robot_calibrated.yaml, result.json, report.md")
@@ -110,6 +125,15 @@ def cmd_slm_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Hand over to the replay node (a ROS process): the core itself never imports rclpy."""
+    if importlib.util.find_spec("rclpy") is None or importlib.util.find_spec("laser_calib_nodes") is None:
+        raise InputError("replay", "needs the ROS 2 environment: run scripts/setup, then use scripts/laser-calib "
+                                   "(or source scripts/env.sh)")
+    argv = [sys.executable, "-m", "laser_calib_nodes.replay", args.bag, "--rate", str(args.rate)]
+    os.execv(sys.executable, argv)
+
+
 def _positive(text: str) -> float:
     value = float(text)
     if not np.isfinite(value) or value <= 0:
@@ -135,7 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("estimate", help="estimate the geometric errors")
     p.add_argument("--robot", required=True)
-    p.add_argument("--samples", required=True)
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--samples", help="samples CSV")
+    source.add_argument("--bag", help="a recorded session bag (its /samples topic)")
     p.add_argument("--test")
     p.add_argument("--method", choices=METHODS, default="lm")
     p.add_argument("--spot-sigma", type=_positive, default=None,
@@ -162,6 +188,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spot-sigma", type=_positive, default=None)
     p.add_argument("--out", required=True, help="robot file to write")
     p.set_defaults(func=cmd_slm_calibrate)
+
+    p = sub.add_parser("replay", help="republish a recorded session bag with its original timing (ROS)")
+    p.add_argument("bag")
+    p.add_argument("--rate", type=_positive, default=1.0, help="playback speed factor")
+    p.set_defaults(func=cmd_replay)
 
     real_cli.register(sub)
     return parser
