@@ -36,7 +36,7 @@ def test_kill_and_resume(ros, tmp_path):
         assert proc.poll() is None, ros.log("sequencer")
         assert time.monotonic() < deadline, "no progress:\n" + ros.log("sequencer")
         time.sleep(0.05)
-    time.sleep(0.3)  # somewhere inside the next pose
+    # the next pose is under way now (its segment open): kill
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     rows_at_kill = csv_rows(out / "samples.csv")
