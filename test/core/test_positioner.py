@@ -71,7 +71,8 @@ def test_chain_matches_the_source_model_written_out(data):
 
     def dh(d, theta, r, alpha):  # the source's DHTransform: Trans(z,d) Rot(z,theta) Trans(x,r) Rot(x,alpha)
         ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
-        return np.array([[ct, -st * ca, st * sa, r * ct], [st, ct * ca, -ct * sa, r * st], [0, sa, ca, d], [0, 0, 0, 1]])
+        return np.array([[ct, -st * ca, st * sa, r * ct], [st, ct * ca, -ct * sa, r * st], [0, sa, ca, d],
+                         [0, 0, 0, 1]])
     sensor = _transform(frames["sensor"].rotation, frames["sensor"].translation)
     target = _transform(frames["target"].rotation, frames["target"].translation)
     base = _transform(quaternion_to_matrix(np.array([math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0])),

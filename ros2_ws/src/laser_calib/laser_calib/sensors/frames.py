@@ -54,10 +54,6 @@ class Pose:
         """(x, y, z, qw, qx, qy, qz), shape (7,)."""
         return np.concatenate([self.translation, matrix_to_quaternion(self.rotation)])
 
-    def compose(self, other: "Pose") -> "Pose":
-        """self · other."""
-        return Pose(self.rotation @ other.rotation, self.translation + self.rotation @ other.translation)
-
     def perturbed(self, delta: np.ndarray) -> "Pose":
         """self · E(delta) for one 6-vector delta (the frame with its error applied)."""
         rotation, translation, _ = perturb(self.rotation[None], self.translation[None], Pose.identity(),
@@ -65,9 +61,9 @@ class Pose:
         return Pose(rotation[0], translation[0])
 
 
-def frame_names(frame: str, dof: int = 6) -> tuple[str, ...]:
-    """Parameter names of one frame: 'sensor_x' ... 'sensor_rz' (dof 3: translation only)."""
-    return tuple(f"{frame}_{p}" for p in FRAME_PARAMS[:dof])
+def frame_names(frame: str) -> tuple[str, ...]:
+    """Parameter names of one frame: 'sensor_x' ... 'sensor_rz'."""
+    return tuple(f"{frame}_{p}" for p in FRAME_PARAMS)
 
 
 def _elementary(axis: int, angle: np.ndarray) -> np.ndarray:

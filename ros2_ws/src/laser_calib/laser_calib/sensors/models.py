@@ -38,7 +38,7 @@ import numpy as np
 from ..kinematics import joint_columns
 from ..measurement import ANGLE_SCALE, LENGTH_SCALE, Residuals, geometric_scales
 from ..model import Robot
-from .chain import chain_names, frame_slice, target_in_sensor
+from .chain import chain_names, target_in_sensor
 from .frames import FRAME_PARAMS, robot_frames
 from .rotations import left_jacobian_inverse, log_rotation, quaternion_to_matrix
 from .samples import SensorSamples
@@ -51,8 +51,6 @@ SCALE_SCALE = 1e-3  # characteristic size of a scale error: 0.1 % (1 mm at 1 m)
 class _SensorModel:
     """What both sensor models share: the robot, its frame guesses, the samples
     and the map from the model's parameters into the full chain vector."""
-
-    dims: int
 
     def __init__(self, robot: Robot, samples: SensorSamples, kind: str, scale: bool):
         if samples.n_joints != robot.n_joints:
@@ -106,8 +104,6 @@ class _SensorModel:
 class PointModel(_SensorModel):
     """A marker at the target origin measured in the sensor frame (P,1,3), m."""
 
-    dims = 3
-
     def __init__(self, robot: Robot, samples: SensorSamples, scale: bool = False):
         super().__init__(robot, samples, "point", scale)
 
@@ -128,8 +124,6 @@ class PointModel(_SensorModel):
 class PoseModel(_SensorModel):
     """A target pose measured in the sensor frame: residual (P,1,6) as
     translation (m) and rotation vector x rotation_length (m/rad)."""
-
-    dims = 6
 
     def __init__(self, robot: Robot, samples: SensorSamples, rotation_length: float = 1.0, scale: bool = False):
         super().__init__(robot, samples, "pose", scale)
@@ -159,15 +153,3 @@ class PoseModel(_SensorModel):
             scale = to_target * state.position[:, None, :]                   # column a: R^T e_a t_a
             jac = self._scale_columns(chain, np.concatenate([scale, np.zeros_like(scale)], axis=1))
         return self._finish(r, jac, predicted)
-
-    def position_errors(self, params: np.ndarray) -> np.ndarray:
-        """(P,) m: norm of the translation of inv(predicted) · measured (NaN where not seen)."""
-        state, stretch = self._state(params, None, False)
-        distance = np.linalg.norm(self.samples.position - stretch * state.position, axis=1)
-        return np.where(self.samples.seen, distance, np.nan)
-
-    def rotation_errors(self, params: np.ndarray) -> np.ndarray:
-        """(P,) rad: angle of the rotation of inv(predicted) · measured (NaN where not seen)."""
-        state, _ = self._state(params, None, False)
-        phi = log_rotation(state.rotation.transpose(0, 2, 1) @ self.measured_rotation)
-        return np.where(self.samples.seen, np.linalg.norm(phi, axis=1), np.nan)
