@@ -7,8 +7,10 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
+from laser_calib.effects import EffectModel, JointScale, Periodic
 from laser_calib.errors import InputError
-from laser_calib.estimation import EstimateOptions
+from laser_calib.estimation import EstimateOptions, estimate_model
+from laser_calib.estimators import EkfOptions
 from laser_calib.kinematics import forward
 from laser_calib.measurement import NoiseModel
 from laser_calib.robot_file import dump_robot, robot_from_dict
@@ -227,3 +229,35 @@ def test_robot_file_frames_convention_and_no_lasers_round_trip():
                           ({"sensor": {"qw": 0.1}}, "quaternion norm")):
         with pytest.raises(InputError, match=where):
             robot_frames(replace(robot, extra={"frames": frames}))
+
+
+@pytest.mark.parametrize("kind", ["pose", "point"])
+def test_lm_and_the_papers_ekf_reach_the_same_minimum(kind):
+    robot = rig("standard")
+    truth = np.zeros(len(chain_names(robot)))
+    truth[[0, 2]] = 0.002, 0.005
+    truth[-6:] = 0.003, -0.002, 0.001, 0.01, -0.01, 0.005
+    samples = simulate(robot, truth, 40, 1, kind)
+    model = PoseModel(robot, samples) if kind == "pose" else PointModel(robot, samples)
+    fixed = tuple(n for n in model.names if n.startswith(("base_", "slm_")))
+    fits = {method: estimate_model(model, EstimateOptions(method=method, spot_sigma=SIGMA_T, fixed=fixed,
+                                                          ekf=EkfOptions(r=None)))
+            for method in ("lm", "ekf")}
+    free = fits["lm"].identifiable
+    assert np.array_equal(free, fits["ekf"].identifiable) and fits["ekf"].fit.converged
+    assert np.all(np.abs(fits["lm"].values - fits["ekf"].values)[free] < 1e-3 * fits["lm"].std[free])
+
+
+def test_joint_effects_compose_with_the_pose_model():
+    robot = rig("standard")
+    samples = simulate(robot, np.zeros(len(chain_names(robot))), 12, 2, "pose")
+    model = EffectModel(PoseModel(robot, samples, 0.5, True), [Periodic(joint=1), JointScale(joint=0)])
+    x = np.random.default_rng(3).normal(0, 2, len(model.names)) * model.scales
+    res = model.residuals(x)
+    numeric = np.zeros_like(res.jac)
+    for k in range(len(x)):
+        e = np.zeros(len(x))
+        e[k] = STEP
+        numeric[..., k] = -(model.residuals(x + e, False).r - model.residuals(x - e, False).r) / (2 * STEP)
+    assert np.abs(numeric - res.jac).max() < 1e-6 * np.abs(res.jac).max()
+    assert len(model.subset(np.arange(5)).samples) == 5 and model.subset(np.arange(5)).base.rotation_length == 0.5
