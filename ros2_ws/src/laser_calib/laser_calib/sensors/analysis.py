@@ -14,11 +14,11 @@ Two views of the residuals of a fit (sensors.calibration):
   test over the poses' held-out errors gives p < ``alpha``, so an effect is
   only claimed when it predicts poses the fit did not see, consistently.
 
-Candidates are the sensor's own scale per axis (models.py) and, when the
-effect library is importable, its joint and parameter effects (gear ratio,
-compliance, periodic error, backlash, drift of a length with a covariate),
-composed with the sensor model through jac_q / jac (effects.model.EffectModel).
-Spot effects (screen, camera lens) do not apply to point or pose sensors.
+Candidates are the sensor's own scale per axis (models.py) and the effect
+library's joint and parameter effects (gear ratio, periodic error, backlash,
+drift of a length with a covariate), composed with the sensor model through
+jac_q / jac (effects.model.EffectModel). Spot effects (screen, camera lens) do
+not apply to point or pose sensors.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import numpy as np
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
+from ..effects import SPOT, Effect, EffectModel, candidates
 from ..measurement import MeasurementModel
 from ..model import Robot
 from .calibration import (Extend, SensorFitOptions, calibrate, fold_labels, kfold, make_model, pose_errors,
@@ -85,6 +86,8 @@ class Correlations:
 
 
 def correlations(residuals: np.ndarray, covs: dict[str, np.ndarray]) -> Correlations:
+    """Correlations of residuals (P,D) (sensor_residuals) with covariates (P,) each,
+    over the seen poses; covariates constant there are left out."""
     seen = np.isfinite(residuals).all(axis=1)
     res = residuals[seen] - residuals[seen].mean(axis=0)
     names = tuple(n for n, c in covs.items() if np.ptp(c[seen]) > 0)
@@ -104,7 +107,7 @@ class Candidate:
     """A model variant: the sensor scale on or off and a list of effects."""
 
     scale: bool
-    effects: tuple
+    effects: tuple[Effect, ...]
 
     @property
     def label(self) -> str:
@@ -131,18 +134,11 @@ class Scored:
         return float(np.nanmean(self.heldout))
 
 
-def library_effects(robot: Robot, samples: SensorSamples) -> list:
-    """The effect library's joint and parameter candidates for these samples
-    (empty when the library is not installed)."""
-    try:
-        from ..effects import base as effect_base
-        from ..effects.catalog import candidates
-    except ImportError:
-        return []
+def library_effects(robot: Robot, samples: SensorSamples) -> list[Effect]:
+    """The effect library's joint and parameter candidates for these samples."""
     # Bases recomputed at the geometric errors (compliance) take the whole base
     # vector as D-H errors in EffectModel.joint_basis; left out until it slices them.
-    return [e for e in candidates(robot, samples)
-            if e.family != effect_base.SPOT and not getattr(e, "geometric_basis", False)]
+    return [e for e in candidates(robot, samples) if e.family != SPOT and not getattr(e, "geometric_basis", False)]
 
 
 def extender(robot: Robot, samples: SensorSamples, candidate: Candidate,
@@ -152,7 +148,6 @@ def extender(robot: Robot, samples: SensorSamples, candidate: Candidate,
     the whole sequence (approach directions) and are sliced per subset."""
     if not candidate.effects:
         return None
-    from ..effects.model import EffectModel
     whole = EffectModel(make_model(robot, samples, 1.0, candidate.scale), candidate.effects)
     within = np.arange(len(samples)) if within is None else np.asarray(within)
 
