@@ -154,6 +154,10 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     except (ParameterException, InvalidParameterTypeException, InvalidParameterValueException) as exc:
         print(f"error: parameter: {exc}", file=sys.stderr, flush=True)
         code = 2
+    except Exception:
+        if rclpy.ok():
+            raise
+        code = 0  # Ctrl-C/SIGTERM shut the context down under a running callback (e.g. a publish)
     finally:
         if node is not None:
             close = getattr(node, "close", None)

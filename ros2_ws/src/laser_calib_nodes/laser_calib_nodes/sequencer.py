@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import rclpy
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, JointState
@@ -236,6 +237,8 @@ class Sequencer(Node):
             self.publish_progress("failed", -1)
             self.exit_code = code
         except Exception as exc:  # a bug: say it in one line, keep the data, exit non-zero
+            if self.stopping.is_set() or not rclpy.ok():
+                return  # shutting down (Ctrl-C): a publish after the context went away
             self.get_logger().error(f"sequencer failed: {type(exc).__name__}: {exc}")
             self.publish_progress("failed", -1)
             self.exit_code = 1
