@@ -30,7 +30,7 @@ from ..estimation import Estimate, EstimateOptions, estimate_model, prior_sigmas
 from ..identifiability import analyse
 from ..measurement import MeasurementModel, NoiseModel, whiten
 from ..model import Robot
-from .frames import FRAMES, robot_frames, with_frames
+from .frames import FRAME_PARAMS, FRAMES, robot_frames, with_frames
 from .models import PointModel, PoseModel
 from .samples import SensorSamples
 
@@ -60,8 +60,9 @@ def is_frame_param(name: str) -> bool:
 
 @dataclass(frozen=True)
 class SensorFit:
-    """model: the final model (its rotation_length); nominal: the frames-only
-    fit; estimate: the full fit; absorbed: name -> why the frames carry it."""
+    """model: the final model; nominal: the frames-only fit; estimate: the full
+    fit; absorbed: name -> why the frames carry it; rotation_length (m/rad)
+    the pose residuals were weighted with."""
 
     model: MeasurementModel
     nominal: Estimate
@@ -73,8 +74,7 @@ class SensorFit:
         """The robot with the estimated D-H errors and frames (guess · error)."""
         values = dict(zip(self.model.names, self.estimate.values))
         guesses = robot_frames(robot)
-        frames = {frame: guesses[frame].perturbed(np.array([values.get(f"{frame}_{p}", 0.0)
-                                                            for p in ("x", "y", "z", "rx", "ry", "rz")]))
+        frames = {frame: guesses[frame].perturbed(np.array([values.get(f"{frame}_{p}", 0.0) for p in FRAME_PARAMS]))
                   for frame in FRAMES}
         return with_frames(robot.with_errors(self.estimate.values[:robot.n_params]), frames)
 
