@@ -79,9 +79,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--samples", required=True, help="calibration samples (CSV, rows in measurement order)")
     p.add_argument("--test", help="test samples: poses the fit never sees (CSV)")
     p.add_argument("--spot-sigma", type=_positive, default=None,
-                   help="spot noise std per coordinate, m (default: from repeated poses, else not known)")
+                   help="spot noise std per coordinate, m (default: estimated from the residual; the level is then tested against repeated poses, if any)")
     p.add_argument("--joint-sigma", type=_non_negative, default=None,
-                   help="joint reading noise std, rad (default: estimated when the level needs it)")
+                   help="joint reading noise std, rad (default: estimated from the residual)")
     p.add_argument("--method", choices=METHODS, default="lm", help="estimator of every fit")
     p.add_argument("--folds", type=_count, default=5, help="cross-validation folds (at least 2)")
     p.add_argument("--max-effects", type=_count, default=4, help="effects added at most")

@@ -2,7 +2,8 @@
 the same estimators (base, joint, drift, screen), the model that carries them
 (model.EffectModel), the library of candidates and the robot-file key
 (catalog), their truth forms for the simulator (truth), residual analysis
-against the covariates of the data (residuals) and the diagnosis report (report).
+against the covariates of the data (residuals), the noise in a residual
+(noise) and the diagnosis report (report).
 """
 
 from .base import JOINT, PARAM, SPOT, Effect, JointEffect, ParamEffect, SpotEffect, move_directions
