@@ -542,8 +542,9 @@ def _evidence(after: Analysis, noise: NoiseInfo, alpha: float) -> tuple[str, str
     if tests:
         parts.append(("Structure: " if structure else "No covariate explains the residual; strongest: ")
                      + tests[0].sentence() + f", {len(tests)} tests.")
-    sigma_text = (f"spot sigma {noise.spot_sigma * 1e3:.3g} mm ({noise.spot_source}), joint-reading sigma "
-                  f"{np.degrees(noise.joint_sigma):.3g} deg ({noise.joint_source})")
+    sources = {"given": "given", "estimated": "estimated from the residual by maximum likelihood"}
+    sigma_text = (f"spot sigma {noise.spot_sigma * 1e3:.3g} mm {sources[noise.spot_source]}, joint-reading sigma "
+                  f"{np.degrees(noise.joint_sigma):.3g} deg {sources[noise.joint_source]}")
     if noise.level_test == "chi^2":
         parts.append(f"Level: chi^2 = {noise.level_statistic:.1f} on {noise.level_dof[0]} dof (ratio "
                      f"{noise.level_statistic / noise.level_dof[0]:.2f}, p = {noise.level_p:.2g}) with {sigma_text}"
@@ -555,8 +556,7 @@ def _evidence(after: Analysis, noise: NoiseInfo, alpha: float) -> tuple[str, str
                      + (": the residual exceeds the noise" if level_fail else "") + f"; {sigma_text}.")
     else:
         parts.append(f"The residual level is not tested: the noise is not fully given and there are "
-                     f"{'too few' if noise.repeat_dof else 'no'} repeated poses ({sigma_text}, estimated from "
-                     "the residual by maximum likelihood).")
+                     f"{'too few' if noise.repeat_dof else 'no'} repeated poses ({sigma_text}).")
     return (STRUCTURE if structure or level_fail else EXPLAINED), " ".join(parts)
 
 
