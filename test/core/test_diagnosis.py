@@ -214,3 +214,12 @@ def test_written_outputs_are_plain_json(tmp_path):
     result = write_outputs(diagnosis, tmp_path)
     text = (tmp_path / "diagnosis.json").read_text()
     assert "NaN" not in text and json.loads(text) == json.loads(json.dumps(result))
+
+
+def test_too_few_poses_to_select_effects_adds_none_and_says_so():
+    """20 effect-free 7-DOF poses: a 5-fold training set of 16 poses (64 values)
+    barely determines 33 errors; selecting on it once added a chance 'backlash'."""
+    session = effect_session("paper-7dof", SEED, lambda r, e, c, rng: [], 20, 10, NOISE)
+    diagnosis = run(session)
+    assert diagnosis.final.effects == () and len(diagnosis.stages) == 1
+    assert any("too few poses to select effects" in note for note in diagnosis.notes)

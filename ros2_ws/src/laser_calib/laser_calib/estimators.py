@@ -159,7 +159,7 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
             step = np.linalg.solve(normal + damping * eye, gradient)
             # The step's length in standard deviations of the estimate (the information
             # metric): below step_tol it changes nothing that the data can tell.
-            if np.sqrt(step @ normal @ step) < options.step_tol:
+            if np.sqrt(max(step @ normal @ step, 0.0)) < options.step_tol:
                 converged = True
                 break
             trial = x.copy()

@@ -71,13 +71,16 @@ def run_and_collect(robot: Robot, samples: Samples, options: EstimateOptions, ou
 
 
 def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, result: dict, out: Path) -> dict:
-    """laser_calib.diagnosis.diagnose (what `laser-calib diagnose` runs) on the same samples, as its JSON.
+    """laser_calib.diagnosis.diagnose (what `laser-calib diagnose` runs) on the same samples.
 
-    Only the JSON: its own report and calibrated robot would overwrite the estimate's.
+    Its files (diagnosis.json, report.md with plots, robot_calibrated.yaml with
+    the effects) go to out/diagnosis/, beside the geometric estimate's. Always
+    LM: the diagnosis runs dozens of fits. Returns the JSON.
     """
-    from laser_calib.diagnosis import DiagnoseOptions, diagnose
-    diagnosis = diagnose(robot, samples, options=DiagnoseOptions(method=options.method,
-                                                                 spot_sigma=options.spot_sigma))
+    from laser_calib.diagnosis import DiagnoseOptions, diagnose, write_outputs
+    diagnosis = diagnose(robot, samples, options=DiagnoseOptions(
+        method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma or None))
+    write_outputs(diagnosis, out / "diagnosis", {"robot": robot.name, "samples": f"{len(samples)} session samples"})
     return diagnosis.to_json()
 
 

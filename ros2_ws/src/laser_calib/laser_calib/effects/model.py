@@ -112,7 +112,7 @@ class EffectModel:
         if not self._geometric:
             return self.bases.joint
         basis = self.bases.joint.copy()
-        corrected = self.robot.with_errors(geometric)
+        corrected = self.robot.with_errors(geometric[:self.robot.n_params])  # sensor models append frames
         for i in self._geometric:
             effect = self.effects[i]
             basis[:, effect.joint, self.blocks[i]] = effect.basis(corrected, self.samples)
