@@ -7,7 +7,6 @@ import signal
 import time
 
 import numpy as np
-import pytest
 
 from ros_harness import ROBOT, start_sim
 

@@ -11,14 +11,10 @@ import argparse
 import math
 import sys
 
-
 from .diagnosis import DiagnoseOptions, diagnose, write_outputs
-from .errors import InputError
 from .estimation import METHODS
 from .robot_file import load_robot
 from .samples_file import load_samples
-
-EXIT_BAD_INPUT = 2
 
 
 def _number(text: str, positive: bool) -> float:
@@ -91,17 +87,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="laser-calib")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["diagnose", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return args.func(args)
-    except InputError as exc:
-        print(f"laser-calib: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except ValueError as exc:
-        print(f"laser-calib diagnose: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    """`laser-calib diagnose ...` on its own: the shared command line's error handling."""
+    from .cli import main as cli_main  # here, not at the top: cli imports this module
+    return cli_main(["diagnose", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ estimate(robot, samples, options) runs, in order:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 

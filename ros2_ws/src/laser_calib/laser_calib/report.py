@@ -18,6 +18,12 @@ PANELS = (("link length a", "a"), ("link offset d", "d"), ("link twist alpha", "
           ("joint angle theta", "theta"), ("SLM", "slm"))
 
 
+def save_figure(fig, path: Path, dpi: int = 90) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
 def display_units(n_joints: int) -> np.ndarray:
     """Factor from SI to report units per error: mm for lengths, deg for angles."""
     return np.where(param_kinds(n_joints) == "length", 1e3, np.degrees(1.0))
@@ -43,9 +49,7 @@ def plot_convergence(history: np.ndarray, names: tuple[str, ...], n_joints: int,
         ax.legend(fontsize=6, ncol=2)
         if len(scaled) > 50:
             ax.set_xscale("symlog")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_screen(robot: Robot, samples: Samples, values: np.ndarray, path: Path) -> None:
@@ -66,9 +70,7 @@ def plot_screen(robot: Robot, samples: Samples, values: np.ndarray, path: Path) 
     ax.set_ylabel("screen z (m)")
     ax.set_aspect("equal")
     ax.legend(fontsize=6)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_histogram(groups: dict[str, np.ndarray], path: Path) -> None:
@@ -83,9 +85,7 @@ def plot_histogram(groups: dict[str, np.ndarray], path: Path) -> None:
     ax.set_xlabel("spot distance (mm)")
     ax.set_ylabel("spots")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def stats_table(spot_error: dict) -> list[str]:

@@ -53,12 +53,13 @@ def _header_error(source: str, problem: str) -> InputError:
     return InputError(f"{source}: header", problem)
 
 
-def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> Samples:
+def read_table(text: str, source: str, expected_header: str) -> tuple[list[str], list[list[str]], int]:
+    """Header, data rows and joint count N of a 'pose,stamp,q1..qN,...' CSV."""
     rows = list(csv.reader(io.StringIO(text)))
     while rows and not any(cell.strip() for cell in rows[-1]):
         rows.pop()
     if not rows:
-        raise InputError(source, "empty file (expected a header row pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z)")
+        raise InputError(source, f"empty file (expected a header row {expected_header})")
     header = [cell.strip() for cell in rows[0]]
     if header[:2] != ["pose", "stamp"]:
         raise _header_error(source, f"must start with 'pose,stamp', got {','.join(header[:2])!r}")
@@ -67,21 +68,21 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
         n_q += 1
     if n_q == 0:
         raise _header_error(source, "missing joint columns q1..qN after 'stamp'")
-    spot_cols = tuple(header[2 + n_q:6 + n_q])
-    if spot_cols != SPOT_COLUMNS:
-        missing = [c for c in SPOT_COLUMNS if c not in header]
-        what = f"missing column {missing[0]}" if missing else f"expected {','.join(SPOT_COLUMNS)} after q{n_q}"
-        raise _header_error(source, what)
-    if robot is not None and n_q != robot.n_joints:
-        raise _header_error(source, f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints} joints")
-    extra_names = header[6 + n_q:]
     if len(set(header)) != len(header):
         raise _header_error(source, "duplicate column names")
+    return header, rows[1:], n_q
 
-    n = len(rows) - 1
-    pose = np.empty(n, dtype=int)
-    values = np.full((n, len(header) - 1), np.nan)
-    for r, row in enumerate(rows[1:]):
+
+def parse_table(header: list[str], rows: list[list[str]], source: str,
+                may_be_empty: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Pose ids (P,) and the other columns as numbers (P, C-1), NaN only where a
+    column of ``may_be_empty`` is empty. One line for the first bad field; stamps
+    (column 1) must increase."""
+    if not rows:
+        raise InputError(source, "no sample rows after the header")
+    pose = np.empty(len(rows), dtype=int)
+    values = np.full((len(rows), len(header) - 1), np.nan)
+    for r, row in enumerate(rows):
         line = r + 2
         if len(row) != len(header):
             raise InputError(f"{source}: line {line}", f"{len(row)} fields, header has {len(header)}")
@@ -93,8 +94,8 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
             name = header[c]
             cell = cell.strip()
             if cell == "":
-                if name in SPOT_COLUMNS:
-                    continue  # laser not seen
+                if name in may_be_empty:
+                    continue  # not measured at this pose
                 raise InputError(f"{source}: line {line}, field {name}", "empty")
             try:
                 value = float(cell)
@@ -103,21 +104,39 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
             if not math.isfinite(value):
                 raise InputError(f"{source}: line {line}, field {name}", f"not finite ({cell})")
             values[r, c - 1] = value
-        for j in range(2):
-            y, z = values[r, 1 + n_q + 2 * j], values[r, 2 + n_q + 2 * j]
-            if np.isnan(y) != np.isnan(z):
-                raise InputError(f"{source}: line {line}, laser {j + 1}",
-                                 "only one of the spot coordinates l{0}_y, l{0}_z is given".format(j + 1))
         if r and values[r, 0] <= values[r - 1, 0]:
             raise InputError(f"{source}: line {line}, field stamp",
                              f"not increasing ({values[r, 0]} after {values[r - 1, 0]})")
-    if n == 0:
-        raise InputError(source, "no sample rows after the header")
+    return pose, values
+
+
+def check_all_or_none(block: np.ndarray, source: str, where: str, problem: str) -> None:
+    """Each row of block (P,K) is either all measured or all empty; else one line
+    '<source>: line L<where>: <problem>'."""
+    partial = np.isnan(block).any(axis=1) & ~np.isnan(block).all(axis=1)
+    if partial.any():
+        raise InputError(f"{source}: line {np.argmax(partial) + 2}{where}", problem)
+
+
+def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> Samples:
+    header, rows, n_q = read_table(text, source, "pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z")
+    spot_cols = tuple(header[2 + n_q:6 + n_q])
+    if spot_cols != SPOT_COLUMNS:
+        missing = [c for c in SPOT_COLUMNS if c not in header]
+        what = f"missing column {missing[0]}" if missing else f"expected {','.join(SPOT_COLUMNS)} after q{n_q}"
+        raise _header_error(source, what)
+    if robot is not None and n_q != robot.n_joints:
+        raise _header_error(source, f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints} joints")
+    pose, values = parse_table(header, rows, source, SPOT_COLUMNS)
+    n = len(pose)
+    spots = values[:, 1 + n_q:5 + n_q].reshape(n, 2, 2)
+    for j in range(2):
+        check_all_or_none(spots[:, j], source, f", laser {j + 1}",
+                          f"only one of the spot coordinates l{j + 1}_y, l{j + 1}_z is given")
     q = values[:, 1:1 + n_q]
     if robot is not None:
         check_joint_range(q, robot, source, pose)
-    spots = values[:, 1 + n_q:5 + n_q].reshape(n, 2, 2)
-    extra = {name: values[:, 5 + n_q + i] for i, name in enumerate(extra_names)}
+    extra = {name: values[:, 5 + n_q + i] for i, name in enumerate(header[6 + n_q:])}
     return Samples(pose, values[:, 0], q, spots, extra)
 
 

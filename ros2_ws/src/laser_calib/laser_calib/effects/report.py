@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..report import save_figure  # noqa: E402
 from .residuals import Series, Test, binned_test  # noqa: E402
 
 if TYPE_CHECKING:
@@ -57,9 +58,7 @@ def plot_residual(diagnosis: "Diagnosis", test: Test, path: Path) -> None:
     axes[0].set_ylabel(f"{test.response} ({test.response_unit})")
     spread = max(abs(v) for v in axes[0].get_ylim())
     axes[0].set_ylim(-spread, spread)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_stages(stages: list[dict], path: Path) -> None:
@@ -74,9 +73,7 @@ def plot_stages(stages: list[dict], path: Path) -> None:
     ax.set_xlabel("stage (table above)")
     ax.set_ylabel("RMS spot error (mm)")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _stat(s: dict | None, key: str) -> str:

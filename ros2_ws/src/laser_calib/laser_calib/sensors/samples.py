@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..model import Robot
-from ..samples_file import check_joint_range
+from ..samples_file import check_all_or_none, check_joint_range, parse_table, read_table
 
 POINT_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
@@ -69,69 +69,29 @@ def _columns(kind: str) -> tuple[str, ...]:
 
 
 def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> SensorSamples:
-    rows = list(csv.reader(io.StringIO(text)))
-    while rows and not any(cell.strip() for cell in rows[-1]):
-        rows.pop()
-    if not rows:
-        raise InputError(source, "empty file (expected a header row pose,stamp,q1..qN,x,y,z[,qw,qx,qy,qz])")
-    header = [cell.strip() for cell in rows[0]]
-    if header[:2] != ["pose", "stamp"]:
-        raise InputError(f"{source}: header", f"must start with 'pose,stamp', got {','.join(header[:2])!r}")
-    n_q = 0
-    while 2 + n_q < len(header) and header[2 + n_q] == f"q{n_q + 1}":
-        n_q += 1
-    if n_q == 0:
-        raise InputError(f"{source}: header", "missing joint columns q1..qN after 'stamp'")
+    header, rows, n_q = read_table(text, source, "pose,stamp,q1..qN,x,y,z[,qw,qx,qy,qz]")
     if tuple(header[2 + n_q:5 + n_q]) != POINT_COLUMNS:
         raise InputError(f"{source}: header", f"expected x,y,z after q{n_q}")
     kind = "pose" if tuple(header[5 + n_q:9 + n_q]) == QUATERNION_COLUMNS else "point"
     measured = _columns(kind)
     if robot is not None and n_q != robot.n_joints:
         raise InputError(f"{source}: header", f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints}")
-    if len(set(header)) != len(header):
-        raise InputError(f"{source}: header", "duplicate column names")
-    extra_names = header[2 + n_q + len(measured):]
-
-    n = len(rows) - 1
-    if n == 0:
-        raise InputError(source, "no sample rows after the header")
-    pose = np.empty(n, dtype=int)
-    values = np.full((n, len(header) - 1), np.nan)
-    for r, row in enumerate(rows[1:]):
-        line = r + 2
-        if len(row) != len(header):
-            raise InputError(f"{source}: line {line}", f"{len(row)} fields, header has {len(header)}")
-        try:
-            pose[r] = int(row[0])
-        except ValueError:
-            raise InputError(f"{source}: line {line}, field pose", f"not an integer: {row[0]!r}") from None
-        for c, cell in enumerate(row[1:], start=1):
-            cell = cell.strip()
-            if cell == "" and header[c] in measured:
-                continue  # not seen; checked per row below
-            try:
-                value = float(cell)
-            except ValueError:
-                what = "empty" if cell == "" else f"not a number: {cell!r}"
-                raise InputError(f"{source}: line {line}, field {header[c]}", what) from None
-            if not math.isfinite(value):
-                raise InputError(f"{source}: line {line}, field {header[c]}", f"not finite ({cell})")
-            values[r, c - 1] = value
-        block = values[r, 1 + n_q:1 + n_q + len(measured)]
-        if np.isnan(block).any() and not np.isnan(block).all():
-            raise InputError(f"{source}: line {line}", f"only some of {','.join(measured)} are given")
-        if kind == "pose" and not np.isnan(block).any() and abs(np.linalg.norm(block[3:]) - 1) > QUATERNION_TOLERANCE:
-            raise InputError(f"{source}: line {line}, fields qw..qz",
-                             f"quaternion norm {np.linalg.norm(block[3:]):.6g} is not 1")
-        if r and values[r, 0] <= values[r - 1, 0]:
-            raise InputError(f"{source}: line {line}, field stamp",
-                             f"not increasing ({values[r, 0]} after {values[r - 1, 0]})")
+    pose, values = parse_table(header, rows, source, measured)
+    block = values[:, 1 + n_q:1 + n_q + len(measured)]
+    check_all_or_none(block, source, "", f"only some of {','.join(measured)} are given")
+    if kind == "pose":
+        norm = np.linalg.norm(block[:, 3:], axis=1)
+        bad = np.isfinite(norm) & (np.abs(norm - 1) > QUATERNION_TOLERANCE)
+        if bad.any():
+            r = int(np.argmax(bad))
+            raise InputError(f"{source}: line {r + 2}, fields qw..qz", f"quaternion norm {norm[r]:.6g} is not 1")
     q = values[:, 1:1 + n_q]
     if robot is not None:
         check_joint_range(q, robot, source, pose)
     position = values[:, 1 + n_q:4 + n_q]
     quaternion = values[:, 4 + n_q:8 + n_q] if kind == "pose" else None
-    extra = {name: values[:, 1 + n_q + len(measured) + i] for i, name in enumerate(extra_names)}
+    extra = {name: values[:, 1 + n_q + len(measured) + i]
+             for i, name in enumerate(header[2 + n_q + len(measured):])}
     return SensorSamples(pose, values[:, 0], q, position, quaternion, extra)
 
 
