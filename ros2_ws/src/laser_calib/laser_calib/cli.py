@@ -1,5 +1,5 @@
 """Command line: laser-calib simulate | estimate | identify | slm-calibrate | replay | diagnose |
-import-positioner | calibrate-poses | plan.
+screen-calibrate | render-calibration-images | import-positioner | calibrate-poses | plan.
 
 Bad input gives one line on stderr naming the file, field or pose, and exit status 2.
 """
@@ -24,7 +24,7 @@ from .pipeline import run_estimate
 from .robot_file import load_robot, save_robot
 from .samples_file import load_samples, save_samples
 from .simulation import CASES, NoiseSpec, paper_session
-from . import diagnose_cli, real_cli, slm_calibration
+from . import diagnose_cli, real_cli, slm_calibration, vision_cli
 
 EXIT_BAD_INPUT = 2
 
@@ -196,6 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_replay)
 
     diagnose_cli.register(sub)
+    vision_cli.register(sub)
     real_cli.register(sub)
     return parser
 
