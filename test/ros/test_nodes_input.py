@@ -77,6 +77,19 @@ def test_pose_list_errors(tmp_path):
     np.testing.assert_array_equal(poses.q[-1], poses.q[5])
 
 
+
+def test_planned_pose_list_loads_into_the_sequencer(tmp_path):
+    """`laser-calib plan` writes pose,q1..qN; the sequencer's pose list reader takes it as it is."""
+    from laser_calib.cli import main
+    from laser_calib.robot_file import load_robot
+    from laser_calib_nodes.session import load_poses
+    robot = load_robot(ROBOT)
+    path = tmp_path / "planned.csv"
+    assert main(["plan", "--robot", str(ROBOT), "--n", "12", "--out", str(path)]) == 0
+    poses = load_poses(path, robot)
+    assert len(poses) == 12 and list(poses.pose) == list(range(12))
+    assert np.all((poses.q >= robot.q_min) & (poses.q <= robot.q_max))
+
 WRITER = textwrap.dedent("""
     import os, sys, time
     from laser_calib_nodes import bag
