@@ -10,9 +10,11 @@
    the source's own objective (translation of measured · inv(predicted), 100 x
    the angular distance, prior 5 mm/rad on joint 1's offsets) minimised to
    convergence on our chain with scipy, from the same guesses.
-4. Diagnosis (sensors.analysis): forward selection of effects by held-out
-   error, the nested held-out error of the whole procedure, the correlations
-   of the residual with the covariates before and after, plots in docs/.
+4. Diagnosis (sensors.analysis.diagnose: the one diagnosis engine of
+   diagnosis.py, its F test, paired t test and BIC rules and its verdict):
+   the selected effects, the held-out position error of every stage, the
+   nested held-out error of the whole procedure, the correlations of the
+   residual with the covariates before and after, plots in docs/.
 
 Usage: python bench/positioner_bench.py [--folds 5] [--seeds 5]
 """
@@ -32,10 +34,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
+from laser_calib.diagnosis import Diagnosis  # noqa: E402
 from laser_calib.positioner import read_positioner  # noqa: E402
 from laser_calib.robot_file import load_robot, save_robot  # noqa: E402
-from laser_calib.sensors.analysis import (correlations, covariates, extender, nested_heldout, select,  # noqa: E402
-                                          sensor_residuals)
+from laser_calib.sensors.analysis import (correlations, covariates, diagnose, diagnose_options,  # noqa: E402
+                                          fit_effects, heldout_effects, nested_heldout, sensor_residuals)
 from laser_calib.sensors.calibration import (SensorFitOptions, calibrate, is_frame_param, kfold,  # noqa: E402
                                              pose_errors)
 from laser_calib.sensors.chain import chain_names, target_in_sensor  # noqa: E402
@@ -50,6 +53,7 @@ PUBLISHED = {"calibrated_mean_mm": 1.74, "nominal_mean_mm": 3.82, "reproduced_ca
              "final_cost_per_residual_sqrt": 0.131}
 SOURCE_ORIENTATION_WEIGHT = 100.0   # the source example's optimize(problem, 100.0, ...)
 SOURCE_DH_PRIOR = 0.005             # its target_chain_offset_stdev
+MAX_EFFECTS = 6                     # rounds of the diagnosis at most
 
 
 def mm(values: np.ndarray) -> dict:
@@ -136,15 +140,18 @@ def plot_residuals(samples, before: np.ndarray, after: np.ndarray, labels: tuple
     plt.close(fig)
 
 
-def plot_selection(selection, path: Path) -> None:
-    first = selection.rounds[1]
-    labels = [selection.rounds[0][0].candidate.label] + [s.candidate.label for s in first]
-    values = [selection.rounds[0][0].heldout_mean * 1e3] + [s.heldout_mean * 1e3 for s in first]
+def plot_selection(diagnosis: Diagnosis, path: Path) -> None:
+    """Round 1 of the diagnosis: each candidate's linearised held-out chi^2 per
+    measured value (the engine's ranking) beside the geometric model's."""
+    first = diagnosis.rounds[0]
+    geometric = diagnosis.stages[0].fitted
+    labels = ["geometric (D-H + frames)"] + [r.label for r in first]
+    values = [float(geometric.cv_chi2.sum() / geometric.n_values)] + [r.linear_cv_chi2 for r in first]
     fig, ax = plt.subplots(figsize=(8, 0.32 * len(labels) + 1.2))
     ax.barh(range(len(labels)), values, color=["grey"] + ["C0"] * len(first))
     ax.set_yticks(range(len(labels)), labels, fontsize=8)
     ax.invert_yaxis()
-    ax.set_xlabel("5-fold held-out mean position error (mm)")
+    ax.set_xlabel("5-fold held-out chi^2 per measured value (linearised screening)")
     ax.set_title("Positioner: one effect added to the geometric model")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -186,11 +193,20 @@ def main() -> None:
 
     source = source_objective(robot, samples)
 
-    selection = select(robot, samples, options, args.folds, 0, max_rounds=6)
-    chosen = selection.chosen.candidate
-    nested, nested_choice = nested_heldout(robot, samples, options, args.folds, 0, max_rounds=6)
-    chosen_options = SensorFitOptions(scale=chosen.scale)
-    chosen_fit = calibrate(robot, samples, chosen_options, extender(robot, samples, chosen))
+    engine = diagnose_options(options, args.folds, 0, MAX_EFFECTS)
+    diagnosis = diagnose(robot, samples, options, engine)
+    stages = []
+    for stage in diagnosis.stages:
+        stage_fit = fit_effects(robot, samples, options, stage.fitted.effects)
+        held_stage = heldout_effects(robot, samples, options, stage.fitted.effects, args.folds, 0)
+        stages.append({"model": stage.label, "extra_parameters": stage.fitted.model.n_effect_params,
+                       "heldout_mean_mm": float(np.mean(held_stage.position)) * 1e3,
+                       "insample_mean_mm": float(np.mean(pose_errors(stage_fit.model,
+                                                                     stage_fit.estimate.values)[0])) * 1e3,
+                       "bic": stage.fitted.bic})
+    chosen = diagnosis.final
+    nested, nested_choice = nested_heldout(robot, samples, options, args.folds, 0, engine)
+    chosen_fit = fit_effects(robot, samples, options, chosen.effects)
     chosen_p, chosen_r = pose_errors(chosen_fit.model, chosen_fit.estimate.values)
     effect_values = [{"name": n, "value": float(v), "std": float(sd)}
                      for n, v, sd in zip(chosen_fit.model.names, chosen_fit.estimate.errors, chosen_fit.estimate.std)
@@ -206,7 +222,7 @@ def main() -> None:
                           "+ effects (nested selection)": nested}, DOCS / "positioner_heldout.png")
     plot_residuals(samples, before_res, after_res, ("D-H + frames", "with the selected effects"),
                    DOCS / "positioner_residuals.png")
-    plot_selection(selection, DOCS / "positioner_candidates.png")
+    plot_selection(diagnosis, DOCS / "positioner_candidates.png")
 
     data = {
         "data": str(DATA.relative_to(ROOT)), "poses": len(samples), "round_trip_exact": round_trip(robot, samples),
@@ -224,10 +240,15 @@ def main() -> None:
         "published": PUBLISHED,
         "source_objective_converged": source,
         "diagnosis": {
-            "rounds": [[{"model": s.candidate.label, "extra_parameters": s.candidate.n_params,
-                         "heldout_mean_mm": s.heldout_mean * 1e3, "insample_mean_mm": s.insample_mean * 1e3,
-                         "p_vs_previous": None if np.isnan(s.p) else s.p} for s in r] for r in selection.rounds],
-            "chosen": chosen.label, "chosen_heldout_mean_mm": selection.chosen.heldout_mean * 1e3,
+            "engine": "diagnosis.run (F test, paired t test, BIC; verdict from structure tests)",
+            "options": dict(engine.__dict__),
+            "stages": stages,
+            "rounds": [[dict(r.__dict__) for r in ranking] for ranking in diagnosis.rounds],
+            "verdict": diagnosis.verdict, "evidence": diagnosis.evidence,
+            "not_identifiable": dict(diagnosis.merged), "notes": list(diagnosis.notes),
+            "effects": list(diagnosis.parameters),
+            "structure_tests": diagnosis.to_json()["structure"],
+            "chosen": chosen.label, "chosen_heldout_mean_mm": stages[-1]["heldout_mean_mm"],
             "chosen_insample_mean_mm": float(np.mean(chosen_p)) * 1e3,
             "chosen_rotation_mean_deg": float(np.degrees(np.mean(chosen_r))),
             "nested_heldout_mean_mm": float(np.mean(nested)) * 1e3, "nested_choices": list(nested_choice),
@@ -253,16 +274,23 @@ def main() -> None:
         f"| ours, nominal D-H (frames fitted) | {data['nominal_mean_mm']:.3f} | {held_nominal[0]:.3f} |",
         f"| ours, D-H errors + frames | {data['insample_mean_mm']:.3f} | {held_means[0]:.3f} "
         f"[{min(held_means):.3f}-{max(held_means):.3f}] |",
-        f"| ours, + {d['chosen']} (selected by held-out error) | {d['chosen_insample_mean_mm']:.3f} | "
+        f"| ours, {d['chosen']} (selected by the diagnosis engine) | {d['chosen_insample_mean_mm']:.3f} | "
         f"{d['chosen_heldout_mean_mm']:.3f} (nested, selection inside the folds: {d['nested_heldout_mean_mm']:.3f}) |",
         "", f"Import round trip exact: {data['round_trip_exact']}. Geometric fit: {fit_time:.2f} s; "
         f"rotation weight {fit.rotation_length:.3f} m/rad; sigma {fit.estimate.sigma * 1e3:.3f} mm.",
-        "", "Diagnosis rounds (best three per round):", "",
-        "| round | model | held-out mean (mm) | paired p |", "|---|---|---|---|",
-        *[f"| {i} | {s['model']} | {s['heldout_mean_mm']:.4f} | "
-          f"{'-' if s['p_vs_previous'] is None else format(s['p_vs_previous'], '.2g')} |"
-          for i, r in enumerate(d["rounds"]) for s in r[:3]],
-        "", f"Chosen: {d['chosen']}.", ""])
+        "", "Diagnosis stages (the diagnosis engine; position errors of the calibration with the effects):", "",
+        "| stage | model | in-sample mean (mm) | held-out mean (mm) | BIC |", "|---|---|---|---|---|",
+        *[f"| {i} | {s['model']} | {s['insample_mean_mm']:.3f} | {s['heldout_mean_mm']:.3f} | {s['bic']:.1f} |"
+          for i, s in enumerate(d["stages"])],
+        "", "Selection rounds (best three by fitted held-out chi^2; p of the F test, Bonferroni-adjusted, and of "
+        "the paired t test):", "",
+        "| round | candidate | held-out chi^2 / value | p fit | p held-out | dBIC | outcome |",
+        "|---|---|---|---|---|---|---|",
+        *[f"| {i + 1} | {r['label']} | {r['cv_chi2']:.4f} | {r['p_fit']:.2g} | {r['p_heldout']:.2g} | "
+          f"{r['delta_bic']:.1f} | {r['outcome']} |"
+          for i, ranking in enumerate(d["rounds"])
+          for r in sorted((r for r in ranking if r["cv_chi2"] is not None), key=lambda r: r["cv_chi2"])[:3]],
+        "", f"Chosen: {d['chosen']}. Verdict: {d['verdict']}. {d['evidence']}", ""])
     write_results("positioner", data, table)
 
 

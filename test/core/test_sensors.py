@@ -7,7 +7,8 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from laser_calib.effects import EffectModel, JointScale, Periodic
+from laser_calib.diagnosis import DiagnoseOptions, supports
+from laser_calib.effects import CameraDistortion, EffectModel, JointScale, Periodic, ScreenShape
 from laser_calib.errors import InputError
 from laser_calib.estimation import EstimateOptions, estimate_model
 from laser_calib.estimators import EkfOptions
@@ -15,6 +16,7 @@ from laser_calib.kinematics import forward
 from laser_calib.measurement import NoiseModel
 from laser_calib.robot_file import dump_robot, robot_from_dict
 from laser_calib.sensors import PointModel, Pose, PoseModel, SensorSamples, robot_frames, with_frames
+from laser_calib.sensors.analysis import diagnose, heldout_effects, sensor_data
 from laser_calib.sensors.calibration import SensorFitOptions, calibrate, frames_first, pose_errors
 from laser_calib.sensors.chain import chain_names, target_in_sensor
 from laser_calib.sensors.rotations import matrix_to_quaternion, quaternion_to_matrix
@@ -261,3 +263,23 @@ def test_joint_effects_compose_with_the_pose_model():
         numeric[..., k] = -(model.residuals(x + e, False).r - model.residuals(x - e, False).r) / (2 * STEP)
     assert np.abs(numeric - res.jac).max() < 1e-6 * np.abs(res.jac).max()
     assert len(model.subset(np.arange(5)).samples) == 5 and model.subset(np.arange(5)).base.rotation_length == 0.5
+
+
+def test_the_diagnosis_engine_selects_the_sensor_scale_on_point_data():
+    """sensors.analysis runs diagnosis.run: no spot candidates, the sensor scale
+    as an extra candidate, selected by the engine's rules when the sensor stretches."""
+    robot = rig()
+    samples = simulate(robot, np.zeros(len(chain_names(robot))), 80, 8, "point")
+    stretched = replace(samples, position=samples.position * np.array([1.01, 0.995, 1.0]))
+    options = SensorFitOptions(estimate=EstimateOptions(spot_sigma=SIGMA_T))
+    data = sensor_data(robot, stretched, options)
+    pool = [e for e in data.candidates() if supports(data.base(), e)]
+    assert not any(isinstance(e, (ScreenShape, CameraDistortion)) for e in pool)
+    diagnosis = diagnose(robot, stretched, options, DiagnoseOptions(spot_sigma=SIGMA_T, joint_sigma=0.0, max_effects=1))
+    assert [e.label for e in diagnosis.final.effects] == ["sensor scale"]
+    scale = next(e for e in diagnosis.parameters if e["name"] == "sensor_scale")["parameters"]
+    # Only the differences of the axes' scales are observable (a common one the frames absorb).
+    assert abs(scale[0]["value"] - 0.01) < 4.5 * scale[0]["std"]
+    assert abs(scale[1]["value"] + 0.005) < 4.5 * scale[1]["std"]
+    held = heldout_effects(robot, stretched, options, diagnosis.final.effects)
+    assert np.mean(held.position) < np.mean(heldout_effects(robot, stretched, options, ()).position)

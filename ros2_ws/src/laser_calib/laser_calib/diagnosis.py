@@ -1,13 +1,19 @@
 """Diagnosis: find what the geometric model lacks, name it, add it, check the rest.
 
-diagnose(robot, samples, test, spot_sigma, joint_sigma) runs:
+diagnose(robot, samples, test, spot_sigma, joint_sigma) runs the engine, run(),
+on laser spot data (SpotData). run(data, options) works on any data set that
+gives a base measurement model, its candidate effects and its measurement-level
+covariates (the Data protocol; sensors.analysis.SensorData for point and pose
+sensors, which adds the sensor's scale as a candidate); candidates the base
+model cannot carry (screen and lens effects without spots) are dropped. It runs:
 
 1. the geometric fit (estimation.estimate_model, as every fit here). Noise
    components not given are estimated from its residual by maximum
    likelihood (noise_components) and the fit repeated with them: this is the
    reference noise model every later fit, test and whitening uses (an effect
    still in the residual inflates it, which only makes the tests cautious).
-   Parameters the nominal geometry cannot separate stay fixed in every fit.
+   Parameters the nominal geometry cannot separate stay fixed in every fit, as
+   do those the data set fixes (data.fixed).
 2. rounds of selection over the effect library (effects.catalog.candidates:
    each effect at each joint, length/covariate or target where the data can
    show it). A round screens every candidate with the linearised
@@ -47,7 +53,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 from scipy import stats
@@ -55,14 +61,15 @@ from scipy import stats
 from . import __version__
 from .errors import InputError
 from .estimation import Estimate, EstimateOptions, estimate_model
-from .effects.base import Effect
+from .effects.base import SPOT, Effect
 from .effects.catalog import candidates, effects_to_yaml, same_place
 from .effects.model import EffectModel
 from .effects.noise import noise_components, pure_error
 from .effects.report import write_report
-from .effects.residuals import Series, Test, covariates, responses, structure_tests
+from .effects.residuals import (Readings, Series, Test, pose_covariates, pose_responses, spot_covariates,
+                                spot_responses, structure_tests)
 from .kinematics import forward
-from .measurement import NoiseModel, SpotModel, whiten
+from .measurement import MeasurementModel, NoiseModel, Residuals, SpotModel, whiten
 from .model import Robot
 from .robot_file import save_robot
 from .samples_file import Samples
@@ -186,8 +193,8 @@ class Analysis:
 @dataclass(frozen=True)
 class Diagnosis:
     robot: Robot
-    samples: Samples
-    test_samples: Samples | None
+    samples: Readings
+    test_samples: Readings | None
     stages: tuple[Stage, ...]
     rounds: tuple[tuple[Ranked, ...], ...]
     noise: NoiseInfo
@@ -206,7 +213,8 @@ class Diagnosis:
         return self.stages[-1].fitted
 
     def calibrated_robot(self) -> Robot:
-        """The robot with the geometric corrections and the ``effects:`` key."""
+        """The robot with the geometric corrections and the ``effects:`` key
+        (spot data: the base parameters are the D-H errors)."""
         final = self.final
         geometric, values = final.model.split(final.estimate.values)
         corrected = self.robot.with_errors(geometric)
@@ -258,6 +266,64 @@ def distance_stats(distances: np.ndarray) -> dict:
             "max_mm": float(d.max())}
 
 
+class Data(Protocol):
+    """A calibration data set as the engine sees it (SpotData here,
+    sensors.analysis.SensorData for point and pose sensors).
+
+    robot and samples (readings q (P,N), stamp (P,), extra columns); fixed:
+    parameter names of the base model held at their nominal values in every
+    fit; base(): the base measurement model on all P poses (its subset(index)
+    gives the folds); candidates(): the effects to select from (those the base
+    model cannot carry are dropped by the engine); measured_values(): the
+    number of measured values; series(): the measurement-level responses and
+    covariates of the verdict's structure tests.
+    """
+
+    robot: Robot
+    samples: Readings
+    fixed: tuple[str, ...]
+
+    def base(self) -> MeasurementModel: ...
+
+    def candidates(self) -> list[Effect]: ...
+
+    def measured_values(self) -> int: ...
+
+    def series(self, model: EffectModel, x: np.ndarray, res: Residuals, noise: NoiseModel
+               ) -> tuple[list[Series], list[Series]]: ...
+
+
+@dataclass(frozen=True)
+class SpotData:
+    """Laser spots on the screen (SpotModel): the whole effect library, spot
+    effects included; the spot-level series (effects.residuals)."""
+
+    robot: Robot
+    samples: Samples
+    fixed: tuple[str, ...] = ()
+
+    def base(self) -> SpotModel:
+        return SpotModel(self.robot, self.samples)
+
+    def candidates(self) -> list[Effect]:
+        return candidates(self.robot, self.samples)
+
+    def measured_values(self) -> int:
+        return 2 * int(self.samples.seen.sum())
+
+    def series(self, model: EffectModel, x: np.ndarray, res: Residuals, noise: NoiseModel
+               ) -> tuple[list[Series], list[Series]]:
+        errors, dq = model.offsets(x)
+        q = self.samples.q if dq is None else self.samples.q + dq
+        beams = forward(self.robot, q, errors).beams
+        return spot_responses(res, noise, beams), spot_covariates(self.samples, beams)
+
+
+def supports(base: MeasurementModel, effect: Effect) -> bool:
+    """Whether the base model can carry the effect: spot effects need spots."""
+    return effect.family != SPOT or isinstance(base, SpotModel)
+
+
 def _distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
     res = model.residuals(x, False)
     return np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
@@ -279,13 +345,14 @@ class _Fitter:
     given, with the components not given estimated once from the geometric
     fit (start)."""
 
-    def __init__(self, robot: Robot, samples: Samples, options: DiagnoseOptions):
-        self.base = SpotModel(robot, samples)
+    def __init__(self, data: Data, options: DiagnoseOptions):
+        self.base = data.base()
+        self.fixed = data.fixed
         self.options = options
         self.fit_options = EstimateOptions(method=options.method, spot_sigma=options.spot_sigma,
                                            joint_sigma=options.joint_sigma or 0.0, restarts=options.restarts,
-                                           seed=options.seed)
-        self.fold = fold_index(len(samples), options.folds, options.seed)
+                                           seed=options.seed, fixed=data.fixed)
+        self.fold = fold_index(len(data.samples.q), options.folds, options.seed)
         self.reference = NoiseModel(options.spot_sigma or 1.0, options.joint_sigma or 0.0)
         self.merged: dict[str, str] = {}
 
@@ -303,7 +370,7 @@ class _Fitter:
         # What the nominal geometry cannot separate stays fixed in every later fit: a warm
         # start at estimated errors would see such pairs as barely separable and creep along them.
         self.merged = dict(first.identifiability.merged)
-        self.fit_options = replace(self.fit_options, fixed=tuple(self.merged))
+        self.fit_options = replace(self.fit_options, fixed=self.fixed + tuple(self.merged))
         if self.options.spot_sigma is not None and self.options.joint_sigma is not None:
             return self.fit((), first.values)
         res = self.base.residuals(first.values, True)
@@ -321,16 +388,17 @@ class _Fitter:
         model = EffectModel(self.base, effects)
         options = replace(self.fit_options, restarts=0)
         est = estimate_model(model, options, None, x0)
-        cv = np.full(model.samples.spots.shape[:2], np.nan)
+        res = model.residuals(est.values, True)
+        cv = np.full(res.valid.shape, np.nan)
         cv_chi2 = np.zeros(len(cv))
         for k in range(self.options.folds):
             held = self.fold == k
             train = estimate_model(model.subset(~held), options, None, est.values)
-            res = model.subset(held).residuals(train.values, True)
-            cv[held] = np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
-            white = np.einsum("pij,pj->pi", self.reference.whitener(res), res.r.reshape(len(res.r), -1))
+            held_res = model.subset(held).residuals(train.values, True)
+            cv[held] = np.where(held_res.valid, np.linalg.norm(held_res.r, axis=-1), np.nan)
+            white = np.einsum("pij,pj->pi", self.reference.whitener(held_res),
+                              held_res.r.reshape(len(held_res.r), -1))
             cv_chi2[held] = (white ** 2).sum(axis=1)
-        res = model.residuals(est.values, True)
         r, _ = whiten(res, self.reference.whitener(res))
         cal = np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
         return Fitted(effects, model, est, cv, cv_chi2, cal, float(r @ r), int(res.valid.sum()) * res.r.shape[2],
@@ -457,7 +525,7 @@ def select(fitter: _Fitter, pool: list[Effect], options: DiagnoseOptions
     return stages, rounds, alternatives
 
 
-def verdict_noise(final: Fitted, samples: Samples, options: DiagnoseOptions) -> NoiseInfo:
+def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions) -> NoiseInfo:
     """The noise model of the verdict and the test of the residual level.
 
     Components not given are estimated by maximum likelihood from the final
@@ -490,14 +558,14 @@ def verdict_noise(final: Fitted, samples: Samples, options: DiagnoseOptions) -> 
     return NoiseInfo(spot, sources[0], joint, sources[1], repeat_dof, repeat_rms)
 
 
-def _analysis(fitted: Fitted, noise: NoiseModel) -> Analysis:
+def _analysis(data: Data, fitted: Fitted, noise: NoiseModel) -> Analysis:
+    """Structure tests of a fit's residual: the pose-level responses and
+    covariates of every measurement model, and the data's measurement-level ones."""
     model, x = fitted.model, fitted.estimate.values
     res = model.residuals(x, True)
-    errors, dq = model.offsets(x)
-    q = model.samples.q if dq is None else model.samples.q + dq
-    beams = forward(model.robot, q, errors).beams
-    resp = responses(model.robot, res, noise, beams)
-    cov = covariates(model.robot, model.samples, beams)
+    level_resp, level_cov = data.series(model, x, res, noise)
+    resp = pose_responses(model.robot, res, noise) + level_resp
+    cov = pose_covariates(model.robot, data.samples) + level_cov
     return Analysis(structure_tests(resp, cov), resp, cov)
 
 
@@ -588,7 +656,6 @@ def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_s
     """Diagnose, select and add effects (module docstring). spot_sigma (m) and
     joint_sigma (rad) override those of ``options``. ValueError (InputError) on
     bad input."""
-    start = time.perf_counter()
     options = options or DiagnoseOptions()
     options = replace(options, spot_sigma=spot_sigma if spot_sigma is not None else options.spot_sigma,
                       joint_sigma=joint_sigma if joint_sigma is not None else options.joint_sigma)
@@ -602,34 +669,43 @@ def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_s
     notes = []
     if "effects" in robot.extra:
         notes.append("the input robot's effects key was not used: the diagnosis starts from the geometric model")
-    fitter = _Fitter(robot, samples, options)
-    pool = candidates(robot, samples)
-    training_values = 2 * int(samples.seen.sum()) * (options.folds - 1) / options.folds
-    needed = MIN_TRAINING_RATIO * robot.n_params
+    return run(SpotData(robot, samples), options, None if test is None else SpotData(robot, test), tuple(notes))
+
+
+def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: tuple[str, ...] = ()) -> Diagnosis:
+    """The diagnosis engine (module docstring) on any data set: the geometric
+    fit of data.base(), selection over the candidates the base model supports,
+    the verdict; test (the same kind of data) predicted at every stage."""
+    start = time.perf_counter()
+    notes = list(notes)
+    fitter = _Fitter(data, options)
+    pool = [c for c in data.candidates() if supports(fitter.base, c)]
+    training_values = data.measured_values() * (options.folds - 1) / options.folds
+    n_errors = len(fitter.base.names) - len(data.fixed)
+    needed = MIN_TRAINING_RATIO * n_errors
     if training_values < needed:
         # With a training fold barely determining the geometric errors, held-out
         # errors are dominated by the fold's own ill-conditioning and the selection
         # adds effects on chance (seen: a 0.17 deg 'backlash' on 20 effect-free poses).
+        per_pose = data.measured_values() / max(len(data.samples.q), 1)
         notes.append(f"too few poses to select effects: a training fold holds {training_values:.0f} measured "
-                     f"values for {robot.n_params} geometric errors (needs {needed:.0f}, about "
-                     f"{math.ceil(needed * options.folds / (options.folds - 1) / 4)} poses with both spots); "
+                     f"values for {n_errors} geometric errors (needs {needed:.0f}, about "
+                     f"{math.ceil(needed * options.folds / (options.folds - 1) / max(per_pose, 1e-9))} poses); "
                      "only the geometric model and the residual tests are reported")
         pool = []
     fits, rounds, alternatives = select(fitter, pool, options)
 
     stages = []
     for fitted in fits:
-        test_d = None
-        if test is not None:
-            test_model = EffectModel(SpotModel(robot, test), fitted.effects)
-            test_d = _distances(test_model, fitted.estimate.values)
+        test_d = None if test is None else _distances(EffectModel(test.base(), fitted.effects),
+                                                      fitted.estimate.values)
         stages.append(Stage(fitted.label, fitted, test_d))
     final = fits[-1]
-    noise = verdict_noise(final, samples, options)
+    noise = verdict_noise(final, data.samples, options)
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
-    before, after = _analysis(fits[0], noise_model), _analysis(final, noise_model)
+    before, after = _analysis(data, fits[0], noise_model), _analysis(data, final, noise_model)
     verdict, evidence = _evidence(after, noise, options.alpha)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
-    return Diagnosis(robot, samples, test, tuple(stages), tuple(rounds), noise, before, after, verdict, evidence,
-                     parameter_report(final, alternatives), options, time.perf_counter() - start, merged,
-                     tuple(notes))
+    return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
+                     noise, before, after, verdict, evidence, parameter_report(final, alternatives), options,
+                     time.perf_counter() - start, merged, tuple(notes))

@@ -18,12 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from .estimation import METHODS, EstimateOptions
+from .model import Robot
 from .positioner import read_positioner
 from .planning import PlanOptions, format_poses, plan
 from .robot_file import load_robot, save_robot
-from .sensors.analysis import select
+from .sensors.analysis import diagnose, diagnose_options, heldout_effects
 from .sensors.calibration import SensorFit, SensorFitOptions, calibrate, kfold, pose_errors
-from .sensors.samples import load_sensor_samples, save_sensor_samples
+from .sensors.samples import SensorSamples, load_sensor_samples, save_sensor_samples
 
 
 def cmd_import_positioner(args: argparse.Namespace) -> int:
@@ -75,6 +76,22 @@ def _options(args: argparse.Namespace) -> SensorFitOptions:
                             rotation_length=args.rotation_length, scale=args.scale)
 
 
+def _diagnosis(robot: Robot, samples: SensorSamples, options: SensorFitOptions, folds: int, seed: int) -> dict:
+    """The diagnosis engine on the samples (sensors.analysis.diagnose): its
+    selection rounds, verdict and evidence, and per stage the k-fold held-out
+    and in-sample mean position error (mm) of the calibration with its effects."""
+    diagnosis = diagnose(robot, samples, options, diagnose_options(options, folds, seed))
+    full = diagnosis.to_json()
+    stages = []
+    for stage in diagnosis.stages:
+        held = heldout_effects(robot, samples, options, stage.fitted.effects, folds, seed)
+        stages.append({"model": stage.label, "heldout_mean_mm": float(np.nanmean(held.position)) * 1e3,
+                       "bic": stage.fitted.bic})
+    return {"stages": stages, "selection": full["selection"], "effects": full["effects"],
+            "verdict": diagnosis.verdict, "evidence": diagnosis.evidence, "noise": full["noise"],
+            "notes": full["notes"]}
+
+
 def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = load_sensor_samples(args.samples, robot)
@@ -105,14 +122,10 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                      f"{result['heldout']['nominal_position_mm']['mean']:.3f} mm (nominal) -> "
                      f"{result['heldout']['position_mm']['mean']:.3f} mm")
     if args.diagnose:
-        selection = select(robot, samples, options, args.folds or 5, args.seed)
-        result["diagnosis"] = {"rounds": [[{"model": s.candidate.label, "extra_parameters": s.candidate.n_params,
-                                            "heldout_mean_mm": s.heldout_mean * 1e3,
-                                            "insample_mean_mm": s.insample_mean * 1e3} for s in r]
-                                          for r in selection.rounds],
-                               "chosen": selection.chosen.candidate.label}
-        lines.append(f"diagnosis: {selection.chosen.candidate.label} "
-                     f"(held-out mean {selection.chosen.heldout_mean * 1e3:.3f} mm)")
+        result["diagnosis"] = _diagnosis(robot, samples, options, args.folds or 5, args.seed)
+        chosen = result["diagnosis"]["stages"][-1]
+        lines.append(f"diagnosis: {chosen['model']} (held-out mean {chosen['heldout_mean_mm']:.3f} mm); "
+                     f"verdict: {result['diagnosis']['verdict']}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     save_robot(fit.corrected(robot), out / "robot_calibrated.yaml",
@@ -164,7 +177,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robust", action="store_true", help="reject outlying samples and refit")
     p.add_argument("--folds", type=int, default=5, help="k of the k-fold held-out error (0: none)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fold split")
-    p.add_argument("--diagnose", action="store_true", help="rank effects by held-out error (sensors.analysis)")
+    p.add_argument("--diagnose", action="store_true",
+                   help="select effects and test the residual (the diagnosis engine)")
     p.set_defaults(func=cmd_calibrate_poses)
 
     p = sub.add_parser("plan", help="D-optimal calibration poses (spot and joint noise)")

@@ -16,7 +16,7 @@ import numpy as np
 from scipy import optimize
 
 from ..measurement import NoiseModel, Residuals
-from ..samples_file import Samples
+from .residuals import Readings
 
 REPEAT_TOLERANCE = 1e-4   # rad: readings this close count as the same pose
 
@@ -32,7 +32,7 @@ def repeat_groups(q: np.ndarray) -> np.ndarray:
     return group
 
 
-def pure_error(samples: Samples, res: Residuals, noise: NoiseModel) -> tuple[float, int, float]:
+def pure_error(samples: Readings, res: Residuals, noise: NoiseModel) -> tuple[float, int, float]:
     """Scatter of repeated poses about their group means: (sum of squares of the
     whitened residuals, its degrees of freedom, the pooled RMS per coordinate in
     m). Poses with the same readings share their whitener, so the whitened

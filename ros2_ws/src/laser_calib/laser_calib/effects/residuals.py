@@ -9,6 +9,11 @@ robot model derives from it):
     spot level: spot_y, spot_z (measured), incidence (angle between beam and
                 screen normal, deg), laser
 
+The pose level serves every measurement model (it needs only the readings and
+the Jacobians); the spot level is the laser data's measurement level, other
+measurement models supply their own (sensors.analysis: the residual
+components against the measured position in the sensor frame).
+
 The raw spot residual of a joint or length error changes sign from pose to
 pose with the kinematics, so a binned mean of raw residuals hides it.
 Responses therefore project each pose's residual onto the direction a given
@@ -34,6 +39,7 @@ the residual the covariate's bin means explain.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Mapping, Protocol
 
 import numpy as np
 from scipy import stats
@@ -47,6 +53,14 @@ from .joint import gravity_torques
 POSE, SPOT_LEVEL = "pose", "spot"
 MAX_BINS = 8
 POSES_PER_BIN = 10
+
+
+class Readings(Protocol):
+    """What the pose-level covariates need of a samples set (spot or sensor)."""
+
+    q: np.ndarray                    # (P,N) rad
+    stamp: np.ndarray                # (P,) s
+    extra: Mapping[str, np.ndarray]  # name -> (P,)
 
 
 @dataclass(frozen=True)
@@ -92,8 +106,9 @@ class Test:
                 f"Bonferroni-adjusted, eta^2 = {self.eta2:.2f})")
 
 
-def covariates(robot: Robot, samples: Samples, beams: np.ndarray) -> list[Series]:
-    """Every covariate of the data; beams (P,L,3) of the model (incidence angle)."""
+def pose_covariates(robot: Robot, samples: Readings) -> list[Series]:
+    """The pose-level covariates of any samples with readings q (P,N), stamp (P,)
+    and extra columns: q_i, move_i, torque_i, stamp, every extra column."""
     out = []
     q = samples.q
     moves = move_directions(q)
@@ -105,9 +120,14 @@ def covariates(robot: Robot, samples: Samples, beams: np.ndarray) -> list[Series
                           own_joint_only=True))
     out.append(Series("stamp", samples.stamp, POSE, "s"))
     out += [Series(name, values, POSE, "") for name, values in samples.extra.items()]
+    return out
+
+
+def spot_covariates(samples: Samples, beams: np.ndarray) -> list[Series]:
+    """The spot-level covariates; beams (P,L,3) of the model (incidence angle)."""
     spots = samples.spots
-    out.append(Series("spot_y", spots[..., 0], SPOT_LEVEL, "mm", 1e3))
-    out.append(Series("spot_z", spots[..., 1], SPOT_LEVEL, "mm", 1e3))
+    out = [Series("spot_y", spots[..., 0], SPOT_LEVEL, "mm", 1e3),
+           Series("spot_z", spots[..., 1], SPOT_LEVEL, "mm", 1e3)]
     with np.errstate(invalid="ignore"):
         incidence = np.degrees(np.arccos(np.clip(np.abs(beams[..., 0]), 0.0, 1.0)))
     out.append(Series("incidence", incidence, SPOT_LEVEL, "deg"))
@@ -127,8 +147,10 @@ def _apparent(res: Residuals, whitener: np.ndarray, columns: np.ndarray) -> tupl
     return np.nan_to_num(value), weight
 
 
-def responses(robot: Robot, res: Residuals, noise: NoiseModel, beams: np.ndarray) -> list[Series]:
-    """Responses of a fit's residuals (res with jac and jac_q at the fit)."""
+def pose_responses(robot: Robot, res: Residuals, noise: NoiseModel) -> list[Series]:
+    """The pose-level responses of a fit's residuals (res with jac and jac_q at
+    the fit, the D-H errors first in jac): the apparent error of each joint and
+    of each length, for any measurement model."""
     whitener = noise.whitener(res)
     out = []
     joint_e, joint_w = _apparent(res, whitener, res.jac_q)
@@ -141,13 +163,23 @@ def responses(robot: Robot, res: Residuals, noise: NoiseModel, beams: np.ndarray
         if length_w[:, k].max() > 0:
             out.append(Series(f"apparent error of {robot.param_names[j]}", length_e[:, k], POSE, "mm", 1e3,
                               length_w[:, k], length=True))
-    # Spot level: each coordinate weighted by its own variance (diagonal of the pose covariance).
-    joint_sigma = np.broadcast_to(np.asarray(noise.joint_sigma, float), (robot.n_joints,))
-    variance = noise.sigma ** 2 + np.einsum("pcdn,n->pcd", res.jac_q ** 2, joint_sigma ** 2)
+    return out
+
+
+def value_variance(res: Residuals, noise: NoiseModel) -> np.ndarray:
+    """(P,C,D) variance of each measured value: the diagonal of the pose
+    covariance sigma^2 I + joint^2 G G^T (G = jac_q)."""
+    joint_sigma = np.broadcast_to(np.asarray(noise.joint_sigma, float), (res.jac_q.shape[-1],))
+    return noise.sigma ** 2 + np.einsum("pcdn,n->pcd", res.jac_q ** 2, joint_sigma ** 2)
+
+
+def spot_responses(res: Residuals, noise: NoiseModel, beams: np.ndarray) -> list[Series]:
+    """The spot-level responses: residual y, z (each weighted by its own
+    variance) and the apparent screen height."""
+    variance = value_variance(res, noise)
     valid = res.valid
-    for d, axis in enumerate("yz"):
-        out.append(Series(f"residual {axis}", res.r[..., d], SPOT_LEVEL, "mm", 1e3,
-                          np.where(valid, 1.0 / variance[..., d], 0.0)))
+    out = [Series(f"residual {axis}", res.r[..., d], SPOT_LEVEL, "mm", 1e3,
+                  np.where(valid, 1.0 / variance[..., d], 0.0)) for d, axis in enumerate("yz")]
     with np.errstate(invalid="ignore", divide="ignore"):
         t = beams[..., 1:] / beams[..., :1]
         t2 = (t ** 2).sum(axis=-1)
