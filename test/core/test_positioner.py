@@ -127,3 +127,17 @@ def test_calibrate_poses_command_writes_result_and_calibrated_robot(run, tmp_pat
     assert run(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples",
                 str(tmp_path / "samples.csv"), "--fix", "nope", "--out", str(out)]) == 2
     assert "cannot fix unknown parameter 'nope'" in capsys.readouterr().err
+
+
+def test_calibrate_poses_diagnose_runs_the_diagnosis_engine(run, tmp_path, capsys):
+    """--diagnose: the engine of diagnosis.py on the pose data; the sensor scale first, no spot effects."""
+    assert run(["import-positioner", "--data", str(DATA), "--out", str(tmp_path)]) == 0
+    out = tmp_path / "diag"
+    assert run(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples",
+                str(tmp_path / "samples.csv"), "--folds", "3", "--diagnose", "--out", str(out)]) == 0
+    diagnosis = json.loads((out / "result.json").read_text())["diagnosis"]
+    assert diagnosis["stages"][1]["model"] == "geometric + sensor scale"
+    assert diagnosis["stages"][-1]["heldout_mean_mm"] < diagnosis["stages"][0]["heldout_mean_mm"] < 1.74
+    labels = {r["label"] for ranking in diagnosis["selection"] for r in ranking}
+    assert labels and not any(label.startswith(("screen_shape", "camera_distortion")) for label in labels)
+    assert diagnosis["verdict"] in ("explained", "structure remains") and "verdict" in capsys.readouterr().out
