@@ -25,6 +25,7 @@ from .robot_file import load_robot, save_robot
 from .samples_file import load_samples, save_samples
 from .simulation import CASES, NoiseSpec, paper_session
 from . import diagnose_cli, real_cli, slm_calibration, vision_cli
+from .arguments import non_negative, positive
 
 EXIT_BAD_INPUT = 2
 
@@ -135,13 +136,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
     os.execv(sys.executable, argv)
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="laser-calib", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -152,8 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--poses-per-span", type=int, default=None,
                    help="poses in each of the small-range and whole-workspace sets (paper: 30 / 25)")
-    p.add_argument("--spot-noise", type=float, default=0.002, help="half-width of uniform spot noise, m")
-    p.add_argument("--joint-noise-deg", type=float, default=0.1, help="half-width of joint disturbance, deg")
+    p.add_argument("--spot-noise", type=non_negative, default=0.002, help="half-width of uniform spot noise, m")
+    p.add_argument("--joint-noise-deg", type=non_negative, default=0.1, help="half-width of joint disturbance, deg")
     p.add_argument("--random-errors", action="store_true",
                    help="true errors uniform within +-10 mm / 1 deg instead of the paper's all-positive ones")
     p.set_defaults(func=cmd_simulate)
@@ -165,12 +159,12 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--bag", help="a recorded session bag (its /samples topic)")
     p.add_argument("--test")
     p.add_argument("--method", choices=METHODS, default="lm")
-    p.add_argument("--spot-sigma", type=_positive, default=None,
+    p.add_argument("--spot-sigma", type=positive, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual)")
-    p.add_argument("--joint-sigma", type=float, default=0.0, help="joint reading noise std, rad")
+    p.add_argument("--joint-sigma", type=non_negative, default=0.0, help="joint reading noise std, rad")
     p.add_argument("--prior", action="store_true", help="tolerance prior: 10 mm and 1 deg per error")
-    p.add_argument("--prior-length", type=_positive, default=None, help="length tolerance, m (implies --prior)")
-    p.add_argument("--prior-angle-deg", type=_positive, default=None, help="angle tolerance, deg (implies --prior)")
+    p.add_argument("--prior-length", type=positive, default=None, help="length tolerance, m (implies --prior)")
+    p.add_argument("--prior-angle-deg", type=positive, default=None, help="angle tolerance, deg (implies --prior)")
     p.add_argument("--robust", action="store_true", help="reject outlier spots (rule in result.json docs)")
     p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")
     p.add_argument("--out", required=True)
@@ -179,20 +173,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("identify", help="identifiability table of a pose set")
     p.add_argument("--robot", required=True)
     p.add_argument("--samples", required=True)
-    p.add_argument("--spot-sigma", type=_positive, default=0.001)
-    p.add_argument("--joint-sigma", type=float, default=0.0)
+    p.add_argument("--spot-sigma", type=positive, default=0.001)
+    p.add_argument("--joint-sigma", type=non_negative, default=0.0)
     p.set_defaults(func=cmd_identify)
 
     p = sub.add_parser("slm-calibrate", help="laser angles from spots at known fixture distances (eq. 16)")
     p.add_argument("--robot", required=True)
     p.add_argument("--measurements", required=True, help="CSV laser,distance,u,v (m)")
-    p.add_argument("--spot-sigma", type=_positive, default=None)
+    p.add_argument("--spot-sigma", type=positive, default=None)
     p.add_argument("--out", required=True, help="robot file to write")
     p.set_defaults(func=cmd_slm_calibrate)
 
     p = sub.add_parser("replay", help="republish a recorded session bag with its original timing (ROS)")
     p.add_argument("bag")
-    p.add_argument("--rate", type=_positive, default=1.0, help="playback speed factor")
+    p.add_argument("--rate", type=positive, default=1.0, help="playback speed factor")
     p.set_defaults(func=cmd_replay)
 
     diagnose_cli.register(sub)

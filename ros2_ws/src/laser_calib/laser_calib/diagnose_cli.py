@@ -8,42 +8,13 @@ in cli.py.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
+from .arguments import non_negative, non_negative_int, positive
 from .diagnosis import DiagnoseOptions, diagnose, write_outputs
 from .estimation import METHODS
 from .robot_file import load_robot
 from .samples_file import load_samples
-
-
-def _number(text: str, positive: bool) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value < 0 or (positive and value == 0):
-        raise argparse.ArgumentTypeError(f"expected a {'positive' if positive else 'non-negative'} number, "
-                                         f"got {text}")
-    return value
-
-
-def _positive(text: str) -> float:
-    return _number(text, True)
-
-
-def _non_negative(text: str) -> float:
-    return _number(text, False)
-
-
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text}")
-    return value
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
@@ -74,13 +45,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--robot", required=True, help="nominal robot model (YAML)")
     p.add_argument("--samples", required=True, help="calibration samples (CSV, rows in measurement order)")
     p.add_argument("--test", help="test samples: poses the fit never sees (CSV)")
-    p.add_argument("--spot-sigma", type=_positive, default=None,
+    p.add_argument("--spot-sigma", type=positive, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual; the level is then tested against repeated poses, if any)")
-    p.add_argument("--joint-sigma", type=_non_negative, default=None,
+    p.add_argument("--joint-sigma", type=non_negative, default=None,
                    help="joint reading noise std, rad (default: estimated from the residual)")
     p.add_argument("--method", choices=METHODS, default="lm", help="estimator of every fit")
-    p.add_argument("--folds", type=_count, default=5, help="cross-validation folds (at least 2)")
-    p.add_argument("--max-effects", type=_count, default=4, help="effects added at most")
+    p.add_argument("--folds", type=non_negative_int, default=5, help="cross-validation folds (at least 2)")
+    p.add_argument("--max-effects", type=non_negative_int, default=4, help="effects added at most")
     p.add_argument("--seed", type=int, default=0, help="seed of the fold split")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=cmd_diagnose)

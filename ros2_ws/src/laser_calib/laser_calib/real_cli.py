@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .arguments import positive
 from .estimation import METHODS, EstimateOptions
 from .model import Robot
 from .positioner import read_positioner
@@ -146,13 +147,6 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
-    return value
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     """Add import-positioner, calibrate-poses and plan to cli.py's subcommands."""
     p = sub.add_parser("import-positioner", help="import the real two-axis positioner data set")
@@ -165,14 +159,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--samples", required=True, help="CSV pose,stamp,q1..qN,x,y,z[,qw,qx,qy,qz]")
     p.add_argument("--out", required=True)
     p.add_argument("--method", choices=METHODS, default="lm")
-    p.add_argument("--sigma", type=_positive, default=None,
+    p.add_argument("--sigma", type=positive, default=None,
                    help="noise std per position value, m (default: estimated from the residual)")
-    p.add_argument("--rotation-length", type=_positive, default=None,
+    p.add_argument("--rotation-length", type=positive, default=None,
                    help="m/rad weighing rotation residuals (default: estimated from the residuals)")
     p.add_argument("--fix", nargs="*", default=[], help="parameter names to hold (D-H, frame or scale)")
     p.add_argument("--prior", action="store_true", help="tolerance prior on the D-H errors: 10 mm and 1 deg")
-    p.add_argument("--frame-prior-length", type=_positive, default=None, help="prior std of frame offsets, m")
-    p.add_argument("--frame-prior-angle-deg", type=_positive, default=None, help="prior std of frame angles, deg")
+    p.add_argument("--frame-prior-length", type=positive, default=None, help="prior std of frame offsets, m")
+    p.add_argument("--frame-prior-angle-deg", type=positive, default=None, help="prior std of frame angles, deg")
     p.add_argument("--scale", action="store_true", help="estimate the sensor's scale per axis")
     p.add_argument("--robust", action="store_true", help="reject outlying samples and refit")
     p.add_argument("--folds", type=int, default=5, help="k of the k-fold held-out error (0: none)")
@@ -185,7 +179,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robot", required=True)
     p.add_argument("--n", type=int, required=True, help="number of poses")
     p.add_argument("--out", required=True, help="CSV pose,q1..qN (rad)")
-    p.add_argument("--spot-sigma", type=_positive, default=PlanOptions(1).spot_sigma,
+    p.add_argument("--spot-sigma", type=positive, default=PlanOptions(1).spot_sigma,
                    help="spot noise std per coordinate, m (default: the paper's +-2 mm uniform)")
     p.add_argument("--joint-sigma", type=float, default=PlanOptions(1).joint_sigma,
                    help="joint disturbance std, rad (default: the paper's +-0.1 deg uniform)")

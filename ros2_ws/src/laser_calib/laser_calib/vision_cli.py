@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .arguments import positive_int
 from .errors import InputError
 from .vision import (RenderOptions, board_poses, calibrate_screen, default_camera, detect_fiducials,
                      render_board_frame, render_fiducial_frame, save_calibration)
@@ -80,13 +81,6 @@ def cmd_render_calibration_images(args: argparse.Namespace) -> int:
     return 0
 
 
-def _count(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive count, got {text}")
-    return value
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("screen-calibrate", help="camera intrinsics and image-to-screen map from fiducial images")
     p.add_argument("--board-images", required=True, help="folder of ChArUco board views (intrinsics)")
@@ -98,6 +92,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True)
     p.add_argument("--seed", type=int, default=0)
     # As calibrate_screen recommends (20-30 tilted board views, 5-10 screen views).
-    p.add_argument("--board-views", type=_count, default=30)
-    p.add_argument("--screen-views", type=_count, default=8)
+    p.add_argument("--board-views", type=positive_int, default=30)
+    p.add_argument("--screen-views", type=positive_int, default=8)
     p.set_defaults(func=cmd_render_calibration_images)
