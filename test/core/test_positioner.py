@@ -1,6 +1,5 @@
 """The real two-axis positioner data: import, round trips, the chain, the calibration."""
 
-import argparse
 import json
 import math
 import shutil
@@ -10,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from laser_calib import cli, real_cli
+from laser_calib import cli
 from laser_calib.positioner import BASE_IN_WORLD, read_positioner
 from laser_calib.robot_file import load_robot
 from laser_calib.sensors import robot_frames
@@ -23,17 +22,8 @@ DATA = Path(__file__).resolve().parents[2] / "data" / "real" / "positioner_2axis
 
 
 @pytest.fixture
-def run(monkeypatch):
-    """cli.main with this package's subcommands registered (until cli.py registers them itself)."""
-    build = cli.build_parser
-
-    def parser():
-        p = build()
-        sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
-        if "plan" not in sub.choices:
-            real_cli.register(sub)
-        return p
-    monkeypatch.setattr(cli, "build_parser", parser)
+def run():
+    """The command line's entry point (exit status, one line on bad input)."""
     return cli.main
 
 
