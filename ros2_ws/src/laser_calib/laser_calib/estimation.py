@@ -21,13 +21,14 @@ estimate(robot, samples, options) runs, in order:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from .estimators import EkfOptions, Fit, LmOptions, Problem, extended_kalman, levenberg_marquardt
 from .identifiability import Identifiability, analyse
-from .measurement import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, SpotModel, whiten
+from .measurement import (ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, SpotModel, count_values,
+                          whiten)
 from .model import Robot, param_kinds
 from .samples_file import Samples
 
@@ -65,12 +66,10 @@ class EstimateOptions:
 
 @dataclass(frozen=True)
 class Estimate:
-    """The result. errors/std (n,) with NaN where not identifiable; fit holds the
-    history; sigma is the spot sigma used (estimated when sigma_estimated)."""
+    """The result: fit holds x, the covariance and the history; sigma is the spot
+    sigma used (estimated when sigma_estimated)."""
 
     names: tuple[str, ...]
-    errors: np.ndarray
-    std: np.ndarray
     identifiable: np.ndarray
     identifiability: Identifiability
     fit: Fit
@@ -80,7 +79,21 @@ class Estimate:
     warnings: tuple[str, ...]
     wall_time: float
     restarts: int = 0
-    values: np.ndarray = field(default=None)  # raw x, 0 where fixed: what the corrected model uses
+
+    @property
+    def values(self) -> np.ndarray:
+        """(n,) the fitted x, nominal (0) where fixed: what the corrected model uses."""
+        return self.fit.x
+
+    @property
+    def errors(self) -> np.ndarray:
+        """(n,) the estimated errors, NaN where not identifiable (never reported as known)."""
+        return np.where(self.identifiable, self.fit.x, np.nan)
+
+    @property
+    def std(self) -> np.ndarray:
+        """(n,) standard deviations from the covariance, NaN where not identifiable."""
+        return np.where(self.identifiable, self.fit.std, np.nan)
 
     def corrected(self, robot: Robot) -> Robot:
         return robot.with_errors(self.values[:robot.n_params])
@@ -122,7 +135,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     _, jac = whiten(res, noise.whitener(res))
     ident = analyse(jac, model.scales, names, user_fixed)
     free = ident.free
-    n_values = int(res.valid.sum()) * res.r.shape[2]
+    n_values = count_values(res)
     if n_values < free.sum() and prior_sigma is None:
         raise ValueError(f"{n_values} measured values cannot determine {int(free.sum())} parameters; "
                          "measure more poses or use the prior")
@@ -165,11 +178,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     if not result.converged:
         warnings.append(f"{options.method} stopped after {result.iterations} iterations without converging")
 
-    values = result.x.copy()
-    errors = np.where(free, values, np.nan)
-    return Estimate(names, errors, np.where(free, result.std, np.nan), free.copy(), ident, result, sigma,
-                    sigma_estimated, tuple(rejected), tuple(warnings), time.perf_counter() - start, restarts,
-                    values)
+    return Estimate(names, free.copy(), ident, result, sigma, sigma_estimated, tuple(rejected), tuple(warnings),
+                    time.perf_counter() - start, restarts)
 
 
 def _suspect(result: Fit) -> bool:

@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from .measurement import MeasurementModel, NoiseModel, Residuals, whiten
+from .measurement import MeasurementModel, NoiseModel, Residuals, count_values, whiten
 
 
 @dataclass(frozen=True)
@@ -128,9 +128,6 @@ class Problem:
             jac = np.vstack([jac, rows])
         return r, jac
 
-    def n_values(self, res: Residuals) -> int:
-        return int(res.valid.sum()) * res.r.shape[2]
-
     def covariance(self, jac: np.ndarray) -> np.ndarray:
         n = len(self.free)
         cov = np.full((n, n), np.nan)
@@ -181,7 +178,7 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
         costs.append(cost)
         damping = max(damping / 10.0, 1e-12)
         converged = decrease <= options.cost_tol * max(cost, 1e-300)
-    return Fit(x, problem.covariance(jac), problem.free, cost, 2 * cost, problem.n_values(res), iterations,
+    return Fit(x, problem.covariance(jac), problem.free, cost, 2 * cost, count_values(res), iterations,
                converged, np.array(history), np.array(costs), problem.excluded)
 
 
@@ -234,5 +231,5 @@ def extended_kalman(problem: Problem, x0: np.ndarray, options: EkfOptions = EkfO
     # Report cost, covariance and chi^2 with the problem's own noise model.
     r, jac, _, res = problem.stack(x)
     costs.append(0.5 * r @ r)
-    return Fit(x, problem.covariance(jac), free, costs[-1], 2 * costs[-1], problem.n_values(res), iterations,
+    return Fit(x, problem.covariance(jac), free, costs[-1], 2 * costs[-1], count_values(res), iterations,
                converged, np.array(history), np.array(costs), problem.excluded)

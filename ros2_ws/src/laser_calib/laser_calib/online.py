@@ -16,8 +16,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from .estimation import EstimateOptions, prior_sigmas
 from .identifiability import analyse
-from .kinematics import predict
-from .measurement import NoiseModel, SpotModel, spot_residuals, whiten
+from .measurement import NoiseModel, SpotModel, whiten
 from .model import Robot
 from .samples_file import Samples
 
@@ -87,13 +86,7 @@ class OnlineEkf:
         self._q.append(q[0])
         self._spots.append(spots[0])
         pose = Samples(np.zeros(1, int), np.zeros(1), q, spots)
-
-        def stacked(x: np.ndarray):
-            prediction = predict(self.robot, q, x, jacobian=True)
-            res = spot_residuals(pose, prediction.spots, prediction.k, prediction.jacobian, self.robot, True)
-            return res
-
-        res = stacked(self.filter.x)
+        res = SpotModel(self.robot, pose).residuals(self.filter.x)
         if not res.valid.any():
             return  # nothing measured (or the beam misses the screen): the pose only joins the record
         keep = np.repeat(res.valid[0], 2)
