@@ -73,6 +73,17 @@ def read_table(text: str, source: str, expected_header: str) -> tuple[list[str],
     return header, rows[1:], n_q
 
 
+def parse_number(cell: str, where: str) -> float:
+    """A finite number from one CSV field, or one line naming ``where``."""
+    try:
+        value = float(cell)
+    except ValueError:
+        raise InputError(where, f"not a number: {cell!r}") from None
+    if not math.isfinite(value):
+        raise InputError(where, f"not finite ({cell})")
+    return value
+
+
 def parse_table(header: list[str], rows: list[list[str]], source: str,
                 may_be_empty: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Pose ids (P,) and the other columns as numbers (P, C-1), NaN only where a
@@ -97,13 +108,7 @@ def parse_table(header: list[str], rows: list[list[str]], source: str,
                 if name in may_be_empty:
                     continue  # not measured at this pose
                 raise InputError(f"{source}: line {line}, field {name}", "empty")
-            try:
-                value = float(cell)
-            except ValueError:
-                raise InputError(f"{source}: line {line}, field {name}", f"not a number: {cell!r}") from None
-            if not math.isfinite(value):
-                raise InputError(f"{source}: line {line}, field {name}", f"not finite ({cell})")
-            values[r, c - 1] = value
+            values[r, c - 1] = parse_number(cell, f"{source}: line {line}, field {name}")
         if r and values[r, 0] <= values[r - 1, 0]:
             raise InputError(f"{source}: line {line}, field stamp",
                              f"not increasing ({values[r, 0]} after {values[r - 1, 0]})")

@@ -25,6 +25,7 @@ import numpy as np
 
 from .errors import InputError
 from .model import Laser, Robot
+from .samples_file import parse_number
 
 COLUMNS = ("laser", "distance", "u", "v")
 
@@ -89,15 +90,7 @@ def load_measurements(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarra
             raise InputError(f"{path}: line {line}, field laser", f"not an integer: {row[0]!r}") from None
         if laser not in data:
             raise InputError(f"{path}: line {line}, field laser", f"expected 1 or 2, got {laser}")
-        values = []
-        for name, cell in zip(COLUMNS[1:], row[1:]):
-            try:
-                value = float(cell)
-            except ValueError:
-                raise InputError(f"{path}: line {line}, field {name}", f"not a number: {cell!r}") from None
-            if not math.isfinite(value):
-                raise InputError(f"{path}: line {line}, field {name}", f"not finite ({cell})")
-            values.append(value)
+        values = [parse_number(cell, f"{path}: line {line}, field {name}") for name, cell in zip(COLUMNS[1:], row[1:])]
         if values[0] <= 0:
             raise InputError(f"{path}: line {line}, field distance", f"must be positive, got {values[0]}")
         data[laser].append(tuple(values))

@@ -34,7 +34,8 @@ import yaml
 from laser_calib.errors import InputError
 from laser_calib.model import Robot
 from laser_calib.robot_file import load_robot, save_robot
-from laser_calib.samples_file import Samples, check_joint_range, format_samples, load_samples, sample_row
+from laser_calib.samples_file import (Samples, check_joint_range, format_samples, load_samples, parse_number,
+                                      sample_row)
 from laser_calib.simulation import sample_poses
 
 from . import bag
@@ -144,16 +145,7 @@ def _poses_from_csv(text: str, source: str, robot: Robot) -> tuple[list[int], li
                 ids.append(int(row[pose_col]))
             except ValueError:
                 raise InputError(f"{source}: line {line}, field pose", f"not an integer: {row[pose_col]!r}") from None
-        values = []
-        for name, i in zip(columns, index):
-            try:
-                value = float(row[i])
-            except ValueError:
-                raise InputError(f"{source}: line {line}, field {name}", f"not a number: {row[i]!r}") from None
-            if not math.isfinite(value):
-                raise InputError(f"{source}: line {line}, field {name}", f"not finite ({row[i]})")
-            values.append(value)
-        rows.append(values)
+        rows.append([parse_number(row[i], f"{source}: line {line}, field {name}") for name, i in zip(columns, index)])
     return ids, rows
 
 
