@@ -33,17 +33,17 @@ from _common import write_results
 import numpy as np
 from scipy import stats
 
-from laser_calib.diagnosis import diagnose
+from laser_calib.diagnosis.engine import diagnose
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic
 from laser_calib.effects.catalog import camera_distortion, screen_shape
-from laser_calib.effects.model import EffectModel
-from laser_calib.effects.truth import (TEMPERATURE, ForeignJointError, TrueEffect, Truth, draw_truth,
+from laser_calib.effects.effect_model import EffectModel
+from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignJointError, TrueEffect, Truth, draw_truth,
                                       effect_session, sized)
-from laser_calib.estimation import EstimateOptions, estimate_model
-from laser_calib.measurement import SpotModel
-from laser_calib.model import Robot
-from laser_calib.samples_file import Samples
-from laser_calib.simulation import NoiseSpec
+from laser_calib.estimation.estimate import EstimateOptions, estimate_model
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.model.robot import Robot
+from laser_calib.io.samples import Samples
+from laser_calib.sim.simulation import NoiseSpec
 
 NOISE = NoiseSpec(spot=0.5e-3, joint=float(np.deg2rad(0.02)))
 N_CAL = N_TEST = 80

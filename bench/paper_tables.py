@@ -28,12 +28,13 @@ from _common import write_results  # first: sets up the import path and BLAS thr
 import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
-from laser_calib.estimation import EstimateOptions, estimate
-from laser_calib.estimators import Problem
-from laser_calib.evaluation import laser_stats, spot_distances
-from laser_calib.kinematics import predict
-from laser_calib.measurement import NoiseModel, SpotModel, whiten
-from laser_calib.simulation import measure, paper_session, sample_poses
+from laser_calib.estimation.estimate import EstimateOptions, estimate
+from laser_calib.estimation.solvers import Problem
+from laser_calib.report.statistics import laser_stats, spot_distances
+from laser_calib.model.kinematics import predict
+from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.sim.simulation import measure, paper_session, sample_poses
 
 # The paper's Tables II and III (mean / std / max in mm, laser 1 then laser 2).
 PAPER = {

@@ -28,10 +28,10 @@ from _common import write_results  # first: sets up the import path and BLAS thr
 
 import numpy as np  # noqa: E402
 
-from laser_calib.estimation import EstimateOptions, estimate  # noqa: E402
-from laser_calib.kinematics import predict  # noqa: E402
+from laser_calib.estimation.estimate import EstimateOptions, estimate  # noqa: E402
+from laser_calib.model.kinematics import predict  # noqa: E402
 from laser_calib.planning import PlanOptions, plan  # noqa: E402
-from laser_calib.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors  # noqa: E402
+from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors  # noqa: E402
 
 DESIGNS = ("random", "planned", "naive")
 TEST_POSES = 200

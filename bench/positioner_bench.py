@@ -34,17 +34,17 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
-from laser_calib.diagnosis import Diagnosis  # noqa: E402
-from laser_calib.positioner import read_positioner  # noqa: E402
-from laser_calib.robot_file import load_robot, save_robot  # noqa: E402
-from laser_calib.sensors.analysis import (correlations, covariates, diagnose, diagnose_options,  # noqa: E402
+from laser_calib.diagnosis.engine import Diagnosis  # noqa: E402
+from laser_calib.io.positioner import read_positioner  # noqa: E402
+from laser_calib.model.robot_file import load_robot, save_robot  # noqa: E402
+from laser_calib.diagnosis.sensor_data import (correlations, covariates, diagnose, diagnose_options,  # noqa: E402
                                           fit_effects, heldout_effects, nested_heldout, sensor_residuals)
-from laser_calib.sensors.calibration import (SensorFitOptions, calibrate, is_frame_param, kfold,  # noqa: E402
+from laser_calib.estimation.sensor_fit import (SensorFitOptions, calibrate, is_frame_param, kfold,  # noqa: E402
                                              pose_errors)
-from laser_calib.sensors.chain import chain_names, target_in_sensor  # noqa: E402
-from laser_calib.sensors.frames import robot_frames  # noqa: E402
-from laser_calib.sensors.rotations import log_rotation, quaternion_to_matrix  # noqa: E402
-from laser_calib.sensors.samples import load_sensor_samples, save_sensor_samples  # noqa: E402
+from laser_calib.measurement.chain import chain_names, target_in_sensor  # noqa: E402
+from laser_calib.measurement.frames import robot_frames  # noqa: E402
+from laser_calib.measurement.rotations import log_rotation, quaternion_to_matrix  # noqa: E402
+from laser_calib.io.sensor_samples import load_sensor_samples, save_sensor_samples  # noqa: E402
 
 DATA = ROOT / "data" / "real" / "positioner_2axis"
 DOCS = ROOT / "docs"

@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from laser_calib.cli import main
-from laser_calib.kinematics import rot_x, rot_y
-from laser_calib.robot_file import load_robot
-from laser_calib.simulation import bundled_robot
+from laser_calib.cli.main import main
+from laser_calib.model.kinematics import rot_x, rot_y
+from laser_calib.model.robot_file import load_robot
+from laser_calib.sim.simulation import bundled_robot
 
 
 @pytest.fixture(scope="module")
@@ -71,12 +71,12 @@ def test_slm_calibrate_recovers_the_laser_angles(tmp_path, capsys):
             rows.append(f"{j + 1},{distance},{float(u)!r},{float(v)!r}")
     (tmp_path / "slm.csv").write_text("\n".join(rows) + "\n")
     robot_path = tmp_path / "robot.yaml"
-    from laser_calib.robot_file import save_robot
+    from laser_calib.model.robot_file import save_robot
     save_robot(bundled_robot("paper-4dof"), robot_path)
     out = tmp_path / "robot_slm.yaml"
     assert main(["slm-calibrate", "--robot", str(robot_path), "--measurements", str(tmp_path / "slm.csv"),
                  "--spot-sigma", str(sigma), "--out", str(out)]) == 0
-    from laser_calib.slm_calibration import calibrate, load_measurements
+    from laser_calib.slm import calibrate, load_measurements
     _, angles = calibrate(bundled_robot("paper-4dof"), load_measurements(tmp_path / "slm.csv"), sigma)
     lasers = load_robot(out).lasers
     for (gamma, beta), fitted, laser in zip(truth, angles, lasers):

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from laser_calib.diagnose_cli import main as diagnose_main
-from laser_calib.diagnosis import EXPLAINED, STRUCTURE, diagnose, write_outputs
+from laser_calib.cli.main import main as cli_main
+from laser_calib.diagnosis.engine import EXPLAINED, STRUCTURE, diagnose, write_outputs
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic, calibrated_model
 from laser_calib.effects.catalog import camera_distortion, screen_shape
-from laser_calib.effects.truth import (TEMPERATURE, ForeignJointError, draw_truth, effect_session, hooks, sized)
-from laser_calib.robot_file import load_robot, save_robot
-from laser_calib.samples_file import Samples, load_samples, save_samples
-from laser_calib.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
+from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignJointError, draw_truth, effect_session, hooks, sized)
+from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.io.samples import Samples, load_samples, save_samples
+from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
 
 NOISE = NoiseSpec(spot=0.5e-3, joint=float(np.deg2rad(0.02)))
 VISIBLE = 200.0
@@ -45,6 +45,10 @@ LIBRARY = {
                    "screen_shape": lambda r, c: screen_shape(r),
                    "camera_distortion": lambda r, c: camera_distortion(r)},
 }
+
+
+def diagnose_main(argv: list[str]) -> int:
+    return cli_main(["diagnose", *argv])
 
 
 def library_session(arm, kind, n_cal=80, n_test=40, seed=SEED):

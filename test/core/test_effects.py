@@ -8,16 +8,16 @@ from laser_calib.effects import (Backlash, CameraDistortion, Compliance, Drift, 
                                  ScreenShape, calibrated_model, candidates, effects_from_robot, effects_to_yaml,
                                  gravity_torques, move_directions)
 from laser_calib.effects.catalog import camera_distortion, screen_shape
-from laser_calib.effects.residuals import POSE, Series, binned_test
-from laser_calib.effects.truth import TEMPERATURE, draw_truth, effect_session, hooks, visibility
-from laser_calib.errors import InputError
-from laser_calib.estimation import EstimateOptions, estimate_model
-from laser_calib.estimators import EkfOptions
-from laser_calib.kinematics import forward
-from laser_calib.measurement import SpotModel
-from laser_calib.robot_file import dump_robot, robot_from_dict
-from laser_calib.samples_file import Samples
-from laser_calib.simulation import NoiseSpec, bundled_robot, measure, sample_poses
+from laser_calib.diagnosis.structure import POSE, Series, binned_test
+from laser_calib.sim.effect_truth import TEMPERATURE, draw_truth, effect_session, hooks, visibility
+from laser_calib.io.errors import InputError
+from laser_calib.estimation.estimate import EstimateOptions, estimate_model
+from laser_calib.estimation.solvers import EkfOptions
+from laser_calib.model.kinematics import forward
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.model.robot_file import dump_robot, robot_from_dict
+from laser_calib.io.samples import Samples
+from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses
 from dataclasses import replace
 import yaml
 
@@ -265,8 +265,10 @@ def test_screen_and_distortion_units_and_scales():
 def test_joint_effects_work_on_any_sensor_model_with_jac_q():
     """A backlash on a point sensor's model (no laser, no screen): the Jacobian
     is jac_q @ basis there too, and subsets slice the approach directions."""
-    from laser_calib.sensors import PointModel, Pose, SensorSamples, robot_frames, with_frames
-    from laser_calib.sensors.chain import chain_names, target_in_sensor
+    from laser_calib.io.sensor_samples import SensorSamples
+    from laser_calib.measurement.frames import Pose, robot_frames, with_frames
+    from laser_calib.measurement.sensor import PointModel
+    from laser_calib.measurement.chain import chain_names, target_in_sensor
 
     robot = with_frames(bundled_robot("paper-4dof"), {
         "sensor": Pose(np.eye(3), np.array([1.5, 0.2, 0.4])), "base": Pose(np.eye(3), np.zeros(3)),

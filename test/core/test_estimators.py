@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from laser_calib.estimation import EstimateOptions, estimate, prior_sigmas
-from laser_calib.estimators import EkfOptions, Problem
-from laser_calib.measurement import NoiseModel, SpotModel
-from laser_calib.simulation import NoiseSpec, paper_session
+from laser_calib.estimation.estimate import EstimateOptions, estimate, prior_sigmas
+from laser_calib.estimation.solvers import EkfOptions, Problem
+from laser_calib.measurement.base import NoiseModel
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.sim.simulation import NoiseSpec, paper_session
 
 
 def _options(session, **kw):

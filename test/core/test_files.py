@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from laser_calib.cli import main
-from laser_calib.robot_file import dump_robot, load_robot, save_robot
-from laser_calib.samples_file import load_samples, save_samples
-from laser_calib.simulation import bundled_robot, paper_session
+from laser_calib.cli.main import main
+from laser_calib.model.robot_file import dump_robot, load_robot, save_robot
+from laser_calib.io.samples import load_samples, save_samples
+from laser_calib.sim.simulation import bundled_robot, paper_session
 
 
 def test_robot_round_trip(tmp_path):
@@ -78,7 +78,7 @@ BAD_ROBOTS = {
 def test_bad_robot_files_give_one_line_and_exit_2(tmp_path, capsys, name):
     edit, expected = BAD_ROBOTS[name]
     from importlib import resources
-    text = (resources.files("laser_calib") / "robots" / "manipulator_4dof.yaml").read_text()
+    text = (resources.files("laser_calib") / "model" / "robots" / "manipulator_4dof.yaml").read_text()
     path = tmp_path / "robot.yaml"
     path.write_text(edit(text))
     samples = tmp_path / "s.csv"

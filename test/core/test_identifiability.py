@@ -2,9 +2,10 @@
 
 import numpy as np
 
-from laser_calib.identifiability import analyse
-from laser_calib.measurement import NoiseModel, SpotModel, whiten
-from laser_calib.simulation import paper_session
+from laser_calib.estimation.identifiability import analyse
+from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.sim.simulation import paper_session
 
 
 def _analysis(case, seed=0):

@@ -5,8 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from laser_calib.kinematics import joint_columns, predict
-from laser_calib.simulation import bundled_robot, sample_poses
+from laser_calib.model.kinematics import joint_columns, predict
+from laser_calib.sim.simulation import bundled_robot, sample_poses
 
 STEP = 1e-6  # truncation error ~ STEP^2 * third derivative: far below 1e-6 relative
 
@@ -48,7 +48,7 @@ def test_joint_jacobian_is_the_theta_columns():
 def test_link_block_has_the_papers_shape():
     """Jac_1 is 6 x (4N+5): a 6x4 block per link and a 6x5 SLM block; no error of
     a link moves the laser by more than its lever arm allows (a sanity bound)."""
-    from laser_calib.kinematics import forward
+    from laser_calib.model.kinematics import forward
     robot = bundled_robot("paper-7dof")
     state = forward(robot, np.zeros((1, robot.n_joints)), twists=True)
     assert state.twists.shape == (1, 6, 4 * 7 + 5)

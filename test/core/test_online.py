@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from laser_calib.estimation import EstimateOptions, estimate
-from laser_calib.online import OnlineEkf
-from laser_calib.simulation import paper_session
+from laser_calib.estimation.estimate import EstimateOptions, estimate
+from laser_calib.estimation.online import OnlineEkf
+from laser_calib.sim.simulation import paper_session
 
 
 def test_online_ekf_ends_near_the_offline_map_estimate():

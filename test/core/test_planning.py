@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from laser_calib import cli
-from laser_calib.kinematics import predict
+from laser_calib.cli import main as cli
+from laser_calib.model.kinematics import predict
 from laser_calib.planning import PRIOR, PlanOptions, candidate_poses, d_optimal, format_poses, plan, whitened_jacobians
-from laser_calib.robot_file import save_robot
-from laser_calib.simulation import bundled_robot
+from laser_calib.model.robot_file import save_robot
+from laser_calib.sim.simulation import bundled_robot
 
 SPOT, JOINT = 2e-3 / np.sqrt(3), np.deg2rad(0.1) / np.sqrt(3)
 

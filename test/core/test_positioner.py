@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import yaml
 
-from laser_calib import cli
-from laser_calib.positioner import BASE_IN_WORLD, read_positioner
-from laser_calib.robot_file import load_robot
-from laser_calib.sensors import robot_frames
-from laser_calib.sensors.calibration import SensorFitOptions, calibrate, pose_errors
-from laser_calib.sensors.chain import chain_names, target_in_sensor
-from laser_calib.sensors.rotations import quaternion_to_matrix
-from laser_calib.sensors.samples import load_sensor_samples
+from laser_calib.cli import main as cli
+from laser_calib.io.positioner import BASE_IN_WORLD, read_positioner
+from laser_calib.model.robot_file import load_robot
+from laser_calib.measurement.frames import robot_frames
+from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, pose_errors
+from laser_calib.measurement.chain import chain_names, target_in_sensor
+from laser_calib.measurement.rotations import quaternion_to_matrix
+from laser_calib.io.sensor_samples import load_sensor_samples
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "real" / "positioner_2axis"
 

@@ -7,21 +7,23 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from laser_calib.diagnosis import DiagnoseOptions, supports
+from laser_calib.diagnosis.engine import DiagnoseOptions, supports
 from laser_calib.effects import CameraDistortion, EffectModel, JointScale, Periodic, ScreenShape
-from laser_calib.errors import InputError
-from laser_calib.estimation import EstimateOptions, estimate_model
-from laser_calib.estimators import EkfOptions
-from laser_calib.kinematics import forward
-from laser_calib.measurement import NoiseModel
-from laser_calib.robot_file import dump_robot, robot_from_dict
-from laser_calib.sensors import PointModel, Pose, PoseModel, SensorSamples, robot_frames, with_frames
-from laser_calib.sensors.analysis import diagnose, heldout_effects, sensor_data
-from laser_calib.sensors.calibration import SensorFitOptions, calibrate, frames_first, pose_errors
-from laser_calib.sensors.chain import chain_names, target_in_sensor
-from laser_calib.sensors.rotations import matrix_to_quaternion, quaternion_to_matrix
-from laser_calib.sensors.samples import format_sensor_samples, parse_sensor_samples
-from laser_calib.simulation import bundled_robot
+from laser_calib.io.errors import InputError
+from laser_calib.estimation.estimate import EstimateOptions, estimate_model
+from laser_calib.estimation.solvers import EkfOptions
+from laser_calib.model.kinematics import forward
+from laser_calib.measurement.base import NoiseModel
+from laser_calib.model.robot_file import dump_robot, robot_from_dict
+from laser_calib.io.sensor_samples import SensorSamples
+from laser_calib.measurement.frames import Pose, robot_frames, with_frames
+from laser_calib.measurement.sensor import PointModel, PoseModel
+from laser_calib.diagnosis.sensor_data import diagnose, heldout_effects, sensor_data
+from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, frames_first, pose_errors
+from laser_calib.measurement.chain import chain_names, target_in_sensor
+from laser_calib.measurement.rotations import matrix_to_quaternion, quaternion_to_matrix
+from laser_calib.io.sensor_samples import format_sensor_samples, parse_sensor_samples
+from laser_calib.sim.simulation import bundled_robot
 
 STEP = 1e-6
 SIGMA_T = 2e-4        # m, simulated position noise

@@ -143,8 +143,8 @@ def sample(pose: int, q, spots) -> Sample:
 
 
 def bad_and_concurrent(robot_path: str) -> dict:
-    from laser_calib.robot_file import load_robot
-    from laser_calib.simulation import NoiseSpec, measure, sample_poses, true_errors
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.sim.simulation import NoiseSpec, measure, sample_poses, true_errors
     robot = load_robot(robot_path)
     rng = np.random.default_rng(3)
     true = robot.with_errors(true_errors(robot))

@@ -21,8 +21,8 @@ def csv_rows(path) -> int:
 
 
 def test_kill_and_resume(ros, tmp_path):
-    from laser_calib.samples_file import load_samples
-    from laser_calib_nodes import bag
+    from laser_calib.io.samples import load_samples
+    from laser_calib.io import bag
     from rosbags.rosbag2 import Reader
     out = tmp_path / "out"
     out.mkdir()
@@ -72,9 +72,9 @@ def test_kill_and_resume(ros, tmp_path):
 
     # the estimator (which lived through the crash) has every pose once, in order: the online EKF
     # equals the offline one over samples.csv
-    from laser_calib.online import OnlineEkf
-    from laser_calib.robot_file import load_robot
-    from laser_calib_nodes.calibration import online_options
+    from laser_calib.estimation.online import OnlineEkf
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.session.estimate import online_options
     published = ros.client("params", str(POSES))
     assert published["sample_count"] == POSES
     ekf = OnlineEkf(load_robot(ROBOT), online_options(0.0))

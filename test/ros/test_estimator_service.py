@@ -33,7 +33,7 @@ def test_bad_requests_and_concurrent_clients(ros):
         assert good["sample_count"] == 30
         assert all(a < b for a, b in zip(good["after_mean"], good["before_mean"]))
         json.loads(good["result_json"])
-    assert json.loads(out["good_lm_3"]["diagnosis_json"])["verdict"]  # laser_calib.diagnosis ran
+    assert json.loads(out["good_lm_3"]["diagnosis_json"])["verdict"]  # laser_calib.diagnosis.engine ran
     assert out["good_lm_1"]["diagnosis_json"] == ""
     assert out["good_ekf"]["success"], out["good_ekf"]["message"]
     assert ros.procs["estimator"].poll() is None  # still alive

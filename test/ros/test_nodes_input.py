@@ -45,7 +45,7 @@ def test_bad_parameters_and_files_give_one_line(ros, tmp_path):
 
 
 def test_synchronizer_pairs_nearest_within_tolerance():
-    from laser_calib_nodes.sync import StampSynchronizer
+    from laser_calib.session.sync import StampSynchronizer
     sync = StampSynchronizer(0.005)
     out = []
     for k in range(10):  # joint states at 50 Hz
@@ -61,9 +61,9 @@ def test_synchronizer_pairs_nearest_within_tolerance():
 
 
 def test_pose_list_errors(tmp_path):
-    from laser_calib.errors import InputError
-    from laser_calib.robot_file import load_robot
-    from laser_calib_nodes.session import generate_poses, load_poses
+    from laser_calib.io.errors import InputError
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.session.folder import generate_poses, load_poses
     robot = load_robot(ROBOT)
     path = tmp_path / "p.yaml"
     path.write_text("poses:\n  - [0, 0, 0, 0, 0, 0, 0]\n  - {pose: 7, q: [0, 0, 0, 0, 0, 0]}\n")
@@ -80,9 +80,9 @@ def test_pose_list_errors(tmp_path):
 
 def test_planned_pose_list_loads_into_the_sequencer(tmp_path):
     """`laser-calib plan` writes pose,q1..qN; the sequencer's pose list reader takes it as it is."""
-    from laser_calib.cli import main
-    from laser_calib.robot_file import load_robot
-    from laser_calib_nodes.session import load_poses
+    from laser_calib.cli.main import main
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.session.folder import load_poses
     robot = load_robot(ROBOT)
     path = tmp_path / "planned.csv"
     assert main(["plan", "--robot", str(ROBOT), "--n", "12", "--out", str(path)]) == 0
@@ -92,14 +92,15 @@ def test_planned_pose_list_loads_into_the_sequencer(tmp_path):
 
 WRITER = textwrap.dedent("""
     import os, sys, time
-    from laser_calib_nodes import bag
+    from laser_calib.io import bag
     store = bag.typestore()
     Sample = store.types['laser_calib_interfaces/msg/Sample']
     Spot = store.types['laser_calib_interfaces/msg/Spot']
     H = store.types['std_msgs/msg/Header']; T = store.types['builtin_interfaces/msg/Time']
     import numpy as np
     topics = {'/samples': ('laser_calib_interfaces/msg/Sample', [bag.qos(True, True, 100)])}
-    w = bag.SegmentedBagWriter(sys.argv[1] + '/bag', sys.argv[1] + '/.recording', topics, store)
+    from laser_calib.io.bag_writer import SegmentedBagWriter
+    w = SegmentedBagWriter(sys.argv[1] + '/bag', sys.argv[1] + '/.recording', topics, store)
     start, n = int(sys.argv[2]), int(sys.argv[3])
     for k in range(start, start + n):
         m = Sample(H(T(1000 + k, 0), 'screen'), k, ['j'], np.array([0.1 * k]),
@@ -113,7 +114,7 @@ WRITER = textwrap.dedent("""
 
 
 def test_segmented_bag_survives_sigkill(tmp_path):
-    from laser_calib_nodes import bag
+    from laser_calib.io import bag
     from ros_harness import ROOT
     src = ROOT / "ros2_ws" / "src"
     env = dict(os.environ, PYTHONPATH=f"{src / 'laser_calib'}:{src / 'laser_calib_nodes'}")

@@ -58,8 +58,8 @@ def test_progress_is_visible(session):
 
 
 def test_bag_holds_the_session(session):
-    from laser_calib.samples_file import load_samples
-    from laser_calib_nodes import bag
+    from laser_calib.io.samples import load_samples
+    from laser_calib.io import bag
     ros, out = session
     topics = bag.bag_topics(out / "bag")
     assert topics["/samples"][1] == POSES
@@ -103,10 +103,10 @@ def test_report_is_the_command_lines(session, tmp_path):
 
 
 def test_online_parameters_match_offline_ekf(session):
-    from laser_calib.online import OnlineEkf
-    from laser_calib.robot_file import load_robot
-    from laser_calib.samples_file import load_samples
-    from laser_calib_nodes.calibration import online_options
+    from laser_calib.estimation.online import OnlineEkf
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.io.samples import load_samples
+    from laser_calib.session.estimate import online_options
     ros, out = session
     published = ros.client("params", str(POSES))
     assert published["sample_count"] == POSES and published["method"] == "ekf"
@@ -132,9 +132,9 @@ def test_stream_input_and_markers(session):
 
 
 def test_replay_and_bag_estimate_agree_with_live(session):
-    from laser_calib.robot_file import load_robot
-    from laser_calib_nodes import bag
-    from laser_calib_nodes.calibration import estimate_options, run_and_collect
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.io import bag
+    from laser_calib.session.estimate import estimate_options, run_and_collect
     ros, out = session
     live_online = ros.client("params", str(POSES))
     live_result = json.loads((out / "result.json").read_text())

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from laser_calib.cli import main
+from laser_calib.cli.main import main
 from laser_calib.vision import default_camera, load_calibration
 
 

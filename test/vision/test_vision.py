@@ -8,7 +8,7 @@ test_spot_error_within_noise_tolerance), not fitted to one run.
 import numpy as np
 import pytest
 
-from laser_calib.errors import InputError
+from laser_calib.io.errors import InputError
 from laser_calib.vision import (DetectorOptions, RenderOptions, ScreenCalibration, SpotDetector, board_poses,
                                 calibrate_screen, default_camera, detect_fiducials, load_calibration,
                                 render_board_frame, render_fiducial_frame, render_frame, save_calibration)

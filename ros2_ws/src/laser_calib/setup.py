@@ -17,5 +17,5 @@ setup(
     description="ROS-free core of laser-based kinematic calibration.",
     license="Apache-2.0",
     tests_require=["pytest"],
-    entry_points={"console_scripts": ["laser-calib = laser_calib.cli:main"]},
+    entry_points={"console_scripts": ["laser-calib = laser_calib.cli.main:main"]},
 )

@@ -34,12 +34,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .identifiability import analyse
-from .kinematics import predict
-from .measurement import NoiseModel, SpotModel, geometric_scales, whiten
-from .model import Robot
-from .samples_file import Samples
-from .simulation import NoiseSpec
+from laser_calib.estimation.identifiability import analyse
+from laser_calib.model.kinematics import predict
+from laser_calib.measurement.base import NoiseModel, geometric_scales, whiten
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.model.robot import Robot
+from laser_calib.io.samples import Samples
+from laser_calib.sim.simulation import NoiseSpec
 
 PRIOR = 1.0         # prior information per scaled error: one tolerance (10 mm, 1 deg) standard deviation
 IMPROVEMENT = 1e-9  # least rise of log det that counts as an exchange

@@ -10,7 +10,7 @@ Publishes   joint_states (sensor_msgs/JointState) at ``rate`` Hz: position
             (rad) and velocity (rad/s) as read from the arm.
             sim/true_spots (laser_calib_interfaces/SpotPair), backend 'sim' only:
             the true spots of the two lasers (true robot at the true joint
-            angles, laser_calib.kinematics.predict), stamped like the joint
+            angles, laser_calib.model.kinematics.predict), stamped like the joint
             state of the same instant. Private to the simulation: camera_sim
             renders them; nothing else may use them.
 """
@@ -26,11 +26,11 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from laser_calib.robot_file import load_robot, save_robot
-from laser_calib.simulation import NoiseSpec, true_errors
+from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.sim.simulation import NoiseSpec, true_errors
 
-from . import common
-from .backends import SimArm, dynamixel_backend
+from laser_calib_nodes import common
+from laser_calib.hardware.backends import SimArm, dynamixel_backend
 
 
 class ArmDriver(Node):

@@ -19,7 +19,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from laser_calib.vision import render
 from laser_calib.vision.camera import CameraModel, default_camera
 
-from . import common
+from laser_calib_nodes import common
 
 CAMERA_FRAME = "camera_optical"
 

@@ -15,10 +15,10 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from laser_calib.errors import InputError
-from laser_calib.robot_file import load_robot
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot_file import load_robot
 
-from . import bag
+from laser_calib.io import bag
 
 # Topic and service names (relative: a namespace or a remap moves them).
 JOINT_STATES = "joint_states"

@@ -11,7 +11,7 @@ Inputs (``input``):
              (the arm is still). For a live arm driven by something other than
              the sequencer.
 Each measurement is accumulated and updates the online EKF
-(laser_calib.online.OnlineEkf); after each update the node publishes
+(laser_calib.estimation.online.OnlineEkf); after each update the node publishes
   dh_parameters (laser_calib_interfaces/DhParameters, transient local)
   calibration_markers (visualization_msgs/MarkerArray, frame `screen`): the
     measured spots, the spots predicted by the current estimate, and the two
@@ -19,7 +19,7 @@ Each measurement is accumulated and updates the online EKF
 Services
   estimator/estimate (laser_calib_interfaces/Estimate): batch estimate of the
     request's samples or of the accumulated ones, by
-    laser_calib.pipeline.run_estimate (the command line's code path). Bad
+    laser_calib.report.files.run_estimate (the command line's code path). Bad
     requests get success = false and a one-line message; the node keeps serving.
     Requests are served one at a time (a mutually exclusive callback group);
     measurements keep flowing in meanwhile (another group, a lock on the state).
@@ -43,13 +43,15 @@ from visualization_msgs.msg import Marker, MarkerArray
 from geometry_msgs.msg import Point
 from std_msgs.msg import ColorRGBA
 
-from laser_calib.errors import InputError
-from laser_calib.kinematics import predict
-from laser_calib.samples_file import Samples
+from laser_calib.io.errors import InputError
+from laser_calib.model.kinematics import predict
+from laser_calib.io.samples import Samples
 
-from . import bag, common
-from .calibration import estimate_options, laser_statistics, online_options, parameter_arrays, run_and_collect
-from .sync import StampSynchronizer
+from laser_calib.io import bag
+
+from laser_calib_nodes import common
+from laser_calib.session.estimate import estimate_options, laser_statistics, online_options, parameter_arrays, run_and_collect
+from laser_calib.session.sync import StampSynchronizer
 
 MAX_MARKER_POINTS = 2000
 
@@ -104,7 +106,7 @@ class Estimator(Node):
 
     # ---- online ----
     def make_online(self):
-        from laser_calib.online import OnlineEkf
+        from laser_calib.estimation.online import OnlineEkf
         return OnlineEkf(self.robot, online_options(self.spot_sigma))
 
     def on_sample(self, msg) -> None:

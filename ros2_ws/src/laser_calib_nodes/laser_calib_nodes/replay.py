@@ -24,9 +24,9 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from laser_calib.errors import InputError
+from laser_calib.io.errors import InputError
 
-from . import bag
+from laser_calib.io import bag
 
 
 def message_class(msgtype: str):

@@ -8,10 +8,10 @@ joint states of the same instant (sync.StampSynchronizer), averages them and
 publishes one laser_calib_interfaces/Sample on samples. Everything is written
 to the session directory ``output_dir`` as it happens (session.SessionDir):
 samples.csv one row per pose, and a rosbag2 MCAP bag of all session topics in
-closed segments (bag.SegmentedBagWriter), so a crash loses at most the pose in
+closed segments (io.bag_writer.SegmentedBagWriter), so a crash loses at most the pose in
 progress. Started again on a partial session directory it resumes after the
 last completed pose (``resume``). At the end it calls the estimator's Estimate
-service (or runs laser_calib.pipeline.run_estimate itself, ``estimate.mode``
+service (or runs laser_calib.report.files.run_estimate itself, ``estimate.mode``
 'local') and writes the command line's report, result and calibrated robot.
 
 Progress: one log line per pose (pose k of n, time left) and
@@ -35,13 +35,16 @@ from geometry_msgs.msg import PointStamped
 from rclpy.serialization import serialize_message
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from laser_calib.errors import InputError
-from laser_calib.robot_file import load_robot
-from laser_calib.samples_file import Samples
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot_file import load_robot
+from laser_calib.io.samples import Samples
 
-from . import bag, common
-from .session import POSES_FILE, Progress, SessionDir, generate_poses, load_poses
-from .sync import StampSynchronizer
+from laser_calib.io import bag
+from laser_calib.io.bag_writer import SegmentedBagWriter
+
+from laser_calib_nodes import common
+from laser_calib.session.folder import POSES_FILE, Progress, SessionDir, generate_poses, load_poses
+from laser_calib.session.sync import StampSynchronizer
 
 
 class Stop(Exception):
@@ -156,7 +159,7 @@ class Sequencer(Node):
         topics = {self.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, _, kind, qos in recorded}
         topics.update({self.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, kind, qos in own})
         self.bag_lock = threading.Lock()
-        self.bag = bag.SegmentedBagWriter(self.session.bag_dir, self.session.work_dir, topics,
+        self.bag = SegmentedBagWriter(self.session.bag_dir, self.session.work_dir, topics,
                                           custom_data={"robot": self.robot.name},
                                           max_segment_seconds=segment_seconds)
         for name in self.bag.recovered:
@@ -406,7 +409,7 @@ class Sequencer(Node):
             return
         self.publish_progress("estimating", -1)
         if self.estimate_mode == "local":
-            from .calibration import estimate_options, run_and_collect
+            from laser_calib.session.estimate import estimate_options, run_and_collect
             options = estimate_options(self.method, self.spot_sigma, self.prior, self.robust)
             outcome = run_and_collect(self.robot, samples, options, self.session.path, self.diagnose)
             message = outcome.message

@@ -25,7 +25,7 @@ from sensor_msgs.msg import Image
 from laser_calib.vision.camera import default_camera, load_calibration
 from laser_calib.vision.detect import DetectorOptions, SpotDetector
 
-from . import common
+from laser_calib_nodes import common
 
 
 class SpotDetectorNode(Node):

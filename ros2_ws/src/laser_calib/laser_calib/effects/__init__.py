@@ -6,12 +6,12 @@ against the covariates of the data (residuals), the noise in a residual
 (noise) and the diagnosis report (report).
 """
 
-from .base import JOINT, PARAM, SPOT, Effect, JointEffect, ParamEffect, SpotEffect, move_directions
-from .catalog import KINDS, calibrated_model, candidates, effects_from_robot, effects_to_yaml
-from .drift import Drift
-from .joint import Backlash, Compliance, JointScale, Periodic, gravity_torques
-from .model import EffectModel
-from .screen import CameraDistortion, ScreenShape
+from laser_calib.effects.base import JOINT, PARAM, SPOT, Effect, JointEffect, ParamEffect, SpotEffect, move_directions
+from laser_calib.effects.catalog import KINDS, calibrated_model, candidates, effects_from_robot, effects_to_yaml
+from laser_calib.effects.drift import Drift
+from laser_calib.effects.joint import Backlash, Compliance, JointScale, Periodic, gravity_torques
+from laser_calib.effects.effect_model import EffectModel
+from laser_calib.effects.screen import CameraDistortion, ScreenShape
 
 __all__ = ["JOINT", "PARAM", "SPOT", "Effect", "JointEffect", "ParamEffect", "SpotEffect", "move_directions",
            "KINDS", "calibrated_model", "candidates", "effects_from_robot", "effects_to_yaml", "Drift", "Backlash", "Compliance",

@@ -29,8 +29,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..model import Robot
-from ..samples_file import Samples
+from laser_calib.model.robot import Robot
+from laser_calib.io.samples import Samples
 
 JOINT, PARAM, SPOT = "joint", "param", "spot"
 

@@ -8,15 +8,15 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..errors import InputError
-from ..measurement import SpotModel
-from ..model import Robot, param_names
-from ..samples_file import Samples
-from .base import JOINT, Effect, move_directions
-from .drift import STAMP, Drift, length_params
-from .joint import JOINT_EFFECTS, Backlash, Compliance, gravity_torques
-from .model import EffectModel
-from .screen import SPOT_EFFECTS, CameraDistortion, ScreenShape
+from laser_calib.io.errors import InputError
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.model.robot import Robot, param_names
+from laser_calib.io.samples import Samples
+from laser_calib.effects.base import JOINT, Effect, move_directions
+from laser_calib.effects.drift import STAMP, Drift, length_params
+from laser_calib.effects.joint import JOINT_EFFECTS, Backlash, Compliance, gravity_torques
+from laser_calib.effects.effect_model import EffectModel
+from laser_calib.effects.screen import SPOT_EFFECTS, CameraDistortion, ScreenShape
 
 KINDS: dict[str, type] = {cls.kind: cls for cls in (*JOINT_EFFECTS, Drift, *SPOT_EFFECTS)}
 MIN_MOTION = 1e-6  # rad, m or covariate unit: below this a basis is constant over the data

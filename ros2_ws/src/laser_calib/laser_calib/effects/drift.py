@@ -17,10 +17,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..errors import InputError
-from ..model import Robot, param_kinds, param_names
-from ..samples_file import Samples
-from .base import ParamEffect
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot import Robot, param_kinds, param_names
+from laser_calib.io.samples import Samples
+from laser_calib.effects.base import ParamEffect
 
 STAMP = "stamp"
 

@@ -15,10 +15,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..kinematics import forward
-from ..model import Robot
-from ..samples_file import Samples
-from .base import JointEffect, move_directions
+from laser_calib.model.kinematics import forward
+from laser_calib.model.robot import Robot
+from laser_calib.io.samples import Samples
+from laser_calib.effects.base import JointEffect, move_directions
 
 MRAD = 1e-3
 

@@ -14,7 +14,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .base import SpotEffect
+from laser_calib.effects.base import SpotEffect
 
 MM = 1e-3
 FIXED_POINT_ITERATIONS = 6  # |grad f . t| ~ 1e-3: six iterations reach 1e-18 m

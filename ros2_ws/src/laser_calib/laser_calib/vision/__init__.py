@@ -12,10 +12,10 @@ Screen coordinates are (y, z) in metres on the plane x = 0 of frame {0}
 (conventions.md); images are sensor_msgs/Image-compatible numpy arrays.
 """
 
-from .camera import CameraModel, ScreenCalibration, default_camera, load_calibration, save_calibration
-from .detect import DetectorOptions, SpotDetector
-from .render import ENCODING, RenderOptions, board_poses, render_board_frame, render_fiducial_frame, render_frame
-from .screen_calibration import CharucoSpec, ScreenLayout, calibrate_screen, detect_fiducials
+from laser_calib.vision.camera import CameraModel, ScreenCalibration, default_camera, load_calibration, save_calibration
+from laser_calib.vision.detect import DetectorOptions, SpotDetector
+from laser_calib.vision.render import ENCODING, RenderOptions, board_poses, render_board_frame, render_fiducial_frame, render_frame
+from laser_calib.vision.screen_calibration import CharucoSpec, ScreenLayout, calibrate_screen, detect_fiducials
 
 __all__ = [
     "CameraModel", "ScreenCalibration", "default_camera", "load_calibration", "save_calibration",

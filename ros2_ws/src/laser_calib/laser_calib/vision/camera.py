@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import yaml
 
-from ..errors import InputError
+from laser_calib.io.errors import InputError
 
 
 def _frozen_array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .camera import ScreenCalibration
+from laser_calib.vision.camera import ScreenCalibration
 
 
 @dataclass(frozen=True)

@@ -38,8 +38,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .screen_calibration import CharucoSpec, ScreenLayout
+from laser_calib.vision.camera import CameraModel
+from laser_calib.vision.screen_calibration import CharucoSpec, ScreenLayout
 
 ENCODING = "bgr8"
 

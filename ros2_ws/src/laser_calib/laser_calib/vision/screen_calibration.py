@@ -27,7 +27,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from .camera import ScreenCalibration
+from laser_calib.vision.camera import ScreenCalibration
 
 # Corner k of an ArUco marker, as (sign of y, sign of z) about its centre. The
 # marker is read from the front (x < 0), where image right is -y and image up

@@ -1,0 +1,219 @@
+"""Command line: laser-calib simulate | estimate | identify | slm-calibrate | replay | diagnose |
+screen-calibrate | render-calibration-images | import-positioner | calibrate-poses | plan.
+
+Bad input gives one line on stderr naming the file, field or pose, and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from laser_calib.io.errors import InputError
+from laser_calib.estimation.estimate import METHODS, EstimateOptions
+from laser_calib.estimation.solvers import EkfOptions
+from laser_calib.estimation.identifiability import analyse
+from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.report.files import run_estimate
+from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.io.bag import read_samples
+from laser_calib.io.samples import check_joint_range, load_samples, save_samples
+from laser_calib.sim.simulation import CASES, NoiseSpec, paper_session
+from laser_calib.cli import diagnose as diagnose_cli
+from laser_calib.cli import sensors as real_cli
+from laser_calib import slm as slm_calibration
+from laser_calib.cli import vision as vision_cli
+from laser_calib.cli.arguments import non_negative, positive
+
+EXIT_BAD_INPUT = 2
+
+
+def _progress(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    noise = NoiseSpec(spot=args.spot_noise, joint=np.deg2rad(args.joint_noise_deg))
+    session = paper_session(args.case, args.seed, args.poses_per_span, noise, random_errors=args.random_errors)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_robot(session.nominal, out / "robot_nominal.yaml", header=f"Nominal model ({args.case}).")
+    save_robot(session.true, out / "robot_true.yaml",
+               header=f"True model of the simulation ({args.case}, seed {args.seed}).")
+    save_samples(session.samples, out / "samples.csv")
+    save_samples(session.truth, out / "truth.csv")
+    for case, (cal, test) in session.cases.items():
+        save_samples(session.samples.subset(cal), out / f"{case}_cal.csv")
+        if len(test):
+            save_samples(session.samples.subset(test), out / f"{case}_test.csv")
+            save_samples(session.truth.subset(test), out / f"{case}_test_truth.csv")
+    (out / "truth.json").write_text(json.dumps({
+        "case": args.case, "seed": args.seed, "spot_noise_halfwidth_m": noise.spot,
+        "joint_noise_halfwidth_rad": noise.joint, "spot_sigma_m": noise.spot_sigma,
+        "joint_sigma_rad": noise.joint_sigma,
+        "errors": dict(zip(session.nominal.param_names, map(float, session.errors)))}, indent=2))
+    print(f"wrote {out}/: robot_nominal.yaml robot_true.yaml samples.csv (all {len(session.samples)} poses), "
+          f"case1..3 calibration/test sets, truth.json")
+    return 0
+
+
+def _options(args: argparse.Namespace) -> EstimateOptions:
+    ekf = EkfOptions(progress=_progress if args.method == "ekf" else None)
+    return EstimateOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
+                           prior=args.prior or args.prior_length is not None or args.prior_angle_deg is not None,
+                           prior_length=args.prior_length if args.prior_length is not None else 0.010,
+                           prior_angle=np.deg2rad(args.prior_angle_deg if args.prior_angle_deg is not None else 1.0),
+                           robust=args.robust, fixed=tuple(args.fix), ekf=ekf)
+
+
+def _bag_samples(path: str, robot) -> object:
+    """Samples of a recorded session bag (rosbags: no ROS runtime)."""
+    samples = read_samples(path)
+    if samples.n_joints != robot.n_joints:
+        raise InputError(path, f"{samples.n_joints} joints in the bag but robot '{robot.name}' has {robot.n_joints}")
+    check_joint_range(samples.q, robot, path, samples.pose)
+    return samples
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot)
+    samples = _bag_samples(args.bag, robot) if args.bag else load_samples(args.samples, robot)
+    test = load_samples(args.test, robot) if args.test else None
+    options = _options(args)
+    _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
+    result = run_estimate(robot, samples, options, args.out, test,
+                          sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
+                                   "test": str(args.test) if args.test else None})
+    _summary(result)
+    print(f"wrote {args.out}/robot_calibrated.yaml, result.json, report.md")
+    return 0
+
+
+def _summary(result: dict) -> None:
+    for set_name, by_model in result["spot_error"].items():
+        b, a = by_model["before"]["all"], by_model["after"]["all"]
+        print(f"{set_name:12s} mean spot error {b['mean_mm']:.3f} mm -> {a['mean_mm']:.3f} mm "
+              f"(max {b['max_mm']:.3f} -> {a['max_mm']:.3f}; {a['n']} spots)")
+    for warning in result["warnings"]:
+        print(f"warning: {warning}")
+
+
+def cmd_identify(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot)
+    samples = load_samples(args.samples, robot)
+    model = SpotModel(robot, samples)
+    res = model.residuals(np.zeros(robot.n_params), True)
+    _, jac = whiten(res, NoiseModel(args.spot_sigma, args.joint_sigma).whitener(res))
+    print(f"{robot.name}: {len(samples)} poses, {int(res.valid.sum())} spots")
+    print(analyse(jac, model.scales, model.names).table())
+    return 0
+
+
+def cmd_slm_calibrate(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot)
+    measurements = slm_calibration.load_measurements(args.measurements)
+    calibrated, angles = slm_calibration.calibrate(robot, measurements, args.spot_sigma)
+    for j, a in enumerate(angles):
+        print(f"laser {j + 1}: gamma = {np.degrees(a.gamma):+.4f} +- {np.degrees(a.gamma_std):.4f} deg, "
+              f"beta = {np.degrees(a.beta):+.4f} +- {np.degrees(a.beta_std):.4f} deg ({a.n} spots)")
+    save_robot(calibrated, args.out, header=f"Laser angles from {args.measurements} (laser-calib slm-calibrate).")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def replay_executable() -> Path | None:
+    """The nodes package's `replay` executable, found as `ros2 run` finds it (the ament prefixes)."""
+    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        candidate = Path(prefix) / "lib" / "laser_calib_nodes" / "replay"
+        if prefix and os.access(candidate, os.X_OK):
+            return candidate
+    return None
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Hand over to the replay node (a ROS process): the core itself never imports rclpy."""
+    executable = replay_executable()
+    if executable is None:
+        raise InputError("replay", "needs the ROS 2 environment: run scripts/setup, then use scripts/laser-calib "
+                                   "(or source scripts/env.sh)")
+    os.execv(executable, [str(executable), args.bag, "--rate", str(args.rate)])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="laser-calib", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="simulate the paper's session (section IV / V)")
+    p.add_argument("--case", choices=CASES, required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True)
+    p.add_argument("--poses-per-span", type=int, default=None,
+                   help="poses in each of the small-range and whole-workspace sets (paper: 30 / 25)")
+    p.add_argument("--spot-noise", type=non_negative, default=0.002, help="half-width of uniform spot noise, m")
+    p.add_argument("--joint-noise-deg", type=non_negative, default=0.1, help="half-width of joint disturbance, deg")
+    p.add_argument("--random-errors", action="store_true",
+                   help="true errors uniform within +-10 mm / 1 deg instead of the paper's all-positive ones")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("estimate", help="estimate the geometric errors")
+    p.add_argument("--robot", required=True)
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--samples", help="samples CSV")
+    source.add_argument("--bag", help="a recorded session bag (its /samples topic)")
+    p.add_argument("--test")
+    p.add_argument("--method", choices=METHODS, default="lm")
+    p.add_argument("--spot-sigma", type=positive, default=None,
+                   help="spot noise std per coordinate, m (default: estimated from the residual)")
+    p.add_argument("--joint-sigma", type=non_negative, default=0.0, help="joint reading noise std, rad")
+    p.add_argument("--prior", action="store_true", help="tolerance prior: 10 mm and 1 deg per error")
+    p.add_argument("--prior-length", type=positive, default=None, help="length tolerance, m (implies --prior)")
+    p.add_argument("--prior-angle-deg", type=positive, default=None, help="angle tolerance, deg (implies --prior)")
+    p.add_argument("--robust", action="store_true", help="reject outlier spots (rule in result.json docs)")
+    p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_estimate)
+
+    p = sub.add_parser("identify", help="identifiability table of a pose set")
+    p.add_argument("--robot", required=True)
+    p.add_argument("--samples", required=True)
+    p.add_argument("--spot-sigma", type=positive, default=0.001)
+    p.add_argument("--joint-sigma", type=non_negative, default=0.0)
+    p.set_defaults(func=cmd_identify)
+
+    p = sub.add_parser("slm-calibrate", help="laser angles from spots at known fixture distances (eq. 16)")
+    p.add_argument("--robot", required=True)
+    p.add_argument("--measurements", required=True, help="CSV laser,distance,u,v (m)")
+    p.add_argument("--spot-sigma", type=positive, default=None)
+    p.add_argument("--out", required=True, help="robot file to write")
+    p.set_defaults(func=cmd_slm_calibrate)
+
+    p = sub.add_parser("replay", help="republish a recorded session bag with its original timing (ROS)")
+    p.add_argument("bag")
+    p.add_argument("--rate", type=positive, default=1.0, help="playback speed factor")
+    p.set_defaults(func=cmd_replay)
+
+    diagnose_cli.register(sub)
+    vision_cli.register(sub)
+    real_cli.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"laser-calib: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ValueError as exc:
+        print(f"laser-calib {args.command}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        return 130
+

@@ -1,0 +1,97 @@
+"""Command line of the camera-to-screen calibration:
+
+    laser-calib screen-calibrate --board-images DIR --screen-images DIR --out calibration.yaml
+    laser-calib render-calibration-images --out DIR [--seed N]
+
+screen-calibrate fits the camera intrinsics, lens distortion and the
+homography from undistorted pixels to screen (y, z) metres (vision.calibrate_screen)
+and writes the file the spot_detector node reads (its ``calibration``
+parameter). render-calibration-images makes both image sets with the simulated
+camera, to try the step or test it. cli.py calls register().
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from laser_calib.cli.arguments import positive_int
+from laser_calib.io.errors import InputError
+from laser_calib.vision import (RenderOptions, board_poses, calibrate_screen, default_camera, detect_fiducials,
+                     render_board_frame, render_fiducial_frame, save_calibration)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+# Calibration images are taken in good light (vision.screen_calibration).
+CALIBRATION_LIGHT = RenderOptions(ambient_dn=150.0)
+
+
+def load_images(folder: str) -> list[np.ndarray]:
+    """Every image in folder, in name order, as bgr8 arrays."""
+    path = Path(folder)
+    if not path.is_dir():
+        raise InputError(folder, "no such folder")
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise InputError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)})")
+    images = []
+    for file in files:
+        image = cv2.imread(str(file), cv2.IMREAD_COLOR)
+        if image is None:
+            raise InputError(str(file), "not a readable image")
+        if images and image.shape != images[0].shape:
+            raise InputError(str(file), f"size {image.shape[1]}x{image.shape[0]} differs from "
+                                        f"{images[0].shape[1]}x{images[0].shape[0]} of the first image")
+        images.append(image)
+    return images
+
+
+def cmd_screen_calibrate(args: argparse.Namespace) -> int:
+    boards, screens = load_images(args.board_images), load_images(args.screen_images)
+    calibration = calibrate_screen(boards, screens)
+    # How well the map puts the fiducial corners (undistorted pixels) where they are on the screen.
+    undistorted, known = detect_fiducials(screens[0], calibration.K, calibration.dist)
+    mapped = cv2.perspectiveTransform(undistorted.reshape(-1, 1, 2), calibration.homography).reshape(-1, 2)
+    error_mm = np.linalg.norm(mapped - known, axis=1) * 1e3
+    save_calibration(calibration, args.out)
+    print(f"camera {calibration.width}x{calibration.height}: fx {calibration.K[0, 0]:.1f} px, "
+          f"fy {calibration.K[1, 1]:.1f} px, k1 {calibration.dist[0]:+.4f}; {len(boards)} board views, "
+          f"{len(screens)} screen views")
+    print(f"fiducial corners through the map: RMS {np.sqrt(np.mean(error_mm ** 2)):.3f} mm, "
+          f"max {error_mm.max():.3f} mm ({len(known)} corners)")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_render_calibration_images(args: argparse.Namespace) -> int:
+    camera = default_camera()
+    rng = np.random.default_rng(args.seed)
+    out = Path(args.out)
+    for name, images in (("board", [render_board_frame(camera, rvec, tvec, rng, options=CALIBRATION_LIGHT)
+                                    for rvec, tvec in board_poses(camera, count=args.board_views, rng=rng)]),
+                         ("screen", [render_fiducial_frame(camera, rng, CALIBRATION_LIGHT)
+                                     for _ in range(args.screen_views)])):
+        (out / name).mkdir(parents=True, exist_ok=True)
+        for k, image in enumerate(images):
+            cv2.imwrite(str(out / name / f"{name}_{k:03d}.png"), image)
+    print(f"wrote {args.board_views} board views to {out}/board and {args.screen_views} screen views to "
+          f"{out}/screen (simulated camera, seed {args.seed})")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("screen-calibrate", help="camera intrinsics and image-to-screen map from fiducial images")
+    p.add_argument("--board-images", required=True, help="folder of ChArUco board views (intrinsics)")
+    p.add_argument("--screen-images", required=True, help="folder of screen fiducial views from the fixed camera")
+    p.add_argument("--out", required=True, help="calibration YAML for the spot_detector")
+    p.set_defaults(func=cmd_screen_calibrate)
+
+    p = sub.add_parser("render-calibration-images", help="calibration images of the simulated camera")
+    p.add_argument("--out", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    # As calibrate_screen recommends (20-30 tilted board views, 5-10 screen views).
+    p.add_argument("--board-views", type=positive_int, default=30)
+    p.add_argument("--screen-views", type=positive_int, default=8)
+    p.set_defaults(func=cmd_render_calibration_images)

@@ -1,0 +1,98 @@
+"""The EKF run online, one synchronized pose at a time (the ROS estimator node).
+
+Each pose is one EKF step (paper eq. 13-15) with that pose's two spots as the
+measurement: x_{k+1|k} = x_k, P_{k+1|k} = P_k + Q, then the update, with
+R = the pose's spot noise plus its joint disturbance through the joint Jacobian.
+The errors are constants, so Q defaults to 0; P0 is the manufacturing
+tolerance (10 mm, 1 deg by default), which makes the filter's estimate after
+all poses approximate the offline estimate with the same prior (``--prior``):
+the same posterior, but linearised once per pose instead of iterated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from laser_calib.estimation.estimate import EstimateOptions, prior_sigmas
+from laser_calib.estimation.identifiability import analyse
+from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.model.robot import Robot
+from laser_calib.io.samples import Samples
+
+DEFAULT_SPOT_SIGMA = 0.001
+
+
+class OnlineEkf:
+    """Sequential EKF over the geometric errors.
+
+    update(q (N,), spots (2,2) with NaN for an unseen laser); errors, std (n,);
+    identifiable (n,) from the poses seen so far; samples() the accumulated poses.
+    """
+
+    def __init__(self, robot: Robot, options: EstimateOptions = EstimateOptions(), q_noise: float = 0.0):
+        self.robot = robot
+        self.noise = NoiseModel(options.spot_sigma or DEFAULT_SPOT_SIGMA, options.joint_sigma)
+        model = SpotModel(robot, Samples(np.zeros(0, int), np.zeros(0), np.zeros((0, robot.n_joints)),
+                                         np.zeros((0, 2, 2))))
+        prior = prior_sigmas(model, robot.n_params, EstimateOptions(prior=True, prior_length=options.prior_length,
+                                                                     prior_angle=options.prior_angle))
+        self.p0 = np.diag(prior ** 2)
+        self.q_noise = q_noise
+        self.reset()
+
+    def reset(self) -> None:
+        n = self.robot.n_params
+        self.filter = ExtendedKalmanFilter(dim_x=n, dim_z=4)
+        self.filter.x = np.zeros(n)
+        self.filter.P = self.p0.copy()
+        self.filter.Q = np.eye(n) * self.q_noise
+        self._q: list[np.ndarray] = []
+        self._spots: list[np.ndarray] = []
+
+    @property
+    def errors(self) -> np.ndarray:
+        return self.filter.x.copy()
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.filter.P))
+
+    @property
+    def n_samples(self) -> int:
+        return len(self._q)
+
+    def samples(self) -> Samples:
+        n = len(self._q)
+        return Samples(np.arange(n), np.arange(n, dtype=float), np.array(self._q).reshape(n, self.robot.n_joints),
+                       np.array(self._spots).reshape(n, 2, 2))
+
+    @property
+    def identifiable(self) -> np.ndarray:
+        """Which errors the poses so far determine (all False before enough poses)."""
+        n = self.robot.n_params
+        if 4 * self.n_samples < n:
+            return np.zeros(n, bool)
+        model = SpotModel(self.robot, self.samples())
+        res = model.residuals(self.errors, True)
+        _, jac = whiten(res, self.noise.whitener(res))
+        return analyse(jac, model.scales, model.names).free
+
+    def update(self, q: np.ndarray, spots: np.ndarray) -> None:
+        q = np.asarray(q, dtype=float).reshape(1, self.robot.n_joints)
+        spots = np.asarray(spots, dtype=float).reshape(1, 2, 2)
+        if not np.isfinite(q).all():
+            raise ValueError("joint positions must be finite")
+        self._q.append(q[0])
+        self._spots.append(spots[0])
+        pose = Samples(np.zeros(1, int), np.zeros(1), q, spots)
+        res = SpotModel(self.robot, pose).residuals(self.filter.x)
+        if not res.valid.any():
+            return  # nothing measured (or the beam misses the screen): the pose only joins the record
+        keep = np.repeat(res.valid[0], 2)
+        r_white, jac_white = whiten(res, self.noise.whitener(res))
+        self.filter.predict()                                          # eq. 13
+        # Whitened measurement: z = 0, h(x) = -r(x), R = I (eq. 14-15).
+        self.filter.update(np.zeros(keep.sum()), lambda x: jac_white[keep], lambda x: -r_white[keep],
+                           R=np.eye(keep.sum()))

@@ -1,0 +1,210 @@
+"""Calibration from point or pose samples: D-H errors and unknown frames together.
+
+calibrate(robot, samples, options) runs, on estimation.estimate_model:
+1. identifiability with the frames first: a frame error and a D-H error that
+   move the target alike (d_1 and theta_1 against the sensor frame, the last
+   link's a, alpha against the target frame, every SLM error) are carried by
+   the frame; the D-H error is held at nominal and listed in ``absorbed``;
+2. the nominal fit: frames only, everything else held (the reference
+   "nominal D-H" figure: the frames fitted, the arm as designed);
+3. the full fit from there, with the user's masks (``fixed``) and priors;
+4. for pose samples, the weight of rotation against translation
+   (rotation_length, m/rad) from the residuals of the fit: the ratio of the RMS
+   translation to the RMS rotation residual (a variance-component step,
+   done twice), and both fits repeated with it.
+
+An ``extend`` hook wraps the sensor model (e.g. effects.model.EffectModel with
+joint effects); it gets the model and the indices of its poses in the caller's
+sample set, so bases that depend on the whole sequence can be sliced.
+kfold() repeats the calibration on k-1 folds and predicts the held-out fold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+
+from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model, prior_sigmas
+from laser_calib.estimation.identifiability import analyse
+from laser_calib.measurement.base import MeasurementModel, NoiseModel, whiten
+from laser_calib.model.robot import Robot
+from laser_calib.measurement.frames import FRAME_PARAMS, FRAMES, robot_frames, with_frames
+from laser_calib.measurement.sensor import PointModel, PoseModel
+from laser_calib.io.sensor_samples import SensorSamples
+
+VARIANCE_STEPS = 2
+SensorModel = PointModel | PoseModel
+Extend = Callable[[SensorModel, np.ndarray], MeasurementModel]
+
+
+@dataclass(frozen=True)
+class SensorFitOptions:
+    """estimate: the estimator's options (fixed names are the user's masks;
+    prior applies to the D-H errors); frame_prior_length (m) / frame_prior_angle
+    (rad): a zero-mean prior on the frame errors, None for none; rotation_length
+    (m/rad) of pose residuals, None to estimate it; scale: estimate the
+    sensor's scale per axis (models.py)."""
+
+    estimate: EstimateOptions = field(default_factory=EstimateOptions)
+    frame_prior_length: float | None = None
+    frame_prior_angle: float | None = None
+    rotation_length: float | None = None
+    scale: bool = False
+
+
+def is_frame_param(name: str) -> bool:
+    return name.split("_", 1)[0] in FRAMES
+
+
+@dataclass(frozen=True)
+class SensorFit:
+    """model: the final model; nominal: the frames-only fit; estimate: the full
+    fit; absorbed: name -> why the frames carry it; rotation_length (m/rad)
+    the pose residuals were weighted with."""
+
+    model: MeasurementModel
+    nominal: Estimate
+    estimate: Estimate
+    absorbed: dict[str, str]
+    rotation_length: float
+
+    def corrected(self, robot: Robot) -> Robot:
+        """The robot with the estimated D-H errors and frames (guess · error)."""
+        values = dict(zip(self.model.names, self.estimate.values))
+        guesses = robot_frames(robot)
+        frames = {frame: guesses[frame].perturbed(np.array([values.get(f"{frame}_{p}", 0.0) for p in FRAME_PARAMS]))
+                  for frame in FRAMES}
+        return with_frames(robot.with_errors(self.estimate.values[:robot.n_params]), frames)
+
+
+def make_model(robot: Robot, samples: SensorSamples, rotation_length: float = 1.0,
+               scale: bool = False) -> SensorModel:
+    if samples.kind == "pose":
+        return PoseModel(robot, samples, rotation_length, scale)
+    return PointModel(robot, samples, scale)
+
+
+def frames_first(model: MeasurementModel, noise: NoiseModel, fixed: np.ndarray) -> dict[str, str]:
+    """Parameters the frames carry: identifiability with the frame columns first."""
+    res = model.residuals(np.zeros(len(model.names)), True)
+    _, jac = whiten(res, noise.whitener(res))
+    frame = np.array([is_frame_param(n) for n in model.names])
+    order = np.r_[np.flatnonzero(frame), np.flatnonzero(~frame)]
+    names = tuple(model.names[i] for i in order)
+    ident = analyse(jac[:, order], model.scales[order], names, fixed[order])
+    free = np.empty(len(order), bool)
+    free[order] = ident.free
+    return {name: ident.merged.get(name, "not seen by the data")
+            for name, keep, held in zip(model.names, free, fixed) if not keep and not held}
+
+
+def _prior(model: MeasurementModel, options: SensorFitOptions) -> np.ndarray | None:
+    sigma = prior_sigmas(model, model.robot.n_params, options.estimate)
+    if options.frame_prior_length is None and options.frame_prior_angle is None:
+        return sigma
+    sigma = np.full(len(model.names), np.inf) if sigma is None else sigma
+    for i, name in enumerate(model.names):
+        if is_frame_param(name):
+            value = options.frame_prior_angle if name.rsplit("_", 1)[1].startswith("r") else options.frame_prior_length
+            sigma[i] = np.inf if value is None else value
+    return sigma
+
+
+def _rotation_length(model: MeasurementModel, x: np.ndarray, current: float) -> float:
+    """RMS translation / RMS rotation residual, m/rad (rotation values unscaled)."""
+    res = model.residuals(x, False)
+    values = res.r[res.valid]
+    translation = np.sqrt(np.mean(values[:, :3] ** 2))
+    rotation = np.sqrt(np.mean(values[:, 3:] ** 2)) / current
+    return float(translation / max(rotation, 1e-12))
+
+
+def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = SensorFitOptions(),
+              extend: Extend | None = None, index: np.ndarray | None = None) -> SensorFit:
+    """Nominal (frames-only) and full fits; see the module docstring. index (P,):
+    the samples' positions in the caller's set, passed to ``extend``."""
+    index = np.arange(len(samples)) if index is None else np.asarray(index)
+
+    def build(length: float) -> MeasurementModel:
+        base = make_model(robot, samples, length, options.scale)
+        return base if extend is None else extend(base, index)
+
+    length = options.rotation_length or 1.0
+    model = build(length)
+    user = options.estimate.fixed
+    unknown = [name for name in user if name not in model.names]
+    if unknown:
+        raise ValueError(f"cannot fix unknown parameter {unknown[0]!r}; parameters are {', '.join(model.names)}")
+    sigma = options.estimate.spot_sigma or 1e-3
+    held = np.array([name in user for name in model.names])
+    absorbed = frames_first(model, NoiseModel(sigma, options.estimate.joint_sigma), held)
+    fixed = tuple(user) + tuple(absorbed)
+    not_frames = tuple(n for n in model.names if not is_frame_param(n))
+
+    def fit(m: MeasurementModel, names: tuple[str, ...], x0: np.ndarray | None) -> Estimate:
+        est_options = replace(options.estimate, fixed=tuple(dict.fromkeys(names)))
+        return estimate_model(m, est_options, _prior(m, options), x0)
+
+    nominal = fit(model, fixed + not_frames, None)
+    full = fit(model, fixed, nominal.values)
+    if samples.kind == "pose" and options.rotation_length is None:
+        for _ in range(VARIANCE_STEPS):
+            length = _rotation_length(model, full.values, length)
+            model = build(length)
+            nominal = fit(model, fixed + not_frames, nominal.values)
+            full = fit(model, fixed, full.values)
+    return SensorFit(model, nominal, full, absorbed, length)
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """Per pose (P,), predicted from the fit on the other folds: position
+    errors (m), rotation errors (rad, NaN for points), for the full and the
+    nominal (frames-only) models; fold (P,) index of each pose's fold."""
+
+    position: np.ndarray
+    rotation: np.ndarray
+    nominal_position: np.ndarray
+    nominal_rotation: np.ndarray
+    fold: np.ndarray
+
+
+def fold_labels(n: int, k: int, seed: int) -> np.ndarray:
+    """(n,) fold index 0..k-1 of each pose, a seeded random balanced split."""
+    if not 2 <= k <= n:
+        raise ValueError(f"k-fold needs 2 <= k <= {n} poses, got k = {k}")
+    return np.random.default_rng(seed).permutation(np.arange(n) % k)
+
+
+def sensor_of(model: MeasurementModel) -> SensorModel:
+    """The point or pose model itself, or the one an extension (EffectModel) wraps."""
+    return model if isinstance(model, (PointModel, PoseModel)) else model.base
+
+
+def pose_errors(model: MeasurementModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) position error (m) and rotation error (rad; NaN for points) per pose:
+    the norm of the translation and the angle of inv(predicted) · measured."""
+    res = model.residuals(x, False)
+    values = res.r[:, 0]
+    position = np.where(res.valid[:, 0], np.linalg.norm(values[:, :3], axis=1), np.nan)
+    if values.shape[1] == 3:
+        return position, np.full(len(position), np.nan)
+    length = sensor_of(model).rotation_length
+    return position, np.where(res.valid[:, 0], np.linalg.norm(values[:, 3:], axis=1) / length, np.nan)
+
+
+def kfold(robot: Robot, samples: SensorSamples, options: SensorFitOptions, k: int = 5, seed: int = 0,
+          extend: Extend | None = None) -> HeldOut:
+    """k-fold cross-validation: each fold predicted by the fit on the others."""
+    fold = fold_labels(len(samples), k, seed)
+    out = np.full((4, len(samples)), np.nan)
+    for f in range(k):
+        train, test = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
+        result = calibrate(robot, samples.subset(train), options, extend, train)
+        base = make_model(robot, samples.subset(test), result.rotation_length, options.scale)
+        test_model = base if extend is None else extend(base, test)
+        out[0, test], out[1, test] = pose_errors(test_model, result.estimate.values)
+        out[2, test], out[3, test] = pose_errors(test_model, result.nominal.values)
+    return HeldOut(*out, fold)

@@ -1,0 +1,165 @@
+"""Session bags (rosbag2, MCAP), ROS-free through rosbags: the type store with our
+interfaces, offered-QoS records, and the reader (`laser-calib estimate --bag`,
+replay, resume). The crash-safe writer is bag_writer.py.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+from rosbags.typesys.store import Typestore
+
+from laser_calib.io.errors import InputError
+from laser_calib.io.samples import Samples
+
+INTERFACES = "laser_calib_interfaces"
+SAMPLES_TOPIC = "/samples"
+METADATA = "metadata.yaml"
+_INFINITE = QosTime(9223372036, 854775807)  # RMW_DURATION_INFINITE, as ros2 bag (Jazzy) writes it
+
+
+def qos(reliable: bool = True, transient_local: bool = False, depth: int = 10) -> Qos:
+    """An offered QoS profile as rosbag2 metadata records it."""
+    return Qos(QosHistory.KEEP_LAST, depth,
+               QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+               _INFINITE, _INFINITE, QosLiveliness.AUTOMATIC, _INFINITE, False)
+
+
+def interfaces_msg_dir() -> Path:
+    """The .msg files of laser_calib_interfaces: installed share, else the source tree."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        path = Path(get_package_share_directory(INTERFACES)) / "msg"
+        if path.is_dir():
+            return path
+    except Exception:  # no ament index (ROS-free use): fall back to the sources
+        pass
+    path = Path(__file__).resolve().parents[3] / INTERFACES / "msg"
+    if path.is_dir():
+        return path
+    raise InputError(INTERFACES, "message definitions not found (build the workspace: scripts/setup)")
+
+
+def typestore() -> Typestore:
+    """ROS 2 Jazzy types plus ours, for writing bags with the exact type hashes rclpy uses."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = {}
+    for path in sorted(interfaces_msg_dir().glob("*.msg")):
+        types.update(get_types_from_msg(path.read_text(), f"{INTERFACES}/msg/{path.stem}"))
+    store.register(types)
+    return store
+
+
+
+def segment_index(path: Path) -> int:
+    stem = path.name.removesuffix(".mcap")
+    tail = stem.rsplit("_", 1)[-1]
+    return int(tail) if tail.isdigit() else 0
+
+
+
+def stamp_seconds(sec: int, nanosec: int) -> float:
+    """A header stamp as float seconds: the one conversion used for every samples stamp."""
+    return float(sec) + float(nanosec) * 1e-9
+
+
+def _reader(path: Path):
+    from rosbags.highlevel import AnyReader
+    if not path.exists():
+        raise InputError(str(path), "no such bag")
+    if path.is_dir() and not (path / METADATA).exists():
+        raise InputError(str(path), f"not a rosbag2 bag (no {METADATA})")
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+        reader.open()
+    except InputError:
+        raise
+    except Exception as exc:  # rosbags raises several types; the user needs one line
+        raise InputError(str(path), f"cannot read bag ({exc})") from None
+    return reader
+
+
+def read_messages(path: str | Path, topics: Sequence[str] | None = None) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, message type, bag timestamp ns, raw CDR) in recording order."""
+    path = Path(path)
+    reader = _reader(path)
+    try:
+        connections = [c for c in reader.connections if topics is None or c.topic in topics]
+        if connections:
+            for connection, timestamp, raw in reader.messages(connections=connections):
+                yield connection.topic, connection.msgtype, timestamp, raw
+    finally:
+        reader.close()
+
+
+def bag_topics(path: str | Path) -> dict[str, tuple[str, int, list[Qos]]]:
+    """topic -> (type, message count, offered QoS profiles)."""
+    reader = _reader(Path(path))
+    try:
+        out: dict[str, tuple[str, int, list[Qos]]] = {}
+        for c in reader.connections:
+            kind, count, profiles = out.get(c.topic, (c.msgtype, 0, list(c.ext.offered_qos_profiles)))
+            out[c.topic] = (kind, count + c.msgcount, profiles)
+        return out
+    finally:
+        reader.close()
+
+
+def read_samples(path: str | Path, topic: str = SAMPLES_TOPIC) -> Samples:
+    """The measured samples of a session bag (its /samples messages, in order), as the core's Samples."""
+    path = Path(path)
+    reader = _reader(path)
+    rows = []
+    try:
+        connections = [c for c in reader.connections if c.topic == topic]
+        if not connections:
+            raise InputError(str(path), f"no topic {topic} in the bag (not a calibration session bag?)")
+        for index, (connection, _, raw) in enumerate(reader.messages(connections=connections)):
+            msg = reader.deserialize(raw, connection.msgtype)
+            rows.append(sample_row_from_msg(msg, f"{path}: {topic} message {index + 1}"))
+    finally:
+        reader.close()
+    if not rows:
+        raise InputError(str(path), f"topic {topic} holds no samples")
+    return samples_from_rows(rows, str(path))
+
+
+def sample_row_from_msg(msg, where: str) -> tuple[int, float, np.ndarray, np.ndarray]:
+    """(pose, stamp, q (N,), spots (2,2) NaN where unseen) from a Sample message
+    (rclpy or rosbags object: same field names)."""
+    q = np.array(msg.joint_positions, dtype=float)
+    spots = np.full((2, 2), np.nan)
+    if len(msg.spots) != 2:
+        raise InputError(where, f"{len(msg.spots)} spots, expected 2")
+    for j, spot in enumerate(msg.spots):
+        if spot.seen:
+            if not (math.isfinite(spot.y) and math.isfinite(spot.z)):
+                raise InputError(where, f"laser {j + 1} spot marked seen has a non-finite coordinate")
+            spots[j] = (spot.y, spot.z)
+    stamp = stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec)
+    return int(msg.pose), stamp, q, spots
+
+
+def samples_from_rows(rows: Sequence[tuple[int, float, np.ndarray, np.ndarray]], where: str) -> Samples:
+    """Samples from (pose, stamp, q, spots) rows; one line naming the row for bad ones."""
+    if not rows:
+        raise InputError(where, "no samples")
+    n_joints = len(rows[0][2])
+    for index, (pose, _, q, spots) in enumerate(rows):
+        label = f"{where}: sample {index + 1} (pose {pose})"
+        if len(q) != n_joints:
+            raise InputError(label, f"{len(q)} joint positions, the first sample has {n_joints}")
+        if len(q) == 0:
+            raise InputError(label, "no joint positions")
+        bad = [i for i, v in enumerate(q) if not math.isfinite(v)]
+        if bad:
+            raise InputError(label, f"joint_positions[{bad[0]}] is not finite ({q[bad[0]]})")
+    return Samples(np.array([r[0] for r in rows], dtype=int), np.array([r[1] for r in rows], dtype=float),
+                   np.array([r[2] for r in rows], dtype=float), np.array([r[3] for r in rows], dtype=float))
+

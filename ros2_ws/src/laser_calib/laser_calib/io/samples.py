@@ -1,0 +1,188 @@
+"""Samples CSV (conventions.md): one row per measured pose, in measurement order."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot import Robot
+
+SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Measured poses.
+
+    pose (P,) int ids; stamp (P,) s; q (P,N) joint readings in rad;
+    spots (P,2,2) [pose, laser, (y,z)] in m, NaN where the laser was not seen;
+    extra: per-pose covariate columns, each (P,).
+    """
+
+    pose: np.ndarray
+    stamp: np.ndarray
+    q: np.ndarray
+    spots: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.pose)
+
+    @property
+    def n_joints(self) -> int:
+        return self.q.shape[1]
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(P,2) bool: laser j was seen at pose p."""
+        return ~np.isnan(self.spots).any(axis=2)
+
+    def subset(self, index) -> "Samples":
+        """Rows selected by a boolean mask or index array (order preserved)."""
+        return Samples(self.pose[index], self.stamp[index], self.q[index], self.spots[index],
+                       {k: v[index] for k, v in self.extra.items()})
+
+
+def _header_error(source: str, problem: str) -> InputError:
+    return InputError(f"{source}: header", problem)
+
+
+def read_table(text: str, source: str, expected_header: str) -> tuple[list[str], list[list[str]], int]:
+    """Header, data rows and joint count N of a 'pose,stamp,q1..qN,...' CSV."""
+    rows = list(csv.reader(io.StringIO(text)))
+    while rows and not any(cell.strip() for cell in rows[-1]):
+        rows.pop()
+    if not rows:
+        raise InputError(source, f"empty file (expected a header row {expected_header})")
+    header = [cell.strip() for cell in rows[0]]
+    if header[:2] != ["pose", "stamp"]:
+        raise _header_error(source, f"must start with 'pose,stamp', got {','.join(header[:2])!r}")
+    n_q = 0
+    while 2 + n_q < len(header) and header[2 + n_q] == f"q{n_q + 1}":
+        n_q += 1
+    if n_q == 0:
+        raise _header_error(source, "missing joint columns q1..qN after 'stamp'")
+    if len(set(header)) != len(header):
+        raise _header_error(source, "duplicate column names")
+    return header, rows[1:], n_q
+
+
+def parse_number(cell: str, where: str) -> float:
+    """A finite number from one CSV field, or one line naming ``where``."""
+    try:
+        value = float(cell)
+    except ValueError:
+        raise InputError(where, f"not a number: {cell!r}") from None
+    if not math.isfinite(value):
+        raise InputError(where, f"not finite ({cell})")
+    return value
+
+
+def parse_table(header: list[str], rows: list[list[str]], source: str,
+                may_be_empty: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Pose ids (P,) and the other columns as numbers (P, C-1), NaN only where a
+    column of ``may_be_empty`` is empty. One line for the first bad field; stamps
+    (column 1) must increase."""
+    if not rows:
+        raise InputError(source, "no sample rows after the header")
+    pose = np.empty(len(rows), dtype=int)
+    values = np.full((len(rows), len(header) - 1), np.nan)
+    for r, row in enumerate(rows):
+        line = r + 2
+        if len(row) != len(header):
+            raise InputError(f"{source}: line {line}", f"{len(row)} fields, header has {len(header)}")
+        try:
+            pose[r] = int(row[0])
+        except ValueError:
+            raise InputError(f"{source}: line {line}, field pose", f"not an integer: {row[0]!r}") from None
+        for c, cell in enumerate(row[1:], start=1):
+            name = header[c]
+            cell = cell.strip()
+            if cell == "":
+                if name in may_be_empty:
+                    continue  # not measured at this pose
+                raise InputError(f"{source}: line {line}, field {name}", "empty")
+            values[r, c - 1] = parse_number(cell, f"{source}: line {line}, field {name}")
+        if r and values[r, 0] <= values[r - 1, 0]:
+            raise InputError(f"{source}: line {line}, field stamp",
+                             f"not increasing ({values[r, 0]} after {values[r - 1, 0]})")
+    return pose, values
+
+
+def check_all_or_none(block: np.ndarray, source: str, where: str, problem: str) -> None:
+    """Each row of block (P,K) is either all measured or all empty; else one line
+    '<source>: line L<where>: <problem>'."""
+    partial = np.isnan(block).any(axis=1) & ~np.isnan(block).all(axis=1)
+    if partial.any():
+        raise InputError(f"{source}: line {np.argmax(partial) + 2}{where}", problem)
+
+
+def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> Samples:
+    header, rows, n_q = read_table(text, source, "pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z")
+    spot_cols = tuple(header[2 + n_q:6 + n_q])
+    if spot_cols != SPOT_COLUMNS:
+        missing = [c for c in SPOT_COLUMNS if c not in header]
+        what = f"missing column {missing[0]}" if missing else f"expected {','.join(SPOT_COLUMNS)} after q{n_q}"
+        raise _header_error(source, what)
+    if robot is not None and n_q != robot.n_joints:
+        raise _header_error(source, f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints} joints")
+    pose, values = parse_table(header, rows, source, SPOT_COLUMNS)
+    n = len(pose)
+    spots = values[:, 1 + n_q:5 + n_q].reshape(n, 2, 2)
+    for j in range(2):
+        check_all_or_none(spots[:, j], source, f", laser {j + 1}",
+                          f"only one of the spot coordinates l{j + 1}_y, l{j + 1}_z is given")
+    q = values[:, 1:1 + n_q]
+    if robot is not None:
+        check_joint_range(q, robot, source, pose)
+    extra = {name: values[:, 5 + n_q + i] for i, name in enumerate(header[6 + n_q:])}
+    return Samples(pose, values[:, 0], q, spots, extra)
+
+
+def check_joint_range(q: np.ndarray, robot: Robot, source: str, pose: np.ndarray | None = None,
+                      slack: float = 1e-9) -> None:
+    """One line for the first joint reading outside [min, max] of its joint."""
+    outside = (q < robot.q_min - slack) | (q > robot.q_max + slack)
+    if outside.any():
+        r, i = np.argwhere(outside)[0]
+        label = f"pose {pose[r]}" if pose is not None else f"row {r}"
+        raise InputError(f"{source}: {label}, field q{i + 1}",
+                         f"{q[r, i]:.6g} rad outside the joint range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]")
+
+
+def load_samples(path: str | Path, robot: Robot | None = None) -> Samples:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
+    return parse_samples(text, str(path), robot)
+
+
+def format_samples(samples: Samples) -> str:
+    n_q = samples.n_joints
+    header = ["pose", "stamp"] + [f"q{i + 1}" for i in range(n_q)] + list(SPOT_COLUMNS) + list(samples.extra)
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(header)
+    for r in range(len(samples)):
+        writer.writerow(sample_row(samples, r))
+    return out.getvalue()
+
+
+def sample_row(samples: Samples, r: int) -> list[str]:
+    """One CSV row; full float precision (repr) so files round-trip exactly."""
+    spots = [("" if math.isnan(v) else repr(float(v))) for v in samples.spots[r].ravel()]
+    return ([str(int(samples.pose[r])), repr(float(samples.stamp[r]))]
+            + [repr(float(v)) for v in samples.q[r]] + spots
+            + [repr(float(samples.extra[k][r])) for k in samples.extra])
+
+
+def save_samples(samples: Samples, path: str | Path) -> None:
+    Path(path).write_text(format_samples(samples))

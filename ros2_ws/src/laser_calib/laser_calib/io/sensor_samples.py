@@ -1,0 +1,124 @@
+"""Samples of a point or pose sensor (CSV), one row per measured pose.
+
+    pose,stamp,q1,...,qN,x,y,z[,qw,qx,qy,qz][,extra columns...]
+
+x, y, z: the marker (point sensor) or target origin (pose sensor) in the sensor
+frame, m; qw..qz: the target's orientation in the sensor frame (unit
+quaternion). All measurement fields of a row empty: not seen at that pose.
+pose, stamp, q and extra columns mean what they mean in the spot samples
+(conventions.md): rows in measurement order, stamps increasing.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot import Robot
+from laser_calib.io.samples import check_all_or_none, check_joint_range, parse_table, read_table
+
+POINT_COLUMNS = ("x", "y", "z")
+QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
+QUATERNION_TOLERANCE = 1e-3  # |norm - 1| accepted (rounding in files); normalised on use
+
+
+@dataclass(frozen=True)
+class SensorSamples:
+    """pose (P,) ids; stamp (P,) s; q (P,N) joint readings, rad; position (P,3)
+    in m and quaternion (P,4) (qw, qx, qy, qz) or None for a point sensor, both
+    in the sensor frame and NaN where not seen; extra: per-pose covariates (P,)."""
+
+    pose: np.ndarray
+    stamp: np.ndarray
+    q: np.ndarray
+    position: np.ndarray
+    quaternion: np.ndarray | None
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.pose)
+
+    @property
+    def n_joints(self) -> int:
+        return self.q.shape[1]
+
+    @property
+    def kind(self) -> str:
+        return "point" if self.quaternion is None else "pose"
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(P,) bool: the sensor saw the target at that pose."""
+        return ~np.isnan(self.position).any(axis=1)
+
+    def subset(self, index) -> "SensorSamples":
+        """Rows selected by a boolean mask or index array (order preserved)."""
+        quaternion = None if self.quaternion is None else self.quaternion[index]
+        return SensorSamples(self.pose[index], self.stamp[index], self.q[index], self.position[index], quaternion,
+                             {k: v[index] for k, v in self.extra.items()})
+
+
+def _columns(kind: str) -> tuple[str, ...]:
+    return POINT_COLUMNS + (QUATERNION_COLUMNS if kind == "pose" else ())
+
+
+def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> SensorSamples:
+    header, rows, n_q = read_table(text, source, "pose,stamp,q1..qN,x,y,z[,qw,qx,qy,qz]")
+    if tuple(header[2 + n_q:5 + n_q]) != POINT_COLUMNS:
+        raise InputError(f"{source}: header", f"expected x,y,z after q{n_q}")
+    kind = "pose" if tuple(header[5 + n_q:9 + n_q]) == QUATERNION_COLUMNS else "point"
+    measured = _columns(kind)
+    if robot is not None and n_q != robot.n_joints:
+        raise InputError(f"{source}: header", f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints}")
+    pose, values = parse_table(header, rows, source, measured)
+    block = values[:, 1 + n_q:1 + n_q + len(measured)]
+    check_all_or_none(block, source, "", f"only some of {','.join(measured)} are given")
+    if kind == "pose":
+        norm = np.linalg.norm(block[:, 3:], axis=1)
+        bad = np.isfinite(norm) & (np.abs(norm - 1) > QUATERNION_TOLERANCE)
+        if bad.any():
+            r = int(np.argmax(bad))
+            raise InputError(f"{source}: line {r + 2}, fields qw..qz", f"quaternion norm {norm[r]:.6g} is not 1")
+    q = values[:, 1:1 + n_q]
+    if robot is not None:
+        check_joint_range(q, robot, source, pose)
+    position = values[:, 1 + n_q:4 + n_q]
+    quaternion = values[:, 4 + n_q:8 + n_q] if kind == "pose" else None
+    extra = {name: values[:, 1 + n_q + len(measured) + i]
+             for i, name in enumerate(header[2 + n_q + len(measured):])}
+    return SensorSamples(pose, values[:, 0], q, position, quaternion, extra)
+
+
+def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> SensorSamples:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
+    return parse_sensor_samples(text, str(path), robot)
+
+
+def format_sensor_samples(samples: SensorSamples) -> str:
+    """CSV text; floats at full precision (repr) so files round-trip exactly."""
+    header = (["pose", "stamp"] + [f"q{i + 1}" for i in range(samples.n_joints)] + list(_columns(samples.kind))
+              + list(samples.extra))
+    measured = samples.position if samples.quaternion is None else np.hstack([samples.position, samples.quaternion])
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(header)
+    for r in range(len(samples)):
+        writer.writerow([str(int(samples.pose[r])), repr(float(samples.stamp[r]))]
+                        + [repr(float(v)) for v in samples.q[r]]
+                        + ["" if math.isnan(v) else repr(float(v)) for v in measured[r]]
+                        + [repr(float(samples.extra[k][r])) for k in samples.extra])
+    return out.getvalue()
+
+
+def save_sensor_samples(samples: SensorSamples, path: str | Path) -> None:
+    Path(path).write_text(format_sensor_samples(samples))

@@ -1,0 +1,88 @@
+"""The closed loop sensor -> world -> robot base -> tool -> target, and its twists.
+
+The target's pose in the sensor frame is
+
+    T_sensor_target = inv(T_world_sensor) · T_world_base · T_base_tool(q) · T_tool_target
+
+with T_base_tool the robot chain (kinematics.forward, either D-H convention)
+and the three fixed frames of frames.py. Parameters, in this order:
+
+    x = [robot errors (4N+5), sensor (6), base (6), target (6)]     shape (4N+23,)
+
+Each parameter's twist is the motion (v; w) of the target frame relative to
+the sensor, in sensor coordinates, per unit of that parameter: the robot's
+Jac_1 and the frames' elementary twists carried to the target origin with
+v' = v + w x (p_target - o), and a sensor motion entering with the opposite sign.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from laser_calib.model.kinematics import forward
+from laser_calib.model.robot import Robot
+from laser_calib.measurement.frames import FRAMES, Pose, frame_names, perturb
+
+
+def chain_names(robot: Robot) -> tuple[str, ...]:
+    """Names of the full parameter vector, (4N+23,)."""
+    return robot.param_names + tuple(n for frame in FRAMES for n in frame_names(frame))
+
+
+def frame_slice(robot: Robot, frame: str) -> slice:
+    start = robot.n_params + 6 * FRAMES.index(frame)
+    return slice(start, start + 6)
+
+
+@dataclass(frozen=True)
+class TargetState:
+    """rotation (P,3,3) and position (P,3) m of the target in the sensor frame;
+    twists (P,6,n) or None, n = 4N+23 (see the module docstring)."""
+
+    rotation: np.ndarray
+    position: np.ndarray
+    twists: np.ndarray | None
+
+
+def _carry(twists: np.ndarray, lever: np.ndarray) -> np.ndarray:
+    """Twists (P,6,k) of a frame at o to those of a point at o + lever (P,3)."""
+    out = twists.copy()
+    out[:, :3] += np.cross(twists[:, 3:], lever[:, :, None], axis=1)
+    return out
+
+
+def target_in_sensor(robot: Robot, frames: dict[str, Pose], q: np.ndarray, x: np.ndarray,
+                     twists: bool = False) -> TargetState:
+    """The target pose in the sensor frame at joint readings q (P,N) with
+    parameters x (n,) or per pose (P,n)."""
+    q = np.atleast_2d(np.asarray(q, float))
+    n_poses = len(q)
+    x = np.broadcast_to(np.asarray(x, float), (n_poses, robot.n_params + 6 * len(FRAMES)))
+    delta = {frame: x[:, frame_slice(robot, frame)] for frame in FRAMES}
+    identity = np.broadcast_to(np.eye(3), (n_poses, 3, 3))
+    zero = np.zeros((n_poses, 3))
+
+    arm = forward(robot, q, x[:, :robot.n_params], twists=twists)
+    base_r, base_o, base_t = perturb(identity, zero, frames["base"], delta["base"])
+    tool_r = base_r @ arm.rotation
+    tool_o = base_o + np.einsum("pij,pj->pi", base_r, arm.origin)
+    target_r, target_o, target_t = perturb(tool_r, tool_o, frames["target"], delta["target"])
+    sensor_r, sensor_o, sensor_t = perturb(identity, zero, frames["sensor"], delta["sensor"])
+
+    to_sensor = sensor_r.transpose(0, 2, 1)
+    rotation = to_sensor @ target_r
+    position = np.einsum("pij,pj->pi", to_sensor, target_o - sensor_o)
+    jac = None
+    if twists:
+        # Robot twists are in base coordinates at the tool origin: rotate, then carry.
+        arm_world = np.concatenate([base_r @ arm.twists[:, :3], base_r @ arm.twists[:, 3:]], axis=1)
+        world = np.concatenate([
+            _carry(arm_world, target_o - tool_o),
+            -_carry(sensor_t, target_o - sensor_o),
+            _carry(base_t, target_o - base_o),
+            target_t,
+        ], axis=2)
+        jac = np.concatenate([to_sensor @ world[:, :3], to_sensor @ world[:, 3:]], axis=1)
+    return TargetState(rotation, position, jac)

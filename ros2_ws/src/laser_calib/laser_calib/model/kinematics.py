@@ -1,0 +1,188 @@
+"""Forward model, beam-screen intersection and the differential kinematics.
+
+The chain from frame {0} to a laser is a sequence of elementary transforms
+Trans(axis, v) / Rot(axis, v); each D-H value is the argument of exactly one of
+them (eq. 2). A small error in that value moves the laser frame by a twist
+(paper eq. 5): a translation error by (u, 0), a rotation error by
+(u x (p_laser - o), u), with u the axis and o the origin of the frame just
+before the transform. Stacking these twists over the parameters gives Jac_1
+(eq. 6, 6 x (4N+5) per pose, whose 6x4 blocks are the per-link matrices);
+Jac_2 (eq. 11, 2x6) maps a twist of the laser frame to the motion of its spot
+on the screen x = 0, and the measurement Jacobian is their product (eq. 12).
+Everything is vectorised over poses P and lasers L.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from laser_calib.model.robot import PAPER, Robot
+
+X, Y, Z = 0, 1, 2
+TRANS, ROT = 0, 1
+
+
+def chain_ops(robot: Robot) -> list[tuple[int, int, int]]:
+    """(kind, axis, parameter index) of each elementary transform, base to SLM.
+
+    Joint angle transforms use parameter index 4i+3 (theta0_i); q_i is added to it.
+    """
+    ops = []
+    for i in range(robot.n_joints):
+        a, d, alpha, theta = 4 * i, 4 * i + 1, 4 * i + 2, 4 * i + 3
+        if robot.convention == PAPER:
+            ops += [(TRANS, X, a), (TRANS, Z, d), (ROT, X, alpha), (ROT, Z, theta)]
+        else:  # standard D-H: Trans(z,d) Rot(z,theta) Trans(x,a) Rot(x,alpha)
+            ops += [(TRANS, Z, d), (ROT, Z, theta), (TRANS, X, a), (ROT, X, alpha)]
+    s = 4 * robot.n_joints
+    ops += [(TRANS, X, s), (TRANS, Z, s + 1), (ROT, X, s + 2), (ROT, Y, s + 3), (ROT, Z, s + 4)]
+    return ops
+
+
+def _rotate(rotation: np.ndarray, axis: int, angle: np.ndarray) -> np.ndarray:
+    """rotation @ Rot(axis, angle) for stacks: rotation (P,3,3), angle (P,)."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    out = rotation.copy()
+    i, j = {X: (1, 2), Y: (2, 0), Z: (0, 1)}[axis]
+    out[:, :, i] = c * rotation[:, :, i] + s * rotation[:, :, j]
+    out[:, :, j] = -s * rotation[:, :, i] + c * rotation[:, :, j]
+    return out
+
+
+def rot_x(angle: float) -> np.ndarray:
+    return _rotate(np.eye(3)[None], X, np.array([angle]))[0]
+
+
+def rot_y(angle: float) -> np.ndarray:
+    return _rotate(np.eye(3)[None], Y, np.array([angle]))[0]
+
+
+@dataclass(frozen=True)
+class ChainState:
+    """The arm at P poses.
+
+    origin (P,3): SLM origin in {0}, which is also every laser's origin;
+    rotation (P,3,3): SLM frame; beams (P,L,3): unit beam directions;
+    joint_origin, joint_axis (P,N,3): origin and rotation axis of each joint;
+    twists (P,6,n) or None: Jac_1, the motion (v; w) of the laser frame per unit
+    error of each parameter (eq. 6).
+    """
+
+    origin: np.ndarray
+    rotation: np.ndarray
+    beams: np.ndarray
+    joint_origin: np.ndarray
+    joint_axis: np.ndarray
+    twists: np.ndarray | None
+
+
+def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twists: bool = False) -> ChainState:
+    """Forward kinematics at joint readings q (P,N) with errors (n,) or (P,n)."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    n_poses = q.shape[0]
+    params = np.broadcast_to(robot.vector(), (n_poses, robot.n_params)).copy()
+    if errors is not None:
+        params += errors
+    params[:, 3:4 * robot.n_joints:4] += q
+
+    rotation = np.broadcast_to(np.eye(3), (n_poses, 3, 3)).copy()
+    origin = np.zeros((n_poses, 3))
+    joint_origin = np.empty((n_poses, robot.n_joints, 3))
+    joint_axis = np.empty((n_poses, robot.n_joints, 3))
+    before = []  # (kind, axis u (P,3), origin o (P,3), index) for the twists
+    for kind, axis, index in chain_ops(robot):
+        value = params[:, index]
+        u = rotation[:, :, axis].copy()
+        before.append((kind, u, origin.copy(), index))
+        if kind == TRANS:
+            origin = origin + u * value[:, None]
+        else:
+            if index % 4 == 3 and index < 4 * robot.n_joints:
+                joint_origin[:, index // 4] = origin
+                joint_axis[:, index // 4] = u
+            rotation = _rotate(rotation, axis, value)
+
+    laser_rotations = [rot_x(g) @ rot_y(b) for g, b in robot.laser_angles()]
+    beams = np.stack([rotation @ r[:, 2] for r in laser_rotations] or [np.zeros((n_poses, 0, 3))], axis=1)
+
+    jac1 = None
+    if twists:
+        jac1 = np.zeros((n_poses, 6, robot.n_params))
+        trans = [index for kind, _, _, index in before if kind == TRANS]
+        rots = [index for kind, _, _, index in before if kind == ROT]
+        jac1[:, :3, trans] = np.stack([u for kind, u, _, _ in before if kind == TRANS], axis=-1)
+        u = np.stack([u for kind, u, _, _ in before if kind == ROT], axis=-1)          # (P,3,K)
+        lever = origin[:, :, None] - np.stack([o for kind, _, o, _ in before if kind == ROT], axis=-1)
+        jac1[:, :3, rots] = np.cross(u, lever, axis=1)
+        jac1[:, 3:, rots] = u
+    return ChainState(origin, rotation, beams, joint_origin, joint_axis, jac1)
+
+
+@dataclass(frozen=True)
+class Spots:
+    """Beam-screen intersections: k (P,L) beam length, yz (P,L,2) spot in m,
+    hit (P,L) k > 0 and inside the screen."""
+
+    k: np.ndarray
+    yz: np.ndarray
+    hit: np.ndarray
+
+
+def intersect(robot: Robot, state: ChainState) -> Spots:
+    """Spots on the screen x = 0 (eq. 8): k = -p_x / z_x, spot = p + k z."""
+    p = state.origin[:, None, :]
+    z = state.beams
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = -p[..., 0] / z[..., 0]
+        spot = p + k[..., None] * z
+    yz = spot[..., 1:]
+    finite = np.isfinite(k) & np.isfinite(yz).all(axis=-1)
+    hit = (finite & (k > 0)
+           & (np.abs(yz[..., 0]) <= robot.screen.half_y) & (np.abs(yz[..., 1]) <= robot.screen.half_z))
+    return Spots(k=k, yz=yz, hit=hit)
+
+
+def spot_jacobian(state: ChainState, spots: Spots) -> np.ndarray:
+    """Jac_2 (eq. 11), (P,L,2,6): spot motion (dy, dz) per twist (v; w) of the laser frame.
+
+    d spot = Pi (dv + k dw x z) with Pi = I - z e_x^T / z_x keeping the spot on x = 0.
+    """
+    z = state.beams
+    k = spots.k
+    with np.errstate(divide="ignore", invalid="ignore"):
+        projection = np.eye(3) - z[..., :, None] * (np.array([1.0, 0.0, 0.0]) / z[..., 0:1])[..., None, :]
+    # dw x z = -[z]x dw
+    skew = np.zeros(z.shape[:-1] + (3, 3))
+    skew[..., 0, 1], skew[..., 0, 2] = -z[..., 2], z[..., 1]
+    skew[..., 1, 0], skew[..., 1, 2] = z[..., 2], -z[..., 0]
+    skew[..., 2, 0], skew[..., 2, 1] = -z[..., 1], z[..., 0]
+    motion = np.concatenate([np.broadcast_to(np.eye(3), skew.shape), -k[..., None, None] * skew], axis=-1)
+    return (projection @ motion)[..., 1:, :]
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Predicted spots (P,L,2) with their hit mask (P,L), beam lengths k (P,L), and
+    optionally the measurement Jacobian (P,L,2,n) (eq. 12) and the chain state."""
+
+    spots: np.ndarray
+    hit: np.ndarray
+    k: np.ndarray
+    jacobian: np.ndarray | None
+    state: ChainState
+
+
+def predict(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, jacobian: bool = False) -> Prediction:
+    state = forward(robot, q, errors, twists=jacobian)
+    spots = intersect(robot, state)
+    jac = None
+    if jacobian:
+        jac = np.einsum("plij,pjn->plin", spot_jacobian(state, spots), state.twists)
+    return Prediction(spots.yz, spots.hit, spots.k, jac, state)
+
+
+def joint_columns(robot: Robot) -> np.ndarray:
+    """Indices of the theta errors: the measurement Jacobian's columns for dq_i too."""
+    return np.arange(robot.n_joints) * 4 + 3

@@ -1,0 +1,160 @@
+"""Robot model YAML (conventions.md), read and written with validation."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot import CONVENTIONS, PAPER, Joint, Laser, Robot, Screen, Slm
+
+_KNOWN_KEYS = {"name", "joints", "slm", "lasers", "screen", "gravity", "convention"}
+
+
+def _number(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None) -> float:
+    if key not in mapping:
+        if default is not None:
+            return default
+        raise InputError(where, f"missing key '{key}'")
+    value = mapping[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"{where}.{key}", f"expected a number, got {type(value).__name__} {value!r}")
+    if not math.isfinite(value):
+        raise InputError(f"{where}.{key}", f"not finite ({value})")
+    return float(value)
+
+
+def _mapping(where: str, value: Any) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise InputError(where, f"expected a mapping, got {type(value).__name__}")
+    return value
+
+
+def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
+    data = _mapping(source, data)
+    for key in ("name", "joints", "slm"):
+        if key not in data:
+            raise InputError(source, f"missing key '{key}'")
+    if not isinstance(data["name"], str):
+        raise InputError(f"{source}: name", f"expected a string, got {type(data['name']).__name__}")
+    if not isinstance(data["joints"], list) or not data["joints"]:
+        raise InputError(f"{source}: joints", "expected a non-empty list of joints")
+    joints = []
+    for i, entry in enumerate(data["joints"]):
+        where = f"{source}: joints[{i}] (joint {i + 1})"
+        entry = _mapping(where, entry)
+        joint = Joint(*(_number(where, entry, k) for k in ("a", "d", "alpha", "theta0", "min", "max")))
+        if joint.min >= joint.max:
+            raise InputError(where, f"min {joint.min} is not below max {joint.max}")
+        joints.append(joint)
+    where = f"{source}: slm"
+    slm_map = _mapping(where, data["slm"])
+    slm = Slm(*(_number(where, slm_map, k) for k in ("a", "d", "alpha", "theta")),
+              beta=_number(where, slm_map, "beta", 0.0))
+    # No lasers: an arm measured by another sensor (sensors/); with an SLM, exactly two.
+    laser_list = data.get("lasers", [])
+    if not isinstance(laser_list, list) or len(laser_list) not in (0, 2):
+        raise InputError(f"{source}: lasers", "expected a list of exactly two lasers")
+    lasers = []
+    for j, entry in enumerate(laser_list):
+        where = f"{source}: lasers[{j}]"
+        entry = _mapping(where, entry)
+        lasers.append(Laser(_number(where, entry, "gamma"), _number(where, entry, "beta", 0.0)))
+    screen = Screen()
+    if "screen" in data:
+        where = f"{source}: screen"
+        screen_map = _mapping(where, data["screen"])
+        screen = Screen(_number(where, screen_map, "half_y", 1.0), _number(where, screen_map, "half_z", 1.0))
+        if screen.half_y <= 0 or screen.half_z <= 0:
+            raise InputError(where, "half sizes must be positive")
+    gravity = (0.0, 0.0, -1.0)
+    if "gravity" in data:
+        g = data["gravity"]
+        if (not isinstance(g, list) or len(g) != 3
+                or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in g)):
+            raise InputError(f"{source}: gravity", "expected a list of three numbers")
+        norm = math.sqrt(sum(v * v for v in g))
+        if not math.isfinite(norm) or norm == 0:
+            raise InputError(f"{source}: gravity", "expected a non-zero finite vector")
+        gravity = tuple(float(v) / norm for v in g)
+    convention = data.get("convention", PAPER)
+    if convention not in CONVENTIONS:
+        raise InputError(f"{source}: convention", f"expected one of {', '.join(CONVENTIONS)}, got {convention!r}")
+    extra = {k: v for k, v in data.items() if k not in _KNOWN_KEYS}
+    return Robot(name=data["name"], joints=tuple(joints), slm=slm, lasers=tuple(lasers), screen=screen,
+                 gravity=gravity, convention=convention, extra=extra)
+
+
+def load_robot(path: str | Path) -> Robot:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f"line {mark.line + 1}" if mark else "YAML"
+        raise InputError(f"{path}: {line}", f"not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    return robot_from_dict(data, str(path))
+
+
+def robot_to_dict(robot: Robot) -> dict[str, Any]:
+    data: dict[str, Any] = {"name": robot.name}
+    if robot.convention != PAPER:
+        data["convention"] = robot.convention
+    data["joints"] = [
+        {"a": j.a, "d": j.d, "alpha": j.alpha, "theta0": j.theta0, "min": j.min, "max": j.max}
+        for j in robot.joints
+    ]
+    s = robot.slm
+    data["slm"] = {"a": s.a, "d": s.d, "alpha": s.alpha, "theta": s.theta, "beta": s.beta}
+    if robot.lasers:
+        data["lasers"] = [{"gamma": laser.gamma, "beta": laser.beta} for laser in robot.lasers]
+    data["screen"] = {"half_y": robot.screen.half_y, "half_z": robot.screen.half_z}
+    data["gravity"] = list(robot.gravity)
+    data.update(robot.extra)
+    return _plain(data)
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars and tuples to plain YAML types, floats at full precision."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if hasattr(value, "item"):
+        return value.item()
+    return value
+
+
+class _FlowListDumper(yaml.SafeDumper):
+    """Joints and lasers one per line, as in the shared robot files."""
+
+
+def _represent_dict(dumper: yaml.SafeDumper, data: dict) -> yaml.Node:
+    flow = all(not isinstance(v, (dict, list)) for v in data.values())
+    return dumper.represent_mapping("tag:yaml.org,2002:map", data.items(), flow_style=flow)
+
+
+def _represent_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
+    flow = all(isinstance(v, (int, float)) for v in data)
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
+
+
+_FlowListDumper.add_representer(dict, _represent_dict)
+_FlowListDumper.add_representer(list, _represent_list)
+
+
+def dump_robot(robot: Robot, header: str = "") -> str:
+    text = yaml.dump(robot_to_dict(robot), Dumper=_FlowListDumper, sort_keys=False, width=200)
+    comment = "".join(f"# {line}\n" for line in header.splitlines())
+    return comment + text
+
+
+def save_robot(robot: Robot, path: str | Path, header: str = "") -> None:
+    Path(path).write_text(dump_robot(robot, header))

@@ -1,0 +1,100 @@
+"""Plots and the markdown report of a geometric calibration (matplotlib, no display)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from laser_calib.model.kinematics import predict  # noqa: E402
+from laser_calib.model.robot import Robot, param_kinds  # noqa: E402
+from laser_calib.io.samples import Samples  # noqa: E402
+
+PANELS = (("link length a", "a"), ("link offset d", "d"), ("link twist alpha", "alpha"),
+          ("joint angle theta", "theta"), ("SLM", "slm"))
+
+
+def save_figure(fig, path: Path, dpi: int = 90) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
+def display_units(n_joints: int) -> np.ndarray:
+    """Factor from SI to report units per error: mm for lengths, deg for angles."""
+    return np.where(param_kinds(n_joints) == "length", 1e3, np.degrees(1.0))
+
+
+def plot_convergence(history: np.ndarray, names: tuple[str, ...], n_joints: int, path: Path,
+                     truth: np.ndarray | None = None) -> None:
+    """Every error against the iteration, grouped like the paper's Fig. 4."""
+    units = display_units(n_joints)
+    scaled = history * units
+    fig, axes = plt.subplots(1, len(PANELS), figsize=(4 * len(PANELS), 3.4))
+    for ax, (title, prefix) in zip(axes, PANELS):
+        idx = [i for i, name in enumerate(names[:4 * n_joints + 5])
+               if (name.startswith("slm") if prefix == "slm" else
+                   name.rstrip("0123456789") == prefix)]
+        for i in idx:
+            line, = ax.plot(scaled[:, i], label=names[i])
+            if truth is not None:
+                ax.axhline(truth[i] * units[i], color=line.get_color(), ls=":", lw=0.8)
+        ax.set_title(title)
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("mm" if prefix in ("a", "d") else ("deg" if prefix != "slm" else "mm / deg"))
+        ax.legend(fontsize=6, ncol=2)
+        if len(scaled) > 50:
+            ax.set_xscale("symlog")
+    save_figure(fig, path)
+
+
+def plot_screen(robot: Robot, samples: Samples, values: np.ndarray, path: Path) -> None:
+    """Measured spots and the spots predicted before/after calibration on the screen."""
+    before = predict(robot, samples.q).spots
+    after = predict(robot, samples.q, values[:robot.n_params]).spots
+    fig, ax = plt.subplots(figsize=(6, 6))
+    for j, marker in enumerate(("o", "s")):
+        ax.plot(samples.spots[:, j, 0], samples.spots[:, j, 1], marker, mfc="none", color="k", ms=6,
+                label=f"laser {j + 1} measured")
+        ax.plot(before[:, j, 0], before[:, j, 1], "x", color="tab:red", ms=4,
+                label=f"laser {j + 1} nominal model")
+        ax.plot(after[:, j, 0], after[:, j, 1], "+", color="tab:green", ms=6,
+                label=f"laser {j + 1} calibrated model")
+    ax.set_xlim(-robot.screen.half_y, robot.screen.half_y)
+    ax.set_ylim(-robot.screen.half_z, robot.screen.half_z)
+    ax.set_xlabel("screen y (m)")
+    ax.set_ylabel("screen z (m)")
+    ax.set_aspect("equal")
+    ax.legend(fontsize=6)
+    save_figure(fig, path)
+
+
+def plot_histogram(groups: dict[str, np.ndarray], path: Path) -> None:
+    """Histogram of spot distances (mm) per group, log-spaced bins."""
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    values = [v[np.isfinite(v)] * 1e3 for v in groups.values()]
+    positive = np.concatenate([v[v > 0] for v in values]) if values else np.array([1.0])
+    bins = np.logspace(np.log10(max(positive.min(), 1e-3)), np.log10(positive.max() * 1.01), 40)
+    for label, v in zip(groups, values):
+        ax.hist(v, bins=bins, alpha=0.5, label=label)
+    ax.set_xscale("log")
+    ax.set_xlabel("spot distance (mm)")
+    ax.set_ylabel("spots")
+    ax.legend(fontsize=7)
+    save_figure(fig, path)
+
+
+def stats_table(spot_error: dict) -> list[str]:
+    lines = ["| set | model | laser | n | mean (mm) | std (mm) | max (mm) |", "|---|---|---|---|---|---|---|"]
+    for set_name, by_model in spot_error.items():
+        for model_name, by_laser in by_model.items():
+            for laser in ("laser1", "laser2"):
+                s = by_laser[laser]
+                if s["n"]:
+                    lines.append(f"| {set_name} | {model_name} | {laser[-1]} | {s['n']} | {s['mean_mm']:.3f} | "
+                                 f"{s['std_mm']:.3f} | {s['max_mm']:.3f} |")
+    return lines

@@ -1,0 +1,168 @@
+"""Truth forms of the effects for the simulator, and seeded effect sessions.
+
+A true effect is an Effect with values. hooks() turns a list of them into the
+param_offsets / spot_transform hooks of simulation.measure: joint effects as
+offsets of the theta errors, parameter effects as offsets of their parameter,
+spot effects as maps of the true spots (evaluated with the true robot and the
+true beams, so the truth is physical: compliance uses the true geometry, the
+screen intersection is solved exactly). The joint-reading disturbance of the
+simulator is left out of the beams of the spot maps (0.02 deg moves a beam's
+t = z_yz / z_x by ~1e-4 of a mm-sized effect).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+
+from laser_calib.model.kinematics import forward, predict
+from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.model.robot import Robot
+from laser_calib.io.samples import Samples
+from laser_calib.sim.simulation import NoiseSpec, ParamOffsets, SpotTransform, bundled_robot, measure, sample_poses, true_errors
+from laser_calib.effects.base import JOINT, PARAM, SPOT, Effect, sign_choice
+from laser_calib.effects.effect_model import EffectModel
+
+TEMPERATURE = "temperature_c"
+
+
+@dataclass(frozen=True)
+class TrueEffect:
+    effect: Effect
+    values: np.ndarray
+
+
+@dataclass(frozen=True)
+class ForeignJointError:
+    """A joint error outside the library, for tests of what the library cannot
+    explain: dq of joint ``joint`` (0-based) = offset(samples) rad, (P,)."""
+
+    name: str
+    joint: int
+    offset: Callable[[Samples], np.ndarray]
+
+
+Truth = TrueEffect | ForeignJointError
+
+
+def draw_truth(effect: Effect, rng: np.random.Generator, size: float = 1.0) -> TrueEffect:
+    """Values of random sign with magnitudes in [0.5, 1] x size x the effect's typical size."""
+    return TrueEffect(effect, size * effect.typical * sign_choice(rng, len(effect.params)))
+
+
+def visibility(robot: Robot, errors: np.ndarray, context: Samples, truth: Truth, noise: NoiseSpec) -> float:
+    """How visible a true effect is after a geometric fit: the noncentrality
+    |P m|^2 of its whitened spot motion m (m = J_e v for an effect with values
+    v; jac_q dq for a foreign joint error) once the directions the geometric
+    errors can take up (P: the projector onto the complement of their whitened
+    Jacobian) are removed; the expected excess of chi^2 it leaves in the
+    geometric fit. ``robot`` nominal, ``errors`` the true geometric errors,
+    ``context`` the calibration readings (spots not needed)."""
+    spots = predict(robot.with_errors(errors), context.q).spots
+    seen = Samples(context.pose, context.stamp, context.q, spots, context.extra)
+    effects = [truth.effect] if isinstance(truth, TrueEffect) else []
+    model = EffectModel(SpotModel(robot, seen), effects)
+    values = truth.values if isinstance(truth, TrueEffect) else np.zeros(0)
+    res = model.residuals(np.concatenate([errors, np.zeros(len(values))]), True)
+    whitener = NoiseModel(noise.spot_sigma, noise.joint_sigma).whitener(res)
+    _, jac = whiten(res, whitener)
+    if isinstance(truth, TrueEffect):
+        motion = jac[:, model.n_geometric:] @ values
+    else:
+        moved = res.jac_q[..., truth.joint] * truth.offset(context)[:, None, None]
+        motion = np.einsum("pij,pj->pi", whitener, moved.reshape(len(moved), -1)).ravel()
+    u, s, _ = np.linalg.svd(jac[:, :model.n_geometric], full_matrices=False)
+    u = u[:, s > 1e-9 * s[0]]
+    return float(np.sum((motion - u @ (u.T @ motion)) ** 2))
+
+
+def sized(robot: Robot, errors: np.ndarray, context: Samples, truth: Truth, noise: NoiseSpec,
+          target: float) -> Truth:
+    """The true effect scaled to the visibility ``target`` (same shape and signs)."""
+    factor = float(np.sqrt(target / visibility(robot, errors, context, truth, noise)))
+    if isinstance(truth, TrueEffect):
+        return TrueEffect(truth.effect, truth.values * factor)
+    offset = truth.offset
+    return ForeignJointError(truth.name, truth.joint, lambda samples: factor * offset(samples))
+
+
+def hooks(truth: Sequence[Truth]) -> tuple[ParamOffsets | None, SpotTransform | None]:
+    """simulation.measure hooks producing the given true effects."""
+    foreign = [t for t in truth if isinstance(t, ForeignJointError)]
+    effects = [t for t in truth if isinstance(t, TrueEffect)]
+    blocks = [t for t in effects if t.effect.family in (JOINT, PARAM)]
+    spot = sorted((t for t in effects if t.effect.family == SPOT), key=lambda t: t.effect.order)
+
+    def param_offsets(robot: Robot, context: Samples) -> np.ndarray:
+        offsets = np.zeros((len(context), robot.n_params))
+        for t in blocks:
+            column = 4 * t.effect.joint + 3 if t.effect.family == JOINT else t.effect.param
+            offsets[:, column] += t.effect.basis(robot, context) @ t.values
+        for t in foreign:
+            offsets[:, 4 * t.joint + 3] += t.offset(context)
+        return offsets
+
+    def spot_transform(robot: Robot, context: Samples, spots: np.ndarray) -> np.ndarray:
+        beams = forward(robot, context.q, param_offsets(robot, context)).beams
+        for t in spot:
+            spots = t.effect.apply(spots, beams, t.values)[0]
+        return spots
+
+    return (param_offsets if blocks or foreign else None), (spot_transform if spot else None)
+
+
+@dataclass(frozen=True)
+class EffectSession:
+    """Calibration and test sets of one arm with true effects. Both sets span
+    the same time (test rows interleaved between calibration rows), each file
+    in its own measurement order starting from q = 0, with a temperature column."""
+
+    nominal: Robot
+    true: Robot
+    errors: np.ndarray
+    cal: Samples
+    test: Samples
+    cal_truth: Samples
+    test_truth: Samples
+    truth: tuple[Truth, ...]
+    noise: NoiseSpec
+
+
+def temperature(stamps: np.ndarray, duration: float, rng: np.random.Generator) -> np.ndarray:
+    """A warm-up and cool-down (deg C): rises and falls over the session, so it is
+    not a linear function of time; 0.05 deg C sensor noise."""
+    phase = np.pi * stamps / duration
+    return 22.0 + 4.0 * np.sin(phase) + 1.0 * np.sin(3.0 * phase + 0.5) + rng.normal(0.0, 0.05, len(stamps))
+
+
+def effect_session(case: str, seed: int,
+                   make_truth: Callable[[Robot, np.ndarray, Samples, np.random.Generator], Sequence[Truth]],
+                   n_cal: int = 80, n_test: int = 80, noise: NoiseSpec = NoiseSpec(),
+                   period: float = 10.0) -> EffectSession:
+    """A seeded session of ``case`` (simulation.CASES) over the whole workspace:
+    random geometric errors (uniform within 10 mm / 1 deg), the true effects
+    ``make_truth(nominal, true errors, calibration context, rng)`` (effects whose
+    constants depend on the data, e.g. a drift's reference, see the calibration
+    set's stamps and covariates; ``sized`` needs the errors), spot and joint
+    noise as in simulation.measure. Rows are ``period`` s apart."""
+    rng = np.random.default_rng(seed)
+    nominal = bundled_robot(case)
+    errors = true_errors(nominal, rng)
+    true = nominal.with_errors(errors)
+    q_cal = sample_poses([nominal, true], n_cal, rng, "whole")
+    q_test = sample_poses([nominal, true], n_test, rng, "whole")
+    duration = period * max(n_cal, n_test)
+    stamps_cal = period * np.arange(n_cal)
+    stamps_test = period * np.arange(n_test) + period / 2
+    extra_cal = {TEMPERATURE: temperature(stamps_cal, duration, rng)}
+    extra_test = {TEMPERATURE: temperature(stamps_test, duration, rng)}
+    context = Samples(np.arange(n_cal), stamps_cal, q_cal, np.full((n_cal, 2, 2), np.nan), extra_cal)
+    truth = tuple(make_truth(nominal, errors, context, rng))
+    offsets, transform = hooks(truth)
+    cal, cal_truth = measure(true, q_cal, rng, noise, stamps_cal, extra_cal, offsets, transform)
+    test, test_truth = measure(true, q_test, rng, noise, stamps_test, extra_test, offsets, transform,
+                               first_pose=n_cal)
+    return EffectSession(nominal, true, errors, cal, test, cal_truth, test_truth, truth, noise)
