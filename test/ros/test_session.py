@@ -134,7 +134,7 @@ def test_stream_input_and_markers(session):
 def test_replay_and_bag_estimate_agree_with_live(session):
     from laser_calib.model.robot_file import load_robot
     from laser_calib.io import bag
-    from laser_calib.session.estimate import estimate_options, run_and_collect
+    from laser_calib.session.estimate import estimate_options, run_calibration
     ros, out = session
     live_online = ros.client("params", str(POSES))
     live_result = json.loads((out / "result.json").read_text())
@@ -152,8 +152,8 @@ def test_replay_and_bag_estimate_agree_with_live(session):
 
     # laser-calib estimate --bag: the ROS-free bag reader into the command line's pipeline
     robot = load_robot(out / "robot.yaml")
-    outcome = run_and_collect(robot, bag.read_samples(out / "bag"), estimate_options("lm", 0.0, False, False), None)
-    from_bag = [np.nan if e["value"] is None else e["value"] for e in outcome.result["errors"]]
+    outcome = run_calibration(robot, bag.read_samples(out / "bag"), estimate_options("lm", 0.0, False, False), None)
+    from_bag = list(outcome.calibration.estimate.errors)
     assert close(from_bag, live_errors)
 
 

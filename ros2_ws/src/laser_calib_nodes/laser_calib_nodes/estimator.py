@@ -19,7 +19,7 @@ Each measurement is accumulated and updates the online EKF
 Services
   estimator/estimate (laser_calib_interfaces/Estimate): batch estimate of the
     request's samples or of the accumulated ones, by
-    laser_calib.report.files.run_estimate (the command line's code path). Bad
+    laser_calib.session.estimate.run_calibration (the command line's code path). Bad
     requests get success = false and a one-line message; the node keeps serving.
     Requests are served one at a time (a mutually exclusive callback group);
     measurements keep flowing in meanwhile (another group, a lock on the state).
@@ -50,7 +50,8 @@ from laser_calib.io.samples import Samples
 from laser_calib.io import bag
 
 from laser_calib_nodes import common
-from laser_calib.session.estimate import estimate_options, laser_statistics, online_options, parameter_arrays, run_and_collect
+from laser_calib.report.files import calibrated_robot_yaml, report_markdown, result_json
+from laser_calib.session.estimate import estimate_options, laser_statistics, online_options, run_calibration
 from laser_calib.session.sync import StampSynchronizer
 
 MAX_MARKER_POINTS = 2000
@@ -233,7 +234,7 @@ class Estimator(Node):
             samples, source = self.request_samples(request)
             options = estimate_options(request.method, request.spot_sigma or self.spot_sigma, request.prior,
                                        request.robust)
-            outcome = run_and_collect(self.robot, samples, options, request.output_dir or None, request.diagnose,
+            outcome = run_calibration(self.robot, samples, options, request.output_dir or None, request.diagnose,
                                       sources={"robot": self.robot_path, "samples": source})
         except InputError as exc:
             response.success = False
@@ -246,7 +247,7 @@ class Estimator(Node):
             self.get_logger().error(response.message + "\n" + traceback.format_exc())
             return response
         self.fill(response, outcome, len(samples))
-        self.get_logger().info(outcome.message)
+        self.get_logger().info(response.message)
         return response
 
     def request_samples(self, request) -> tuple[Samples, str]:
@@ -269,22 +270,22 @@ class Estimator(Node):
         return bag.samples_from_rows(rows, "request"), source
 
     def fill(self, response, outcome, count: int) -> None:
-        result = outcome.result
-        names, errors, std, identifiable = parameter_arrays(result)
+        calibration = outcome.calibration
+        est = calibration.estimate
         params = self.DhParameters()
         params.header.stamp = self.get_clock().now().to_msg()
         params.header.frame_id = common.SCREEN_FRAME
         params.robot_name = self.robot.name
-        params.method = result["method"]
-        params.names = names
-        params.values = [float(v) for v in outcome.calibrated.vector()]
-        params.errors = [float(v) for v in errors]
-        params.std = [float(v) for v in std]
-        params.identifiable = identifiable
-        params.iterations = int(result["iterations"])
+        params.method = calibration.options.method
+        params.names = list(est.names)
+        params.values = [float(v) for v in calibration.calibrated.vector()]
+        params.errors = [float(v) for v in est.errors]
+        params.std = [float(v) for v in est.std]
+        params.identifiable = [bool(v) for v in est.identifiable]
+        params.iterations = int(est.fit.iterations)
         params.sample_count = count
         response.parameters = params
-        stats = result["spot_error"]["calibration"]
+        stats = calibration.spot_error["calibration"]
         for field in ("before", "after"):
             values = laser_statistics(stats[field])
             msg = self.SpotStatistics()
@@ -292,11 +293,11 @@ class Estimator(Node):
             msg.count = values["count"]
             setattr(response, field, msg)
         response.diagnosis_json = outcome.diagnosis_json
-        response.report_markdown = outcome.files["report.md"]
-        response.result_json = outcome.files["result.json"]
-        response.calibrated_robot_yaml = outcome.files["robot_calibrated.yaml"]
+        response.report_markdown = report_markdown(calibration)
+        response.result_json = result_json(calibration)
+        response.calibrated_robot_yaml = calibrated_robot_yaml(calibration)
         response.success = True
-        response.message = outcome.message
+        response.message = calibration.summary()
 
 
 def main(args=None) -> int:

@@ -11,7 +11,7 @@ samples.csv one row per pose, and a rosbag2 MCAP bag of all session topics in
 closed segments (io.bag_writer.SegmentedBagWriter), so a crash loses at most the pose in
 progress. Started again on a partial session directory it resumes after the
 last completed pose (``resume``). At the end it calls the estimator's Estimate
-service (or runs laser_calib.report.files.run_estimate itself, ``estimate.mode``
+service (or runs laser_calib.session.estimate.run_calibration itself, ``estimate.mode``
 'local') and writes the command line's report, result and calibrated robot.
 
 Progress: one log line per pose (pose k of n, time left) and
@@ -409,10 +409,9 @@ class Sequencer(Node):
             return
         self.publish_progress("estimating", -1)
         if self.estimate_mode == "local":
-            from laser_calib.session.estimate import estimate_options, run_and_collect
+            from laser_calib.session.estimate import estimate_options, run_calibration
             options = estimate_options(self.method, self.spot_sigma, self.prior, self.robust)
-            outcome = run_and_collect(self.robot, samples, options, self.session.path, self.diagnose)
-            message = outcome.message
+            message = run_calibration(self.robot, samples, options, self.session.path, self.diagnose).calibration.summary()
         else:
             message = self.call_service(samples)
         self.session.set_info(state="finished")

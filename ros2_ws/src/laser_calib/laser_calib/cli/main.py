@@ -87,20 +87,20 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     test = load_samples(args.test, robot) if args.test else None
     options = _options(args)
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
-    result = run_estimate(robot, samples, options, args.out, test,
-                          sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
-                                   "test": str(args.test) if args.test else None})
-    _summary(result)
+    calibration = run_estimate(robot, samples, options, args.out, test,
+                               sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
+                                        "test": str(args.test) if args.test else None})
+    _summary(calibration)
     print(f"wrote {args.out}/robot_calibrated.yaml, result.json, report.md")
     return 0
 
 
-def _summary(result: dict) -> None:
-    for set_name, by_model in result["spot_error"].items():
+def _summary(calibration) -> None:
+    for set_name, by_model in calibration.spot_error.items():
         b, a = by_model["before"]["all"], by_model["after"]["all"]
         print(f"{set_name:12s} mean spot error {b['mean_mm']:.3f} mm -> {a['mean_mm']:.3f} mm "
               f"(max {b['max_mm']:.3f} -> {a['max_mm']:.3f}; {a['n']} spots)")
-    for warning in result["warnings"]:
+    for warning in calibration.estimate.warnings:
         print(f"warning: {warning}")
 
 

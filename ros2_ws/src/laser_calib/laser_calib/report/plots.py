@@ -10,9 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from laser_calib.model.kinematics import predict  # noqa: E402
-from laser_calib.model.robot import Robot, param_kinds  # noqa: E402
-from laser_calib.io.samples import Samples  # noqa: E402
+from laser_calib.model.robot import Screen, param_kinds  # noqa: E402
 
 PANELS = (("link length a", "a"), ("link offset d", "d"), ("link twist alpha", "alpha"),
           ("joint angle theta", "theta"), ("SLM", "slm"))
@@ -52,20 +50,19 @@ def plot_convergence(history: np.ndarray, names: tuple[str, ...], n_joints: int,
     save_figure(fig, path)
 
 
-def plot_screen(robot: Robot, samples: Samples, values: np.ndarray, path: Path) -> None:
-    """Measured spots and the spots predicted before/after calibration on the screen."""
-    before = predict(robot, samples.q).spots
-    after = predict(robot, samples.q, values[:robot.n_params]).spots
+def plot_screen(screen: Screen, measured: np.ndarray, before: np.ndarray, after: np.ndarray, path: Path) -> None:
+    """Measured spots and the spots predicted before/after calibration on the screen;
+    measured, before, after (P,2,2) screen (y, z) in m."""
     fig, ax = plt.subplots(figsize=(6, 6))
     for j, marker in enumerate(("o", "s")):
-        ax.plot(samples.spots[:, j, 0], samples.spots[:, j, 1], marker, mfc="none", color="k", ms=6,
+        ax.plot(measured[:, j, 0], measured[:, j, 1], marker, mfc="none", color="k", ms=6,
                 label=f"laser {j + 1} measured")
         ax.plot(before[:, j, 0], before[:, j, 1], "x", color="tab:red", ms=4,
                 label=f"laser {j + 1} nominal model")
         ax.plot(after[:, j, 0], after[:, j, 1], "+", color="tab:green", ms=6,
                 label=f"laser {j + 1} calibrated model")
-    ax.set_xlim(-robot.screen.half_y, robot.screen.half_y)
-    ax.set_ylim(-robot.screen.half_z, robot.screen.half_z)
+    ax.set_xlim(-screen.half_y, screen.half_y)
+    ax.set_ylim(-screen.half_z, screen.half_z)
     ax.set_xlabel("screen y (m)")
     ax.set_ylabel("screen z (m)")
     ax.set_aspect("equal")

@@ -1,29 +1,25 @@
 """The batch estimate as the nodes run it (ROS-free): the command line's code path.
 
 Both the estimator's Estimate service and the sequencer's local mode call
-run_and_collect, which calls laser_calib.report.files.run_estimate (what
-`laser-calib estimate` calls) and gathers what a ROS answer carries: the
-result dictionary, the text of the files it wrote, the calibrated model.
+run_calibration: report.calibration.calibrate (what `laser-calib estimate`
+runs), the files written from its result when there is a folder for them, and
+the diagnosis on request. The service fills its response from the result object.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from laser_calib.io.errors import InputError
+from laser_calib.diagnosis.engine import DiagnoseOptions, diagnose, write_outputs as write_diagnosis
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
-from laser_calib.model.robot import Robot
-from laser_calib.report.files import run_estimate
-from laser_calib.model.robot_file import load_robot
+from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
-
-FILES = ("report.md", "result.json", "robot_calibrated.yaml")
+from laser_calib.model.robot import Robot
+from laser_calib.report.calibration import Calibration, calibrate
+from laser_calib.report.files import write_outputs
 
 
 def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool) -> EstimateOptions:
@@ -43,62 +39,46 @@ def online_options(spot_sigma: float) -> EstimateOptions:
 
 @dataclass(frozen=True)
 class Outcome:
-    result: dict
-    files: dict[str, str]
-    calibrated: Robot
+    """What a ROS answer carries: the calibration and the diagnosis's JSON ('' when not run)."""
+
+    calibration: Calibration
     diagnosis_json: str
-    message: str
 
 
-def run_and_collect(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
+def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
                     diagnose: bool = False, sources: dict | None = None) -> Outcome:
-    """run_estimate into out_dir (a temporary directory when None); ValueError from
-    the estimate (too few spots, ...) becomes an InputError."""
-    with tempfile.TemporaryDirectory(prefix="laser_calib_estimate_") as tmp:
-        target = Path(out_dir) if out_dir else Path(tmp)
-        try:
-            result = run_estimate(robot, samples, options, target, sources=sources)
-        except ValueError as exc:
-            if isinstance(exc, InputError):
-                raise
-            raise InputError("estimate", str(exc)) from None
-        files = {name: (target / name).read_text() for name in FILES}
-        calibrated = load_robot(target / "robot_calibrated.yaml")
-        diagnosis = ""
-        if diagnose:
-            diagnosis = json.dumps(run_diagnosis(robot, samples, options, result, target))
-    return Outcome(result, files, calibrated, diagnosis, summary(result, len(samples)))
+    """calibrate() (what `laser-calib estimate` runs), its files into out_dir when given;
+    ValueError from the estimate (too few spots, ...) becomes an InputError."""
+    try:
+        calibration = calibrate(robot, samples, options, sources=sources)
+    except ValueError as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError("estimate", str(exc)) from None
+    if out_dir:
+        write_outputs(calibration, out_dir)
+    diagnosis = ""
+    if diagnose:
+        diagnosis = json.dumps(run_diagnosis(robot, samples, options, Path(out_dir) if out_dir else None))
+    return Outcome(calibration, diagnosis)
 
 
-def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, result: dict, out: Path) -> dict:
+def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out: Path | None) -> dict:
     """laser_calib.diagnosis.engine.diagnose (what `laser-calib diagnose` runs) on the same samples.
 
     Its files (diagnosis.json, report.md with plots, robot_calibrated.yaml with
-    the effects) go to out/diagnosis/, beside the geometric estimate's. Always
-    LM: the diagnosis runs dozens of fits. Returns the JSON.
+    the effects) go to out/diagnosis/, beside the geometric estimate's, when out
+    is given. Always LM: the diagnosis runs dozens of fits. Returns the JSON.
     """
-    from laser_calib.diagnosis.engine import DiagnoseOptions, diagnose, write_outputs
     diagnosis = diagnose(robot, samples, options=DiagnoseOptions(
         method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma or None))
-    write_outputs(diagnosis, out / "diagnosis", {"robot": robot.name, "samples": f"{len(samples)} session samples"})
+    if out is not None:
+        write_diagnosis(diagnosis, out / "diagnosis", {"robot": robot.name, "samples": f"{len(samples)} session samples"})
     return diagnosis.to_json()
 
 
-def summary(result: dict, n_samples: int) -> str:
-    """One line: the spot error before and after, as the command line prints it."""
-    by_model = result["spot_error"]["calibration"]
-    before, after = by_model["before"]["all"], by_model["after"]["all"]
-
-    def mm(value):
-        return "n/a" if value is None else f"{value:.3f}"
-
-    return (f"{result['method']} on {n_samples} poses: mean spot error {mm(before['mean_mm'])} mm -> "
-            f"{mm(after['mean_mm'])} mm (max {mm(before['max_mm'])} -> {mm(after['max_mm'])}; {after['n']} spots)"
-            + ("; " + "; ".join(result["warnings"]) if result.get("warnings") else ""))
-
-
 def laser_statistics(stats: dict) -> dict[str, list[float]]:
-    """Per-laser mean/std/max in metres and counts from pipeline's laser_stats (mm)."""
+    """Per-laser mean/std/max in metres and counts from report.statistics.laser_stats (mm)."""
     out = {"mean": [], "std": [], "max": [], "count": []}
     for j in range(2):
         entry = stats.get(f"laser{j + 1}", {})
@@ -107,11 +87,3 @@ def laser_statistics(stats: dict) -> dict[str, list[float]]:
             out[key].append(math.nan if value is None else value * 1e-3)
         out["count"].append(int(entry.get("n", 0)))
     return out
-
-
-def parameter_arrays(result: dict) -> tuple[list[str], np.ndarray, np.ndarray, list[bool]]:
-    names = [e["name"] for e in result["errors"]]
-    errors = np.array([math.nan if e["value"] is None else e["value"] for e in result["errors"]])
-    std = np.array([math.nan if e["std"] is None else e["std"] for e in result["errors"]])
-    identifiable = [bool(e["identifiable"]) for e in result["errors"]]
-    return names, errors, std, identifiable
