@@ -22,6 +22,7 @@ from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.io.ament import installed
 from laser_calib.io.bag import read_samples
 from laser_calib.io.samples import check_joint_range, load_samples, save_samples
 from laser_calib.sim.simulation import CASES, NoiseSpec, paper_session
@@ -127,19 +128,10 @@ def cmd_slm_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-def replay_executable() -> Path | None:
-    """The nodes package's `replay` executable, found as `ros2 run` finds it (the ament prefixes)."""
-    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
-        candidate = Path(prefix) / "lib" / "laser_calib_nodes" / "replay"
-        if prefix and os.access(candidate, os.X_OK):
-            return candidate
-    return None
-
-
 def cmd_replay(args: argparse.Namespace) -> int:
     """Hand over to the replay node (a ROS process): the core itself never imports rclpy."""
-    executable = replay_executable()
-    if executable is None:
+    executable = installed("lib/laser_calib_nodes/replay")
+    if executable is None or not os.access(executable, os.X_OK):
         raise InputError("replay", "needs the ROS 2 environment: run scripts/setup, then use scripts/laser-calib "
                                    "(or source scripts/env.sh)")
     os.execv(executable, [str(executable), args.bag, "--rate", str(args.rate)])

@@ -14,6 +14,7 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.typesys import Stores, get_typestore, get_types_from_msg
 from rosbags.typesys.store import Typestore
 
+from laser_calib.io.ament import installed
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 
@@ -33,13 +34,9 @@ def qos(reliable: bool = True, transient_local: bool = False, depth: int = 10) -
 
 def interfaces_msg_dir() -> Path:
     """The .msg files of laser_calib_interfaces: installed share, else the source tree."""
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        path = Path(get_package_share_directory(INTERFACES)) / "msg"
-        if path.is_dir():
-            return path
-    except Exception:  # no ament index (ROS-free use): fall back to the sources
-        pass
+    path = installed(f"share/{INTERFACES}/msg")
+    if path is not None and path.is_dir():
+        return path
     path = Path(__file__).resolve().parents[3] / INTERFACES / "msg"
     if path.is_dir():
         return path

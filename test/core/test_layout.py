@@ -1,0 +1,93 @@
+"""The layout's rules (docs/architecture.md), checked on the source itself.
+
+The core is ROS-free and never reaches into the nodes package; its subpackages
+import on their own, with no import circle.
+"""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[2] / "ros2_ws" / "src"
+CORE = SRC / "laser_calib" / "laser_calib"
+NODES = SRC / "laser_calib_nodes" / "laser_calib_nodes"
+ROS_ONLY = ("rclpy", "laser_calib_nodes", "laser_calib_interfaces", "launch", "launch_ros", "ament_index_python")
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(CORE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports(path: Path) -> list[tuple[str, int]]:
+    """(imported module, line) of every import statement, module level or not."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(alias.name, node.lineno) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append((node.module, node.lineno))
+            found += [(f"{node.module}.{alias.name}", node.lineno) for alias in node.names]
+    return found
+
+
+CORE_FILES = sorted(CORE.rglob("*.py"))
+
+
+def test_the_core_imports_nothing_of_ros():
+    offending = [f"{path.relative_to(SRC)}:{line} imports {name}"
+                 for path in CORE_FILES for name, line in imports(path)
+                 if name.split(".")[0] in ROS_ONLY]
+    assert not offending, "\n".join(offending)
+
+
+def test_no_import_circle_in_the_core():
+    known = {module_name(p) for p in CORE_FILES}
+    graph = {}
+    for path in CORE_FILES:
+        tree = ast.parse(path.read_text())
+        targets = set()
+        for node in tree.body:  # module level: what runs at import time
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                for name in [node.module] + [f"{node.module}.{a.name}" for a in node.names]:
+                    if name in known:
+                        targets.add(name)
+            elif isinstance(node, ast.Import):
+                targets |= {a.name for a in node.names if a.name in known}
+        graph[module_name(path)] = targets - {module_name(path)}
+    # Packages import their modules through __init__; a module importing its own
+    # package's face is not a circle of roles, so only module-to-module edges count.
+    packages = {module_name(p) for p in CORE_FILES if p.name == "__init__.py"}
+    state, circles = {}, []
+
+    def visit(node, stack):
+        state[node] = "open"
+        for nxt in graph.get(node, ()):
+            if nxt in packages or node in packages:
+                continue
+            if state.get(nxt) == "open":
+                circles.append(stack[stack.index(nxt):] + [nxt])
+            elif nxt not in state:
+                visit(nxt, stack + [nxt])
+        state[node] = "done"
+
+    for start in sorted(graph):
+        if start not in state:
+            visit(start, [start])
+    assert not circles, "import circles: " + "; ".join(" -> ".join(c) for c in circles)
+
+
+SUBPACKAGES = sorted(p.parent.name for p in CORE.glob("*/__init__.py"))
+
+
+@pytest.mark.parametrize("package", SUBPACKAGES)
+def test_each_subpackage_imports_on_its_own(package):
+    modules = sorted(module_name(p) for p in (CORE / package).rglob("*.py") if p.name != "__main__.py")
+    code = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module(m)\n"
+    done = subprocess.run([sys.executable, "-c", code, *modules], capture_output=True, text=True,
+                          env={"PYTHONPATH": str(CORE.parent), "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0, done.stderr[-2000:]
+
