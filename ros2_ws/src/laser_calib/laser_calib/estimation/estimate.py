@@ -30,7 +30,7 @@ from laser_calib.estimation.identifiability import Identifiability, analyse
 from laser_calib.measurement.base import (ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, count_values,
                                           whiten)
 from laser_calib.measurement.spot import SpotModel
-from laser_calib.model.robot import Robot, param_kinds
+from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
 
 METHODS = ("lm", "ekf")
@@ -104,8 +104,8 @@ def prior_sigmas(model: MeasurementModel, n_geometric: int, options: EstimateOpt
     if not options.prior:
         return None
     sigma = np.full(len(model.names), np.inf)
-    kinds = param_kinds((n_geometric - 5) // 4)
-    sigma[:n_geometric] = np.where(kinds == "length", options.prior_length, options.prior_angle)
+    lengths = model.scales[:n_geometric] == LENGTH_SCALE  # D-H or joint placements alike
+    sigma[:n_geometric] = np.where(lengths, options.prior_length, options.prior_angle)
     return sigma
 
 

@@ -54,8 +54,12 @@ class SensorFitOptions:
     scale: bool = False
 
 
+_FRAME_NAMES = frozenset(f"{frame}_{p}" for frame in FRAMES for p in FRAME_PARAMS)
+
+
 def is_frame_param(name: str) -> bool:
-    return name.split("_", 1)[0] in FRAMES
+    """Exact names: a URDF joint may be called base_joint."""
+    return name in _FRAME_NAMES
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,11 @@ def geometric_scales(n_joints: int) -> np.ndarray:
     return np.where(param_kinds(n_joints) == "length", LENGTH_SCALE, ANGLE_SCALE)
 
 
+def robot_scales(robot) -> np.ndarray:
+    """(n_params,) characteristic sizes of a robot's parameters (D-H or joint placements)."""
+    return np.where(robot.param_kinds() == "length", LENGTH_SCALE, ANGLE_SCALE)
+
+
 @dataclass(frozen=True)
 class NoiseModel:
     """Measurement noise: sigma (m) per measured value, and joint-reading noise

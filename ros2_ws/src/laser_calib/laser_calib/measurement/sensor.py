@@ -35,8 +35,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from laser_calib.model.kinematics import joint_columns
-from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, Residuals, geometric_scales
+from laser_calib.model.kinematics import joint_jacobian
+from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, Residuals, robot_scales
 from laser_calib.model.robot import Robot
 from laser_calib.measurement.chain import chain_names, target_in_sensor
 from laser_calib.measurement.frames import FRAME_PARAMS, robot_frames
@@ -65,7 +65,7 @@ class _SensorModel:
         self.index = np.array([i for i, name in enumerate(full) if name not in drop])
         self.scale = scale
         self.names = tuple(full[i] for i in self.index) + (SCALE_NAMES if scale else ())
-        chain_scales = np.concatenate([geometric_scales(robot.n_joints), np.tile(FRAME_SCALES, 3)])[self.index]
+        chain_scales = np.concatenate([robot_scales(robot), np.tile(FRAME_SCALES, 3)])[self.index]
         self.scales = np.concatenate([chain_scales, np.full(3 if scale else 0, SCALE_SCALE)])
         self.n_full = len(full)
 
@@ -97,7 +97,7 @@ class _SensorModel:
         jac_q = None
         if jac is not None:
             jac = np.where(valid[..., None, None], jac[:, None], 0.0)
-            jac_q = jac[..., joint_columns(self.robot)]
+            jac_q = joint_jacobian(self.robot, jac)
         return Residuals(r, valid, jac, jac_q, predicted[:, None])
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from laser_calib.io.samples import Samples
-from laser_calib.measurement.base import Residuals, geometric_scales
-from laser_calib.model.kinematics import joint_columns, predict
+from laser_calib.measurement.base import Residuals, robot_scales
+from laser_calib.model.kinematics import joint_jacobian, predict
 from laser_calib.model.robot import Robot
 
 
@@ -19,7 +19,7 @@ class SpotModel:
         self.robot = robot
         self.samples = samples
         self.names = robot.param_names
-        self.scales = geometric_scales(robot.n_joints)
+        self.scales = robot_scales(robot)
         self._last: tuple | None = None
 
     def residuals(self, x: np.ndarray, jacobian: bool = True) -> Residuals:
@@ -50,5 +50,5 @@ def spot_residuals(samples: Samples, predicted: np.ndarray, k: np.ndarray, jac: 
     jac_q = None
     if jacobian:
         jac = np.where(valid[..., None, None], np.nan_to_num(jac), 0.0)
-        jac_q = jac[..., joint_columns(robot)]
+        jac_q = joint_jacobian(robot, jac)
     return Residuals(r, valid, jac, jac_q, predicted)

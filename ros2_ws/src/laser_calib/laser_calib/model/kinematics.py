@@ -18,32 +18,85 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from laser_calib.model.joint_chain import PRISMATIC
 from laser_calib.model.robot import PAPER, Robot
 
 X, Y, Z = 0, 1, 2
-TRANS, ROT = 0, 1
+TRANS, ROT, FIXED = 0, 1, 2
+DH_READING = (1.0, 0.0)  # a D-H joint's value is theta0 + 1 * q + 0
 
 
-def chain_ops(robot: Robot) -> list[tuple[int, int, int]]:
-    """(kind, axis, parameter index) of each elementary transform, base to SLM.
+@dataclass(frozen=True, eq=False)
+class Op:
+    """One elementary transform of the chain.
 
-    Joint angle transforms use parameter index 4i+3 (theta0_i); q_i is added to it.
+    kind TRANS / ROT: along / about ``axis`` (0, 1, 2 for x, y, z of the frame
+    before it, or a unit vector (3,) in that frame) by params[index], plus for a
+    joint multiplier * q[:, reading] + constant (reading -1: none). FIXED: the
+    constant transform ``fixed`` (4,4), no parameter.
     """
+
+    kind: int
+    axis: int | np.ndarray = X
+    index: int = -1
+    reading: int = -1
+    multiplier: float = 1.0
+    constant: float = 0.0
+    records: bool = False  # this op is a read joint: its origin and axis go to joint_origin / joint_axis
+    fixed: np.ndarray | None = None
+
+
+def _dh_ops(robot: Robot) -> list[Op]:
     ops = []
     for i in range(robot.n_joints):
         a, d, alpha, theta = 4 * i, 4 * i + 1, 4 * i + 2, 4 * i + 3
+        joint = Op(ROT, Z, theta, i, *DH_READING, records=True)
         if robot.convention == PAPER:
-            ops += [(TRANS, X, a), (TRANS, Z, d), (ROT, X, alpha), (ROT, Z, theta)]
+            ops += [Op(TRANS, X, a), Op(TRANS, Z, d), Op(ROT, X, alpha), joint]
         else:  # standard D-H: Trans(z,d) Rot(z,theta) Trans(x,a) Rot(x,alpha)
-            ops += [(TRANS, Z, d), (ROT, Z, theta), (TRANS, X, a), (ROT, X, alpha)]
-    s = 4 * robot.n_joints
-    ops += [(TRANS, X, s), (TRANS, Z, s + 1), (ROT, X, s + 2), (ROT, Y, s + 3), (ROT, Z, s + 4)]
+            ops += [Op(TRANS, Z, d), joint, Op(TRANS, X, a), Op(ROT, X, alpha)]
     return ops
 
 
-def _rotate(rotation: np.ndarray, axis: int, angle: np.ndarray) -> np.ndarray:
-    """rotation @ Rot(axis, angle) for stacks: rotation (P,3,3), angle (P,)."""
+def _placement_ops(robot: Robot, tip: int) -> list[Op]:
+    """Origin, placement error and motion of each joint from the base to tip ``tip``."""
+    chain = robot.chain
+    ops = []
+    for j in chain.tips[tip]:
+        joint = chain.joints[j]
+        ops.append(Op(FIXED, fixed=joint.origin))
+        if not joint.movable:
+            continue
+        b = chain.block(j)
+        ops += [Op(TRANS, X, b), Op(TRANS, Y, b + 1), Op(TRANS, Z, b + 2),
+                Op(ROT, X, b + 3), Op(ROT, Y, b + 4), Op(ROT, Z, b + 5)]
+        ops.append(Op(TRANS if joint.kind == PRISMATIC else ROT, joint.axis, b + 6, joint.reading,
+                      joint.multiplier, joint.mimic_offset, records=not joint.coupled))
+    return ops
+
+
+def chain_ops(robot: Robot, tip: int = 0) -> list[Op]:
+    """The elementary transforms from the base to the SLM (or the tip without one).
+
+    A D-H joint's angle transform has parameter index 4i+3 (theta0_i) and q_i
+    added to it; a chain of joint placements (joint_chain.py) has per joint its
+    origin, 6 placement errors and the motion by offset + reading.
+    """
+    ops = _dh_ops(robot) if robot.chain is None else _placement_ops(robot, tip)
+    if robot.slm is not None:
+        s = robot.n_link_params
+        ops += [Op(TRANS, X, s), Op(TRANS, Z, s + 1), Op(ROT, X, s + 2), Op(ROT, Y, s + 3), Op(ROT, Z, s + 4)]
+    return ops
+
+
+def _rotate(rotation: np.ndarray, axis: int | np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """rotation @ Rot(axis, angle) for stacks: rotation (P,3,3), angle (P,); axis
+    0/1/2 or a unit vector (3,) (Rodrigues)."""
     c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    if not isinstance(axis, int):
+        k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+        turn = np.eye(3) + s[:, :, None] * k + (1 - c)[:, :, None] * (k @ k)
+        return rotation @ turn
     out = rotation.copy()
     i, j = {X: (1, 2), Y: (2, 0), Z: (0, 1)}[axis]
     out[:, :, i] = c * rotation[:, :, i] + s * rotation[:, :, j]
@@ -78,31 +131,38 @@ class ChainState:
     twists: np.ndarray | None
 
 
-def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twists: bool = False) -> ChainState:
-    """Forward kinematics at joint readings q (P,N) with errors (n,) or (P,n)."""
+def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twists: bool = False,
+            tip: int = 0) -> ChainState:
+    """Forward kinematics at joint readings q (P,N) with errors (n,) or (P,n);
+    ``tip``: which tip of a tree of joint placements."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     n_poses = q.shape[0]
     params = np.broadcast_to(robot.vector(), (n_poses, robot.n_params)).copy()
     if errors is not None:
         params += errors
-    params[:, 3:4 * robot.n_joints:4] += q
 
     rotation = np.broadcast_to(np.eye(3), (n_poses, 3, 3)).copy()
     origin = np.zeros((n_poses, 3))
-    joint_origin = np.empty((n_poses, robot.n_joints, 3))
-    joint_axis = np.empty((n_poses, robot.n_joints, 3))
+    joint_origin = np.full((n_poses, robot.n_joints, 3), np.nan)
+    joint_axis = np.full((n_poses, robot.n_joints, 3), np.nan)
     before = []  # (kind, axis u (P,3), origin o (P,3), index) for the twists
-    for kind, axis, index in chain_ops(robot):
-        value = params[:, index]
-        u = rotation[:, :, axis].copy()
-        before.append((kind, u, origin.copy(), index))
-        if kind == TRANS:
+    for op in chain_ops(robot, tip):
+        if op.kind == FIXED:
+            origin = origin + rotation @ op.fixed[:3, 3]
+            rotation = rotation @ op.fixed[:3, :3]
+            continue
+        value = params[:, op.index]
+        if op.reading >= 0:
+            value = value + (op.multiplier * q[:, op.reading] + op.constant)
+        u = rotation[:, :, op.axis].copy() if isinstance(op.axis, int) else rotation @ op.axis
+        before.append((op.kind, u, origin.copy(), op.index))
+        if op.records:
+            joint_origin[:, op.reading] = origin
+            joint_axis[:, op.reading] = u
+        if op.kind == TRANS:
             origin = origin + u * value[:, None]
         else:
-            if index % 4 == 3 and index < 4 * robot.n_joints:
-                joint_origin[:, index // 4] = origin
-                joint_axis[:, index // 4] = u
-            rotation = _rotate(rotation, axis, value)
+            rotation = _rotate(rotation, op.axis, value)
 
     laser_rotations = [rot_x(g) @ rot_y(b) for g, b in robot.laser_angles()]
     beams = np.stack([rotation @ r[:, 2] for r in laser_rotations] or [np.zeros((n_poses, 0, 3))], axis=1)
@@ -112,7 +172,8 @@ def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twist
         jac1 = np.zeros((n_poses, 6, robot.n_params))
         trans = [index for kind, _, _, index in before if kind == TRANS]
         rots = [index for kind, _, _, index in before if kind == ROT]
-        jac1[:, :3, trans] = np.stack([u for kind, u, _, _ in before if kind == TRANS], axis=-1)
+        if trans:
+            jac1[:, :3, trans] = np.stack([u for kind, u, _, _ in before if kind == TRANS], axis=-1)
         u = np.stack([u for kind, u, _, _ in before if kind == ROT], axis=-1)          # (P,3,K)
         lever = origin[:, :, None] - np.stack([o for kind, _, o, _ in before if kind == ROT], axis=-1)
         jac1[:, :3, rots] = np.cross(u, lever, axis=1)
@@ -184,5 +245,21 @@ def predict(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, jacob
 
 
 def joint_columns(robot: Robot) -> np.ndarray:
-    """Indices of the theta errors: the measurement Jacobian's columns for dq_i too."""
-    return np.arange(robot.n_joints) * 4 + 3
+    """Indices of the theta errors (the offsets of a chain's read joints): the
+    measurement Jacobian's columns for dq_i too, when no joint is coupled."""
+    if robot.chain is None:
+        return np.arange(robot.n_joints) * 4 + 3
+    by_name = {j.name: i for i, j in enumerate(robot.chain.joints)}
+    return np.array([robot.chain.block(by_name[name]) + 6 for name in robot.chain.readings], dtype=int)
+
+
+def joint_jacobian(robot: Robot, jac: np.ndarray) -> np.ndarray:
+    """d predicted / d q (..., N) from the parameter Jacobian (..., n): a reading
+    moves its joint's offset, and each joint coupled to it by its multiplier."""
+    out = jac[..., joint_columns(robot)]
+    if robot.chain is not None:
+        for j in robot.chain.movable:
+            joint = robot.chain.joints[j]
+            if joint.coupled:
+                out[..., joint.reading] += joint.multiplier * jac[..., robot.chain.block(j) + 6]
+    return out

@@ -7,6 +7,10 @@ the error vector, so that a corrected model is simply ``nominal + errors``:
      slm_a, slm_d, slm_alpha, slm_beta, slm_theta]           shape (4N+5,)
 
 and the errors are [Δa_1, Δd_1, Δα_1, Δθ_1, ..., Δx_s, Δz_s, Δrx_s, Δry_s, Δrz_s].
+A robot without lasers needs no SLM (slm None): its vector ends with the links.
+A robot given by joint placements (URDF, ``chain``) has the chain's 7 values
+per movable joint (joint_chain.py) in place of the D-H block, then the SLM's 5
+if it carries lasers: a measurement kind brings only its own parameters.
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Mapping
 
 import numpy as np
+
+from laser_calib.model.joint_chain import JointChain
 
 PAPER = "paper"        # T_i = Trans(x,a) Trans(z,d) Rot(x,alpha) Rot(z,theta)
 STANDARD = "standard"  # T_i = Trans(z,d) Rot(z,theta) Trans(x,a) Rot(x,alpha)
@@ -57,53 +63,75 @@ class Screen:
 
 @dataclass(frozen=True)
 class Robot:
+    """joints: the D-H links (empty for a chain of joint placements, ``chain``)."""
+
     name: str
     joints: tuple[Joint, ...]
-    slm: Slm
+    slm: Slm | None
     lasers: tuple[Laser, ...]
     screen: Screen = Screen()
     gravity: tuple[float, float, float] = (0.0, 0.0, -1.0)
     convention: str = PAPER
     # Keys this module does not interpret (effects, frames): kept verbatim on write.
     extra: Mapping[str, Any] = field(default_factory=dict)
+    chain: JointChain | None = None
 
     @property
     def n_joints(self) -> int:
-        return len(self.joints)
+        """Number of joint readings (columns of q)."""
+        return len(self.joints) if self.chain is None else len(self.chain.readings)
+
+    @property
+    def n_link_params(self) -> int:
+        """Size of the arm's block: 4N for D-H, 7 per movable joint for a chain."""
+        return 4 * self.n_joints if self.chain is None else self.chain.n_params
 
     @property
     def n_params(self) -> int:
-        return 4 * self.n_joints + 5
+        return self.n_link_params + (len(SLM_PARAMS) if self.slm is not None else 0)
 
     @property
     def param_names(self) -> tuple[str, ...]:
-        return param_names(self.n_joints)
+        links = self.chain.names if self.chain is not None else param_names(self.n_joints)[:4 * self.n_joints]
+        return links + (SLM_PARAMS if self.slm is not None else ())
+
+    def param_kinds(self) -> np.ndarray:
+        """'length' or 'angle' per parameter (n_params,)."""
+        links = self.chain.kinds() if self.chain is not None else param_kinds(self.n_joints)[:4 * self.n_joints]
+        slm = param_kinds(0) if self.slm is not None else np.array([], str)
+        return np.concatenate([links, slm])
 
     @property
     def q_min(self) -> np.ndarray:
-        return np.array([j.min for j in self.joints])
+        return np.array([j.min for j in self.joints]) if self.chain is None else self.chain.limits()[0]
 
     @property
     def q_max(self) -> np.ndarray:
-        return np.array([j.max for j in self.joints])
+        return np.array([j.max for j in self.joints]) if self.chain is None else self.chain.limits()[1]
 
     def vector(self) -> np.ndarray:
-        """Nominal parameter vector, shape (4N+5,)."""
-        links = [(j.a, j.d, j.alpha, j.theta0) for j in self.joints]
+        """Nominal parameter vector, shape (n_params,)."""
+        if self.chain is not None:
+            links = list(self.chain.values)
+        else:
+            links = [v for j in self.joints for v in (j.a, j.d, j.alpha, j.theta0)]
         s = self.slm
-        return np.array([v for link in links for v in link] + [s.a, s.d, s.alpha, s.beta, s.theta])
+        return np.array(links + ([s.a, s.d, s.alpha, s.beta, s.theta] if s is not None else []))
 
     def with_vector(self, params: np.ndarray) -> "Robot":
-        """The same robot with its D-H values replaced by ``params`` (4N+5,)."""
+        """The same robot with its parameter values replaced by ``params`` (n_params,)."""
         params = np.asarray(params, dtype=float)
         if params.shape != (self.n_params,):
             raise ValueError(f"parameter vector has shape {params.shape}, expected ({self.n_params},)")
+        n = self.n_link_params
+        slm = None if self.slm is None else Slm(*params[n:n + 3], theta=params[n + 4], beta=params[n + 3])
+        if self.chain is not None:
+            return replace(self, chain=self.chain.with_values(params[:n]), slm=slm)
         joints = tuple(
             replace(j, a=params[4 * i], d=params[4 * i + 1], alpha=params[4 * i + 2], theta0=params[4 * i + 3])
             for i, j in enumerate(self.joints)
         )
-        a, d, alpha, beta, theta = params[4 * self.n_joints:]
-        return replace(self, joints=joints, slm=Slm(a=a, d=d, alpha=alpha, theta=theta, beta=beta))
+        return replace(self, joints=joints, slm=slm)
 
     def with_errors(self, errors: np.ndarray) -> "Robot":
         """The corrected robot: nominal values plus the geometric errors (4N+5,)."""

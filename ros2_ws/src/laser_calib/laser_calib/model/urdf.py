@@ -1,0 +1,167 @@
+"""A robot from a URDF (or xacro) description: the joint placements from a base
+link to one or more tip links (joint_chain.py).
+
+Parsed with yourdfpy (maintained, pure Python, reads every URDF element and
+keeps mimic and limits; urdfdom-py is not on PyPI for Python 3.12). A .xacro
+file is expanded to URDF text with the ``xacro`` package first. The URDF text
+itself is kept in the chain, so the calibrated description can be written as the
+same file with corrected origins (report/urdf_export.py). The ROS nodes get the
+text from the /robot_description parameter: robot_from_urdf(text, base, tip).
+
+Joint readings q are the read (non-mimic) movable joints, in the order they are
+met walking from the base to each tip in turn; a mimic joint's source that is
+not itself on the way is read too.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from laser_calib.io.errors import InputError
+from laser_calib.model.joint_chain import FIXED_JOINT, PRISMATIC, REVOLUTE, ChainJoint, JointChain
+from laser_calib.model.robot import Laser, Robot, Screen, Slm
+
+URDF_SUFFIXES = (".urdf", ".xacro")
+_KINDS = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC, "fixed": FIXED_JOINT}
+UNLIMITED = 1e3  # rad or m: the range of a continuous joint (no limit in the file)
+
+
+def urdf_text(path: str | Path) -> str:
+    """The URDF text of a .urdf file, or of a .xacro file after expansion."""
+    path = Path(path)
+    try:
+        if path.suffix == ".xacro":
+            import xacro  # only for xacro input
+
+            return xacro.process_file(str(path)).toxml()
+        return path.read_text()
+    except OSError as exc:
+        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
+    except Exception as exc:  # xacro raises its own XacroException and XML errors
+        raise InputError(str(path), f"xacro failed ({exc})") from None
+
+
+def _parse(text: str, source: str):
+    import yourdfpy
+
+    try:
+        return yourdfpy.URDF.load(io.BytesIO(text.encode()), build_scene_graph=False, load_meshes=False)
+    except Exception as exc:  # lxml and yourdfpy raise many types for a broken file
+        raise InputError(source, f"not a valid URDF ({exc})") from None
+
+
+def _path(joints_by_child: dict, base: str, tip: str, source: str) -> list:
+    """The URDF joints from base to tip."""
+    path, link = [], tip
+    while link != base:
+        if link not in joints_by_child:
+            raise InputError(source, f"link '{tip}' is not below link '{base}'")
+        joint = joints_by_child[link]
+        path.append(joint)
+        link = joint.parent
+    return path[::-1]
+
+
+def _chain_joint(joint, source: str) -> ChainJoint:
+    where = f"{source}: joint '{joint.name}'"
+    if joint.type not in _KINDS:
+        raise InputError(where, f"type '{joint.type}' cannot be calibrated (revolute, continuous, prismatic, fixed)")
+    origin = np.eye(4) if joint.origin is None else np.asarray(joint.origin, float)
+    axis = np.asarray(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), float)
+    norm = np.linalg.norm(axis)
+    if _KINDS[joint.type] != FIXED_JOINT and not (np.isfinite(norm) and norm > 0):
+        raise InputError(f"{where}: axis", f"expected a non-zero axis, got {axis.tolist()}")
+    limit = joint.limit
+    limited = joint.type != "continuous" and limit is not None and limit.lower is not None and limit.upper is not None
+    lower, upper = (float(limit.lower), float(limit.upper)) if limited else (-UNLIMITED, UNLIMITED)
+    if lower >= upper and _KINDS[joint.type] != FIXED_JOINT:
+        raise InputError(f"{where}: limit", f"lower {lower} is not below upper {upper}")
+    return ChainJoint(joint.name, _KINDS[joint.type], origin, axis / (norm if norm > 0 else 1.0),
+                      lower=lower, upper=upper)
+
+
+def chain_from_urdf(text: str, base: str, tips: Sequence[str], source: str = "<robot_description>") -> JointChain:
+    """The joint placements from ``base`` to each of ``tips`` (link names)."""
+    urdf = _parse(text, source)
+    by_child = {j.child: j for j in urdf.robot.joints}
+    by_name = {j.name: j for j in urdf.robot.joints}
+    links = {link.name for link in urdf.robot.links}
+    for link in (base, *tips):
+        if link not in links:
+            raise InputError(source, f"no link '{link}' (links: {', '.join(sorted(links))})")
+    order: list[str] = []
+    tip_paths = []
+    for tip in tips:
+        path = _path(by_child, base, tip, source)
+        for joint in path:
+            if joint.name not in order:
+                order.append(joint.name)
+        tip_paths.append(tuple(order.index(j.name) for j in path))
+    mimics = {name: by_name[name].mimic for name in order if by_name[name].mimic is not None}
+    readings = [n for n in order if _KINDS.get(by_name[n].type) not in (None, FIXED_JOINT) and n not in mimics]
+    for name, mimic in mimics.items():
+        if mimic.joint not in by_name or by_name[mimic.joint].mimic is not None:
+            raise InputError(f"{source}: joint '{name}': mimic", f"'{mimic.joint}' is not a driven joint")
+        if mimic.joint not in readings:
+            readings.append(mimic.joint)
+    joints = []
+    for name in order:
+        joint = _chain_joint(by_name[name], source)
+        if name in mimics:
+            m = mimics[name]
+            joint = ChainJoint(joint.name, joint.kind, joint.origin, joint.axis, readings.index(m.joint),
+                               float(m.multiplier if m.multiplier is not None else 1.0),
+                               float(m.offset if m.offset is not None else 0.0), True, joint.lower, joint.upper)
+        elif joint.movable:
+            joint = ChainJoint(joint.name, joint.kind, joint.origin, joint.axis, readings.index(name),
+                               lower=joint.lower, upper=joint.upper)
+        joints.append(joint)
+    # A mimic source must itself be on the way: its limits and placement come from there.
+    for name in readings:
+        if name not in order:
+            raise InputError(f"{source}: joint '{name}'", "drives a mimic joint but is not between base and tip")
+    if not readings:
+        raise InputError(source, f"no movable joint between '{base}' and {', '.join(tips)}")
+    return JointChain(tuple(joints), base, tuple(tips), tuple(tip_paths), tuple(readings), urdf=text)
+
+
+def robot_from_urdf(text: str, base: str, tip: str | Sequence[str], source: str = "<robot_description>",
+                    slm: Slm | None = None, lasers: Sequence[Laser] = (), screen: Screen = Screen(),
+                    name: str | None = None) -> Robot:
+    """A Robot from URDF text (a file's or the /robot_description parameter's).
+
+    Without lasers it is a robot for point / pose sensors (no SLM parameters);
+    with them, ``slm`` places the laser module on the (first) tip link as in a
+    robot file (conventions.md), and spots are predicted from the first tip.
+    """
+    tips = (tip,) if isinstance(tip, str) else tuple(tip)
+    if lasers and slm is None:
+        raise InputError(source, "lasers need an slm placement")
+    chain = chain_from_urdf(text, base, tips, source)
+    robot_name = name or (_parse(text, source).robot.name or "robot")
+    return Robot(name=robot_name, joints=(), slm=slm, lasers=tuple(lasers), screen=screen, chain=chain)
+
+
+def load_urdf_robot(path: str | Path, base: str, tip: str | Sequence[str]) -> Robot:
+    return robot_from_urdf(urdf_text(path), base, tip, str(path))
+
+
+def is_urdf(path: str | Path) -> bool:
+    return Path(path).suffix in URDF_SUFFIXES
+
+
+def load_robot_description(path: str | Path, base: str | None = None, tip: Sequence[str] | str | None = None) -> Robot:
+    """--robot: a robot YAML, or a URDF / xacro file with its base and tip link(s)."""
+    from laser_calib.model.robot_file import load_robot
+
+    if is_urdf(path):
+        if not base or not tip:
+            raise InputError(str(path), "a URDF robot needs --base LINK and --tip LINK")
+        return load_urdf_robot(path, base, tip)
+    if base or tip:
+        raise InputError(str(path), "--base / --tip apply to a URDF or xacro robot only")
+    return load_robot(path)
