@@ -43,3 +43,11 @@ def non_negative_int(text: str) -> int:
 
 def positive_int(text: str) -> int:
     return _integer(text, 1)
+
+
+def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
+    """--robot (a robot YAML, or a URDF / xacro file with --base and --tip)."""
+    parser.add_argument("--robot", required=True, help="robot YAML, or URDF / xacro (then --base and --tip)")
+    parser.add_argument("--base", default=None, help="URDF link the chain starts from (the robot's frame {0})")
+    parser.add_argument("--tip", nargs="+", default=None,
+                        help="URDF link(s) measured: one tip, or several of a tree sharing joints")

@@ -17,12 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from laser_calib.cli.arguments import positive
+from laser_calib.cli.arguments import add_robot_arguments, positive
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
 from laser_calib.planning import PlanOptions, format_poses, plan
 from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.model.urdf import load_robot_description
+from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.diagnosis.sensor_data import diagnose, diagnose_options, heldout_effects
 from laser_calib.estimation.sensor_fit import SensorFit, SensorFitOptions, calibrate, kfold, pose_errors
 from laser_calib.io.sensor_samples import SensorSamples, load_sensor_samples, save_sensor_samples
@@ -94,7 +96,7 @@ def _diagnosis(robot: Robot, samples: SensorSamples, options: SensorFitOptions, 
 
 
 def cmd_calibrate_poses(args: argparse.Namespace) -> int:
-    robot = load_robot(args.robot)
+    robot = load_robot_description(args.robot, args.base, args.tip)
     samples = load_sensor_samples(args.samples, robot)
     options = _options(args)
     fit = calibrate(robot, samples, options)
@@ -129,10 +131,14 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                      f"verdict: {result['diagnosis']['verdict']}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    save_robot(fit.corrected(robot), out / "robot_calibrated.yaml",
-               header=f"Calibrated from {args.samples} (laser-calib calibrate-poses).")
+    if robot.chain is not None:
+        written = save_calibrated_urdf(fit.corrected(robot), robot, fit.estimate.identifiable, out, str(args.robot))
+    else:
+        save_robot(fit.corrected(robot), out / "robot_calibrated.yaml",
+                   header=f"Calibrated from {args.samples} (laser-calib calibrate-poses).")
+        written = ("robot_calibrated.yaml",)
     (out / "result.json").write_text(json.dumps(result, indent=2))
-    print("\n".join(lines + [f"wrote {out}/robot_calibrated.yaml and result.json"]))
+    print("\n".join(lines + [f"wrote {out}/{', '.join(written)} and result.json"]))
     return 0
 
 
@@ -155,7 +161,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_import_positioner)
 
     p = sub.add_parser("calibrate-poses", help="D-H errors and frames from point or pose samples")
-    p.add_argument("--robot", required=True)
+    add_robot_arguments(p)
     p.add_argument("--samples", required=True, help="CSV pose,stamp,q1..qN,x,y,z[,qw,qx,qy,qz]")
     p.add_argument("--out", required=True)
     p.add_argument("--method", choices=METHODS, default="lm")

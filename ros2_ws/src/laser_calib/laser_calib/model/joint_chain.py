@@ -9,8 +9,8 @@ placement error and the motion about / along its unit axis:
 with v_j = q_reading + offset_j (revolute: Rot, prismatic: Trans), or for a
 coupled joint (URDF mimic) v_j = multiplier · q_source + mimic_offset + offset_j.
 Fixed joints are their origin only: fixed frames anywhere in the chain. The 7
-parameters of a movable joint, in this order, are named ``<joint>.x``,
-``.y``, ``.z``, ``.rx``, ``.ry``, ``.rz``, ``.offset``; their nominal values are
+parameters of a movable joint, in this order, are named ``<joint>.offset``,
+``.x``, ``.y``, ``.z``, ``.rx``, ``.ry``, ``.rz``; their nominal values are
 zero and ``values`` holds the current ones (a calibrated chain). Several tips
 (a tree): ``tips`` lists, per measured tip, the indices of the joints from the
 base to it; a joint shared by two tips has its parameters once.
@@ -23,7 +23,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 REVOLUTE, PRISMATIC, FIXED_JOINT = "revolute", "prismatic", "fixed"
-PLACEMENT_PARAMS = ("x", "y", "z", "rx", "ry", "rz", "offset")
+# The offset first: of an offset and a placement rotation about the same axis
+# (which only act as a sum), identifiability keeps the first, the readable one.
+PLACEMENT_PARAMS = ("offset", "x", "y", "z", "rx", "ry", "rz")
+OFFSET, PLACEMENT = 0, slice(1, 7)  # positions in a joint's block
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,7 +94,7 @@ class JointChain:
         out = []
         for i in self.movable:
             offset = "length" if self.joints[i].kind == PRISMATIC else "angle"
-            out += ["length"] * 3 + ["angle"] * 3 + [offset]
+            out += [offset] + ["length"] * 3 + ["angle"] * 3
         return np.array(out)
 
     def limits(self) -> tuple[np.ndarray, np.ndarray]:

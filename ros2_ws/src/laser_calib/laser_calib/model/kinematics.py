@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from laser_calib.model.joint_chain import PRISMATIC
+from laser_calib.model.joint_chain import OFFSET, PRISMATIC
 from laser_calib.model.robot import PAPER, Robot
 
 X, Y, Z = 0, 1, 2
@@ -67,10 +67,10 @@ def _placement_ops(robot: Robot, tip: int) -> list[Op]:
         ops.append(Op(FIXED, fixed=joint.origin))
         if not joint.movable:
             continue
-        b = chain.block(j)
-        ops += [Op(TRANS, X, b), Op(TRANS, Y, b + 1), Op(TRANS, Z, b + 2),
-                Op(ROT, X, b + 3), Op(ROT, Y, b + 4), Op(ROT, Z, b + 5)]
-        ops.append(Op(TRANS if joint.kind == PRISMATIC else ROT, joint.axis, b + 6, joint.reading,
+        b = chain.block(j)  # b + OFFSET, then the placement x, y, z, rx, ry, rz
+        ops += [Op(TRANS, X, b + 1), Op(TRANS, Y, b + 2), Op(TRANS, Z, b + 3),
+                Op(ROT, X, b + 4), Op(ROT, Y, b + 5), Op(ROT, Z, b + 6)]
+        ops.append(Op(TRANS if joint.kind == PRISMATIC else ROT, joint.axis, b + OFFSET, joint.reading,
                       joint.multiplier, joint.mimic_offset, records=not joint.coupled))
     return ops
 
@@ -250,7 +250,7 @@ def joint_columns(robot: Robot) -> np.ndarray:
     if robot.chain is None:
         return np.arange(robot.n_joints) * 4 + 3
     by_name = {j.name: i for i, j in enumerate(robot.chain.joints)}
-    return np.array([robot.chain.block(by_name[name]) + 6 for name in robot.chain.readings], dtype=int)
+    return np.array([robot.chain.block(by_name[name]) + OFFSET for name in robot.chain.readings], dtype=int)
 
 
 def joint_jacobian(robot: Robot, jac: np.ndarray) -> np.ndarray:
@@ -261,5 +261,5 @@ def joint_jacobian(robot: Robot, jac: np.ndarray) -> np.ndarray:
         for j in robot.chain.movable:
             joint = robot.chain.joints[j]
             if joint.coupled:
-                out[..., joint.reading] += joint.multiplier * jac[..., robot.chain.block(j) + 6]
+                out[..., joint.reading] += joint.multiplier * jac[..., robot.chain.block(j) + OFFSET]
     return out

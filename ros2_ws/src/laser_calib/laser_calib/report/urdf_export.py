@@ -18,12 +18,15 @@ values the data could not determine marked held (null), never as numbers.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 from lxml import etree
 from scipy.spatial.transform import Rotation
 
 from laser_calib.measurement.frames import Pose
-from laser_calib.model.joint_chain import PLACEMENT_PARAMS, PRISMATIC
+from laser_calib.model.joint_chain import OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC
 from laser_calib.model.robot import Robot
 
 
@@ -40,12 +43,12 @@ def calibrated_origins(robot: Robot) -> dict[str, np.ndarray]:
     for j in chain.movable:
         joint = chain.joints[j]
         values = chain.values[chain.block(j):chain.block(j) + len(PLACEMENT_PARAMS)]
-        placed = Pose(joint.origin[:3, :3], joint.origin[:3, 3]).perturbed(values[:6])
+        placed = Pose(joint.origin[:3, :3], joint.origin[:3, 3]).perturbed(values[PLACEMENT])
         motion = np.eye(4)
         if joint.kind == PRISMATIC:
-            motion[:3, 3] = joint.axis * values[6]
+            motion[:3, 3] = joint.axis * values[OFFSET]
         else:
-            motion[:3, :3] = Rotation.from_rotvec(joint.axis * values[6]).as_matrix()
+            motion[:3, :3] = Rotation.from_rotvec(joint.axis * values[OFFSET]).as_matrix()
         out[joint.name] = _transform(placed.rotation, placed.translation) @ motion
     return out
 
@@ -87,6 +90,18 @@ def corrections(robot: Robot, nominal: Robot, identifiable: np.ndarray | None = 
         out.append({"joint": joint.name, "type": joint.kind,
                     "nominal_origin": origin_attributes(before[joint.name]),
                     "calibrated_origin": origin_attributes(after[joint.name]),
-                    "errors": values, "units": {"x": "m", "y": "m", "z": "m", "rx": "rad", "ry": "rad",
-                                                "rz": "rad", "offset": "m" if joint.kind == PRISMATIC else "rad"}})
+                    "errors": values, "units": {"offset": "m" if joint.kind == PRISMATIC else "rad", "x": "m",
+                                                "y": "m", "z": "m", "rx": "rad", "ry": "rad", "rz": "rad"}})
     return out
+
+
+def save_calibrated_urdf(calibrated: Robot, nominal: Robot, identifiable: np.ndarray, folder: Path,
+                         source: str) -> tuple[str, str]:
+    """robot_calibrated.urdf and urdf_corrections.json (with the fitted frames) in folder."""
+    folder = Path(folder)
+    (folder / "robot_calibrated.urdf").write_text(calibrated_urdf(calibrated))
+    data = {"source": source, "base": calibrated.chain.base, "tips": list(calibrated.chain.tip_links),
+            "joints": corrections(calibrated, nominal, identifiable),
+            "frames": calibrated.extra.get("frames", {})}
+    (folder / "urdf_corrections.json").write_text(json.dumps(data, indent=2))
+    return "robot_calibrated.urdf", "urdf_corrections.json"
