@@ -50,11 +50,14 @@ def _dh_ops(robot: Robot) -> list[Op]:
     ops = []
     for i in range(robot.n_joints):
         a, d, alpha, theta = 4 * i, 4 * i + 1, 4 * i + 2, 4 * i + 3
-        joint = Op(ROT, Z, theta, i, *DH_READING, records=True)
+        read = Op(ROT, Z, theta, i, *DH_READING, records=True)
+        d_op, theta_op = Op(TRANS, Z, d), read
+        if robot.joints[i].prismatic:
+            d_op, theta_op = Op(TRANS, Z, d, i, *DH_READING, records=True), Op(ROT, Z, theta)
         if robot.convention == PAPER:
-            ops += [Op(TRANS, X, a), Op(TRANS, Z, d), Op(ROT, X, alpha), joint]
+            ops += [Op(TRANS, X, a), d_op, Op(ROT, X, alpha), theta_op]
         else:  # standard D-H: Trans(z,d) Rot(z,theta) Trans(x,a) Rot(x,alpha)
-            ops += [Op(TRANS, Z, d), joint, Op(TRANS, X, a), Op(ROT, X, alpha)]
+            ops += [d_op, theta_op, Op(TRANS, X, a), Op(ROT, X, alpha)]
     return ops
 
 
@@ -79,7 +82,7 @@ def chain_ops(robot: Robot, tip: int = 0) -> list[Op]:
     """The elementary transforms from the base to the SLM (or the tip without one).
 
     A D-H joint's angle transform has parameter index 4i+3 (theta0_i) and q_i
-    added to it; a chain of joint placements (joint_chain.py) has per joint its
+    added to it (a prismatic joint's: d_i, index 4i+1); a chain of joint placements (joint_chain.py) has per joint its
     origin, 6 placement errors and the motion by offset + reading.
     """
     ops = _dh_ops(robot) if robot.chain is None else _placement_ops(robot, tip)
@@ -248,7 +251,7 @@ def joint_columns(robot: Robot) -> np.ndarray:
     """Indices of the theta errors (the offsets of a chain's read joints): the
     measurement Jacobian's columns for dq_i too, when no joint is coupled."""
     if robot.chain is None:
-        return np.arange(robot.n_joints) * 4 + 3
+        return np.array([4 * i + (1 if j.prismatic else 3) for i, j in enumerate(robot.joints)], dtype=int)
     by_name = {j.name: i for i, j in enumerate(robot.chain.joints)}
     return np.array([robot.chain.block(by_name[name]) + OFFSET for name in robot.chain.readings], dtype=int)
 

@@ -32,12 +32,16 @@ SLM_PARAMS = ("slm_x", "slm_z", "slm_rx", "slm_ry", "slm_rz")
 
 @dataclass(frozen=True)
 class Joint:
+    """One D-H link; a prismatic joint's reading adds to d instead of theta
+    (min / max then in m)."""
+
     a: float
     d: float
     alpha: float
     theta0: float
     min: float
     max: float
+    prismatic: bool = False
 
 
 @dataclass(frozen=True)

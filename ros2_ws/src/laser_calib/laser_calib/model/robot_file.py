@@ -35,7 +35,7 @@ def _mapping(where: str, value: Any) -> Mapping[str, Any]:
 
 def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
     data = _mapping(source, data)
-    for key in ("name", "joints", "slm"):
+    for key in ("name", "joints"):
         if key not in data:
             raise InputError(source, f"missing key '{key}'")
     if not isinstance(data["name"], str):
@@ -46,18 +46,27 @@ def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
     for i, entry in enumerate(data["joints"]):
         where = f"{source}: joints[{i}] (joint {i + 1})"
         entry = _mapping(where, entry)
-        joint = Joint(*(_number(where, entry, k) for k in ("a", "d", "alpha", "theta0", "min", "max")))
+        kind = entry.get("type", "revolute")
+        if kind not in ("revolute", "prismatic"):
+            raise InputError(f"{where}.type", f"expected revolute or prismatic, got {kind!r}")
+        joint = Joint(*(_number(where, entry, k) for k in ("a", "d", "alpha", "theta0", "min", "max")),
+                      prismatic=kind == "prismatic")
         if joint.min >= joint.max:
             raise InputError(where, f"min {joint.min} is not below max {joint.max}")
         joints.append(joint)
-    where = f"{source}: slm"
-    slm_map = _mapping(where, data["slm"])
-    slm = Slm(*(_number(where, slm_map, k) for k in ("a", "d", "alpha", "theta")),
-              beta=_number(where, slm_map, "beta", 0.0))
+    # No slm: a robot without lasers (other sensors) and without SLM parameters.
+    slm = None
+    if "slm" in data:
+        where = f"{source}: slm"
+        slm_map = _mapping(where, data["slm"])
+        slm = Slm(*(_number(where, slm_map, k) for k in ("a", "d", "alpha", "theta")),
+                  beta=_number(where, slm_map, "beta", 0.0))
     # No lasers: an arm measured by another sensor (sensors/); with an SLM, exactly two.
     laser_list = data.get("lasers", [])
     if not isinstance(laser_list, list) or len(laser_list) not in (0, 2):
         raise InputError(f"{source}: lasers", "expected a list of exactly two lasers")
+    if laser_list and slm is None:
+        raise InputError(source, "missing key 'slm' (the lasers' module)")
     lasers = []
     for j, entry in enumerate(laser_list):
         where = f"{source}: lasers[{j}]"
@@ -109,10 +118,12 @@ def robot_to_dict(robot: Robot) -> dict[str, Any]:
         data["convention"] = robot.convention
     data["joints"] = [
         {"a": j.a, "d": j.d, "alpha": j.alpha, "theta0": j.theta0, "min": j.min, "max": j.max}
+        | ({"type": "prismatic"} if j.prismatic else {})
         for j in robot.joints
     ]
     s = robot.slm
-    data["slm"] = {"a": s.a, "d": s.d, "alpha": s.alpha, "theta": s.theta, "beta": s.beta}
+    if s is not None:
+        data["slm"] = {"a": s.a, "d": s.d, "alpha": s.alpha, "theta": s.theta, "beta": s.beta}
     if robot.lasers:
         data["lasers"] = [{"gamma": laser.gamma, "beta": laser.beta} for laser in robot.lasers]
     data["screen"] = {"half_y": robot.screen.half_y, "half_z": robot.screen.half_z}
