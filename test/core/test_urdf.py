@@ -1,0 +1,223 @@
+"""Robots from URDF / xacro: forward kinematics against yourdfpy's, the twists
+against central differences, the calibrated URDF against the calibrated model,
+and the paper's 7-DOF arm as a URDF calibrated like its D-H model."""
+
+import io
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yourdfpy
+
+from laser_calib.cli.main import main
+from laser_calib.estimation.estimate import EstimateOptions, estimate
+from laser_calib.io.errors import InputError
+from laser_calib.measurement.chain import target_in_sensor
+from laser_calib.measurement.frames import robot_frames
+from laser_calib.model.kinematics import forward, joint_jacobian, predict
+from laser_calib.model.urdf import load_urdf_robot, robot_from_urdf, urdf_text
+from laser_calib.report.statistics import spot_distances
+from laser_calib.report.urdf_export import calibrated_urdf
+from laser_calib.sim.simulation import bundled_robot, paper_session, sample_poses
+
+DATA = Path(__file__).parent / "data"
+UR10E = Path(__file__).resolve().parents[2] / "data" / "real" / "ur10e_mocap"
+STEP = 1e-6  # central differences: truncation ~ STEP^2, far below the 1e-6 relative bound
+ROBOTS = {  # file, base, tip
+    "column (prismatic, continuous, tilted axis, fixed frames)": (DATA / "column_arm.urdf", "base_link", "marker"),
+    "torso (mimic)": (DATA / "torso_two_arms.urdf", "base_link", "left_tool"),
+    "paper 7-DOF": (DATA / "paper_arm_7dof.urdf", "link0", "link7_theta"),
+    "UR10e": (UR10E / "ur10_robot.urdf", "base_link", "wrist_3_link"),
+}
+
+
+def _robot(key):
+    path, base, tip = ROBOTS[key]
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    return load_urdf_robot(path, base, tip), path, base, tip
+
+
+def _poses(robot, n, seed):
+    low, high = np.maximum(robot.q_min, -3.0), np.minimum(robot.q_max, 3.0)
+    return np.random.default_rng(seed).uniform(low, high, (n, robot.n_joints))
+
+
+def _yourdfpy_fk(text: str, q: np.ndarray, base: str, tip: str) -> np.ndarray:
+    """(P,4,4) tip in base by yourdfpy, q in its actuated joints' order."""
+    urdf = yourdfpy.URDF.load(io.BytesIO(text.encode()), build_scene_graph=True, load_meshes=False)
+    out = []
+    for row in q:
+        urdf.update_cfg(row)
+        out.append(urdf.get_transform(tip, base))
+    return np.array(out), urdf.actuated_joint_names
+
+
+@pytest.mark.parametrize("key", ROBOTS)
+def test_forward_kinematics_match_yourdfpy(key):
+    robot, path, base, tip = _robot(key)
+    q = _poses(robot, 20, 1)
+    state = forward(robot, q)
+    reference, names = _yourdfpy_fk(urdf_text(path), q, base, tip) if key != "torso (mimic)" else (None, None)
+    if reference is None:  # yourdfpy's cfg holds every actuated joint of the tree: fill the right arm too
+        full = np.hstack([q, np.zeros((len(q), 3))])
+        reference, names = _yourdfpy_fk(urdf_text(path), full, base, tip)
+    assert tuple(names[:robot.n_joints]) == robot.chain.readings
+    assert np.abs(state.origin - reference[:, :3, 3]).max() < 1e-12
+    assert np.abs(state.rotation - reference[:, :3, :3]).max() < 1e-12
+
+
+def _pose_difference(plus, minus, step):
+    """Finite-difference twist (v; w) in the reference coordinates between two
+    states: rotation (P,3,3) and position (P,3) as ``origin`` or ``position``."""
+    def position(state):
+        return state.origin if hasattr(state, "origin") else state.position
+
+    v = (position(plus) - position(minus)) / (2 * step)
+    delta = plus.rotation @ minus.rotation.transpose(0, 2, 1)  # ~ I + [2 step w]x
+    w = np.stack([delta[:, 2, 1] - delta[:, 1, 2], delta[:, 0, 2] - delta[:, 2, 0],
+                  delta[:, 1, 0] - delta[:, 0, 1]], axis=1) / (4 * step)
+    return np.concatenate([v, w], axis=1)
+
+
+@pytest.mark.parametrize("key", ROBOTS)
+def test_twists_match_central_differences(key):
+    robot, *_ = _robot(key)
+    rng = np.random.default_rng(2)
+    errors = rng.normal(0, 0.01, robot.n_params)
+    q = _poses(robot, 8, 3)
+    analytic = forward(robot, q, errors, twists=True).twists
+    numeric = np.zeros_like(analytic)
+    for k in range(robot.n_params):
+        step = np.zeros(robot.n_params)
+        step[k] = STEP
+        numeric[..., k] = _pose_difference(forward(robot, q, errors + step), forward(robot, q, errors - step), STEP)
+    assert np.abs(analytic - numeric).max() < 1e-6 * np.abs(numeric).max()
+    # d pose / d q through the offsets, a mimic joint's multiplier included
+    joint = joint_jacobian(robot, analytic)
+    for i in range(robot.n_joints):
+        dq = np.zeros_like(q)
+        dq[:, i] = STEP
+        numeric_q = _pose_difference(forward(robot, q + dq, errors), forward(robot, q - dq, errors), STEP)
+        assert np.abs(joint[..., i] - numeric_q).max() < 1e-6 * max(np.abs(numeric_q).max(), 1.0)
+
+
+def test_pose_chain_twists_of_a_urdf_robot_match_central_differences():
+    """The sensor loop (chain.py) over a URDF chain: the same twists machinery."""
+    robot, *_ = _robot("column (prismatic, continuous, tilted axis, fixed frames)")
+    frames = robot_frames(robot)
+    rng = np.random.default_rng(4)
+    n = robot.n_params + 18
+    x = rng.normal(0, 0.01, n)
+    q = _poses(robot, 6, 5)
+    analytic = target_in_sensor(robot, frames, q, x, True)
+    for k in rng.choice(n, 12, replace=False):
+        step = np.zeros(n)
+        step[k] = STEP
+        plus, minus = target_in_sensor(robot, frames, q, x + step), target_in_sensor(robot, frames, q, x - step)
+        numeric = _pose_difference(plus, minus, STEP)
+        assert np.abs(analytic.twists[..., k] - numeric).max() < 1e-6
+
+
+@pytest.mark.parametrize("key", ROBOTS)
+def test_calibrated_urdf_reproduces_the_calibrated_model(key):
+    robot, path, base, tip = _robot(key)
+    calibrated = robot.with_errors(np.random.default_rng(6).normal(0, 0.02, robot.n_params))
+    text = calibrated_urdf(calibrated)
+    q = _poses(robot, 20, 7)
+    if key == "torso (mimic)":
+        q_cfg = np.hstack([q, np.zeros((len(q), 3))])
+    else:
+        q_cfg = q
+    reference, _ = _yourdfpy_fk(text, q_cfg, base, tip)
+    state = forward(calibrated, q)
+    assert np.abs(state.origin - reference[:, :3, 3]).max() < 1e-9
+    assert np.abs(state.rotation - reference[:, :3, :3]).max() < 1e-9
+    # only origins change: every element of the source is still there
+    source = yourdfpy.URDF.load(io.BytesIO(urdf_text(path).encode()), build_scene_graph=False, load_meshes=False)
+    written = yourdfpy.URDF.load(io.BytesIO(text.encode()), build_scene_graph=False, load_meshes=False)
+    assert [j.name for j in written.robot.joints] == [j.name for j in source.robot.joints]
+    assert [len(link.visuals) for link in written.robot.links] == [len(link.visuals) for link in source.robot.links]
+
+
+def test_xacro_and_robot_description_text_give_the_same_robot():
+    from_urdf = load_urdf_robot(DATA / "column_arm.urdf", "base_link", "marker")
+    from_xacro = load_urdf_robot(DATA / "column_arm.urdf.xacro", "base_link", "marker")
+    # what a node does with the /robot_description parameter's text
+    from_text = robot_from_urdf((DATA / "column_arm.urdf").read_text(), "base_link", "marker")
+    q = _poses(from_urdf, 10, 8)
+    for other in (from_xacro, from_text):
+        assert other.param_names == from_urdf.param_names
+        assert np.abs(forward(other, q).origin - forward(from_urdf, q).origin).max() < 1e-12
+
+
+def test_parameters_of_a_urdf_chain():
+    robot, *_ = _robot("column (prismatic, continuous, tilted axis, fixed frames)")
+    assert robot.chain.readings == ("lift", "shoulder_yaw", "shoulder_pitch", "elbow")
+    assert robot.n_params == 4 * 7  # no SLM without lasers; fixed joints bring none
+    assert robot.param_names[:7] == tuple(f"lift.{p}" for p in ("offset", "x", "y", "z", "rx", "ry", "rz"))
+    assert list(robot.param_kinds()[:7]) == ["length"] * 4 + ["angle"] * 3  # a prismatic offset is a length
+    assert robot.param_kinds()[7] == "angle"
+
+
+@pytest.mark.parametrize("base, tip, message", [("base_link", "nowhere", "no link 'nowhere'"),
+                                                ("marker", "base_link", "'base_link' is not below link 'marker'"),
+                                                ("flange", "marker", "no movable joint")])
+def test_bad_chains_are_one_line_errors(base, tip, message):
+    with pytest.raises(InputError, match=message):
+        load_urdf_robot(DATA / "column_arm.urdf", base, tip)
+
+
+def test_a_floating_joint_on_the_way_is_refused():
+    text = (DATA / "column_arm.urdf").read_text().replace('name="lift" type="prismatic"', 'name="lift" type="floating"')
+    with pytest.raises(InputError, match="joint 'lift'.*type 'floating' cannot be calibrated"):
+        robot_from_urdf(text, "base_link", "marker")
+
+
+def test_paper_arm_as_urdf_calibrates_from_spots_like_the_dh_model():
+    """The same sessions (D-H truth), fitted with the D-H model and with the
+    URDF's joint placements: test RMS against the true spots within 2 %."""
+    dh = bundled_robot("paper-7dof")
+    urdf, *_ = _robot("paper 7-DOF")
+    urdf = replace(urdf, slm=dh.slm, lasers=dh.lasers, screen=dh.screen)
+    q = sample_poses([dh], 10, np.random.default_rng(9))
+    assert np.abs(predict(urdf, q).spots - predict(dh, q).spots).max() < 1e-12  # the same arm
+    squares = {"dh": [], "urdf": []}
+    for seed in range(3):
+        session = paper_session("paper-7dof", seed)
+        cal, test = session.cases["case2"]
+        options = EstimateOptions(spot_sigma=session.noise.spot_sigma, joint_sigma=session.noise.joint_sigma)
+        for key, robot in (("dh", dh), ("urdf", urdf)):
+            est = estimate(robot, session.samples.subset(cal), options)
+            squares[key].append(np.nanmean(spot_distances(robot, session.truth.subset(test), est.values) ** 2))
+    ratio = np.sqrt(np.mean(squares["urdf"]) / np.mean(squares["dh"]))
+    assert abs(ratio - 1) < 0.02
+
+
+def test_calibrate_poses_from_the_ur10e_urdf_writes_a_calibrated_urdf(tmp_path, capsys):
+    path, base, tip = ROBOTS["UR10e"]
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    out = tmp_path / "out"
+    code = main(["calibrate-poses", "--robot", str(path), "--base", base, "--tip", tip,
+                 "--samples", str(UR10E / "samples.csv"), "--out", str(out), "--folds", "0"])
+    assert code == 0
+    result = json.loads((out / "result.json").read_text())
+    corrections = json.loads((out / "urdf_corrections.json").read_text())
+    calibrated = yourdfpy.URDF.load(out / "robot_calibrated.urdf", build_scene_graph=False, load_meshes=False)
+    assert calibrated.robot.name == "ur10e"
+    assert [entry["joint"] for entry in corrections["joints"]][0] == "shoulder_pan_joint"
+    # a value the data cannot determine is null in both files, never a number
+    held = {p["name"] for p in result["parameters"] if p["value"] is None}
+    assert "shoulder_pan_joint.offset" in held  # carried by the sensor frame
+    assert corrections["joints"][0]["errors"]["offset"] is None
+    assert result["insample"]["position_mm"]["mean"] < result["insample"]["nominal_position_mm"]["mean"]
+
+
+def test_a_urdf_robot_without_base_and_tip_is_exit_2(capsys):
+    path = DATA / "column_arm.urdf"
+    code = main(["calibrate-poses", "--robot", str(path), "--samples", "x.csv", "--out", "o"])
+    assert code == 2
+    assert "needs --base LINK and --tip LINK" in capsys.readouterr().err
