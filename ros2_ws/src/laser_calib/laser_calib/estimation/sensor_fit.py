@@ -21,6 +21,7 @@ kfold() repeats the calibration on k-1 folds and predicts the held-out fold.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -30,7 +31,7 @@ from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_
 from laser_calib.estimation.identifiability import analyse
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, whiten
 from laser_calib.model.robot import Robot
-from laser_calib.measurement.frames import FRAME_PARAMS, FRAMES, robot_frames, with_frames
+from laser_calib.measurement.frames import FRAME_PARAMS, frame_list, robot_frames, with_frames
 from laser_calib.measurement.sensor import PointModel, PoseModel
 from laser_calib.io.sensor_samples import SensorSamples
 
@@ -54,12 +55,12 @@ class SensorFitOptions:
     scale: bool = False
 
 
-_FRAME_NAMES = frozenset(f"{frame}_{p}" for frame in FRAMES for p in FRAME_PARAMS)
+_FRAME_NAME = re.compile(r"(sensor|base|target\d*)_(" + "|".join(FRAME_PARAMS) + ")")
 
 
 def is_frame_param(name: str) -> bool:
-    """Exact names: a URDF joint may be called base_joint."""
-    return name in _FRAME_NAMES
+    """Whole names (sensor_x, target2_rz): a URDF joint may be called base_joint."""
+    return _FRAME_NAME.fullmatch(name) is not None
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,7 @@ class SensorFit:
         values = dict(zip(self.model.names, self.estimate.values))
         guesses = robot_frames(robot)
         frames = {frame: guesses[frame].perturbed(np.array([values.get(f"{frame}_{p}", 0.0) for p in FRAME_PARAMS]))
-                  for frame in FRAMES}
+                  for frame in frame_list(robot)}
         return with_frames(robot.with_errors(self.estimate.values[:robot.n_params]), frames)
 
 

@@ -115,19 +115,31 @@ def _pose_from_mapping(where: str, mapping: Any) -> Pose:
     return Pose.from_values(np.array(values))
 
 
+def frame_list(robot: Robot) -> tuple[str, ...]:
+    """sensor, base and one target frame per measured tip: target, target2, ... (a tree)."""
+    n_tips = 1 if robot.chain is None else len(robot.chain.tips)
+    return FRAMES + tuple(f"target{k + 1}" for k in range(1, n_tips))
+
+
+def target_frame(tip: int) -> str:
+    return "target" if tip == 0 else f"target{tip + 1}"
+
+
 def robot_frames(robot: Robot, source: str = "<robot>") -> dict[str, Pose]:
     """The frame guesses of a robot file (key ``frames``); a missing frame is the identity."""
     data = robot.extra.get("frames", {})
     if not isinstance(data, Mapping):
         raise InputError(f"{source}: frames", "expected a mapping of sensor / base / target poses")
-    unknown = set(data) - set(FRAMES)
+    names = frame_list(robot)
+    unknown = set(data) - set(names)
     if unknown:
-        raise InputError(f"{source}: frames", f"unknown frame '{sorted(unknown)[0]}' (expected {', '.join(FRAMES)})")
+        raise InputError(f"{source}: frames", f"unknown frame '{sorted(unknown)[0]}' (expected {', '.join(names)})")
     return {name: _pose_from_mapping(f"{source}: frames.{name}", data[name]) if name in data else Pose.identity()
-            for name in FRAMES}
+            for name in names}
 
 
 def with_frames(robot: Robot, frames: Mapping[str, Pose]) -> Robot:
     """The robot with its ``frames`` key replaced (full precision, qw >= 0)."""
-    data = {name: dict(zip(POSE_KEYS, map(float, frames[name].values()))) for name in FRAMES if name in frames}
+    data = {name: dict(zip(POSE_KEYS, map(float, frames[name].values()))) for name in frame_list(robot)
+            if name in frames}
     return replace(robot, extra={**robot.extra, "frames": data})

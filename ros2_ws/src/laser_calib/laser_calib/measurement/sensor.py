@@ -39,7 +39,7 @@ from laser_calib.model.kinematics import joint_jacobian
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, Residuals, robot_scales
 from laser_calib.model.robot import Robot
 from laser_calib.measurement.chain import chain_names, target_in_sensor
-from laser_calib.measurement.frames import FRAME_PARAMS, robot_frames
+from laser_calib.measurement.frames import FRAME_PARAMS, frame_list, robot_frames
 from laser_calib.measurement.rotations import left_jacobian_inverse, log_rotation, quaternion_to_matrix
 from laser_calib.io.sensor_samples import SensorSamples
 
@@ -60,12 +60,14 @@ class _SensorModel:
         self.robot = robot
         self.samples = samples
         self.frames = robot_frames(robot)
+        self.tips = _tips(robot, samples)
         full = chain_names(robot)
-        drop = {f"target_{p}" for p in FRAME_PARAMS[3:]} if kind == "point" else set()
+        targets = frame_list(robot)[2:]
+        drop = {f"{t}_{p}" for t in targets for p in FRAME_PARAMS[3:]} if kind == "point" else set()
         self.index = np.array([i for i, name in enumerate(full) if name not in drop])
         self.scale = scale
         self.names = tuple(full[i] for i in self.index) + (SCALE_NAMES if scale else ())
-        chain_scales = np.concatenate([robot_scales(robot), np.tile(FRAME_SCALES, 3)])[self.index]
+        chain_scales = np.concatenate([robot_scales(robot), np.tile(FRAME_SCALES, len(frame_list(robot)))])[self.index]
         self.scales = np.concatenate([chain_scales, np.full(3 if scale else 0, SCALE_SCALE)])
         self.n_full = len(full)
 
@@ -84,7 +86,7 @@ class _SensorModel:
         full[..., self.index] = params[..., :n_chain]
         q = self.samples.q if dq is None else self.samples.q + dq
         stretch = np.broadcast_to(1.0 + params[..., n_chain:] if self.scale else np.ones(3), (len(q), 3))
-        return target_in_sensor(self.robot, self.frames, q, full, jacobian), stretch
+        return target_in_sensor(self.robot, self.frames, q, full, jacobian, self.tips), stretch
 
     def _scale_columns(self, jac: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """Append the scale columns (P,D,3) to the chain Jacobian (P,D,n_chain) if estimated."""
@@ -99,6 +101,21 @@ class _SensorModel:
             jac = np.where(valid[..., None, None], jac[:, None], 0.0)
             jac_q = joint_jacobian(self.robot, jac)
         return Residuals(r, valid, jac, jac_q, predicted[:, None])
+
+
+def _tips(robot: Robot, samples: SensorSamples) -> np.ndarray | None:
+    """(P,) the tip each pose measures: the samples' ``tip`` column (0, 1, ... in
+    the order of the robot's tips), required for a tree and refused without one."""
+    n_tips = 1 if robot.chain is None else len(robot.chain.tips)
+    if "tip" not in samples.extra:
+        if n_tips > 1:
+            raise ValueError(f"samples need a 'tip' column (0..{n_tips - 1}): the robot has {n_tips} tips")
+        return None
+    tips = samples.extra["tip"]
+    if not np.isin(tips, np.arange(n_tips)).all():
+        bad = int(np.flatnonzero(~np.isin(tips, np.arange(n_tips)))[0])
+        raise ValueError(f"pose {int(samples.pose[bad])}: tip {tips[bad]:g} is not one of 0..{n_tips - 1}")
+    return tips.astype(int)
 
 
 class PointModel(_SensorModel):
