@@ -45,7 +45,7 @@ import numpy as np
 from scipy import stats
 
 from laser_calib.measurement.base import NoiseModel, Residuals
-from laser_calib.model.robot import Robot, param_kinds
+from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
 from laser_calib.effects.base import move_directions
 from laser_calib.effects.joint import gravity_torques
@@ -157,7 +157,7 @@ def pose_responses(robot: Robot, res: Residuals, noise: NoiseModel) -> list[Seri
     for i in range(robot.n_joints):
         out.append(Series(f"apparent error of joint {i + 1}", joint_e[:, i], POSE, "deg", np.degrees(1.0),
                           joint_w[:, i], joint=i))
-    lengths = np.flatnonzero(param_kinds(robot.n_joints) == "length")
+    lengths = np.flatnonzero(robot.param_kinds() == "length")
     length_e, length_w = _apparent(res, whitener, res.jac[..., lengths])
     for k, j in enumerate(lengths):
         if length_w[:, k].max() > 0:

@@ -10,7 +10,7 @@ import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.measurement.spot import SpotModel
-from laser_calib.model.robot import Robot, param_names
+from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
 from laser_calib.effects.base import JOINT, Effect, move_directions
 from laser_calib.effects.drift import STAMP, Drift, length_params
@@ -53,9 +53,9 @@ def candidates(robot: Robot, samples: Samples) -> list[Effect]:
                     out.append(Compliance(joint=i, torque_span=float(np.ptp(torques[:, i]))))
             elif cls is not Backlash or np.ptp(directions[:, i]) > 0:
                 out.append(cls(joint=i))
-    names = param_names(robot.n_joints)
+    names = robot.param_names
     for covariate in covariate_names(samples):
-        out += [Drift.make(robot, samples, names[j], covariate) for j in length_params(robot.n_joints)]
+        out += [Drift.make(robot, samples, names[j], covariate) for j in length_params(robot)]
     out += [screen_shape(robot), camera_distortion(robot)]
     return out
 
@@ -96,7 +96,7 @@ def _effect(robot: Robot, entry: Mapping[str, Any], where: str) -> Effect:
             return Compliance(joint=joint - 1, torque_span=span)
         return cls(joint=joint - 1)
     if cls is Drift:
-        lengths = [param_names(robot.n_joints)[j] for j in length_params(robot.n_joints)]
+        lengths = [robot.param_names[j] for j in length_params(robot)]
         name = entry.get("parameter")
         if name not in lengths:
             raise InputError(f"{where}.parameter", f"expected a length ({', '.join(lengths)}), got {name!r}")
@@ -106,7 +106,7 @@ def _effect(robot: Robot, entry: Mapping[str, Any], where: str) -> Effect:
         spread = _number(where, entry, "spread")
         if spread <= 0:
             raise InputError(f"{where}.spread", "must be positive")
-        return Drift(param=param_names(robot.n_joints).index(name), covariate=covariate,
+        return Drift(param=robot.param_names.index(name), covariate=covariate,
                      reference=_number(where, entry, "reference"), spread=spread, param_name=name)
     if cls is ScreenShape:
         shape = ScreenShape(_number(where, entry, "half_y", robot.screen.half_y),

@@ -18,7 +18,7 @@ from typing import ClassVar
 import numpy as np
 
 from laser_calib.io.errors import InputError
-from laser_calib.model.robot import Robot, param_kinds, param_names
+from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
 from laser_calib.effects.base import ParamEffect
 
@@ -34,9 +34,9 @@ def covariate_values(samples: Samples, name: str) -> np.ndarray:
     return samples.extra[name]
 
 
-def length_params(n_joints: int) -> np.ndarray:
-    """Indices of the length errors in the geometric parameter vector."""
-    return np.flatnonzero(param_kinds(n_joints) == "length")
+def length_params(robot: Robot) -> np.ndarray:
+    """Indices of the length errors in the geometric parameter vector (D-H or joint placements)."""
+    return np.flatnonzero(robot.param_kinds() == "length")
 
 
 @dataclass(frozen=True)
@@ -93,6 +93,6 @@ class Drift(ParamEffect):
         """The candidate for one length and one covariate of the calibration samples."""
         values = covariate_values(samples, covariate)
         spread = float(np.ptp(values)) if len(values) else 0.0
-        names = param_names(robot.n_joints)
+        names = robot.param_names
         return cls(param=names.index(param_name), covariate=covariate, reference=float(np.mean(values)),
                    spread=spread if spread > 0 else 1.0, param_name=param_name)

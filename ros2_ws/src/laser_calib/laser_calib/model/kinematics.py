@@ -10,6 +10,11 @@ before the transform. Stacking these twists over the parameters gives Jac_1
 Jac_2 (eq. 11, 2x6) maps a twist of the laser frame to the motion of its spot
 on the screen x = 0, and the measurement Jacobian is their product (eq. 12).
 Everything is vectorised over poses P and lasers L.
+
+The same machinery serves a chain of joint placements (URDF, joint_chain.py):
+its transforms are about / along any unit axis, with fixed transforms (the
+origins) between them, and a joint's value may be a linear function of a
+reading (mimic). A robot without lasers ends at its last link (no SLM).
 """
 
 from __future__ import annotations
