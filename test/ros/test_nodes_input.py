@@ -37,7 +37,7 @@ def test_bad_parameters_and_files_give_one_line(ros, tmp_path):
     for name in ros.procs:
         assert ros.wait_exit(name, 60) == 2, (name, ros.log(name))
     assert last_line(ros, "seq_poses") == f"error: {bad_poses}: line 3, field q3: not a number: 'x'"
-    assert last_line(ros, "seq_robot") == f"error: {broken_robot}: missing key 'slm'"
+    assert last_line(ros, "seq_robot") == f"error: {broken_robot}: joints: expected a non-empty list of joints"
     assert "rate" in last_line(ros, "arm_type") and last_line(ros, "arm_type").startswith("error: ")
     assert "backend" in last_line(ros, "arm_backend")
     assert "dynamixel.ticks_per_rad" in last_line(ros, "arm_dxl") or "2 entries" in last_line(ros, "arm_dxl")
