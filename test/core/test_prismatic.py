@@ -27,28 +27,19 @@ from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.measurement.frames import FRAMES, frame_names
 from laser_calib.measurement.sensor import PointModel
 from laser_calib.model.kinematics import forward, joint_columns, joint_jacobian
-from laser_calib.model.robot_file import dump_robot, robot_from_dict
+from laser_calib.model.robot_file import dump_robot, load_robot, robot_from_dict
 from laser_calib.model.urdf import load_urdf_robot
 
 DATA = Path(__file__).parent / "data"
 SIGMA = 1e-4   # m per marker coordinate (a laser tracker)
 SEEDS = 150
 N_CAL, N_TEST = 40, 300
-DH_COLUMN = {  # the paper's convention, joint 2 a lifting column (its d moves by the reading)
-    "name": "dh_column",
-    "joints": [
-        {"a": 0.1, "d": 0.3, "alpha": 0.0, "theta0": 0.2, "min": -2.5, "max": 2.5},
-        {"a": 0.0, "d": 0.2, "alpha": -1.2, "theta0": 0.0, "min": 0.0, "max": 0.6, "type": "prismatic"},
-        {"a": 0.15, "d": 0.0, "alpha": 1.5707963268, "theta0": 0.3, "min": -1.5, "max": 1.5},
-        {"a": 0.4, "d": 0.05, "alpha": -1.5707963268, "theta0": 0.0, "min": -2.0, "max": 2.0},
-    ],
-}
 
 
 def _robot(kind):
     if kind == "urdf":
         return load_urdf_robot(DATA / "column_arm.urdf", "base_link", "marker")
-    return robot_from_dict(DH_COLUMN)
+    return load_robot(DATA / "dh_column.yaml")
 
 
 def _samples(q, position):

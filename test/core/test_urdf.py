@@ -17,6 +17,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.measurement.chain import target_in_sensor
 from laser_calib.measurement.frames import robot_frames
 from laser_calib.model.kinematics import forward, joint_jacobian, predict
+from laser_calib.model.robot_file import load_robot
 from laser_calib.model.urdf import load_urdf_robot, robot_from_urdf, urdf_text
 from laser_calib.report.statistics import spot_distances
 from laser_calib.report.urdf_export import calibrated_urdf
@@ -33,7 +34,13 @@ ROBOTS = {  # file, base, tip
 }
 
 
+DH_PRISMATIC = ("D-H column (prismatic), paper", "D-H column (prismatic), standard")
+
+
 def _robot(key):
+    if key in DH_PRISMATIC:  # the same twist machinery on D-H links
+        robot = load_robot(DATA / "dh_column.yaml")
+        return replace(robot, convention="standard" if key.endswith("standard") else "paper"), None, None, None
     path, base, tip = ROBOTS[key]
     if not path.exists():
         pytest.skip(f"{path} not available")
@@ -82,7 +89,7 @@ def _pose_difference(plus, minus, step):
     return np.concatenate([v, w], axis=1)
 
 
-@pytest.mark.parametrize("key", ROBOTS)
+@pytest.mark.parametrize("key", [*ROBOTS, *DH_PRISMATIC])
 def test_twists_match_central_differences(key):
     robot, *_ = _robot(key)
     rng = np.random.default_rng(2)

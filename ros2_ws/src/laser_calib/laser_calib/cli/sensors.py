@@ -113,7 +113,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         result["insample"]["rotation_deg"] = _stats(after_r, 180 / math.pi)
     fitted = [n for n, free in zip(robot.param_names, fit.estimate.identifiable) if free]
     lines = [f"{robot.name}: {len(samples)} {samples.kind} samples; "
-             f"D-H errors fitted: {', '.join(fitted) or 'none'}",
+             f"{'joint placements' if robot.chain else 'D-H errors'} fitted: {', '.join(fitted) or 'none'}",
              f"in-sample mean position error {result['insample']['nominal_position_mm']['mean']:.3f} mm "
              f"(nominal D-H, frames fitted) -> {result['insample']['position_mm']['mean']:.3f} mm"]
     if args.folds:

@@ -113,6 +113,8 @@ def load_robot(path: str | Path) -> Robot:
 
 
 def robot_to_dict(robot: Robot) -> dict[str, Any]:
+    if robot.chain is not None:
+        raise ValueError(f"robot '{robot.name}' comes from a URDF: write it with report.urdf_export, not as YAML")
     data: dict[str, Any] = {"name": robot.name}
     if robot.convention != PAPER:
         data["convention"] = robot.convention

@@ -16,6 +16,7 @@ not itself on the way is read too.
 from __future__ import annotations
 
 import io
+from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
@@ -24,6 +25,7 @@ import numpy as np
 from laser_calib.io.errors import InputError
 from laser_calib.model.joint_chain import FIXED_JOINT, PRISMATIC, REVOLUTE, ChainJoint, JointChain
 from laser_calib.model.robot import Laser, Robot, Screen, Slm
+from laser_calib.model.robot_file import load_robot
 
 URDF_SUFFIXES = (".urdf", ".xacro")
 _KINDS = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC, "fixed": FIXED_JOINT}
@@ -84,9 +86,9 @@ def _chain_joint(joint, source: str) -> ChainJoint:
                       lower=lower, upper=upper)
 
 
-def chain_from_urdf(text: str, base: str, tips: Sequence[str], source: str = "<robot_description>") -> JointChain:
-    """The joint placements from ``base`` to each of ``tips`` (link names)."""
-    urdf = _parse(text, source)
+def chain_from_urdf(urdf, text: str, base: str, tips: Sequence[str], source: str) -> JointChain:
+    """The joint placements from ``base`` to each of ``tips`` (link names) of a
+    parsed yourdfpy.URDF ``urdf`` whose text is ``text``."""
     by_child = {j.child: j for j in urdf.robot.joints}
     by_name = {j.name: j for j in urdf.robot.joints}
     links = {link.name for link in urdf.robot.links}
@@ -106,24 +108,20 @@ def chain_from_urdf(text: str, base: str, tips: Sequence[str], source: str = "<r
     for name, mimic in mimics.items():
         if mimic.joint not in by_name or by_name[mimic.joint].mimic is not None:
             raise InputError(f"{source}: joint '{name}': mimic", f"'{mimic.joint}' is not a driven joint")
+        # The source must itself be on the way: its limits and placement come from there.
         if mimic.joint not in readings:
-            readings.append(mimic.joint)
+            raise InputError(f"{source}: joint '{mimic.joint}'", "drives a mimic joint but is not between base and tip")
     joints = []
     for name in order:
         joint = _chain_joint(by_name[name], source)
         if name in mimics:
             m = mimics[name]
-            joint = ChainJoint(joint.name, joint.kind, joint.origin, joint.axis, readings.index(m.joint),
-                               float(m.multiplier if m.multiplier is not None else 1.0),
-                               float(m.offset if m.offset is not None else 0.0), True, joint.lower, joint.upper)
+            joint = replace(joint, reading=readings.index(m.joint), coupled=True,
+                            multiplier=float(1.0 if m.multiplier is None else m.multiplier),
+                            mimic_offset=float(0.0 if m.offset is None else m.offset))
         elif joint.movable:
-            joint = ChainJoint(joint.name, joint.kind, joint.origin, joint.axis, readings.index(name),
-                               lower=joint.lower, upper=joint.upper)
+            joint = replace(joint, reading=readings.index(name))
         joints.append(joint)
-    # A mimic source must itself be on the way: its limits and placement come from there.
-    for name in readings:
-        if name not in order:
-            raise InputError(f"{source}: joint '{name}'", "drives a mimic joint but is not between base and tip")
     if not readings:
         raise InputError(source, f"no movable joint between '{base}' and {', '.join(tips)}")
     return JointChain(tuple(joints), base, tuple(tips), tuple(tip_paths), tuple(readings), urdf=text)
@@ -141,8 +139,9 @@ def robot_from_urdf(text: str, base: str, tip: str | Sequence[str], source: str 
     tips = (tip,) if isinstance(tip, str) else tuple(tip)
     if lasers and slm is None:
         raise InputError(source, "lasers need an slm placement")
-    chain = chain_from_urdf(text, base, tips, source)
-    robot_name = name or (_parse(text, source).robot.name or "robot")
+    urdf = _parse(text, source)
+    chain = chain_from_urdf(urdf, text, base, tips, source)
+    robot_name = name or urdf.robot.name or "robot"
     return Robot(name=robot_name, joints=(), slm=slm, lasers=tuple(lasers), screen=screen, chain=chain)
 
 
@@ -156,8 +155,6 @@ def is_urdf(path: str | Path) -> bool:
 
 def load_robot_description(path: str | Path, base: str | None = None, tip: Sequence[str] | str | None = None) -> Robot:
     """--robot: a robot YAML, or a URDF / xacro file with its base and tip link(s)."""
-    from laser_calib.model.robot_file import load_robot
-
     if is_urdf(path):
         if not base or not tip:
             raise InputError(str(path), "a URDF robot needs --base LINK and --tip LINK")
