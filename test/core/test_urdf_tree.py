@@ -19,7 +19,8 @@ from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, make_model
 from laser_calib.io.sensor_samples import SensorSamples
 from laser_calib.measurement.sensor import PointModel
-from laser_calib.model.urdf import load_urdf_robot
+from laser_calib.io.errors import InputError
+from laser_calib.model.urdf import load_urdf_robot, robot_from_urdf
 
 DATA = Path(__file__).parent / "data"
 SIGMA = 1e-4
@@ -86,3 +87,9 @@ def test_a_tree_needs_the_tip_column():
         PointModel(robot, _samples(robot, q, None))
     with pytest.raises(ValueError, match="tip 2 is not one of 0..1"):
         PointModel(robot, _samples(robot, q, np.array([0, 1, 2])))
+
+
+def test_a_mimic_source_off_the_way_is_refused():
+    """From torso_2 down, torso_pitch_2 is on the way but its source torso_pitch_1 is above it."""
+    with pytest.raises(InputError, match="joint 'torso_pitch_1'.*drives a mimic joint but is not between"):
+        robot_from_urdf(TORSO.read_text(), "torso_2", "left_tool")
