@@ -126,7 +126,9 @@ class ChainState:
 
     origin (P,3): SLM origin in {0}, which is also every laser's origin;
     rotation (P,3,3): SLM frame; beams (P,L,3): unit beam directions;
-    joint_origin, joint_axis (P,N,3): origin and rotation axis of each joint;
+    joint_origin, joint_axis (P,N,3): origin and axis (of rotation, or of
+    translation for a prismatic joint) of each read joint, NaN for a reading
+    that does not move this tip (another arm of a tree);
     twists (P,6,n) or None: Jac_1, the motion (v; w) of the laser frame per unit
     error of each parameter (eq. 6).
     """
