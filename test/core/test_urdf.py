@@ -220,6 +220,8 @@ def test_calibrate_poses_from_the_ur10e_urdf_writes_a_calibrated_urdf(tmp_path, 
     held = {p["name"] for p in result["parameters"] if p["value"] is None}
     assert "shoulder_pan_joint.offset" in held  # carried by the sensor frame
     assert corrections["joints"][0]["errors"]["offset"] is None
+    units = {p["name"]: p["unit"] for p in result["parameters"]}
+    assert (units["elbow_joint.offset"], units["elbow_joint.x"], units["elbow_joint.rx"]) == ("rad", "m", "rad")
     assert result["insample"]["position_mm"]["mean"] < result["insample"]["nominal_position_mm"]["mean"]
 
 

@@ -55,11 +55,13 @@ def _unit(name: str) -> str:
     return "rad" if tail in ("alpha", "theta", "rx", "ry", "rz") else "m"
 
 
-def _parameters(fit: SensorFit) -> list[dict]:
+def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
     est = fit.estimate
+    # The robot's own kinds: a joint placement's offset is m or rad by its joint type.
+    units = {n: "m" if kind == "length" else "rad" for n, kind in zip(robot.param_names, robot.param_kinds())}
     out = []
     for i, name in enumerate(est.names):
-        entry = {"name": name, "unit": _unit(name),
+        entry = {"name": name, "unit": units.get(name) or _unit(name),
                  "value": float(est.errors[i]) if math.isfinite(est.errors[i]) else None,
                  "std": float(est.std[i]) if math.isfinite(est.std[i]) else None}
         if name in fit.absorbed:
@@ -105,7 +107,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     result = {"robot": robot.name, "samples": str(args.samples), "kind": samples.kind, "poses": len(samples),
               "rotation_length_m_per_rad": fit.rotation_length, "sigma_m": fit.estimate.sigma,
               "chi2": fit.estimate.fit.chi2, "dof": fit.estimate.fit.dof,
-              "parameters": _parameters(fit),
+              "parameters": _parameters(fit, robot),
               "insample": {"nominal_position_mm": _stats(before_p, 1e3), "position_mm": _stats(after_p, 1e3)},
               "warnings": list(fit.nominal.warnings + fit.estimate.warnings)}
     if samples.kind == "pose":
