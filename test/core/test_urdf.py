@@ -177,6 +177,11 @@ def test_bad_chains_are_one_line_errors(base, tip, message):
         load_urdf_robot(DATA / "column_arm.urdf", base, tip)
 
 
+def test_broken_xml_is_one_line():
+    with pytest.raises(InputError, match="line 1.*not valid XML"):
+        robot_from_urdf('<robot name="x"><link name="a"/>', "a", "b", "broken.urdf")
+
+
 def test_a_floating_joint_on_the_way_is_refused():
     text = (DATA / "column_arm.urdf").read_text().replace('name="lift" type="prismatic"', 'name="lift" type="floating"')
     with pytest.raises(InputError, match="joint 'lift'.*type 'floating' cannot be calibrated"):

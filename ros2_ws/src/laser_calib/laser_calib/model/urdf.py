@@ -49,7 +49,12 @@ def urdf_text(path: str | Path) -> str:
 
 def _parse(text: str, source: str):
     import yourdfpy
+    from lxml import etree
 
+    try:  # strict XML first: yourdfpy would fall back to a lenient parse of a broken file
+        etree.fromstring(text.encode())
+    except etree.XMLSyntaxError as exc:
+        raise InputError(f"{source}: line {exc.lineno}", f"not valid XML ({exc.msg})") from None
     try:
         return yourdfpy.URDF.load(io.BytesIO(text.encode()), build_scene_graph=False, load_meshes=False)
     except Exception as exc:  # lxml and yourdfpy raise many types for a broken file
