@@ -15,8 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from laser_calib.model.kinematics import predict
-from laser_calib.model.robot import Robot, param_kinds
+from laser_calib.model.kinematics import joint_columns, predict
+from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import load_robot
 from laser_calib.io.samples import Samples
 
@@ -62,7 +62,7 @@ def true_errors(robot: Robot, rng: np.random.Generator | None = None, length: fl
                 angle: float = float(np.deg2rad(1.0))) -> np.ndarray:
     """The paper's true errors: every length +10 mm and every angle +1 deg; with
     rng, each error uniform in [-size, +size] instead."""
-    size = np.where(param_kinds(robot.n_joints) == "length", length, angle)
+    size = np.where(robot.param_kinds() == "length", length, angle)
     if rng is None:
         return size
     return rng.uniform(-size, size)
@@ -117,9 +117,9 @@ def measure(true_robot: Robot, q: np.ndarray, rng: np.random.Generator, noise: N
                       dict(extra or {}))
     offsets = np.zeros((n, true_robot.n_params)) if param_offsets is None else param_offsets(true_robot, context)
     disturbance = noise.draw(rng, noise.joint, q.shape)
-    # The arm sits at q + disturbance; the disturbance enters as a theta error.
+    # The arm sits at q + disturbance; the disturbance enters as a theta error (d for a prismatic joint).
     moved = offsets.copy()
-    moved[:, 3:4 * true_robot.n_joints:4] += disturbance
+    moved[:, joint_columns(true_robot)] += disturbance
     actual = predict(true_robot, q, moved)
     truth = predict(true_robot, q, offsets)
     actual_spots, truth_spots = actual.spots, truth.spots
