@@ -5,7 +5,8 @@ import pytest
 
 from laser_calib.cli import main as cli
 from laser_calib.model.kinematics import predict
-from laser_calib.planning import PRIOR, PlanOptions, candidate_poses, d_optimal, format_poses, plan, whitened_jacobians
+from laser_calib.planning import PRIOR, PlanOptions, candidate_poses, d_optimal, plan, whitened_jacobians
+from laser_calib.session.poses import format_poses
 from laser_calib.model.robot_file import save_robot
 from laser_calib.sim.simulation import bundled_robot
 

@@ -63,7 +63,7 @@ def test_synchronizer_pairs_nearest_within_tolerance():
 def test_pose_list_errors(tmp_path):
     from laser_calib.io.errors import InputError
     from laser_calib.model.robot_file import load_robot
-    from laser_calib.session.folder import generate_poses, load_poses
+    from laser_calib.session.poses import generate_poses, load_poses
     robot = load_robot(ROBOT)
     path = tmp_path / "p.yaml"
     path.write_text("poses:\n  - [0, 0, 0, 0, 0, 0, 0]\n  - {pose: 7, q: [0, 0, 0, 0, 0, 0]}\n")
@@ -82,7 +82,7 @@ def test_planned_pose_list_loads_into_the_sequencer(tmp_path):
     """`laser-calib plan` writes pose,q1..qN; the sequencer's pose list reader takes it as it is."""
     from laser_calib.cli.main import main
     from laser_calib.model.robot_file import load_robot
-    from laser_calib.session.folder import load_poses
+    from laser_calib.session.poses import load_poses
     robot = load_robot(ROBOT)
     path = tmp_path / "planned.csv"
     assert main(["plan", "--robot", str(ROBOT), "--n", "12", "--out", str(path)]) == 0

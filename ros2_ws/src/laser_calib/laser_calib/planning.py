@@ -150,10 +150,3 @@ def plan(robot: Robot, options: PlanOptions) -> Plan:
     ident = analyse(g.reshape(-1, robot.n_params), np.ones(robot.n_params), robot.param_names)
     index, log_det = d_optimal(g[:, :, ident.free], options.n, options.passes)
     return Plan(q[index], log_det, ident.free)
-
-
-def format_poses(q: np.ndarray) -> str:
-    """CSV text pose,q1..qN (rad, full precision), one row per pose in measuring order."""
-    header = "pose," + ",".join(f"q{i + 1}" for i in range(q.shape[1]))
-    rows = [f"{p}," + ",".join(repr(float(v)) for v in row) for p, row in enumerate(q)]
-    return "\n".join([header] + rows) + "\n"

@@ -1,11 +1,14 @@
 """arm_driver: joint goals in, joint states out, over a simulated or a Dynamixel arm.
 
-Subscribes  joint_trajectory (trajectory_msgs/JointTrajectory): the positions of
-            the LAST point are the goal; the arm moves there on its own
-            profile (the intermediate points and all timing fields are
-            ignored). joint_names may list the joints in any order; empty means
-            the driver's order. A goal outside the joint limits, with NaN or of
-            the wrong size is refused with one log line; the arm keeps its goal.
+Subscribes  joint_trajectory (trajectory_msgs/JointTrajectory), accepted under the
+            rules of ros2_control's joint_trajectory_controller
+            (laser_calib.hardware.trajectory: every joint named, in any order;
+            time_from_start strictly increasing; sizes matching) and refused,
+            with one log line, otherwise or when the goal leaves the joint
+            limits; the arm keeps its goal. The positions of the LAST point are
+            the goal; the arm moves there on its own profile (intermediate
+            points and timing are not followed: a calibration needs only the
+            still poses).
 Publishes   joint_states (sensor_msgs/JointState) at ``rate`` Hz: position
             (rad) and velocity (rad/s) as read from the arm.
             sim/true_spots (laser_calib_interfaces/SpotPair), backend 'sim' only:
@@ -31,6 +34,7 @@ from laser_calib.sim.simulation import NoiseSpec, true_errors
 
 from laser_calib_nodes import common
 from laser_calib.hardware.backends import SimArm, dynamixel_backend
+from laser_calib.hardware.trajectory import TrajectoryPoint, trajectory_goal
 
 
 class ArmDriver(Node):
@@ -117,7 +121,6 @@ class ArmDriver(Node):
         else:
             raise common.NodeError(f"parameter backend: expected 'sim' or 'dynamixel', got {backend!r}", 2)
 
-        self.index = {name: i for i, name in enumerate(self.joint_names)}
         self.state_pub = self.create_publisher(JointState, common.JOINT_STATES, common.STREAM_QOS)
         self.create_subscription(JointTrajectory, common.JOINT_TRAJECTORY, self.on_trajectory, common.COMMAND_QOS)
         self.timer = self.create_timer(1.0 / rate, self.on_timer)
@@ -125,25 +128,12 @@ class ArmDriver(Node):
         self.get_logger().info(f"{backend} arm '{self.robot.name}', {n} joints, publishing at {rate:g} Hz")
 
     def on_trajectory(self, msg: JointTrajectory) -> None:
-        if not msg.points:
-            self.get_logger().error("joint_trajectory rejected: no points")
-            return
-        positions = list(msg.points[-1].positions)
-        names = list(msg.joint_names) or self.joint_names
-        if len(names) != len(positions):
-            self.get_logger().error(f"joint_trajectory rejected: {len(names)} joint names, "
-                                    f"{len(positions)} positions in the last point")
-            return
-        unknown = [name for name in names if name not in self.index]
-        if unknown or len(set(names)) != len(self.joint_names):
-            missing = sorted(set(self.joint_names) - set(names))
-            what = f"unknown joint '{unknown[0]}'" if unknown else f"missing joint '{missing[0]}'"
-            self.get_logger().error(f"joint_trajectory rejected: {what} (joints: {', '.join(self.joint_names)})")
-            return
-        goal = np.empty(len(self.joint_names))
-        for name, value in zip(names, positions):
-            goal[self.index[name]] = value
+        points = [TrajectoryPoint(list(p.positions), common.stamp_seconds(p.time_from_start),
+                                  list(p.velocities), list(p.accelerations)) for p in msg.points]
         try:
+            goal = trajectory_goal(list(msg.joint_names), points, self.joint_names, self.robot.q_min,
+                                   self.robot.q_max, common.stamp_seconds(msg.header.stamp),
+                                   common.now_ns(self) * 1e-9)
             self.backend.command(goal)
         except ValueError as exc:
             self.get_logger().error(f"joint_trajectory rejected: {exc}")

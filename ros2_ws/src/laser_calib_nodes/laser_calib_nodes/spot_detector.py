@@ -1,29 +1,45 @@
 """spot_detector: camera frames in, the two laser spots on the screen out.
 
-Subscribes  camera/image_raw (sensor_msgs/Image, bgr8), detected with
+Subscribes  camera/image_raw (sensor_msgs/Image) with the sensor-data QoS most
+            camera drivers publish with (best effort; a reliable publisher
+            connects too), in any encoding of laser_calib.vision.encodings
+            (bgr8, rgb8, bayer_*8, yuv422, yuv422_yuy2; mono8 only as a raw
+            mosaic, ``mono_pattern``), detected with
             laser_calib.vision.detect.SpotDetector and the screen calibration
             (``calibration`` file; empty: the simulated camera's exact one).
+            camera/camera_info (sensor_msgs/CameraInfo): the driver's image size
+            must be the calibration's (else frames are refused, one line); its
+            intrinsics are compared with the calibration's (a warning when they
+            differ: the camera was changed or refocused since screen-calibrate).
 Publishes   laser1/spot, laser2/spot (geometry_msgs/PointStamped, frame
             `screen`: x = 0, y, z in metres), only when that laser is seen.
             spots (laser_calib_interfaces/SpotPair): both lasers of every
-            frame, with seen = false (and NaN) for a missing spot. A missing
-            spot is therefore "not published" on laserN/spot, and explicit on
-            spots, which is what the sequencer and the estimator use: they can
-            tell a frame without a spot from a frame not yet arrived.
+            frame, with seen = false (and NaN) for a missing spot, which is what
+            the sequencer and the estimator use: they can tell a frame without
+            a spot from a frame not yet arrived.
+Capture     ``capture_dir`` non-empty: also save ``capture_count`` frames, one
+            every ``capture_period`` s, as PNG (bgr8) for `laser-calib
+            screen-calibrate` (board views while the board is moved, or screen
+            views), then carry on detecting.
 All outputs carry the image's stamp.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import sys
+from pathlib import Path
 
+import cv2
 import numpy as np
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
-from sensor_msgs.msg import Image
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
 
 from laser_calib.vision.camera import default_camera, load_calibration
 from laser_calib.vision.detect import DetectorOptions, SpotDetector
+from laser_calib.vision.encodings import pattern_of, to_bgr8
 
 from laser_calib_nodes import common
 
@@ -31,43 +47,82 @@ from laser_calib_nodes import common
 class SpotDetectorNode(Node):
     def __init__(self):
         super().__init__("spot_detector")
-        path = common.declare(self, "calibration", "", "Screen calibration file (laser_calib.vision, YAML); "
-                                                       "empty: the exact calibration of the simulated camera.")
-        half_y = common.declare(self, "screen.half_y", 1.0, "Measuring area half width, m (robot file 'screen').")
-        half_z = common.declare(self, "screen.half_z", 1.0, "Measuring area half height, m (robot file 'screen').")
-        min_peak = common.declare(self, "min_peak_dn", DetectorOptions().min_peak_dn,
-                                  "Least smoothed colour contrast of a spot, DN.")
+        d = lambda *a, **k: common.declare(self, *a, **k)  # noqa: E731
+        path = d("calibration", "", "Screen calibration file (laser_calib.vision, YAML); "
+                                    "empty: the exact calibration of the simulated camera.")
+        half_y = d("screen.half_y", 1.0, "Measuring area half width, m (robot file 'screen').")
+        half_z = d("screen.half_z", 1.0, "Measuring area half height, m (robot file 'screen').")
+        min_peak = d("min_peak_dn", DetectorOptions().min_peak_dn, "Least smoothed colour contrast of a spot, DN.")
+        pattern = d("bayer_pattern", "RGGB", "Photosite mosaic behind demosaiced (rgb8/bgr8) images; 'none' for a "
+                                             "camera measuring every colour per pixel. Raw bayer_* images give it.")
+        self.mono_pattern = d("mono_pattern", "", "mono8 images are this raw Bayer mosaic (e.g. RGGB); empty: "
+                                                  "mono8 is refused (it cannot tell the lasers apart).") or None
+        self.capture_dir = d("capture_dir", "", "Save frames here (PNG) for laser-calib screen-calibrate; empty: off.")
+        self.capture_left = d("capture_count", 10, "Frames to save in capture_dir.")
+        self.capture_period = d("capture_period", 1.0, "Seconds between saved frames (move the board meanwhile).")
         if path:
-            calibration = load_calibration(path)
+            self.calibration = load_calibration(path)
         else:
-            calibration = default_camera().ideal_calibration()
+            self.calibration = default_camera().ideal_calibration()
             self.get_logger().info("calibration: the simulated camera's exact one (parameter calibration is empty)")
-        self.detector = SpotDetector(calibration, DetectorOptions(half_y=half_y, half_z=half_z,
-                                                                  min_peak_dn=min_peak))
+        self.options = DetectorOptions(half_y=half_y, half_z=half_z, min_peak_dn=min_peak,
+                                       bayer_pattern=None if pattern.lower() == "none" else pattern.upper())
+        try:
+            self.detectors = {None: SpotDetector(self.calibration, self.options)}
+        except ValueError as exc:
+            raise common.NodeError(f"parameter bayer_pattern: {exc}", 2) from None
+        if self.capture_dir:
+            Path(self.capture_dir).mkdir(parents=True, exist_ok=True)
+        self.captured, self.last_capture = 0, -np.inf
         from laser_calib_interfaces.msg import SpotPair
         self.SpotPair = SpotPair
         self.point_pubs = [self.create_publisher(PointStamped, topic, common.STREAM_QOS)
                            for topic in common.LASER_SPOT]
         self.pair_pub = self.create_publisher(SpotPair, common.SPOTS, common.STREAM_QOS)
-        self.create_subscription(Image, common.IMAGE, self.on_image, common.IMAGE_QOS)
+        self.create_subscription(Image, common.IMAGE, self.on_image, qos_profile_sensor_data)
+        self.create_subscription(CameraInfo, common.CAMERA_INFO, self.on_info, qos_profile_sensor_data)
         self.bad_frames = 0
+        self.info_problem: str | None = None
+        self.info_checked = False
+
+    def on_info(self, msg: CameraInfo) -> None:
+        if self.info_checked:
+            return
+        self.info_checked = True
+        c = self.calibration
+        if (msg.width, msg.height) != (c.width, c.height):
+            self.info_problem = (f"the camera's CameraInfo says {msg.width}x{msg.height}, the calibration is for "
+                                 f"{c.width}x{c.height}")
+            self.get_logger().error(f"frames refused: {self.info_problem}")
+            return
+        k = np.array(msg.k, dtype=float).reshape(3, 3)
+        if k[0, 0] > 0 and not np.allclose(k, c.K, rtol=0.01, atol=1.0):
+            self.get_logger().warning("the driver's CameraInfo intrinsics differ from the calibration file's "
+                                      "(the file's are used): re-run screen-calibrate if the camera changed")
+
+    def reject(self, why: str) -> None:
+        self.bad_frames += 1
+        if self.bad_frames == 1 or self.bad_frames % 100 == 0:
+            self.get_logger().error(f"image rejected ({self.bad_frames} so far): {why}")
+
+    def detector(self, encoding: str) -> SpotDetector:
+        """The detector for the photosites behind this encoding: a raw mosaic's own pattern, every
+        pixel for 4:2:2 video (chroma shared by pixel pairs), else the bayer_pattern parameter's."""
+        pattern = "none" if encoding.startswith("yuv422") else pattern_of(encoding, self.mono_pattern)
+        if pattern not in self.detectors:
+            options = dataclasses.replace(self.options, bayer_pattern=None if pattern == "none" else pattern)
+            self.detectors[pattern] = SpotDetector(self.calibration, options)
+        return self.detectors[pattern]
 
     def on_image(self, msg: Image) -> None:
-        if msg.encoding != "bgr8" or msg.step != msg.width * 3 or len(msg.data) != msg.height * msg.step:
-            self.bad_frames += 1
-            if self.bad_frames == 1 or self.bad_frames % 100 == 0:
-                self.get_logger().error(f"image rejected ({self.bad_frames} so far): expected bgr8 "
-                                        f"{msg.width}x{msg.height}, got {msg.encoding}, step {msg.step}, "
-                                        f"{len(msg.data)} bytes")
-            return
-        image = np.frombuffer(msg.data, dtype=np.uint8).reshape(msg.height, msg.width, 3)
+        if self.info_problem:
+            return self.reject(self.info_problem)
         try:
-            spots, seen = self.detector.detect(image)
-        except ValueError as exc:  # wrong size for the calibration
-            self.bad_frames += 1
-            if self.bad_frames == 1 or self.bad_frames % 100 == 0:
-                self.get_logger().error(f"image rejected ({self.bad_frames} so far): {exc}")
-            return
+            image = to_bgr8(bytes(msg.data), msg.width, msg.height, msg.step, msg.encoding, self.mono_pattern)
+            spots, seen = self.detector(msg.encoding).detect(image)
+        except ValueError as exc:  # encoding, layout, or a size the calibration is not for
+            return self.reject(str(exc))
+        self.capture(image, common.stamp_seconds(msg.header.stamp))
         pair = self.SpotPair()
         pair.header.stamp = msg.header.stamp
         pair.header.frame_id = common.SCREEN_FRAME
@@ -79,6 +134,16 @@ class SpotDetectorNode(Node):
                 point.point.x, point.point.y, point.point.z = 0.0, float(spots[j][0]), float(spots[j][1])
                 self.point_pubs[j].publish(point)
         self.pair_pub.publish(pair)
+
+    def capture(self, image: np.ndarray, stamp: float) -> None:
+        if not self.capture_dir or self.captured >= self.capture_left or stamp - self.last_capture < self.capture_period:
+            return
+        path = Path(self.capture_dir) / f"frame_{self.captured:04d}.png"
+        cv2.imwrite(str(path), image)
+        self.captured += 1
+        self.last_capture = stamp
+        self.get_logger().info(f"captured {path} ({self.captured}/{self.capture_left})"
+                               + ("; capture done" if self.captured == self.capture_left else ""))
 
 
 def main(args=None) -> int:

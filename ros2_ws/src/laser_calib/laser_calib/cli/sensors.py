@@ -21,7 +21,8 @@ from laser_calib.cli.arguments import add_robot_arguments, positive
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
-from laser_calib.planning import PlanOptions, format_poses, plan
+from laser_calib.planning import PlanOptions, plan
+from laser_calib.session.poses import format_poses
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.model.urdf import load_robot_description
 from laser_calib.report.urdf_export import save_calibrated_urdf

@@ -1,192 +1,80 @@
-"""A measurement session on disk (ROS-free): pose list, samples CSV, bag, resume.
+"""A measurement session on disk (ROS-free): folder, samples files, resume and repair.
 
 Session directory:
 
     session.yaml        what was started (robot, pose source, parameters) and its state
     robot.yaml          the nominal robot model used (copy)
-    poses.csv           the pose sequence (pose,q1..qN), fixed at the first start
-    samples.csv         the samples (conventions.md), one row appended per measured pose
+    poses.csv           the pose sequence (pose,q1..qN[,test]), fixed at the first start
+    samples.csv         the samples of the fit poses (conventions.md), one row appended per pose
+    test_samples.csv    the samples of the test poses (held out: `laser-calib estimate --test`)
     bag/                rosbag2 MCAP bag in closed segments (io.bag_writer.SegmentedBagWriter)
     .recording/         the segment being written (lost in a crash: the pose in progress)
-    report.md, result.json, robot_calibrated.yaml (+ PNGs)   at the end
+    .lock               the owner's lock and PID (session.lock)
+    report.md, result.json, robot_calibrated.yaml (+ PNGs), truth.json   at the end
 
-Resume: the bag is the journal. The k-th /samples message of the bag is the
-k-th step of the pose sequence; a step counts as done once the segment holding
-its sample is closed. On resume, samples.csv is rewritten from the bag when the
-two differ (a crash between closing the segment and appending the row), and the
-sequence continues at step k.
+Resume: a sample is written to the bag (segment closed), then its CSV row. A crash
+can leave the two disagreeing by the pose in flight: the bag one sample ahead
+(killed before the row), the CSV one row ahead (the bag segment lost), a torn
+last CSV line. ``reconcile`` repairs each: every sample found in either record
+is kept, assigned to its step of the pose list by pose id (repeats in order),
+the CSV files are rewritten to hold all of them, and the samples only the CSV
+had are returned for the node to write back into the bag. The steps with no
+sample are measured next, in pose-list order. Only a sample whose pose id the
+pose list does not hold (another session's data) is refused.
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import yaml
 
+from laser_calib.io import bag
 from laser_calib.io.errors import InputError
+from laser_calib.io.samples import Samples, format_samples, load_samples, parse_samples, sample_row
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import load_robot, save_robot
-from laser_calib.io.samples import (Samples, check_joint_range, format_samples, load_samples, parse_number,
-                                      sample_row)
-from laser_calib.sim.simulation import sample_poses
-
-from laser_calib.io import bag
+from laser_calib.session.durable import append_durably, write_durably
+from laser_calib.session.poses import PoseSequence, load_poses, save_poses
 
 SESSION_FILE = "session.yaml"
 POSES_FILE = "poses.csv"
 SAMPLES_FILE = "samples.csv"
+TEST_SAMPLES_FILE = "test_samples.csv"
 ROBOT_FILE = "robot.yaml"
 BAG_DIR = "bag"
 WORK_DIR = ".recording"
+TEST_SAMPLES_TOPIC = "/test_samples"
+
+
+def empty_samples(n_joints: int) -> Samples:
+    return Samples(np.zeros(0, int), np.zeros(0), np.zeros((0, n_joints)), np.zeros((0, 2, 2)))
+
+
+def concat(parts: list[Samples], n_joints: int) -> Samples:
+    parts = [p for p in parts if len(p)]
+    if not parts:
+        return empty_samples(n_joints)
+    return Samples(np.concatenate([p.pose for p in parts]), np.concatenate([p.stamp for p in parts]),
+                   np.vstack([p.q for p in parts]), np.concatenate([p.spots for p in parts]))
 
 
 @dataclass(frozen=True)
-class PoseSequence:
-    """The steps of a session: pose ids (P,) (repeats share an id) and joint goals (P,N)."""
+class Reconciled:
+    """What a resume found: done (P,) bool per step; fit and test, the samples of the done
+    steps in measurement order; to_bag, the samples the bag lacked (rewrite them into it);
+    repairs, one line per repair made (for the log)."""
 
-    pose: np.ndarray
-    q: np.ndarray
+    done: np.ndarray
+    fit: Samples
+    test: Samples
+    to_bag: Samples
+    repairs: list[str]
 
-    def __len__(self) -> int:
-        return len(self.pose)
-
-
-# ---- pose lists -----------------------------------------------------------------
-
-def load_poses(path: str | Path, robot: Robot) -> PoseSequence:
-    """Pose list from YAML (``poses:`` list of [q1..qN] or {pose: id, q: [...]}) or
-    CSV (header with q1..qN and optionally pose; other columns ignored)."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
-    if path.suffix.lower() in (".yaml", ".yml"):
-        ids, rows = _poses_from_yaml(text, str(path), robot)
-    else:
-        ids, rows = _poses_from_csv(text, str(path), robot)
-    if not rows:
-        raise InputError(str(path), "no poses")
-    q = np.array(rows, dtype=float)
-    check_joint_range(q, robot, str(path), np.array(ids))
-    return PoseSequence(np.array(ids, dtype=int), q)
-
-
-def _check_row(values: Sequence, where: str, robot: Robot) -> list[float]:
-    if not isinstance(values, (list, tuple)) or len(values) != robot.n_joints:
-        count = len(values) if isinstance(values, (list, tuple)) else "not a list of"
-        raise InputError(where, f"{count} joint positions, robot '{robot.name}' has {robot.n_joints}")
-    out = []
-    for i, value in enumerate(values):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise InputError(f"{where}, q{i + 1}", f"expected a finite number (rad), got {value!r}")
-        out.append(float(value))
-    return out
-
-
-def _poses_from_yaml(text: str, source: str, robot: Robot) -> tuple[list[int], list[list[float]]]:
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        raise InputError(f"{source}: line {mark.line + 1}" if mark else source, "not valid YAML") from None
-    if isinstance(data, dict):
-        if "poses" not in data:
-            raise InputError(source, "missing key 'poses'")
-        data = data["poses"]
-    if not isinstance(data, list):
-        raise InputError(f"{source}: poses", "expected a list of poses")
-    ids, rows = [], []
-    for k, entry in enumerate(data):
-        where = f"{source}: poses[{k}]"
-        if isinstance(entry, dict):
-            if "q" not in entry:
-                raise InputError(where, "missing key 'q'")
-            pose = entry.get("pose", k)
-            if isinstance(pose, bool) or not isinstance(pose, int):
-                raise InputError(f"{where}, pose", f"expected an integer id, got {pose!r}")
-            ids.append(pose)
-            rows.append(_check_row(entry["q"], where, robot))
-        else:
-            ids.append(k)
-            rows.append(_check_row(entry, where, robot))
-    return ids, rows
-
-
-def _poses_from_csv(text: str, source: str, robot: Robot) -> tuple[list[int], list[list[float]]]:
-    lines = [row for row in csv.reader(io.StringIO(text)) if any(cell.strip() for cell in row)]
-    if not lines:
-        raise InputError(source, "empty file")
-    header = [cell.strip() for cell in lines[0]]
-    columns = [f"q{i + 1}" for i in range(robot.n_joints)]
-    missing = [c for c in columns if c not in header]
-    if missing:
-        raise InputError(f"{source}: header", f"missing column {missing[0]} (robot '{robot.name}' has "
-                                              f"{robot.n_joints} joints)")
-    index = [header.index(c) for c in columns]
-    pose_col = header.index("pose") if "pose" in header else None
-    ids, rows = [], []
-    for r, row in enumerate(lines[1:]):
-        line = r + 2
-        if len(row) != len(header):
-            raise InputError(f"{source}: line {line}", f"{len(row)} fields, header has {len(header)}")
-        if pose_col is None:
-            ids.append(r)
-        else:
-            try:
-                ids.append(int(row[pose_col]))
-            except ValueError:
-                raise InputError(f"{source}: line {line}, field pose", f"not an integer: {row[pose_col]!r}") from None
-        rows.append([parse_number(row[i], f"{source}: line {line}, field {name}") for name, i in zip(columns, index)])
-    return ids, rows
-
-
-def generate_poses(robot: Robot, count: int, span: str, seed: int, repeats: int = 0,
-                   margin: float = 0.02) -> PoseSequence:
-    """``count`` poses whose two beams hit the screen (laser_calib.sim.simulation.sample_poses,
-    nominal model), span 'small' (+-10 deg) or 'whole' (workspace); then ``repeats``
-    of them, evenly spread over the list, measured again at the end with their ids."""
-    if count < 1:
-        raise InputError("poses", f"need at least one pose, got {count}")
-    if span not in ("small", "whole"):
-        raise InputError("span", f"expected 'small' or 'whole', got {span!r}")
-    try:
-        q = sample_poses([robot], count, np.random.default_rng(seed), span, margin)
-    except RuntimeError as exc:
-        raise InputError(f"robot '{robot.name}'", str(exc)) from None
-    ids = np.arange(count)
-    if repeats > 0:
-        again = np.unique(np.linspace(0, count - 1, min(repeats, count)).round().astype(int))
-        ids = np.concatenate([ids, again])
-        q = np.vstack([q, q[again]])
-    return PoseSequence(ids, q)
-
-
-def save_poses(poses: PoseSequence, path: Path) -> None:
-    n = poses.q.shape[1]
-    lines = [",".join(["pose"] + [f"q{i + 1}" for i in range(n)])]
-    lines += [",".join([str(int(p))] + [repr(float(v)) for v in q]) for p, q in zip(poses.pose, poses.q)]
-    _write_durably(path, "\n".join(lines) + "\n")
-
-
-def _write_durably(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
-
-
-# ---- the session directory ----------------------------------------------------------
 
 class SessionDir:
     """A session directory being measured (see the module docstring)."""
@@ -222,10 +110,10 @@ class SessionDir:
     def set_info(self, **updates) -> None:
         data = self.info() or {}
         data.update(updates)
-        _write_durably(self.path / SESSION_FILE, yaml.safe_dump(data, sort_keys=False))
+        write_durably(self.path / SESSION_FILE, yaml.safe_dump(data, sort_keys=False))
 
     def start(self, robot: Robot, poses: PoseSequence, info: dict) -> None:
-        """A new session: robot copy, pose list, empty samples file."""
+        """A new session: robot copy, pose list, empty samples files."""
         self.path.mkdir(parents=True, exist_ok=True)
         leftovers = [p.name for p in self.path.iterdir() if p.name in (SAMPLES_FILE, BAG_DIR, POSES_FILE)]
         if leftovers:
@@ -233,60 +121,98 @@ class SessionDir:
                                              "directory to resume; choose an empty output directory")
         save_robot(robot, self.path / ROBOT_FILE, header="Nominal robot model of this session.")
         save_poses(poses, self.path / POSES_FILE)
-        empty = Samples(np.zeros(0, int), np.zeros(0), np.zeros((0, robot.n_joints)), np.zeros((0, 2, 2)))
-        _write_durably(self.path / SAMPLES_FILE, format_samples(empty))
-        self.set_info(state="running", started=time.strftime("%Y-%m-%dT%H:%M:%S%z"), steps=len(poses), **info)
+        for name in self.sample_files(poses):
+            write_durably(self.path / name, format_samples(empty_samples(robot.n_joints)))
+        self.set_info(state="running", started=time.strftime("%Y-%m-%dT%H:%M:%S%z"), steps=len(poses),
+                      test_steps=int(poses.test.sum()), **info)
+
+    @staticmethod
+    def sample_files(poses: PoseSequence) -> tuple[str, ...]:
+        return (SAMPLES_FILE, TEST_SAMPLES_FILE) if poses.test.any() else (SAMPLES_FILE,)
 
     def load_for_resume(self) -> tuple[Robot, PoseSequence]:
         robot = load_robot(self.path / ROBOT_FILE)
         poses = load_poses(self.path / POSES_FILE, robot)
         return robot, poses
 
-    def completed(self, robot: Robot, poses: PoseSequence) -> Samples | None:
-        """The samples of the completed steps, from the bag (the journal); samples.csv
-        is made to agree with them. None when nothing was completed yet."""
-        done = None
-        if (self.bag_dir / bag.METADATA).exists():
-            try:
-                done = bag.read_samples(self.bag_dir)
-            except InputError as exc:
-                if "holds no samples" not in str(exc) and "no topic" not in str(exc):
-                    raise
-        if done is None:
-            empty = Samples(np.zeros(0, int), np.zeros(0), np.zeros((0, robot.n_joints)), np.zeros((0, 2, 2)))
-            self._rewrite_samples_if_needed(empty)
-            return None
-        if len(done) > len(poses):
-            raise InputError(str(self.bag_dir), f"{len(done)} samples but the pose list has {len(poses)} steps")
-        expected = poses.pose[:len(done)]
-        if not np.array_equal(done.pose, expected):
-            k = int(np.argmax(done.pose != expected))
-            raise InputError(str(self.bag_dir), f"sample {k + 1} is pose {done.pose[k]}, the pose list says "
-                                                f"{expected[k]}: the bag does not belong to this pose list")
-        self._rewrite_samples_if_needed(done)
-        return done
+    def reconcile(self, robot: Robot, poses: PoseSequence) -> Reconciled:
+        """Bag and CSV files made to agree (see the module docstring); call it after the
+        bag writer has opened the bag (it adopts a segment closed just before a crash)."""
+        done = np.zeros(len(poses), dtype=bool)
+        kept, to_bag, repairs = {False: [], True: []}, [], []
+        for test, topic, name in ((False, bag.SAMPLES_TOPIC, SAMPLES_FILE), (True, TEST_SAMPLES_TOPIC, TEST_SAMPLES_FILE)):
+            in_bag = self._bag_samples(topic, robot)
+            in_csv, torn = self._csv_samples(self.path / name, robot)
+            if torn:
+                repairs.append(f"{name}: dropped a torn last line (a crash while appending it)")
+            bag_steps = self._assign(in_bag, poses, test, f"{self.bag_dir} {topic}")
+            csv_steps = self._assign(in_csv, poses, test, str(self.path / name))
+            only_csv = [r for r, step in enumerate(csv_steps) if step not in set(bag_steps)]
+            only_bag = [r for r, step in enumerate(bag_steps) if step not in set(csv_steps)]
+            for r in only_bag:
+                repairs.append(f"{name}: pose {in_bag.pose[r]} restored from the bag (a crash before its row)")
+            for r in only_csv:
+                repairs.append(f"bag: pose {in_csv.pose[r]} restored from {name} (its bag segment was lost)")
+            merged = concat([in_bag, in_csv.subset(np.array(only_csv, dtype=int))], robot.n_joints)
+            order = np.argsort(merged.stamp, kind="stable")
+            merged = merged.subset(order)
+            done[bag_steps] = True
+            done[[csv_steps[r] for r in only_csv]] = True
+            kept[test].append(merged)
+            to_bag.append(in_csv.subset(np.array(only_csv, dtype=int)))
+            if (name in self.sample_files(poses)) and (torn or only_bag or only_csv or len(in_csv) != len(merged)):
+                write_durably(self.path / name, format_samples(merged))
+        return Reconciled(done, concat(kept[False], robot.n_joints), concat(kept[True], robot.n_joints),
+                          concat(to_bag, robot.n_joints), repairs)
 
-    def _rewrite_samples_if_needed(self, done: Samples) -> None:
-        path = self.path / SAMPLES_FILE
+    def _bag_samples(self, topic: str, robot: Robot) -> Samples:
+        if not (self.bag_dir / bag.METADATA).exists():
+            return empty_samples(robot.n_joints)
         try:
-            current = load_samples(path) if path.exists() else None
-        except InputError:
-            current = None  # torn last line, or only the header: rewritten below
-        if current is not None and len(current) == len(done) and np.array_equal(current.pose, done.pose) \
-                and np.array_equal(current.stamp, done.stamp):
-            return
-        _write_durably(path, format_samples(done))
+            return bag.read_samples(self.bag_dir, topic)
+        except InputError as exc:
+            if "holds no samples" in str(exc) or "no topic" in str(exc):
+                return empty_samples(robot.n_joints)
+            raise
 
-    def append_sample(self, samples: Samples, index: int = 0) -> None:
-        """Append one row (row ``index`` of ``samples``) to samples.csv, flushed to disk."""
-        line = ",".join(sample_row(samples, index)) + "\n"
-        with open(self.path / SAMPLES_FILE, "a") as handle:
-            handle.write(line)
-            handle.flush()
-            os.fsync(handle.fileno())
+    @staticmethod
+    def _csv_samples(path: Path, robot: Robot) -> tuple[Samples, bool]:
+        """The rows of a samples file and whether a torn last line was dropped."""
+        if not path.exists():
+            return empty_samples(robot.n_joints), False
+        lines = path.read_text().splitlines()
+        torn = False
+        for attempt in (lines, lines[:-1]):
+            if len(attempt) <= 1:
+                return empty_samples(robot.n_joints), torn
+            try:
+                return parse_samples("\n".join(attempt) + "\n", str(path), robot), torn
+            except InputError:
+                if torn:
+                    raise
+                torn = True
+        raise AssertionError("unreachable")
 
-    def samples(self, robot: Robot) -> Samples:
-        return load_samples(self.path / SAMPLES_FILE, robot)
+    @staticmethod
+    def _assign(samples: Samples, poses: PoseSequence, test: bool, where: str) -> list[int]:
+        """The step of each sample: the first free step of its pose id (repeats share an id)."""
+        taken = np.zeros(len(poses), dtype=bool)
+        steps = []
+        for r, pose_id in enumerate(samples.pose):
+            free = np.flatnonzero((poses.pose == pose_id) & (poses.test == test) & ~taken)
+            if len(free) == 0:
+                raise InputError(where, f"sample {r + 1} is pose {pose_id}, which the pose list does not hold "
+                                        f"(or not that often): not this session's data")
+            taken[free[0]] = True
+            steps.append(int(free[0]))
+        return steps
+
+    def append_sample(self, samples: Samples, test: bool = False) -> None:
+        """Append the one row of ``samples`` to samples.csv (test_samples.csv), flushed to disk."""
+        append_durably(self.path / (TEST_SAMPLES_FILE if test else SAMPLES_FILE), ",".join(sample_row(samples, 0)) + "\n")
+
+    def samples(self, robot: Robot | None, test: bool = False) -> Samples:
+        return load_samples(self.path / (TEST_SAMPLES_FILE if test else SAMPLES_FILE), robot)
 
 
 class Progress:

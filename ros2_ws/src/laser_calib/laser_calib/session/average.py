@@ -1,0 +1,60 @@
+"""The frames of one pose and their average (ROS-free; the sequencer feeds it messages).
+
+From the instant the arm settled, spot frames are paired by stamp with joint
+states (sync.StampSynchronizer); the first ``frames`` pairs make the pose's
+sample: joint readings averaged over the pairs, and each laser's spot averaged
+over the frames that saw it, provided it was seen in at least half of them (a
+laser seen in fewer is a flicker at the screen edge or a false detection, and is
+reported as not seen rather than as a doubtful value).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from laser_calib.io.samples import Samples
+from laser_calib.session.sync import Pair, StampSynchronizer
+
+
+def average_frames(pose_id: int, q_frames: np.ndarray, spot_frames: np.ndarray, stamp: float) -> Samples:
+    """One sample from F frames: q_frames (F,N) joint readings, spot_frames (F,2,2) NaN where not seen."""
+    q_frames = np.asarray(q_frames, dtype=float)
+    spot_frames = np.asarray(spot_frames, dtype=float)
+    spots = np.full((2, 2), np.nan)
+    for j in range(2):
+        seen = ~np.isnan(spot_frames[:, j]).any(axis=1)
+        if seen.sum() * 2 >= len(spot_frames):
+            spots[j] = spot_frames[seen, j].mean(axis=0)
+    return Samples(np.array([pose_id]), np.array([stamp]), q_frames.mean(axis=0)[None], spots[None])
+
+
+class FrameCollector:
+    """Pairs of (joint state, spot frame) of one pose, from the settle instant on.
+
+    Joint state items are (q (N,), velocity (N,) or None); frame items are spots (2,2).
+    """
+
+    def __init__(self, frames: int, tolerance: float, settled_stamp: float, settled_state):
+        if frames < 1:
+            raise ValueError(f"frames: must be at least 1, got {frames}")
+        self.frames = frames
+        self.after = float(settled_stamp)
+        self.sync = StampSynchronizer(tolerance)
+        self.pairs: list[Pair] = []
+        self.add_state(settled_stamp, settled_state)  # a frame of this very instant pairs with it
+
+    def add_state(self, stamp: float, state) -> None:
+        self.pairs.extend(self.sync.add_a(stamp, state))
+
+    def add_frame(self, stamp: float, spots: np.ndarray) -> None:
+        if stamp >= self.after:  # an earlier frame shows the arm still moving
+            self.pairs.extend(self.sync.add_b(stamp, spots))
+
+    @property
+    def complete(self) -> bool:
+        return len(self.pairs) >= self.frames
+
+    def sample(self, pose_id: int) -> Samples:
+        used = self.pairs[:self.frames]
+        return average_frames(pose_id, np.array([p.a[0] for p in used]), np.array([p.b for p in used]),
+                              used[-1].b_stamp)

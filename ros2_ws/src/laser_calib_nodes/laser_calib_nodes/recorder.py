@@ -1,0 +1,80 @@
+"""The sequencer's recording: every session topic, raw, into the session's segmented bag
+(laser_calib.io.bag_writer.SegmentedBagWriter), and the node's own messages as it publishes them."""
+
+from __future__ import annotations
+
+import threading
+
+from geometry_msgs.msg import PointStamped
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import CameraInfo, Image, JointState
+
+from laser_calib.io.bag_writer import SegmentedBagWriter
+
+from laser_calib_nodes import common
+
+TEST_SAMPLES = "test_samples"   # the held-out samples: never on samples, so no estimator fits them
+
+
+class Recorder:
+    def __init__(self, node: Node, bag_dir, work_dir, robot_name: str, record_images: bool, segment_seconds: float):
+        from laser_calib_interfaces.msg import DhParameters, SpotPair
+        self.node = node
+        recorded = [
+            (common.JOINT_STATES, JointState, "sensor_msgs/msg/JointState", common.STREAM_QOS),
+            (common.SPOTS, SpotPair, "laser_calib_interfaces/msg/SpotPair", common.STREAM_QOS),
+            (common.LASER_SPOT[0], PointStamped, "geometry_msgs/msg/PointStamped", common.STREAM_QOS),
+            (common.LASER_SPOT[1], PointStamped, "geometry_msgs/msg/PointStamped", common.STREAM_QOS),
+            (common.CAMERA_INFO, CameraInfo, "sensor_msgs/msg/CameraInfo", common.IMAGE_QOS),
+            (common.DH_PARAMETERS, DhParameters, "laser_calib_interfaces/msg/DhParameters", common.LATCHED_QOS),
+        ]
+        if record_images:
+            recorded.append((common.IMAGE, Image, "sensor_msgs/msg/Image", common.IMAGE_QOS))
+        own = [(common.SAMPLES, "laser_calib_interfaces/msg/Sample", common.SAMPLES_QOS),
+               (TEST_SAMPLES, "laser_calib_interfaces/msg/Sample", common.SAMPLES_QOS),
+               (common.JOINT_TRAJECTORY, "trajectory_msgs/msg/JointTrajectory", common.COMMAND_QOS),
+               (common.PROGRESS, "laser_calib_interfaces/msg/SessionProgress", common.LATCHED_QOS)]
+        topics = {node.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, _, kind, qos in recorded}
+        topics.update({node.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, kind, qos in own})
+        self.lock = threading.Lock()
+        self.bag: SegmentedBagWriter | None = SegmentedBagWriter(
+            bag_dir, work_dir, topics, custom_data={"robot": robot_name}, max_segment_seconds=segment_seconds)
+        for name in self.bag.recovered:
+            node.get_logger().warning(f"bag: adopted segment {name} closed just before a crash")
+        for name in self.bag.discarded:
+            node.get_logger().warning(f"bag: discarded unfinished segment {name} (the pose in progress at the crash)")
+        for name, msg_type, _, qos in recorded:
+            topic = node.resolve_topic_name(name)
+            # The publisher's reliability and durability, but a deep queue: the recorder must not drop
+            # (a latched topic's depth 1 would lose messages published in a burst).
+            deep = QoSProfile(depth=max(qos.depth, 200), reliability=qos.reliability, durability=qos.durability)
+            node.create_subscription(msg_type, name, lambda data, t=topic: self.write(t, data), deep, raw=True)
+
+    def write(self, topic: str, data: bytes) -> None:
+        with self.lock:
+            if self.bag is not None:
+                self.bag.write(topic, common.now_ns(self.node), data)
+
+    def publish(self, publisher, name: str, msg, close_segment: bool = False) -> None:
+        """Publish and record. close_segment: on disk (segment closed) before it is published."""
+        if close_segment:
+            with self.lock:
+                self.bag.write(self.node.resolve_topic_name(name), common.now_ns(self.node), serialize_message(msg))
+                self.bag.rotate()
+            publisher.publish(msg)
+            return
+        publisher.publish(msg)
+        self.write(self.node.resolve_topic_name(name), serialize_message(msg))
+
+    def rotate(self) -> None:
+        with self.lock:
+            if self.bag is not None:
+                self.bag.rotate()
+
+    def close(self) -> None:
+        with self.lock:
+            if self.bag is not None:
+                self.bag.close()
+                self.bag = None

@@ -1,0 +1,218 @@
+"""The sequencer's parts around its measuring loop: the session folder opened (one
+owner, new or resumed), its estimate parameters, the Estimate service call (or
+the in-process estimate), the held-out and truth comparison after it, the
+worker's error handling, and the Sample message of a core sample."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Duration
+
+from laser_calib.io.errors import InputError
+from laser_calib.io.samples import Samples
+from laser_calib.model.robot_file import load_robot
+from laser_calib.report import truth
+from laser_calib.session.folder import SessionDir
+from laser_calib.session.lock import SessionLock
+from laser_calib.session.poses import generate_poses, load_poses, with_test_poses
+
+from laser_calib_nodes import common
+
+TRUE_ROBOT_FILE = "robot_true.yaml"   # where launch and run-session let the sim arm_driver write the truth
+
+
+class Stop(Exception):
+    """The node is shutting down: leave the sequence."""
+
+
+def open_session(node):
+    """(session, lock, robot, poses, state) from the session parameters; the lock is held."""
+    d = lambda *a, **k: common.declare(node, *a, **k)  # noqa: E731
+    robot_path = d("robot", "", "Nominal robot model file (YAML, conventions.md).")
+    output_dir = d("output_dir", "", "Session directory: samples.csv, bag/, report (created; resumed "
+                                     "when it holds a partial session).")
+    poses_file = d("poses_file", "", "Pose list (YAML or CSV, rad); empty: generate 'poses' poses.")
+    n_poses = d("poses", 60, "Number of poses to generate when poses_file is empty.")
+    span = d("span", "whole", "Generated poses: 'whole' (joint ranges) or 'small' (+-10 deg around zero).")
+    seed = d("seed", 0, "Seed of the pose generator.")
+    repeats = d("repeats", 0, "Generated poses measured a second time at the end (same pose id).")
+    n_test = d("test_poses", 0, "Held-out poses over the whole workspace, measured after the others and "
+                                "never fitted (test_samples.csv, the report's held-out figures).")
+    margin = d("margin", 0.02, "Generated poses keep both spots this far inside the screen edge, m.")
+    resume = d("resume", "auto", "'auto': resume a partial session in output_dir, else start one; "
+                                 "'yes': resume (error if none); 'no': never (error if output_dir holds a session).")
+    if not output_dir:
+        raise common.NodeError("parameter output_dir is empty: give the session directory", 2)
+    if resume not in ("auto", "yes", "no"):
+        raise common.NodeError(f"parameter resume: expected 'auto', 'yes' or 'no', got {resume!r}", 2)
+    session = SessionDir(Path(output_dir).resolve())
+    lock = SessionLock(session.path)
+    lock.acquire()
+    state = session.state()
+    if state == "finished":
+        raise common.NodeError(f"{session.path} holds a finished session; choose another output_dir", 2)
+    if state == "partial" and resume == "no":
+        raise common.NodeError(f"{session.path} holds a partial session and resume is 'no'", 2)
+    if state == "new" and resume == "yes":
+        raise common.NodeError(f"{session.path}: no session to resume", 2)
+    if state == "partial":
+        robot, poses = session.load_for_resume()
+        return session, lock, robot, poses, state
+    if not robot_path:
+        raise common.NodeError("parameter robot is empty: give the robot model file (YAML)", 2)
+    robot = load_robot(robot_path)
+    poses = load_poses(poses_file, robot) if poses_file else generate_poses(robot, n_poses, span, seed, repeats, margin)
+    poses = with_test_poses(poses, robot, n_test, seed, margin)
+    source = poses_file or f"generated: {n_poses} poses, span {span}, seed {seed}, repeats {repeats}"
+    session.start(robot, poses, {"robot": str(robot_path), "poses": source, "test_poses": n_test})
+    return session, lock, robot, poses, state
+
+
+def declare(node) -> SimpleNamespace:
+    d = lambda *a, **k: common.declare(node, *a, **k)  # noqa: E731
+    end = SimpleNamespace(
+        method=d("estimate.method", "lm", "Final estimate: 'lm' or 'ekf'."),
+        spot_sigma=d("estimate.spot_sigma", 0.0, "Final estimate: spot sigma, m (0: estimate it)."),
+        prior=d("estimate.prior", False, "Final estimate: tolerance prior."),
+        robust=d("estimate.robust", False, "Final estimate: reject outlying spots."),
+        diagnose=d("estimate.diagnose", False, "Final estimate: residual diagnosis."),
+        mode=d("estimate.mode", "service", "Final estimate: 'service' (the estimator's Estimate service), "
+                                           "'local' (in this process) or 'none'."),
+        shared_fs=d("estimate.shared_filesystem", True, "The estimator sees output_dir: it writes the report "
+                                                        "there itself (plots included)."),
+        timeout=d("estimate.timeout", 600.0, "Final estimate: wait this long for the service, s."),
+        truth=d("truth", "", f"True robot model (simulation) for the report's truth comparison; empty: "
+                             f"output_dir/{TRUE_ROBOT_FILE} when it exists."))
+    if end.mode not in ("service", "local", "none"):
+        raise common.NodeError(f"parameter estimate.mode: expected 'service', 'local' or 'none', got {end.mode!r}", 2)
+    return end
+
+
+def client(node):
+    from laser_calib_interfaces.srv import Estimate
+    return node.create_client(Estimate, common.ESTIMATE_SERVICE)
+
+
+def guard(node, run) -> None:
+    """Run the sequence; a failure is one log line, a progress 'failed' and the exit code."""
+    try:
+        run()
+    except Stop:
+        pass
+    except (InputError, common.NodeError) as exc:
+        node.get_logger().error(str(exc))
+        node.publish_progress("failed", -1)
+        node.exit_code = exc.code if isinstance(exc, common.NodeError) else 2
+    except Exception as exc:  # a bug: say it in one line, keep the data, exit non-zero
+        if node.stopping.is_set() or not rclpy.ok():
+            return  # shutting down (Ctrl-C): a publish after the context went away
+        node.get_logger().error(f"sequencer failed: {type(exc).__name__}: {exc}")
+        node.publish_progress("failed", -1)
+        node.exit_code = 1
+    finally:
+        node.done = True
+
+
+def finish(node) -> None:
+    node.recorder.rotate()
+    session, end, log = node.session, node.end, node.get_logger()
+    samples = session.samples(None)
+    log.info(f"all {len(node.poses)} poses measured; samples in {session.path / 'samples.csv'}, "
+             f"bag in {session.bag_dir}")
+    if end.mode != "none":
+        node.publish_progress("estimating", -1)
+        if end.mode == "local":
+            from laser_calib.session.estimate import estimate_options, run_calibration
+            options = estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
+            message = run_calibration(node.robot, samples, options, session.path, end.diagnose).calibration.summary()
+        else:
+            message = call_service(node, samples)
+        log.info(message)
+        compare_with_truth(node)
+        log.info(f"report: {session.path / 'report.md'}; calibrated robot: {session.path / 'robot_calibrated.yaml'}")
+    session.set_info(state="finished")
+    node.publish_progress("finished", -1)
+
+
+def compare_with_truth(node) -> None:
+    """Held-out spot errors and, in simulation, the errors against the true robot: truth.json, report.md."""
+    session, path = node.session, node.end.truth or str(node.session.path / TRUE_ROBOT_FILE)
+    test = session.samples(node.robot, test=True) if node.poses.test.any() else None
+    true = load_robot(path) if node.end.truth or (session.path / TRUE_ROBOT_FILE).exists() else None
+    if test is None and true is None:
+        return
+    calibrated = load_robot(session.path / "robot_calibrated.yaml")
+    comparison = truth.compare(node.robot, calibrated, test, true)
+    (session.path / "truth.json").write_text(json.dumps(comparison, indent=2))
+    truth.append_to_report(session.path / "report.md", comparison)
+    for line in truth.markdown(comparison):
+        if line.startswith(("Test poses", "| end-effector", "| spot")):
+            node.get_logger().info(line)
+
+
+def call_service(node, samples: Samples) -> str:
+    end, path = node.end, node.session.path
+    name = node.resolve_service_name(common.ESTIMATE_SERVICE)
+    deadline = time.monotonic() + end.timeout
+    while not node.estimate_client.wait_for_service(timeout_sec=0.5):
+        if node.stopping.is_set():
+            raise Stop()
+        if time.monotonic() > deadline:
+            raise common.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; the data are in "
+                                   f"{path}: estimate offline with laser-calib estimate", 3)
+    request = node.estimate_client.srv_type.Request(
+        samples=[sample_msg(node, samples, r) for r in range(len(samples))], method=end.method,
+        spot_sigma=float(end.spot_sigma), prior=bool(end.prior), robust=bool(end.robust),
+        diagnose=bool(end.diagnose), output_dir=str(path) if end.shared_fs else "")
+    node.get_logger().info(f"calling {name} with {len(samples)} samples ({end.method})")
+    future = node.estimate_client.call_async(request)
+    answered = threading.Event()
+    future.add_done_callback(lambda _: answered.set())
+    while not answered.wait(0.2):
+        if node.stopping.is_set():
+            raise Stop()
+        if time.monotonic() > deadline:
+            raise common.NodeError(f"the Estimate service did not answer within {end.timeout:g} s", 3)
+    response = future.result()
+    if not response.success:
+        raise common.NodeError(f"estimate failed: {response.message}", 4)
+    if not end.shared_fs:
+        for file, text in (("report.md", response.report_markdown), ("result.json", response.result_json),
+                           ("robot_calibrated.yaml", response.calibrated_robot_yaml)):
+            (path / file).write_text(text)
+    if response.diagnosis_json:
+        (path / "diagnosis.json").write_text(response.diagnosis_json)
+    return response.message
+
+
+def stamps_from_float(stamp: float) -> tuple[int, int]:
+    sec = math.floor(stamp)
+    nanosec = int(round((stamp - sec) * 1e9))
+    if nanosec >= 1_000_000_000:
+        sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    return int(sec), nanosec
+
+
+def duration(seconds: float) -> Duration:
+    sec, nanosec = stamps_from_float(seconds)
+    return Duration(sec=sec, nanosec=nanosec)
+
+
+def sample_msg(node, samples: Samples, r: int):
+    msg = node.Sample()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = stamps_from_float(samples.stamp[r])
+    msg.header.frame_id = common.SCREEN_FRAME
+    msg.pose = int(samples.pose[r])
+    msg.joint_names = node.joint_names or common.default_joint_names(samples.n_joints)
+    msg.joint_positions = [float(v) for v in samples.q[r]]
+    msg.spots = common.spots_to_msg(samples.spots[r], ~np.isnan(samples.spots[r]).any(axis=1))
+    msg.frames = int(node.frames)
+    return msg

@@ -1,0 +1,129 @@
+"""The session's measurement logic, ROS-free: settle detection, frame averaging, pose lists,
+the trajectory acceptance rules of joint_trajectory_controller, joint name mapping."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from laser_calib.hardware.trajectory import TrajectoryPoint, joint_order, trajectory_goal
+from laser_calib.model.robot_file import load_robot
+from laser_calib.session.average import FrameCollector, average_frames
+from laser_calib.session.poses import format_poses, generate_poses, load_poses, save_poses, with_test_poses
+from laser_calib.session.settle import SettleDetector, SettleRule
+
+ROBOT = Path(__file__).resolve().parents[2] / "config" / "robots" / "humanoid_arm_7dof.yaml"
+NAN = np.nan
+
+
+def test_settled_only_after_holding_both_tolerances():
+    rule = SettleRule(position_tolerance=0.01, velocity_tolerance=0.01, hold_time=0.2)
+    goal = np.zeros(2)
+    s = SettleDetector(goal, rule, after=1.0)
+    assert not s.update(0.9, goal, np.zeros(2))          # before the command: ignored
+    assert not s.update(1.0, goal, np.zeros(2))          # calm from 1.0 ...
+    assert not s.update(1.1, goal, np.array([0.02, 0]))  # ... broken by a velocity
+    assert not s.update(1.2, goal + 0.005, np.zeros(2))  # calm again from 1.2
+    assert not s.update(1.39, goal, None)                # no velocities reported: position alone
+    assert s.update(1.41, goal, np.zeros(2))             # held over 0.2 s
+    s = SettleDetector(goal, rule, after=0.0)
+    s.update(0.0, np.array([0.0, 0.5]), None)
+    assert s.worst_joint(["a", "b"]) == "b at 0.50000 rad, goal 0.00000"
+    with pytest.raises(ValueError, match="position_tolerance"):
+        SettleRule(position_tolerance=0.0)
+
+
+def test_a_spot_counts_when_seen_in_at_least_half_the_frames():
+    q = np.array([[0.0, 1.0], [0.2, 1.0], [0.4, 1.0], [0.6, 1.0]])
+    spots = np.array([[[0.1, 0.2], [NAN, NAN]],
+                      [[0.3, 0.4], [0.5, 0.5]],
+                      [[NAN, NAN], [NAN, NAN]],
+                      [[0.5, 0.6], [NAN, NAN]]])
+    sample = average_frames(7, q, spots, 12.5)
+    np.testing.assert_allclose(sample.q[0], [0.3, 1.0])
+    np.testing.assert_allclose(sample.spots[0, 0], [0.3, 0.4])      # 3 of 4 frames
+    assert np.isnan(sample.spots[0, 1]).all()                         # 1 of 4: not seen
+    assert sample.pose[0] == 7 and sample.stamp[0] == 12.5
+    two = average_frames(1, q[:2], spots[:2], 0.0)                     # 1 of 2: half counts
+    np.testing.assert_allclose(two.spots[0, 1], [0.5, 0.5])
+
+
+def test_collector_pairs_frames_from_the_settle_instant():
+    c = FrameCollector(frames=2, tolerance=0.01, settled_stamp=1.0, settled_state=(np.zeros(1), None))
+    c.add_frame(0.99, np.zeros((2, 2)))            # before the arm settled: ignored
+    c.add_frame(1.0, np.ones((2, 2)))              # pairs with the settle instant
+    assert not c.complete
+    c.add_frame(1.1, np.full((2, 2), 3.0))
+    c.add_state(1.1, (np.ones(1), None))
+    assert c.complete
+    sample = c.sample(4)
+    np.testing.assert_allclose(sample.spots[0], np.full((2, 2), 2.0))
+    np.testing.assert_allclose(sample.q[0], [0.5])
+    assert sample.stamp[0] == 1.1
+
+
+def test_one_pose_list_writer_round_trips_with_test_poses(tmp_path):
+    robot = load_robot(ROBOT)
+    fit = generate_poses(robot, 5, "small", 3, repeats=1)
+    poses = with_test_poses(fit, robot, 4, 3)
+    assert list(poses.pose) == [0, 1, 2, 3, 4, 0, 5, 6, 7, 8]
+    assert list(poses.test) == [False] * 6 + [True] * 4
+    np.testing.assert_array_equal(poses.q[:6], fit.q)    # adding test poses leaves the fit poses
+    save_poses(poses, tmp_path / "poses.csv")
+    back = load_poses(tmp_path / "poses.csv", robot)
+    np.testing.assert_array_equal(back.q, poses.q)
+    np.testing.assert_array_equal(back.pose, poses.pose)
+    np.testing.assert_array_equal(back.test, poses.test)
+    # without test poses the text is plan's: pose,q1..qN
+    assert format_poses(fit.q[:1]).splitlines()[0] == "pose," + ",".join(f"q{i + 1}" for i in range(7))
+    (tmp_path / "bad.csv").write_text(format_poses(fit.q[:1], test=np.array([True])).replace(",1\n", ",yes\n"))
+    from laser_calib.io.errors import InputError
+    with pytest.raises(InputError, match="line 2, field test: expected 0 or 1"):
+        load_poses(tmp_path / "bad.csv", robot)
+
+
+JOINTS = ["a", "b", "c"]
+LOW, HIGH = np.full(3, -1.0), np.full(3, 1.0)
+
+
+def goal(names, points, **kw):
+    return trajectory_goal(names, points, JOINTS, LOW, HIGH, **kw)
+
+
+def test_trajectory_accepted_as_joint_trajectory_controller_does():
+    point = TrajectoryPoint([0.1, 0.2, 0.3], 2.0)
+    np.testing.assert_array_equal(goal(["c", "a", "b"], [point]), [0.2, 0.3, 0.1])   # any order
+    two = [TrajectoryPoint([0, 0, 0], 1.0, [0.1, 0.1, 0.1]), TrajectoryPoint([0.5, 0.5, 0.5], 2.0, [0, 0, 0])]
+    np.testing.assert_array_equal(goal(JOINTS, two), [0.5, 0.5, 0.5])                # the last point
+    np.testing.assert_array_equal(goal(JOINTS, [point], start_stamp=10.0, now=11.0), [0.1, 0.2, 0.3])
+
+
+@pytest.mark.parametrize("names, points, kw, message", [
+    ([], [TrajectoryPoint([0, 0, 0], 1.0)], {}, "empty joint names"),
+    (["a", "b"], [TrajectoryPoint([0, 0], 1.0)], {}, "partial goals"),
+    (["a", "b", "x"], [TrajectoryPoint([0, 0, 0], 1.0)], {}, "joint 'x' is not a controller joint"),
+    (["a", "a", "b"], [TrajectoryPoint([0, 0, 0], 1.0)], {}, "partial goals"),
+    (JOINTS, [], {}, "empty trajectory"),
+    (JOINTS, [TrajectoryPoint([0, 0, 0], 1.0), TrajectoryPoint([0, 0, 0], 1.0)], {}, "not strictly increasing"),
+    (JOINTS, [TrajectoryPoint([0, 0], 1.0)], {}, "2 positions for 3 joint names"),
+    (JOINTS, [TrajectoryPoint([0, 0, 0], 1.0, [0, 0])], {}, "2 velocities"),
+    (JOINTS, [TrajectoryPoint([0, 0, 0], 1.0, [0, 0.1, 0])], {}, "velocity is not zero"),
+    (JOINTS, [TrajectoryPoint([0, 0, 0], 1.0)], {"start_stamp": 5.0, "now": 7.0}, "ends in the past"),
+    (JOINTS, [TrajectoryPoint([0, 1.5, 0], 1.0)], {}, "b = 1.5 rad outside the joint limits"),
+    (JOINTS, [TrajectoryPoint([0, NAN, 0], 1.0)], {}, "not finite"),
+])
+def test_trajectory_refused_as_joint_trajectory_controller_does(names, points, kw, message):
+    with pytest.raises(ValueError, match=message):
+        goal(names, points, **kw)
+
+
+def test_joint_order_maps_a_real_arms_joint_states():
+    # joint_state_broadcaster publishes every joint, in its own order, grippers included
+    assert joint_order(["finger", "b", "a"], ["a", "b"], 2) == [2, 1]
+    assert joint_order(["a", "b"], None, 2) == [0, 1]
+    with pytest.raises(ValueError, match="give parameter joint_names"):
+        joint_order(["finger", "b", "a"], None, 2)
+    with pytest.raises(ValueError, match="joint 'c' .* is not in joint_states"):
+        joint_order(["a", "b"], ["a", "c"], 2)
