@@ -18,19 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from laser_calib.diagnosis.engine import distance_stats
 from laser_calib.io.samples import Samples
 from laser_calib.model.kinematics import forward, predict
 from laser_calib.model.robot import Robot
 from laser_calib.report.statistics import laser_stats, spot_distances
-
-
-def _distance_stats(distances_m: np.ndarray) -> dict:
-    """count, mean, rms, max in mm of distances (K,) in m."""
-    mm = distances_m[np.isfinite(distances_m)] * 1e3
-    if mm.size == 0:
-        return {"n": 0, "mean_mm": None, "rms_mm": None, "max_mm": None}
-    return {"n": int(mm.size), "mean_mm": float(mm.mean()), "rms_mm": float(np.sqrt(np.mean(mm ** 2))),
-            "max_mm": float(mm.max())}
 
 
 def truth_errors(nominal: Robot, calibrated: Robot, true: Robot, n_poses: int = 2000, seed: int = 0) -> dict:
@@ -44,9 +36,9 @@ def truth_errors(nominal: Robot, calibrated: Robot, true: Robot, n_poses: int = 
         & (np.abs(truth_spots.spots[..., 1]) <= true.screen.half_z).all(axis=1)
     out = {"poses": int(n_poses), "spot_poses": int(on_screen.sum()), "end_effector": {}, "spot": {}}
     for label, name, robot in (("before", "nominal", nominal), ("after", "calibrated", calibrated)):
-        out["end_effector"][label] = _distance_stats(np.linalg.norm(origin[name] - origin["true"], axis=1))
+        out["end_effector"][label] = distance_stats(np.linalg.norm(origin[name] - origin["true"], axis=1))
         spots = predict(robot, q[on_screen]).spots                       # (M,2,2)
-        out["spot"][label] = _distance_stats(np.linalg.norm(spots - truth_spots.spots[on_screen], axis=2).ravel())
+        out["spot"][label] = distance_stats(np.linalg.norm(spots - truth_spots.spots[on_screen], axis=2).ravel())
     return out
 
 
