@@ -1,0 +1,69 @@
+"""A camera driver as most publish (sensor-data QoS: best effort) for spot_detector, run as a
+subprocess in the workspace environment. Prints one JSON document.
+
+    camera_client.py ENCODING [INFO_WIDTH [SECONDS]]   rendered frames of known spots in ENCODING
+                                             with CameraInfo (its width INFO_WIDTH when given), for
+                                             at most SECONDS (60); the spots spot_detector published back
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import numpy as np
+import rclpy
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+
+from laser_calib.vision import RenderOptions, default_camera, render_frame
+from laser_calib_interfaces.msg import SpotPair
+
+TRUE = np.array([[-0.3, 0.25], [0.4, -0.15]])
+
+
+def encode(bgr: np.ndarray, encoding: str) -> tuple[bytes, int]:
+    """(data, step) of a rendered bgr8 frame in a driver's encoding."""
+    h, w = bgr.shape[:2]
+    if encoding == "rgb8":
+        return bgr[:, :, ::-1].tobytes(), 3 * w
+    if encoding == "bayer_rggb8":
+        raw = bgr[:, :, 1].copy()
+        raw[0::2, 0::2] = bgr[0::2, 0::2, 2]
+        raw[1::2, 1::2] = bgr[1::2, 1::2, 0]
+        return raw.tobytes(), w
+    return bgr.tobytes(), 3 * w
+
+
+def main() -> None:
+    encoding = sys.argv[1]
+    camera = default_camera()
+    info_width = int(sys.argv[2]) if len(sys.argv) > 2 else camera.width
+    rclpy.init()
+    node = rclpy.create_node("test_camera")
+    got = []
+    node.create_subscription(SpotPair, "spots", got.append, 10)
+    image_pub = node.create_publisher(Image, "camera/image_raw", qos_profile_sensor_data)
+    info_pub = node.create_publisher(CameraInfo, "camera/camera_info", qos_profile_sensor_data)
+    frame = render_frame(camera, TRUE, np.ones(2, bool), np.random.default_rng(5), RenderOptions())
+    data, step = encode(frame, encoding)
+    deadline = time.monotonic() + (float(sys.argv[3]) if len(sys.argv) > 3 else 60.0)
+    while len(got) < 3 and time.monotonic() < deadline:
+        stamp = node.get_clock().now().to_msg()
+        info = CameraInfo(width=info_width, height=camera.height, distortion_model="plumb_bob",
+                          k=[float(v) for v in camera.K.ravel()])
+        info.header.stamp = stamp
+        info_pub.publish(info)
+        image = Image(height=camera.height, width=camera.width, encoding=encoding, step=step, data=data)
+        image.header.stamp = stamp
+        image_pub.publish(image)
+        end = time.monotonic() + 0.3
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    spots = [[[s.y, s.z, s.seen] for s in pair.spots] for pair in got]
+    print(json.dumps({"frames": len(got), "spots": spots, "true": TRUE.tolist()}))
+
+
+if __name__ == "__main__":
+    main()
