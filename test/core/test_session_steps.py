@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from laser_calib.hardware.trajectory import TrajectoryPoint, joint_order, trajectory_goal
+from laser_calib.hardware.trajectory import TrajectoryPoint, joint_order, move_time, trajectory_goal
 from laser_calib.model.robot_file import load_robot
 from laser_calib.session.average import FrameCollector, average_frames
 from laser_calib.session.poses import format_poses, generate_poses, load_poses, save_poses, with_test_poses
@@ -127,3 +127,8 @@ def test_joint_order_maps_a_real_arms_joint_states():
         joint_order(["finger", "b", "a"], None, 2)
     with pytest.raises(ValueError, match="joint 'c' .* is not in joint_states"):
         joint_order(["a", "b"], ["a", "c"], 2)
+
+
+def test_move_time_from_the_largest_joint_move():
+    assert move_time(np.array([0.0, 1.0]), np.array([0.5, -1.0]), 0.5) == 4.0
+    assert move_time(np.zeros(2), np.zeros(2), 0.5) == 0.1      # never 0: the controller would jump

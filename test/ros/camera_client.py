@@ -1,9 +1,10 @@
 """A camera driver as most publish (sensor-data QoS: best effort) for spot_detector, run as a
 subprocess in the workspace environment. Prints one JSON document.
 
-    camera_client.py ENCODING [INFO_WIDTH [SECONDS]]   rendered frames of known spots in ENCODING
-                                             with CameraInfo (its width INFO_WIDTH when given), for
-                                             at most SECONDS (60); the spots spot_detector published back
+    camera_client.py ENCODING [INFO_WIDTH [SECONDS [QOS]]]   rendered frames of known spots in
+        ENCODING with CameraInfo (its width INFO_WIDTH, 0: the camera's), for at most SECONDS (60),
+        published with QoS 'sensor_data' (best effort, default) or 'reliable'; the spots
+        spot_detector published back and their stamps
 """
 
 from __future__ import annotations
@@ -39,13 +40,14 @@ def encode(bgr: np.ndarray, encoding: str) -> tuple[bytes, int]:
 def main() -> None:
     encoding = sys.argv[1]
     camera = default_camera()
-    info_width = int(sys.argv[2]) if len(sys.argv) > 2 else camera.width
+    info_width = int(sys.argv[2]) if len(sys.argv) > 2 and int(sys.argv[2]) else camera.width
+    qos = 10 if len(sys.argv) > 4 and sys.argv[4] == "reliable" else qos_profile_sensor_data
     rclpy.init()
     node = rclpy.create_node("test_camera")
     got = []
     node.create_subscription(SpotPair, "spots", got.append, 10)
-    image_pub = node.create_publisher(Image, "camera/image_raw", qos_profile_sensor_data)
-    info_pub = node.create_publisher(CameraInfo, "camera/camera_info", qos_profile_sensor_data)
+    image_pub = node.create_publisher(Image, "camera/image_raw", qos)
+    info_pub = node.create_publisher(CameraInfo, "camera/camera_info", qos)
     frame = render_frame(camera, TRUE, np.ones(2, bool), np.random.default_rng(5), RenderOptions())
     data, step = encode(frame, encoding)
     deadline = time.monotonic() + (float(sys.argv[3]) if len(sys.argv) > 3 else 60.0)
@@ -62,7 +64,8 @@ def main() -> None:
         while time.monotonic() < end:
             rclpy.spin_once(node, timeout_sec=0.05)
     spots = [[[s.y, s.z, s.seen] for s in pair.spots] for pair in got]
-    print(json.dumps({"frames": len(got), "spots": spots, "true": TRUE.tolist()}))
+    stamps = [(pair.header.stamp.sec, pair.header.stamp.nanosec) for pair in got]
+    print(json.dumps({"frames": len(got), "spots": spots, "true": TRUE.tolist(), "stamps": stamps}))
 
 
 if __name__ == "__main__":

@@ -59,7 +59,8 @@ class StandIn(Node):
         except ValueError as exc:
             print(f"rejected: {exc}", flush=True)
             return
-        self.start_q, self.goal, self.t0, self.duration = self.q.copy(), goal, time.monotonic(), points[-1].time_from_start
+        self.start_q, self.goal, self.t0 = self.q.copy(), goal, time.monotonic()
+        self.duration = points[-1].time_from_start
         self.accepted += 1
         print(f"accepted {self.accepted} in {self.duration:.3f} s", flush=True)
 

@@ -28,7 +28,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from laser_calib.hardware.trajectory import joint_order
+from laser_calib.hardware.trajectory import joint_order, move_time
 from laser_calib.io import bag
 from laser_calib.session.average import FrameCollector
 from laser_calib.session.folder import POSES_FILE, Progress
@@ -175,7 +175,7 @@ class Sequencer(Node):
             current = self.last_state[1]
             traj = JointTrajectory(joint_names=self.joint_names)   # header stamp 0: start now
             point = JointTrajectoryPoint(positions=[float(v) for v in goal])
-            point.time_from_start = sequencer_parts.duration(max(0.1, float(np.max(np.abs(goal - current))) / self.joint_speed))
+            point.time_from_start = sequencer_parts.duration(move_time(current, goal, self.joint_speed))
             traj.points = [point]
             self.settle = SettleDetector(goal, self.settle_rule, common.now_ns(self) * 1e-9)
             self.collector = None
@@ -203,7 +203,8 @@ class Sequencer(Node):
         self.session.append_sample(row, test)
         self.progress.step()
         seen = int(np.sum(~np.isnan(row.spots[0]).any(axis=1)))
-        self.get_logger().info(f"pose {self.progress.done}/{len(self.poses)} (id {pose_id}{', test' if test else ''}) "
+        kind = ", test" if test else ""
+        self.get_logger().info(f"pose {self.progress.done}/{len(self.poses)} (id {pose_id}{kind}) "
                                f"measured in {time.monotonic() - started:.1f} s, {collector.frames} frames, "
                                f"{seen}/2 spots seen; {self.progress.line()}")
 

@@ -1,8 +1,8 @@
 """spot_detector: camera frames in, the two laser spots on the screen out.
 
-Subscribes  camera/image_raw (sensor_msgs/Image), reliability BEST_AVAILABLE: best
-            effort with the sensor-data QoS most camera drivers publish with,
-            reliable with a reliable publisher; in any encoding of laser_calib.vision.encodings
+Subscribes  camera/image_raw (sensor_msgs/Image), best effort (the sensor-data QoS
+            camera drivers publish with) and reliable (camera_sim), whichever the
+            publisher offers; in any encoding of laser_calib.vision.encodings
             (bgr8, rgb8, bayer_*8, yuv422, yuv422_yuy2; mono8 only as a raw
             mosaic, ``mono_pattern``), detected with
             laser_calib.vision.detect.SpotDetector and the screen calibration
@@ -28,13 +28,15 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from collections import deque
 from pathlib import Path
 
 import cv2
 import numpy as np
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
 from laser_calib.vision.camera import default_camera, load_calibration
@@ -42,12 +44,6 @@ from laser_calib.vision.detect import DetectorOptions, SpotDetector
 from laser_calib.vision.encodings import pattern_of, to_bgr8
 
 from laser_calib_nodes import common
-
-
-# The camera input matches any driver: best effort with the sensor-data drivers most cameras
-# publish with, reliable with a reliable publisher (camera_sim: 4 MB frames over Fast DDS are
-# mostly lost best effort, measured under load in the session tests).
-CAMERA_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_AVAILABLE, durability=DurabilityPolicy.VOLATILE)
 
 
 class SpotDetectorNode(Node):
@@ -85,8 +81,15 @@ class SpotDetectorNode(Node):
         self.point_pubs = [self.create_publisher(PointStamped, topic, common.STREAM_QOS)
                            for topic in common.LASER_SPOT]
         self.pair_pub = self.create_publisher(SpotPair, common.SPOTS, common.STREAM_QOS)
-        self.create_subscription(Image, common.IMAGE, self.on_image, CAMERA_QOS)
-        self.create_subscription(CameraInfo, common.CAMERA_INFO, self.on_info, CAMERA_QOS)
+        # Each camera topic twice: best effort (the sensor-data QoS camera drivers publish with) and
+        # reliable (camera_sim: its 4 MB frames are lost best effort under load). A publisher meets the
+        # subscriptions it is compatible with, whenever it starts; a frame both deliver is used once.
+        quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)  # one of the two never matches
+        reliable = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        for qos in (qos_profile_sensor_data, reliable):
+            self.create_subscription(Image, common.IMAGE, self.on_image, qos, event_callbacks=quiet)
+            self.create_subscription(CameraInfo, common.CAMERA_INFO, self.on_info, qos, event_callbacks=quiet)
+        self.recent = deque(maxlen=20)   # (stamp sec, nanosec, frame_id) of the frames used
         self.bad_frames = 0
         self.info_problem: str | None = None
         self.info_checked = False
@@ -121,6 +124,11 @@ class SpotDetectorNode(Node):
         return self.detectors[pattern]
 
     def on_image(self, msg: Image) -> None:
+        key = (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id)
+        if key in self.recent:
+            return  # the same frame through the other subscription
+        if key[:2] != (0, 0):  # an unstamped camera's frames cannot be told apart: all are used
+            self.recent.append(key)
         if self.info_problem:
             return self.reject(self.info_problem)
         try:
@@ -142,7 +150,9 @@ class SpotDetectorNode(Node):
         self.pair_pub.publish(pair)
 
     def capture(self, image: np.ndarray, stamp: float) -> None:
-        if not self.capture_dir or self.captured >= self.capture_left or stamp - self.last_capture < self.capture_period:
+        if not self.capture_dir or self.captured >= self.capture_left:
+            return
+        if stamp - self.last_capture < self.capture_period:
             return
         path = Path(self.capture_dir) / f"frame_{self.captured:04d}.png"
         cv2.imwrite(str(path), image)

@@ -91,3 +91,9 @@ def joint_order(available: Sequence[str], wanted: Sequence[str] | None, n_joints
         raise ValueError(f"joint '{missing[0]}' (parameter joint_names) is not in joint_states "
                          f"({', '.join(available)})")
     return [available.index(name) for name in wanted]
+
+
+def move_time(current: np.ndarray, goal: np.ndarray, joint_speed: float, least: float = 0.1) -> float:
+    """time_from_start (s) of a one-point move from current (N,) to goal (N,): the largest joint
+    move at joint_speed rad/s, at least ``least`` s (a controller given 0 would jump)."""
+    return max(least, float(np.max(np.abs(np.asarray(goal) - np.asarray(current)))) / joint_speed)

@@ -140,7 +140,8 @@ class SessionDir:
         bag writer has opened the bag (it adopts a segment closed just before a crash)."""
         done = np.zeros(len(poses), dtype=bool)
         kept, to_bag, repairs = {False: [], True: []}, [], []
-        for test, topic, name in ((False, bag.SAMPLES_TOPIC, SAMPLES_FILE), (True, TEST_SAMPLES_TOPIC, TEST_SAMPLES_FILE)):
+        records = ((False, bag.SAMPLES_TOPIC, SAMPLES_FILE), (True, TEST_SAMPLES_TOPIC, TEST_SAMPLES_FILE))
+        for test, topic, name in records:
             in_bag = self._bag_samples(topic, robot)
             in_csv, torn = self._csv_samples(self.path / name, robot)
             if torn:
@@ -209,7 +210,8 @@ class SessionDir:
 
     def append_sample(self, samples: Samples, test: bool = False) -> None:
         """Append the one row of ``samples`` to samples.csv (test_samples.csv), flushed to disk."""
-        append_durably(self.path / (TEST_SAMPLES_FILE if test else SAMPLES_FILE), ",".join(sample_row(samples, 0)) + "\n")
+        path = self.path / (TEST_SAMPLES_FILE if test else SAMPLES_FILE)
+        append_durably(path, ",".join(sample_row(samples, 0)) + "\n")
 
     def samples(self, robot: Robot | None, test: bool = False) -> Samples:
         return load_samples(self.path / (TEST_SAMPLES_FILE if test else SAMPLES_FILE), robot)
