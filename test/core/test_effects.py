@@ -276,7 +276,7 @@ def test_joint_effects_work_on_any_sensor_model_with_jac_q():
     rng = np.random.default_rng(4)
     q = rng.uniform(robot.q_min, robot.q_max, (20, robot.n_joints))
     position = target_in_sensor(robot, robot_frames(robot), q, np.zeros(len(chain_names(robot)))).position
-    samples = SensorSamples(np.arange(20), np.arange(20.0), q, position, None)
+    samples = SensorSamples(np.arange(20), np.arange(20.0), q, position=position)
     model = EffectModel(PointModel(robot, samples), [Backlash(joint=1)])
     x = np.zeros(len(model.names))
     x[-1] = 2e-3

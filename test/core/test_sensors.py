@@ -49,7 +49,7 @@ def simulate(robot, truth: np.ndarray, n: int, seed: int, kind: str) -> SensorSa
     if kind == "pose":
         tilt = rng.normal(0, SIGMA_R, (n, 3))
         quaternion = matrix_to_quaternion(state.rotation @ Rotation.from_rotvec(tilt).as_matrix())
-    return SensorSamples(np.arange(n), np.arange(n, dtype=float), q, position, quaternion)
+    return SensorSamples(np.arange(n), np.arange(n, dtype=float), q, position=position, quaternion=quaternion)
 
 
 @pytest.mark.parametrize("kind", ["pose", "point"])

@@ -32,8 +32,9 @@ from laser_calib.effects import PARAM, Effect, EffectModel, candidates
 from laser_calib.diagnosis.structure import SPOT_LEVEL, Series
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
 from laser_calib.model.robot import Robot
-from laser_calib.estimation.sensor_fit import (Extend, HeldOut, SensorFit, SensorFitOptions, calibrate, fold_labels, kfold, make_model,
+from laser_calib.estimation.sensor_fit import (Extend, HeldOut, SensorFit, SensorFitOptions, calibrate, kfold, make_model,
                           pose_errors, sensor_of)
+from laser_calib.estimation.folds import kfold_labels
 from laser_calib.measurement.sensor import SCALE_NAMES, SCALE_SCALE, PointModel, PoseModel
 from laser_calib.io.sensor_samples import SensorSamples
 
@@ -264,7 +265,7 @@ def nested_heldout(robot: Robot, samples: SensorSamples, options: SensorFitOptio
     """Held-out position error (P,) of the whole procedure, selection included:
     per outer fold, the diagnosis on the other folds only (its own folds), the
     chosen model fitted there, the fold predicted. Also the model chosen per fold."""
-    fold = fold_labels(len(samples), k, seed + 1)  # an outer split unlike the inner one
+    fold = kfold_labels(len(samples), k, seed + 1)  # an outer split unlike the inner one
     out = np.full(len(samples), np.nan)
     chosen = []
     for f in range(k):

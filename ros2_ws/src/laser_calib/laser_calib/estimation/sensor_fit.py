@@ -27,6 +27,7 @@ from typing import Callable
 
 import numpy as np
 
+from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model, prior_sigmas
 from laser_calib.estimation.identifiability import analyse
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, whiten
@@ -176,13 +177,6 @@ class HeldOut:
     fold: np.ndarray
 
 
-def fold_labels(n: int, k: int, seed: int) -> np.ndarray:
-    """(n,) fold index 0..k-1 of each pose, a seeded random balanced split."""
-    if not 2 <= k <= n:
-        raise ValueError(f"k-fold needs 2 <= k <= {n} poses, got k = {k}")
-    return np.random.default_rng(seed).permutation(np.arange(n) % k)
-
-
 def sensor_of(model: MeasurementModel) -> SensorModel:
     """The point or pose model itself, or the one an extension (EffectModel) wraps."""
     return model if isinstance(model, (PointModel, PoseModel)) else model.base
@@ -203,7 +197,7 @@ def pose_errors(model: MeasurementModel, x: np.ndarray) -> tuple[np.ndarray, np.
 def kfold(robot: Robot, samples: SensorSamples, options: SensorFitOptions, k: int = 5, seed: int = 0,
           extend: Extend | None = None) -> HeldOut:
     """k-fold cross-validation: each fold predicted by the fit on the others."""
-    fold = fold_labels(len(samples), k, seed)
+    fold = kfold_labels(len(samples), k, seed)
     out = np.full((4, len(samples)), np.nan)
     for f in range(k):
         train, test = np.flatnonzero(fold != f), np.flatnonzero(fold == f)

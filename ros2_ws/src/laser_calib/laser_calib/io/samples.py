@@ -1,11 +1,17 @@
-"""Samples CSV (conventions.md): one row per measured pose, in measurement order."""
+"""The one samples type of every sensor, and the spot samples CSV (conventions.md).
+
+A spot, a point and a pose are measurement kinds of one Samples type: the
+readings (pose ids, stamps, joints, covariates) are common, the measured block
+is the kind's. The point and pose CSV is io/sensor_samples.py
+(conventions-extended.md); both files keep their own format.
+"""
 
 from __future__ import annotations
 
 import csv
 import io
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -14,25 +20,54 @@ from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
 
 SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
+KINDS = ("spot", "point", "pose")
 
 
 @dataclass(frozen=True)
 class Samples:
-    """Measured poses.
+    """Measured poses, one row per pose in measurement order, of one kind.
 
-    pose (P,) int ids; stamp (P,) s; q (P,N) joint readings in rad;
-    spots (P,2,2) [pose, laser, (y,z)] in m, NaN where the laser was not seen;
-    extra: per-pose covariate columns, each (P,).
+    pose (P,) int ids (repeated visits of a pose share its id); stamp (P,) s;
+    q (P,N) joint readings in rad; extra: per-pose covariate columns, each (P,).
+    The measured block, NaN where not seen:
+    - spot: spots (P,2,2) [pose, laser, (y,z)] in m on the screen;
+    - point: position (P,3) of the marker in the sensor frame, m;
+    - pose: position (P,3) and quaternion (P,4) (qw, qx, qy, qz) of the target
+      in the sensor frame.
     """
 
     pose: np.ndarray
     stamp: np.ndarray
     q: np.ndarray
-    spots: np.ndarray
+    spots: np.ndarray | None = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    position: np.ndarray | None = None
+    quaternion: np.ndarray | None = None
+
+    def __post_init__(self):
+        # The fields of the other kinds stay None, so a mixed-up call fails here, not in a model.
+        if (self.spots is None) == (self.position is None):
+            raise ValueError("samples hold either spots or positions (point, pose), exactly one of them")
+        if self.quaternion is not None and self.position is None:
+            raise ValueError("a quaternion needs a position (pose samples)")
+        if not isinstance(self.extra, dict):
+            raise ValueError(f"extra must be a dict of covariate columns, got {type(self.extra).__name__}")
+        width = {"spots": (2, 2), "position": (3,), "quaternion": (4,)}
+        for name, shape in width.items():
+            value = getattr(self, name)
+            if value is not None and value.shape != (len(self.pose),) + shape:
+                raise ValueError(f"{name} of {len(self.pose)} poses must be {(len(self.pose),) + shape}, "
+                                 f"got {value.shape}")
 
     def __len__(self) -> int:
         return len(self.pose)
+
+    @property
+    def kind(self) -> str:
+        """'spot', 'point' or 'pose' (KINDS)."""
+        if self.spots is not None:
+            return "spot"
+        return "point" if self.quaternion is None else "pose"
 
     @property
     def n_joints(self) -> int:
@@ -40,13 +75,17 @@ class Samples:
 
     @property
     def seen(self) -> np.ndarray:
-        """(P,2) bool: laser j was seen at pose p."""
-        return ~np.isnan(self.spots).any(axis=2)
+        """spot: (P,2) bool, laser j was seen at pose p; point, pose: (P,) bool,
+        the sensor saw the target at pose p."""
+        if self.spots is not None:
+            return ~np.isnan(self.spots).any(axis=2)
+        return ~np.isnan(self.position).any(axis=1)
 
     def subset(self, index) -> "Samples":
         """Rows selected by a boolean mask or index array (order preserved)."""
-        return Samples(self.pose[index], self.stamp[index], self.q[index], self.spots[index],
-                       {k: v[index] for k, v in self.extra.items()})
+        rows = {f.name: getattr(self, f.name)[index] for f in fields(self)
+                if isinstance(getattr(self, f.name), np.ndarray)}
+        return replace(self, **rows, extra={k: v[index] for k, v in self.extra.items()})
 
 
 def _header_error(source: str, problem: str) -> InputError:

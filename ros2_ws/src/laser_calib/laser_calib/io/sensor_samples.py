@@ -1,4 +1,4 @@
-"""Samples of a point or pose sensor (CSV), one row per measured pose.
+"""Point and pose samples CSV (conventions-extended.md), one row per measured pose.
 
     pose,stamp,q1,...,qN,x,y,z[,qw,qx,qy,qz][,extra columns...]
 
@@ -14,61 +14,28 @@ from __future__ import annotations
 import csv
 import io
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
-from laser_calib.io.samples import check_all_or_none, check_joint_range, parse_table, read_table
+from laser_calib.io.samples import Samples, check_all_or_none, check_joint_range, parse_table, read_table
 
 POINT_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
 QUATERNION_TOLERANCE = 1e-3  # |norm - 1| accepted (rounding in files); normalised on use
 
 
-@dataclass(frozen=True)
-class SensorSamples:
-    """pose (P,) ids; stamp (P,) s; q (P,N) joint readings, rad; position (P,3)
-    in m and quaternion (P,4) (qw, qx, qy, qz) or None for a point sensor, both
-    in the sensor frame and NaN where not seen; extra: per-pose covariates (P,)."""
-
-    pose: np.ndarray
-    stamp: np.ndarray
-    q: np.ndarray
-    position: np.ndarray
-    quaternion: np.ndarray | None
-    extra: dict[str, np.ndarray] = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.pose)
-
-    @property
-    def n_joints(self) -> int:
-        return self.q.shape[1]
-
-    @property
-    def kind(self) -> str:
-        return "point" if self.quaternion is None else "pose"
-
-    @property
-    def seen(self) -> np.ndarray:
-        """(P,) bool: the sensor saw the target at that pose."""
-        return ~np.isnan(self.position).any(axis=1)
-
-    def subset(self, index) -> "SensorSamples":
-        """Rows selected by a boolean mask or index array (order preserved)."""
-        quaternion = None if self.quaternion is None else self.quaternion[index]
-        return SensorSamples(self.pose[index], self.stamp[index], self.q[index], self.position[index], quaternion,
-                             {k: v[index] for k, v in self.extra.items()})
+# The one samples type (io/samples.py) under the name point and pose callers use.
+SensorSamples = Samples
 
 
 def _columns(kind: str) -> tuple[str, ...]:
     return POINT_COLUMNS + (QUATERNION_COLUMNS if kind == "pose" else ())
 
 
-def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> SensorSamples:
+def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> Samples:
     header, rows, n_q = read_table(text, source, "pose,stamp,q1..qN,x,y,z[,qw,qx,qy,qz]")
     if tuple(header[2 + n_q:5 + n_q]) != POINT_COLUMNS:
         raise InputError(f"{source}: header", f"expected x,y,z after q{n_q}")
@@ -92,10 +59,10 @@ def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | No
     quaternion = values[:, 4 + n_q:8 + n_q] if kind == "pose" else None
     extra = {name: values[:, 1 + n_q + len(measured) + i]
              for i, name in enumerate(header[2 + n_q + len(measured):])}
-    return SensorSamples(pose, values[:, 0], q, position, quaternion, extra)
+    return Samples(pose, values[:, 0], q, extra=extra, position=position, quaternion=quaternion)
 
 
-def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> SensorSamples:
+def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> Samples:
     path = Path(path)
     try:
         text = path.read_text()
@@ -104,7 +71,7 @@ def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> SensorS
     return parse_sensor_samples(text, str(path), robot)
 
 
-def format_sensor_samples(samples: SensorSamples) -> str:
+def format_sensor_samples(samples: Samples) -> str:
     """CSV text; floats at full precision (repr) so files round-trip exactly."""
     header = (["pose", "stamp"] + [f"q{i + 1}" for i in range(samples.n_joints)] + list(_columns(samples.kind))
               + list(samples.extra))
@@ -120,5 +87,5 @@ def format_sensor_samples(samples: SensorSamples) -> str:
     return out.getvalue()
 
 
-def save_sensor_samples(samples: SensorSamples, path: str | Path) -> None:
+def save_sensor_samples(samples: Samples, path: str | Path) -> None:
     Path(path).write_text(format_sensor_samples(samples))

@@ -1,12 +1,29 @@
-"""Error metrics: spot distances between measured (or true) and predicted spots."""
+"""Error statistics, the one helper every table uses: count, mean, std, RMS, P95
+and max of a set of errors, ISO 9283 pose accuracy and repeatability where the
+data has repeated poses, and the spot distances of a laser calibration."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from laser_calib.io.samples import Samples
 from laser_calib.model.kinematics import predict
 from laser_calib.model.robot import Robot
-from laser_calib.io.samples import Samples
+
+STATISTICS = ("mean", "std", "rms", "p95", "max")
+
+
+def summary(values: np.ndarray, factor: float = 1.0, suffix: str = "") -> dict:
+    """n and mean, std (ddof 1; 0 for one value), RMS, 95th percentile (linear
+    interpolation) and max of the finite entries of ``values`` (any shape) times
+    ``factor``, keyed '<statistic><suffix>'; None for each when nothing is finite."""
+    seen = np.asarray(values, float)
+    seen = seen[np.isfinite(seen)] * factor
+    if seen.size == 0:
+        return {"n": 0} | {name + suffix: None for name in STATISTICS}
+    figures = {"mean": seen.mean(), "std": seen.std(ddof=1) if seen.size > 1 else 0.0,
+               "rms": np.sqrt(np.mean(seen ** 2)), "p95": np.percentile(seen, 95), "max": seen.max()}
+    return {"n": int(seen.size)} | {name + suffix: float(value) for name, value in figures.items()}
 
 
 def spot_distances(robot: Robot, samples: Samples, errors: np.ndarray | None = None) -> np.ndarray:
@@ -17,16 +34,35 @@ def spot_distances(robot: Robot, samples: Samples, errors: np.ndarray | None = N
 
 
 def laser_stats(distances: np.ndarray) -> dict:
-    """Per laser and over all seen spots: count, mean, std, max, rms in mm."""
-    out = {}
+    """summary() in mm of the spot distances (P,2) per laser and over all seen spots."""
     columns = {f"laser{j + 1}": distances[:, j] for j in range(distances.shape[1])}
-    columns["all"] = distances.ravel()
-    for key, values in columns.items():
-        seen = values[np.isfinite(values)] * 1e3
-        if seen.size == 0:
-            out[key] = {"n": 0, "mean_mm": None, "std_mm": None, "max_mm": None, "rms_mm": None}
+    columns["all"] = distances
+    return {key: summary(values, 1e3, "_mm") for key, values in columns.items()}
+
+
+def iso9283(pose: np.ndarray, measured: np.ndarray, predicted: np.ndarray, factor: float = 1.0) -> dict | None:
+    """ISO 9283 (sections 7.2.1 and 7.2.2) position accuracy AP and repeatability
+    RP of each pose visited at least twice, the predicted position standing for
+    the command: AP = |mean measured - mean predicted| (the distance of the
+    barycentre of the attained positions from the commanded one) and
+    RP = mean(l) + 3 S_l with l_i = |measured_i - barycentre| and S_l its
+    standard deviation (ddof 1).
+
+    pose (P,) ids, equal for repeated visits; measured, predicted (P,D) in m, NaN
+    rows where not seen. Returns None when no pose has two seen visits, else
+    {"poses", "visits", "AP": summary, "RP": summary} with values times factor."""
+    seen = np.isfinite(measured).all(axis=1) & np.isfinite(predicted).all(axis=1)
+    accuracy, repeatability, visits = [], [], 0
+    for p in np.unique(pose[seen]):
+        members = np.flatnonzero(seen & (pose == p))
+        if len(members) < 2:
             continue
-        out[key] = {"n": int(seen.size), "mean_mm": float(seen.mean()),
-                    "std_mm": float(seen.std(ddof=1)) if seen.size > 1 else 0.0,
-                    "max_mm": float(seen.max()), "rms_mm": float(np.sqrt(np.mean(seen ** 2)))}
-    return out
+        barycentre = measured[members].mean(axis=0)
+        accuracy.append(np.linalg.norm(barycentre - predicted[members].mean(axis=0)))
+        spread = np.linalg.norm(measured[members] - barycentre, axis=1)
+        repeatability.append(spread.mean() + 3 * spread.std(ddof=1))
+        visits += len(members)
+    if not accuracy:
+        return None
+    return {"poses": len(accuracy), "visits": visits, "AP": summary(np.array(accuracy), factor),
+            "RP": summary(np.array(repeatability), factor)}

@@ -1,0 +1,49 @@
+"""How poses are split for held-out errors: seeded k-fold, or chronological
+(calibrate on the first part of a session, test on the rest), and how far the
+test poses leave the joint range the calibration covered.
+
+Samples are in measurement order (stamps increase, conventions.md), so row
+order is time order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def kfold_labels(n: int, k: int, seed: int) -> np.ndarray:
+    """(n,) fold index 0..k-1 of each pose, a seeded random balanced split."""
+    if not 2 <= k <= n:
+        raise ValueError(f"k-fold needs 2 <= k <= {n} poses, got k = {k}")
+    return np.random.default_rng(seed).permutation(np.arange(n) % k)
+
+
+def chronological_labels(n: int, fraction: float) -> np.ndarray:
+    """(n,) 0 for the first ``fraction`` of the poses in measurement order (the
+    calibration), 1 for the rest (the test); both parts hold at least one pose."""
+    if not 0 < fraction < 1:
+        raise ValueError(f"the calibration fraction of a chronological split must be in (0, 1), got {fraction}")
+    n_train = int(round(fraction * n))
+    if not 1 <= n_train < n:
+        raise ValueError(f"a chronological split of {n} poses at {fraction} leaves one part empty")
+    return (np.arange(n) >= n_train).astype(int)
+
+
+def outside_range(q: np.ndarray, labels: np.ndarray, tested) -> np.ndarray:
+    """(N,) fraction of the tested poses whose reading of joint i lies outside
+    the [min, max] of joint i over the poses their prediction was fitted on
+    (all poses of the other folds); q (P,N), labels (P,) fold of each pose,
+    tested: the folds predicted (every fold for k-fold, the test part of a
+    chronological split)."""
+    outside = []
+    for fold in tested:
+        train, test = q[labels != fold], q[labels == fold]
+        outside.append((test < train.min(axis=0)) | (test > train.max(axis=0)))
+    return np.concatenate(outside).mean(axis=0)
+
+
+def range_warnings(fraction: np.ndarray, what: str) -> list[str]:
+    """One warning per joint with test poses outside the calibration's range:
+    held-out errors there are an extrapolation, not the calibration's accuracy."""
+    return [f"{what}: {share:.0%} of the test poses have q{i + 1} outside the range the calibration covered"
+            for i, share in enumerate(fraction) if share > 0]
