@@ -51,3 +51,11 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--base", default=None, help="URDF link the chain starts from (the robot's frame {0})")
     parser.add_argument("--tip", nargs="+", default=None,
                         help="URDF link(s) measured: one tip, or several of a tree sharing joints")
+
+
+def fraction(text: str) -> float:
+    """A number strictly between 0 and 1."""
+    value = _number(text, allow_zero=False)
+    if value >= 1:
+        raise argparse.ArgumentTypeError(f"expected a fraction between 0 and 1, got {text}")
+    return value

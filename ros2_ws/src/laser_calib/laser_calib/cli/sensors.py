@@ -1,7 +1,8 @@
 """Command line for data from other sensors and for pose planning:
 
     laser-calib import-positioner --data DIR --out DIR
-    laser-calib calibrate-poses --robot R.yaml --samples S.csv --out DIR [--folds K] [--scale] [--diagnose]
+    laser-calib calibrate-poses --robot R.yaml --samples S.csv --out DIR [--folds K] [--chronological F]
+                                [--test T.csv] [--scale] [--diagnose]
     laser-calib plan --robot R.yaml --n N --out poses.csv
 
 cli.py calls register(); bad input raises InputError / ValueError, which cli.main
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from laser_calib.cli.arguments import add_robot_arguments, positive
+from laser_calib.cli.arguments import add_robot_arguments, fraction, positive
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
@@ -27,8 +28,15 @@ from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.model.urdf import load_robot_description
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.diagnosis.sensor_data import diagnose, diagnose_options, heldout_effects
-from laser_calib.estimation.sensor_fit import SensorFit, SensorFitOptions, calibrate, kfold, pose_errors
-from laser_calib.io.sensor_samples import SensorSamples, load_sensor_samples, save_sensor_samples
+from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings
+from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, calibrate, is_frame_param, kfold,
+                                               make_model, pose_errors, sensor_of)
+from laser_calib.io.errors import InputError
+from laser_calib.measurement.base import MeasurementModel
+from laser_calib.report.pose_table import save_pose_table
+from laser_calib.report.statistics import STATISTICS, iso9283, summary
+from laser_calib.io.samples import Samples
+from laser_calib.io.sensor_samples import load_sensor_samples, save_sensor_samples
 
 
 def cmd_import_positioner(args: argparse.Namespace) -> int:
@@ -40,12 +48,6 @@ def cmd_import_positioner(args: argparse.Namespace) -> int:
     save_sensor_samples(samples, out / "samples.csv")
     print(f"wrote {out}/robot.yaml and samples.csv ({len(samples)} pose measurements)")
     return 0
-
-
-def _stats(values: np.ndarray, factor: float) -> dict:
-    seen = values[np.isfinite(values)] * factor
-    return {"n": int(seen.size), "mean": float(seen.mean()), "std": float(seen.std(ddof=1)),
-            "max": float(seen.max())}
 
 
 def _unit(name: str) -> str:
@@ -82,7 +84,7 @@ def _options(args: argparse.Namespace) -> SensorFitOptions:
                             rotation_length=args.rotation_length, scale=args.scale)
 
 
-def _diagnosis(robot: Robot, samples: SensorSamples, options: SensorFitOptions, folds: int, seed: int) -> dict:
+def _diagnosis(robot: Robot, samples: Samples, options: SensorFitOptions, folds: int, seed: int) -> dict:
     """The diagnosis engine on the samples (sensors.analysis.diagnose): its
     selection rounds, verdict and evidence, and per stage the k-fold held-out
     and in-sample mean position error (mm) of the calibration with its effects."""
@@ -98,35 +100,152 @@ def _diagnosis(robot: Robot, samples: SensorSamples, options: SensorFitOptions, 
             "notes": full["notes"]}
 
 
+def _evaluate(model: MeasurementModel, fit: SensorFit, prefix: str = "") -> dict[str, np.ndarray]:
+    """Per-pose columns (P,) of the residual table for ``model``'s poses: the
+    position error (m) and, for pose samples, the rotation error (rad) of the
+    nominal D-H (with the fit's frames) and of the calibration."""
+    pose_kind = sensor_of(model).samples.kind == "pose"
+    out = {}
+    for name, values in (("nominal_", fit.nominal.values), ("", fit.estimate.values)):
+        position, rotation = pose_errors(model, values)
+        out[f"{prefix}{name}position_m"] = position
+        if pose_kind:
+            out[f"{prefix}{name}rotation_rad"] = rotation
+    return out
+
+
+def _predicted_position(model: MeasurementModel, x: np.ndarray) -> np.ndarray:
+    """(P,3) the position the sensor would report, m, at the parameters x."""
+    return model.residuals(x, False).predicted[:, 0, :3]
+
+
+def _summaries(columns: dict[str, np.ndarray], prefix: str = "") -> dict:
+    """The error columns '<prefix>[nominal_]position_m' / 'rotation_rad' as summaries in mm / deg."""
+    out = {}
+    for name in ("nominal_position", "position", "nominal_rotation", "rotation"):
+        for unit, (shown, factor) in (("m", ("mm", 1e3)), ("rad", ("deg", 180 / math.pi))):
+            values = columns.get(f"{prefix}{name}_{unit}")
+            if values is not None:
+                out[f"{name}_{shown}"] = summary(values, factor)
+    return out
+
+
+def _accuracy(samples: Samples, model: MeasurementModel, fit: SensorFit) -> dict | None:
+    """ISO 9283 AP / RP (mm) of the poses visited more than once, nominal and calibrated; None without repeats."""
+    nominal = iso9283(samples.pose, samples.position, _predicted_position(model, fit.nominal.values), 1e3)
+    if nominal is None:
+        return None
+    return {"nominal": nominal,
+            "calibrated": iso9283(samples.pose, samples.position, _predicted_position(model, fit.estimate.values), 1e3)}
+
+
+def _figures(stats: dict) -> str:
+    return " / ".join("-" if stats[k] is None else f"{stats[k]:.3f}" for k in STATISTICS if k != "std")
+
+
+def _line(label: str, section: dict, nominal: str = "nominal D-H") -> str:
+    return (f"{label} position error, mm (mean / RMS / P95 / max): {_figures(section['nominal_position_mm'])} "
+            f"({nominal}) -> {_figures(section['position_mm'])}")
+
+
+def _nominal_label(fit: SensorFit) -> str:
+    """What the nominal figure holds: the D-H as designed and the frames fitted in it (if any)."""
+    frames = dict.fromkeys(n.split("_", 1)[0] for n, free in zip(fit.model.names, fit.nominal.identifiable)
+                           if free and is_frame_param(n))
+    return f"nominal D-H, frames fitted: {', '.join(frames)}" if frames else "nominal D-H, no frame fitted"
+
+
+def _split(robot: Robot, samples: Samples, options: SensorFitOptions, train: np.ndarray,
+           prefix: str) -> dict[str, np.ndarray]:
+    """Calibrate on the poses ``train`` (bool (P,)), predict the others: columns (P,), NaN on ``train``."""
+    fit = calibrate(robot, samples.subset(train), options)
+    test = np.flatnonzero(~train)
+    model = make_model(robot, samples.subset(test), fit.rotation_length, options.scale)
+    columns = {}
+    for name, values in _evaluate(model, fit, prefix).items():
+        columns[name] = np.full(len(samples), np.nan)
+        columns[name][test] = values
+    return columns
+
+
+def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: SensorFitOptions,
+             table: dict, result: dict, lines: list[str]) -> None:
+    """k-fold and chronological held-out errors into the result, the table and the console."""
+    if args.folds:
+        held = kfold(robot, samples, options, args.folds, args.seed)
+        table.update({"fold": held.fold, "kfold_nominal_position_m": held.nominal_position,
+                      "kfold_position_m": held.position})
+        if samples.kind == "pose":
+            table.update({"kfold_nominal_rotation_rad": held.nominal_rotation, "kfold_rotation_rad": held.rotation})
+        outside = outside_range(samples.q, held.fold, range(args.folds))
+        result["heldout"] = {"folds": args.folds, "seed": args.seed, **_summaries(table, "kfold_"),
+                             "outside_joint_range": outside.tolist()}
+        result["warnings"] += range_warnings(outside, f"{args.folds}-fold held-out")
+        lines.append(_line(f"{args.folds}-fold held-out", result["heldout"]))
+    if args.chronological:
+        train = chronological_labels(len(samples), args.chronological) == 0
+        table.update(_split(robot, samples, options, train, "chronological_"))
+        outside = outside_range(samples.q, (~train).astype(int), (1,))
+        result["chronological"] = {"calibration_fraction": args.chronological,
+                                   "calibration_poses": int(train.sum()), "test_poses": int((~train).sum()),
+                                   **_summaries(table, "chronological_"), "outside_joint_range": outside.tolist()}
+        result["warnings"] += range_warnings(outside, "chronological test")
+        lines.append(_line(f"chronological held-out (first {train.sum()} poses -> last {(~train).sum()})",
+                           result["chronological"]))
+
+
+def _test(args: argparse.Namespace, robot: Robot, samples: Samples, fit: SensorFit,
+          options: SensorFitOptions, result: dict, lines: list[str]) -> tuple | None:
+    """--test FILE: the calibration (its fitted frames, fixed ones as given) predicts the test poses."""
+    if not args.test:
+        return None
+    test = load_sensor_samples(args.test, robot)
+    if test.kind != samples.kind:
+        raise InputError(str(args.test), f"{test.kind} samples, but the calibration's are {samples.kind} samples")
+    model = make_model(robot, test, fit.rotation_length, options.scale)
+    columns = _evaluate(model, fit)
+    columns.update(zip(("dx_m", "dy_m", "dz_m"), (test.position - _predicted_position(model, fit.estimate.values)).T))
+    both = np.vstack([samples.q, test.q])
+    outside = outside_range(both, np.r_[np.zeros(len(samples), int), np.ones(len(test), int)], (1,))
+    result["test"] = {"samples": str(args.test), "poses": len(test), **_summaries(columns),
+                      "outside_joint_range": outside.tolist()}
+    accuracy = _accuracy(test, model, fit)
+    if accuracy:
+        result["test"]["iso9283"] = accuracy
+    result["warnings"] += range_warnings(outside, f"test {args.test}")
+    lines.append(_line(f"test ({len(test)} poses of {args.test})", result["test"]))
+    return test.pose, test.stamp, columns
+
+
 def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     robot = load_robot_description(args.robot, args.base, args.tip)
     samples = load_sensor_samples(args.samples, robot)
     options = _options(args)
     fit = calibrate(robot, samples, options)
-    after_p, after_r = pose_errors(fit.model, fit.estimate.values)
-    before_p, before_r = pose_errors(fit.model, fit.nominal.values)
+    table = _evaluate(fit.model, fit)
+    residual = samples.position - _predicted_position(fit.model, fit.estimate.values)
+    table = dict(zip(("dx_m", "dy_m", "dz_m"), residual.T)) | table
     result = {"robot": robot.name, "samples": str(args.samples), "kind": samples.kind, "poses": len(samples),
               "rotation_length_m_per_rad": fit.rotation_length, "sigma_m": fit.estimate.sigma,
               "chi2": fit.estimate.fit.chi2, "dof": fit.estimate.fit.dof,
-              "parameters": _parameters(fit, robot),
-              "insample": {"nominal_position_mm": _stats(before_p, 1e3), "position_mm": _stats(after_p, 1e3)},
+              "parameters": _parameters(fit, robot), "insample": _summaries(table),
               "warnings": list(fit.nominal.warnings + fit.estimate.warnings)}
-    if samples.kind == "pose":
-        result["insample"]["nominal_rotation_deg"] = _stats(before_r, 180 / math.pi)
-        result["insample"]["rotation_deg"] = _stats(after_r, 180 / math.pi)
+    accuracy = _accuracy(samples, fit.model, fit)
+    if accuracy:
+        result["insample"]["iso9283"] = accuracy
     fitted = [n for n, free in zip(robot.param_names, fit.estimate.identifiable) if free]
     lines = [f"{robot.name}: {len(samples)} {samples.kind} samples; "
              f"{'joint placements' if robot.chain else 'D-H errors'} fitted: {', '.join(fitted) or 'none'}",
-             f"in-sample mean position error {result['insample']['nominal_position_mm']['mean']:.3f} mm "
-             f"(nominal D-H, frames fitted) -> {result['insample']['position_mm']['mean']:.3f} mm"]
-    if args.folds:
-        held = kfold(robot, samples, options, args.folds, args.seed)
-        result["heldout"] = {"folds": args.folds, "seed": args.seed,
-                             "nominal_position_mm": _stats(held.nominal_position, 1e3),
-                             "position_mm": _stats(held.position, 1e3)}
-        lines.append(f"{args.folds}-fold held-out mean position error "
-                     f"{result['heldout']['nominal_position_mm']['mean']:.3f} mm (nominal) -> "
-                     f"{result['heldout']['position_mm']['mean']:.3f} mm")
+             _line("in-sample", result["insample"], _nominal_label(fit))]
+    if accuracy:
+        iso = accuracy["calibrated"]
+        lines.append(f"ISO 9283 over {iso['poses']} repeated poses: AP mean {iso['AP']['mean']:.3f} mm "
+                     f"(nominal {accuracy['nominal']['AP']['mean']:.3f}), RP mean {iso['RP']['mean']:.3f} mm")
+    _heldout(args, robot, samples, options, table, result, lines)
+    sets = {"calibration": (samples.pose, samples.stamp, table)}
+    test = _test(args, robot, samples, fit, options, result, lines)
+    if test:
+        sets["test"] = test
     if args.diagnose:
         result["diagnosis"] = _diagnosis(robot, samples, options, args.folds or 5, args.seed)
         chosen = result["diagnosis"]["stages"][-1]
@@ -141,7 +260,9 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                    header=f"Calibrated from {args.samples} (laser-calib calibrate-poses).")
         written = ("robot_calibrated.yaml",)
     (out / "result.json").write_text(json.dumps(result, indent=2))
-    print("\n".join(lines + [f"wrote {out}/{', '.join(written)} and result.json"]))
+    save_pose_table(sets, out / "residuals.csv")
+    lines += [f"warning: {w}" for w in result["warnings"]]
+    print("\n".join(lines + [f"wrote {out}/{', '.join(written)}, result.json and residuals.csv"]))
     return 0
 
 
@@ -180,6 +301,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robust", action="store_true", help="reject outlying samples and refit")
     p.add_argument("--folds", type=int, default=5, help="k of the k-fold held-out error (0: none)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fold split")
+    p.add_argument("--chronological", type=fraction, default=None, metavar="FRACTION",
+                   help="also calibrate on the first FRACTION of the poses in measurement order and test on the rest")
+    p.add_argument("--test", default=None, metavar="FILE",
+                   help="samples CSV the calibration predicts (its frames included; nothing is refitted on them)")
     p.add_argument("--diagnose", action="store_true",
                    help="select effects and test the residual (the diagnosis engine)")
     p.set_defaults(func=cmd_calibrate_poses)

@@ -1,0 +1,44 @@
+"""The per-pose residual CSV every command writes beside its result:
+
+    set,pose,stamp,<columns...>
+
+one row per measured pose, in measurement order within each set
+('calibration', 'test'); SI units in the column names (_m, _rad); an empty
+field where the figure does not apply (not seen, not in that split).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+
+def format_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]) -> str:
+    """sets: name -> (pose (P,), stamp (P,), {column: (P,) values}); the header
+    holds every set's columns, a set without a column leaves it empty."""
+    columns = list(dict.fromkeys(name for _, _, table in sets.values() for name in table))
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["set", "pose", "stamp"] + columns)
+    for set_name, (pose, stamp, table) in sets.items():
+        for r in range(len(pose)):
+            writer.writerow([set_name, str(int(pose[r])), repr(float(stamp[r]))]
+                            + [_cell(table.get(c), r) for c in columns])
+    return out.getvalue()
+
+
+def _cell(values: np.ndarray | None, r: int) -> str:
+    """Integer columns (fold indices) as integers; floats at full precision (repr)."""
+    if values is None:
+        return ""
+    if np.issubdtype(values.dtype, np.integer):
+        return str(int(values[r]))
+    return "" if math.isnan(values[r]) else repr(float(values[r]))
+
+
+def save_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]], path: str | Path) -> None:
+    Path(path).write_text(format_pose_table(sets))
