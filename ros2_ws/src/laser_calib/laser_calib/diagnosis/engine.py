@@ -74,6 +74,7 @@ from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import save_robot
 from laser_calib.io.samples import Samples
+from laser_calib.report.statistics import summary
 
 EXPLAINED, STRUCTURE = "explained", "structure remains"
 MIN_REPEAT_DOF = 8        # repeated-pose scatter with fewer degrees of freedom is not used
@@ -227,8 +228,9 @@ class Diagnosis:
     def to_json(self) -> dict:
         return {
             "robot": self.robot.name,
-            "stages": [{"model": s.label, "cal": distance_stats(s.fitted.cal), "cv": distance_stats(s.fitted.cv),
-                        "test": None if s.test is None else distance_stats(s.test),
+            "stages": [{"model": s.label, "cal": summary(s.fitted.cal, 1e3, "_mm"),
+                        "cv": summary(s.fitted.cv, 1e3, "_mm"),
+                        "test": None if s.test is None else summary(s.test, 1e3, "_mm"),
                         "parameters": int(s.fitted.estimate.identifiable.sum()),
                         "bic": s.fitted.bic, "spot_sigma_m": s.fitted.estimate.sigma,
                         "chi2": s.fitted.estimate.fit.chi2, "dof": s.fitted.estimate.fit.dof}
@@ -256,15 +258,6 @@ class Diagnosis:
 def _test_json(t: Test) -> dict:
     return {"response": t.response, "covariate": t.covariate, "F": t.f, "dof": list(t.dof), "p": t.p,
             "p_adjusted": t.p_adjusted, "eta2": t.eta2}
-
-
-def distance_stats(distances: np.ndarray) -> dict:
-    """n, mean, rms and max (mm) of the Euclidean spot distances over every seen spot."""
-    d = distances[np.isfinite(distances)] * 1e3
-    if d.size == 0:
-        return {"n": 0, "mean_mm": None, "rms_mm": None, "max_mm": None}
-    return {"n": int(d.size), "mean_mm": float(d.mean()), "rms_mm": float(np.sqrt(np.mean(d ** 2))),
-            "max_mm": float(d.max())}
 
 
 class Data(Protocol):
