@@ -61,6 +61,7 @@ from scipy import stats
 from laser_calib import __version__
 from laser_calib.io.errors import InputError
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model
+from laser_calib.estimation.folds import kfold_labels
 from laser_calib.effects.base import SPOT, Effect
 from laser_calib.effects.catalog import candidates, effects_to_yaml, same_place
 from laser_calib.effects.effect_model import EffectModel
@@ -323,16 +324,6 @@ def _distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
     return np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
 
 
-def fold_index(n_poses: int, folds: int, seed: int) -> np.ndarray:
-    """(P,) fold of each pose: a seeded permutation cut into ``folds`` parts."""
-    if n_poses < 2 * folds:
-        raise ValueError(f"{n_poses} poses are too few for {folds}-fold cross-validation")
-    order = np.random.default_rng(seed).permutation(n_poses)
-    fold = np.empty(n_poses, int)
-    fold[order] = np.arange(n_poses) % folds
-    return fold
-
-
 class _Fitter:
     """Fits and cross-validates models on one calibration set, all with
     estimate_model, the same folds and one reference noise model: the noise
@@ -346,7 +337,7 @@ class _Fitter:
         self.fit_options = EstimateOptions(method=options.method, spot_sigma=options.spot_sigma,
                                            joint_sigma=options.joint_sigma or 0.0, restarts=options.restarts,
                                            seed=options.seed, fixed=data.fixed)
-        self.fold = fold_index(len(data.samples.q), options.folds, options.seed)
+        self.fold = kfold_labels(len(data.samples.q), options.folds, options.seed)
         self.reference = NoiseModel(options.spot_sigma or 1.0, options.joint_sigma or 0.0)
         self.merged: dict[str, str] = {}
 
