@@ -16,7 +16,10 @@ from laser_calib.io.sensor_samples import save_sensor_samples
 from laser_calib.measurement.chain import chain_names, frame_slice, target_in_sensor
 from laser_calib.measurement.frames import Pose, robot_frames, with_frames
 from laser_calib.measurement.rotations import quaternion_to_matrix
+from laser_calib.model.kinematics import predict
 from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.report.pose_table import format_pose_table, spot_columns
+from laser_calib.report.statistics import spot_distances
 from laser_calib.sim.simulation import bundled_robot, true_errors
 
 SIGMA = 2e-4                 # m, position noise per axis of the simulated point sensor
@@ -190,3 +193,26 @@ def test_a_chronological_split_warns_when_the_test_poses_leave_the_calibrated_ra
     assert all(r["chronological_position_m"] == "" for r in rows[:35])
     assert all(float(r["chronological_position_m"]) > 0 for r in rows[35:])
     assert chronological["position_mm"]["n"] == 15
+
+
+def test_spot_columns_of_the_residual_table():
+    """Spots predicted by the true errors: the calibration's residual is zero where a
+    laser hit, the nominal distance is report.statistics' spot distance; the table
+    writes integers as integers and unseen spots as empty fields."""
+    robot = bundled_robot("paper-7dof")
+    errors = true_errors(robot)
+    q = np.random.default_rng(3).uniform(-0.2, 0.2, (6, robot.n_joints))
+    spots = predict(robot, q, errors).spots
+    spots[2, 1] = np.nan
+    samples = Samples(np.array([4, 4, 5, 6, 7, 8]), np.arange(6.0), q, spots)
+    columns = spot_columns(robot, samples, errors)
+    seen = samples.seen
+    assert seen.sum() == 11                                     # every spot hit the screen but the one removed
+    assert np.all(columns["l1_distance_m"][seen[:, 0]] < 1e-12) and np.isnan(columns["l2_dy_m"][2])
+    nominal = spot_distances(robot, samples)
+    assert np.array_equal(np.column_stack([columns["nominal_l1_distance_m"], columns["nominal_l2_distance_m"]]),
+                          nominal, equal_nan=True)
+    text = format_pose_table({"calibration": (samples.pose, samples.stamp, columns | {"fold": np.arange(6)})})
+    rows = list(csv.DictReader(text.splitlines()))
+    assert rows[2]["l2_distance_m"] == "" and rows[1]["fold"] == "1" and rows[0]["pose"] == "4"
+    assert float(rows[3]["nominal_l1_distance_m"]) == nominal[3, 0]

@@ -86,12 +86,13 @@ def plot_histogram(groups: dict[str, np.ndarray], path: Path) -> None:
 
 
 def stats_table(spot_error: dict) -> list[str]:
-    lines = ["| set | model | laser | n | mean (mm) | std (mm) | max (mm) |", "|---|---|---|---|---|---|---|"]
+    lines = ["| set | model | laser | n | mean (mm) | RMS (mm) | P95 (mm) | max (mm) | std (mm) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for set_name, by_model in spot_error.items():
         for model_name, by_laser in by_model.items():
             for laser in ("laser1", "laser2"):
                 s = by_laser[laser]
                 if s["n"]:
-                    lines.append(f"| {set_name} | {model_name} | {laser[-1]} | {s['n']} | {s['mean_mm']:.3f} | "
-                                 f"{s['std_mm']:.3f} | {s['max_mm']:.3f} |")
+                    figures = " | ".join(f"{s[key + '_mm']:.3f}" for key in ("mean", "rms", "p95", "max", "std"))
+                    lines.append(f"| {set_name} | {model_name} | {laser[-1]} | {s['n']} | {figures} |")
     return lines

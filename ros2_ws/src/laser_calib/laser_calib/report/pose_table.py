@@ -16,6 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from laser_calib.io.samples import Samples
+from laser_calib.model.kinematics import predict
+from laser_calib.model.robot import Robot
+
 
 def format_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]) -> str:
     """sets: name -> (pose (P,), stamp (P,), {column: (P,) values}); the header
@@ -42,3 +46,18 @@ def _cell(values: np.ndarray | None, r: int) -> str:
 
 def save_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]], path: str | Path) -> None:
     Path(path).write_text(format_pose_table(sets))
+
+
+def spot_columns(robot: Robot, samples: Samples, errors: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-pose columns (P,) of laser spot samples, per laser j: the residual
+    measured - predicted (y, z) and its length of the calibration (D-H and SLM
+    errors ``errors``, (robot.n_params,)), and the length for the nominal model; m, NaN
+    where the laser was not seen."""
+    columns = {}
+    for label, values in (("", errors), ("nominal_", None)):
+        residual = samples.spots - predict(robot, samples.q, values).spots          # (P,2,2)
+        for j in range(residual.shape[1]):
+            if not label:
+                columns[f"l{j + 1}_dy_m"], columns[f"l{j + 1}_dz_m"] = residual[:, j].T
+            columns[f"{label}l{j + 1}_distance_m"] = np.linalg.norm(residual[:, j], axis=1)
+    return columns
