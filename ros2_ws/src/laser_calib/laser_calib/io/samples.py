@@ -205,6 +205,8 @@ def load_samples(path: str | Path, robot: Robot | None = None) -> Samples:
 
 
 def format_samples(samples: Samples) -> str:
+    if samples.kind != "spot":
+        raise ValueError(f"the spot samples CSV holds spots, not {samples.kind} samples (io/sensor_samples.py)")
     n_q = samples.n_joints
     header = ["pose", "stamp"] + [f"q{i + 1}" for i in range(n_q)] + list(SPOT_COLUMNS) + list(samples.extra)
     out = io.StringIO()

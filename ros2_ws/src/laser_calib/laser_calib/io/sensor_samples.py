@@ -73,6 +73,8 @@ def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> Samples
 
 def format_sensor_samples(samples: Samples) -> str:
     """CSV text; floats at full precision (repr) so files round-trip exactly."""
+    if samples.kind == "spot":
+        raise ValueError("the sensor samples CSV holds point or pose samples, not spots (io/samples.py)")
     header = (["pose", "stamp"] + [f"q{i + 1}" for i in range(samples.n_joints)] + list(_columns(samples.kind))
               + list(samples.extra))
     measured = samples.position if samples.quaternion is None else np.hstack([samples.position, samples.quaternion])
