@@ -72,3 +72,16 @@ def test_iso9283_accuracy_is_the_bias_and_repeatability_ignores_the_model():
     unbiased = iso9283(pose, measured - bias, predicted + rng.normal(0, 1.0, 3))
     assert unbiased["RP"]["mean"] == pytest.approx(biased["RP"]["mean"], rel=1e-12)
     assert biased["RP"]["mean"] < biased["RP"]["max"] and biased["poses"] == m and biased["visits"] == m * n
+
+
+def test_iso9283_orientation_per_axis():
+    """Two visits of one pose turned by 0.1 and 0.3 rad about x, 0 and -0.2 about z:
+    AP_a = |mean| = 0.2, AP_c = 0.1, RP_a = 3 S_a; angles scaled to degrees."""
+    measured = predicted = np.zeros((2, 3))
+    rotation = np.array([[0.1, 0.0, 0.0], [0.3, 0.0, -0.2]])
+    out = iso9283(np.array([1, 1]), measured, predicted, rotation=rotation, angle_factor=180 / math.pi)
+    assert out["AP_a"]["mean"] == pytest.approx(math.degrees(0.2))
+    assert out["AP_b"]["mean"] == 0.0 and out["AP_c"]["mean"] == pytest.approx(math.degrees(0.1))
+    assert out["RP_a"]["mean"] == pytest.approx(math.degrees(3 * statistics.stdev([0.1, 0.3])))
+    assert out["RP_c"]["mean"] == pytest.approx(math.degrees(3 * statistics.stdev([0.0, -0.2])))
+    assert "AP_a" not in iso9283(np.array([1, 1]), measured, predicted)

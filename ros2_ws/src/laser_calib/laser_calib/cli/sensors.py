@@ -131,12 +131,16 @@ def _summaries(columns: dict[str, np.ndarray], prefix: str = "") -> dict:
 
 
 def _accuracy(samples: Samples, model: MeasurementModel, fit: SensorFit) -> dict | None:
-    """ISO 9283 AP / RP (mm) of the poses visited more than once, nominal and calibrated; None without repeats."""
-    nominal = iso9283(samples.pose, samples.position, _predicted_position(model, fit.nominal.values), 1e3)
-    if nominal is None:
-        return None
-    return {"nominal": nominal,
-            "calibrated": iso9283(samples.pose, samples.position, _predicted_position(model, fit.estimate.values), 1e3)}
+    """ISO 9283 AP / RP (mm, and deg for pose samples) of the poses visited more
+    than once, nominal and calibrated; None without repeats."""
+    out = {}
+    for name, x in (("nominal", fit.nominal.values), ("calibrated", fit.estimate.values)):
+        res = model.residuals(x, False)
+        rotation = None
+        if samples.kind == "pose":
+            rotation = np.where(res.valid, res.r[:, 0, 3:], np.nan) / sensor_of(model).rotation_length
+        out[name] = iso9283(samples.pose, samples.position, res.predicted[:, 0, :3], 1e3, rotation, 180 / math.pi)
+    return out if out["nominal"] else None
 
 
 def _figures(stats: dict) -> str:

@@ -40,29 +40,46 @@ def laser_stats(distances: np.ndarray) -> dict:
     return {key: summary(values, 1e3, "_mm") for key, values in columns.items()}
 
 
-def iso9283(pose: np.ndarray, measured: np.ndarray, predicted: np.ndarray, factor: float = 1.0) -> dict | None:
-    """ISO 9283 (sections 7.2.1 and 7.2.2) position accuracy AP and repeatability
-    RP of each pose visited at least twice, the predicted position standing for
-    the command: AP = |mean measured - mean predicted| (the distance of the
-    barycentre of the attained positions from the commanded one) and
-    RP = mean(l) + 3 S_l with l_i = |measured_i - barycentre| and S_l its
-    standard deviation (ddof 1).
+def iso9283(pose: np.ndarray, measured: np.ndarray, predicted: np.ndarray, factor: float = 1.0,
+            rotation: np.ndarray | None = None, angle_factor: float = 1.0) -> dict | None:
+    """ISO 9283 (7.2.1, 7.2.2) pose accuracy AP and repeatability RP of each pose
+    visited at least twice, the predicted pose standing for the command.
 
-    pose (P,) ids, equal for repeated visits; measured, predicted (P,D) in m, NaN
-    rows where not seen. Returns None when no pose has two seen visits, else
-    {"poses", "visits", "AP": summary, "RP": summary} with values times factor."""
+    Position: AP = |mean measured - mean predicted| (the distance of the
+    barycentre of the attained positions from the commanded one) and
+    RP = mean(l) + 3 S_l, l_i = |measured_i - barycentre|, S_l its standard
+    deviation (ddof 1). Orientation, when ``rotation`` (P,3) gives each visit's
+    rotation vector of inv(predicted) · measured in rad (small angles: the
+    standard's a, b, c deviations about the three axes): AP_a = |mean a_i| and
+    RP_a = 3 S_a per axis.
+
+    pose (P,) ids, equal for repeated visits; measured, predicted (P,D) in m,
+    NaN rows where not seen. None when no pose has two seen visits, else
+    {"poses", "visits", "AP", "RP"[, "AP_a".."RP_c"]}: summaries over the
+    repeated poses, lengths times ``factor``, angles times ``angle_factor``."""
     seen = np.isfinite(measured).all(axis=1) & np.isfinite(predicted).all(axis=1)
-    accuracy, repeatability, visits = [], [], 0
+    if rotation is not None:
+        seen &= np.isfinite(rotation).all(axis=1)
+    figures: dict[str, list] = {"AP": [], "RP": [], "AP_abc": [], "RP_abc": []}
+    visits = 0
     for p in np.unique(pose[seen]):
         members = np.flatnonzero(seen & (pose == p))
         if len(members) < 2:
             continue
         barycentre = measured[members].mean(axis=0)
-        accuracy.append(np.linalg.norm(barycentre - predicted[members].mean(axis=0)))
+        figures["AP"].append(np.linalg.norm(barycentre - predicted[members].mean(axis=0)))
         spread = np.linalg.norm(measured[members] - barycentre, axis=1)
-        repeatability.append(spread.mean() + 3 * spread.std(ddof=1))
+        figures["RP"].append(spread.mean() + 3 * spread.std(ddof=1))
+        if rotation is not None:
+            figures["AP_abc"].append(np.abs(rotation[members].mean(axis=0)))
+            figures["RP_abc"].append(3 * rotation[members].std(axis=0, ddof=1))
         visits += len(members)
-    if not accuracy:
+    if not figures["AP"]:
         return None
-    return {"poses": len(accuracy), "visits": visits, "AP": summary(np.array(accuracy), factor),
-            "RP": summary(np.array(repeatability), factor)}
+    out = {"poses": len(figures["AP"]), "visits": visits,
+           "AP": summary(np.array(figures["AP"]), factor), "RP": summary(np.array(figures["RP"]), factor)}
+    if rotation is not None:
+        for name in ("AP", "RP"):
+            angles = np.array(figures[f"{name}_abc"])             # (poses, 3)
+            out |= {f"{name}_{axis}": summary(angles[:, i], angle_factor) for i, axis in enumerate("abc")}
+    return out
