@@ -100,23 +100,24 @@ def _diagnosis(robot: Robot, samples: Samples, options: SensorFitOptions, folds:
             "notes": full["notes"]}
 
 
-def _evaluate(model: MeasurementModel, fit: SensorFit, prefix: str = "") -> dict[str, np.ndarray]:
+def _evaluate(model: MeasurementModel, fit: SensorFit, prefix: str = "",
+              components: bool = False) -> dict[str, np.ndarray]:
     """Per-pose columns (P,) of the residual table for ``model``'s poses: the
     position error (m) and, for pose samples, the rotation error (rad) of the
-    nominal D-H (with the fit's frames) and of the calibration."""
-    pose_kind = sensor_of(model).samples.kind == "pose"
+    nominal D-H (with the fit's frames) and of the calibration; with
+    ``components`` first the calibration's measured - predicted position
+    dx, dy, dz in the sensor frame (m)."""
+    samples = sensor_of(model).samples
     out = {}
+    if components:
+        predicted = model.residuals(fit.estimate.values, False).predicted[:, 0, :3]
+        out.update(zip(("dx_m", "dy_m", "dz_m"), (samples.position - predicted).T))
     for name, values in (("nominal_", fit.nominal.values), ("", fit.estimate.values)):
         position, rotation = pose_errors(model, values)
         out[f"{prefix}{name}position_m"] = position
-        if pose_kind:
+        if samples.kind == "pose":
             out[f"{prefix}{name}rotation_rad"] = rotation
     return out
-
-
-def _predicted_position(model: MeasurementModel, x: np.ndarray) -> np.ndarray:
-    """(P,3) the position the sensor would report, m, at the parameters x."""
-    return model.residuals(x, False).predicted[:, 0, :3]
 
 
 def _summaries(columns: dict[str, np.ndarray], prefix: str = "") -> dict:
@@ -198,17 +199,11 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
                            result["chronological"]))
 
 
-def _test(args: argparse.Namespace, robot: Robot, samples: Samples, fit: SensorFit,
-          options: SensorFitOptions, result: dict, lines: list[str]) -> tuple | None:
+def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Samples, fit: SensorFit,
+          options: SensorFitOptions, result: dict, lines: list[str]) -> tuple:
     """--test FILE: the calibration (its fitted frames, fixed ones as given) predicts the test poses."""
-    if not args.test:
-        return None
-    test = load_sensor_samples(args.test, robot)
-    if test.kind != samples.kind:
-        raise InputError(str(args.test), f"{test.kind} samples, but the calibration's are {samples.kind} samples")
     model = make_model(robot, test, fit.rotation_length, options.scale)
-    columns = _evaluate(model, fit)
-    columns.update(zip(("dx_m", "dy_m", "dz_m"), (test.position - _predicted_position(model, fit.estimate.values)).T))
+    columns = _evaluate(model, fit, components=True)
     both = np.vstack([samples.q, test.q])
     outside = outside_range(both, np.r_[np.zeros(len(samples), int), np.ones(len(test), int)], (1,))
     result["test"] = {"samples": str(args.test), "poses": len(test), **_summaries(columns),
@@ -224,11 +219,12 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, fit: SensorF
 def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     robot = load_robot_description(args.robot, args.base, args.tip)
     samples = load_sensor_samples(args.samples, robot)
+    test = load_sensor_samples(args.test, robot) if args.test else None
+    if test is not None and test.kind != samples.kind:
+        raise InputError(str(args.test), f"{test.kind} samples, but the calibration's are {samples.kind} samples")
     options = _options(args)
     fit = calibrate(robot, samples, options)
-    table = _evaluate(fit.model, fit)
-    residual = samples.position - _predicted_position(fit.model, fit.estimate.values)
-    table = dict(zip(("dx_m", "dy_m", "dz_m"), residual.T)) | table
+    table = _evaluate(fit.model, fit, components=True)
     result = {"robot": robot.name, "samples": str(args.samples), "kind": samples.kind, "poses": len(samples),
               "rotation_length_m_per_rad": fit.rotation_length, "sigma_m": fit.estimate.sigma,
               "chi2": fit.estimate.fit.chi2, "dof": fit.estimate.fit.dof,
@@ -247,9 +243,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                      f"(nominal {accuracy['nominal']['AP']['mean']:.3f}), RP mean {iso['RP']['mean']:.3f} mm")
     _heldout(args, robot, samples, options, table, result, lines)
     sets = {"calibration": (samples.pose, samples.stamp, table)}
-    test = _test(args, robot, samples, fit, options, result, lines)
-    if test:
-        sets["test"] = test
+    if test is not None:
+        sets["test"] = _test(args, robot, samples, test, fit, options, result, lines)
     if args.diagnose:
         result["diagnosis"] = _diagnosis(robot, samples, options, args.folds or 5, args.seed)
         chosen = result["diagnosis"]["stages"][-1]
