@@ -205,7 +205,7 @@ def test_spot_columns_of_the_residual_table():
     spots = predict(robot, q, errors).spots
     spots[2, 1] = np.nan
     samples = Samples(np.array([4, 4, 5, 6, 7, 8]), np.arange(6.0), q, spots)
-    columns = spot_columns(robot, samples, errors)
+    columns = spot_columns(samples, predict(robot, q, errors).spots, predict(robot, q).spots)
     seen = samples.seen
     assert seen.sum() == 11                                     # every spot hit the screen but the one removed
     assert np.all(columns["l1_distance_m"][seen[:, 0]] < 1e-12) and np.isnan(columns["l2_dy_m"][2])

@@ -17,8 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.io.samples import Samples
-from laser_calib.model.kinematics import predict
-from laser_calib.model.robot import Robot
 
 
 def format_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]) -> str:
@@ -48,14 +46,14 @@ def save_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.n
     Path(path).write_text(format_pose_table(sets))
 
 
-def spot_columns(robot: Robot, samples: Samples, errors: np.ndarray) -> dict[str, np.ndarray]:
+def spot_columns(samples: Samples, calibrated: np.ndarray, nominal: np.ndarray) -> dict[str, np.ndarray]:
     """Per-pose columns (P,) of laser spot samples, per laser j: the residual
-    measured - predicted (y, z) and its length of the calibration (D-H and SLM
-    errors ``errors``, (robot.n_params,)), and the length for the nominal model; m, NaN
-    where the laser was not seen."""
+    measured - predicted (y, z) of the calibration and its length, and the
+    length for the nominal model; calibrated, nominal: the predicted spots
+    (P,2,2) (report.calibration.SetEvaluation); m, NaN where not seen."""
     columns = {}
-    for label, values in (("", errors), ("nominal_", None)):
-        residual = samples.spots - predict(robot, samples.q, values).spots          # (P,2,2)
+    for label, predicted in (("", calibrated), ("nominal_", nominal)):
+        residual = samples.spots - predicted                                  # (P,2,2)
         for j in range(residual.shape[1]):
             if not label:
                 columns[f"l{j + 1}_dy_m"], columns[f"l{j + 1}_dz_m"] = residual[:, j].T
