@@ -20,7 +20,6 @@ from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
 
 SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
-KINDS = ("spot", "point", "pose")
 
 
 @dataclass(frozen=True)
@@ -64,7 +63,7 @@ class Samples:
 
     @property
     def kind(self) -> str:
-        """'spot', 'point' or 'pose' (KINDS)."""
+        """The measurement kind: 'spot', 'point' or 'pose'."""
         if self.spots is not None:
             return "spot"
         return "point" if self.quaternion is None else "pose"
