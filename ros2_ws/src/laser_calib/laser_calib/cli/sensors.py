@@ -148,16 +148,21 @@ def _figures(stats: dict) -> str:
     return " / ".join("-" if stats[k] is None else f"{stats[k]:.3f}" for k in STATISTICS if k != "std")
 
 
-def _line(label: str, section: dict, nominal: str = "nominal D-H") -> str:
+def _design(robot: Robot) -> str:
+    """What the nominal figures hold: the robot as designed."""
+    return "nominal joint placements" if robot.chain is not None else "nominal D-H"
+
+
+def _line(label: str, section: dict, nominal: str) -> str:
     return (f"{label} position error, mm (mean / RMS / P95 / max): {_figures(section['nominal_position_mm'])} "
             f"({nominal}) -> {_figures(section['position_mm'])}")
 
 
-def _nominal_label(fit: SensorFit) -> str:
-    """What the nominal figure holds: the D-H as designed and the frames fitted in it (if any)."""
+def _nominal_label(fit: SensorFit, robot: Robot) -> str:
+    """What the in-sample nominal figure holds: the robot as designed and the frames fitted in it (if any)."""
     frames = dict.fromkeys(n.split("_", 1)[0] for n, free in zip(fit.model.names, fit.nominal.identifiable)
                            if free and is_frame_param(n))
-    return f"nominal D-H, frames fitted: {', '.join(frames)}" if frames else "nominal D-H, no frame fitted"
+    return f"{_design(robot)}, " + (f"frames fitted: {', '.join(frames)}" if frames else "no frame fitted")
 
 
 def _split(robot: Robot, samples: Samples, options: SensorFitOptions, train: np.ndarray,
@@ -186,7 +191,7 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
         result["heldout"] = {"folds": args.folds, "seed": args.seed, **_summaries(table, "kfold_"),
                              "outside_joint_range": outside.tolist()}
         result["warnings"] += range_warnings(outside, f"{args.folds}-fold held-out")
-        lines.append(_line(f"{args.folds}-fold held-out", result["heldout"]))
+        lines.append(_line(f"{args.folds}-fold held-out", result["heldout"], _design(robot)))
     if args.chronological:
         train = chronological_labels(len(samples), args.chronological) == 0
         table.update(_split(robot, samples, options, train, "chronological_"))
@@ -196,7 +201,7 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
                                    **_summaries(table, "chronological_"), "outside_joint_range": outside.tolist()}
         result["warnings"] += range_warnings(outside, "chronological test")
         lines.append(_line(f"chronological held-out (first {train.sum()} poses -> last {(~train).sum()})",
-                           result["chronological"]))
+                           result["chronological"], _design(robot)))
 
 
 def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Samples, fit: SensorFit,
@@ -212,7 +217,7 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Sample
     if accuracy:
         result["test"]["iso9283"] = accuracy
     result["warnings"] += range_warnings(outside, f"test {args.test}")
-    lines.append(_line(f"test ({len(test)} poses of {args.test})", result["test"]))
+    lines.append(_line(f"test ({len(test)} poses of {args.test})", result["test"], _design(robot)))
     return test.pose, test.stamp, columns
 
 
@@ -236,7 +241,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     fitted = [n for n, free in zip(robot.param_names, fit.estimate.identifiable) if free]
     lines = [f"{robot.name}: {len(samples)} {samples.kind} samples; "
              f"{'joint placements' if robot.chain else 'D-H errors'} fitted: {', '.join(fitted) or 'none'}",
-             _line("in-sample", result["insample"], _nominal_label(fit))]
+             _line("in-sample", result["insample"], _nominal_label(fit, robot))]
     if accuracy:
         iso = accuracy["calibrated"]
         lines.append(f"ISO 9283 over {iso['poses']} repeated poses: AP mean {iso['AP']['mean']:.3f} mm "
