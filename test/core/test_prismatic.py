@@ -43,7 +43,7 @@ def _robot(kind):
 
 
 def _samples(q, position):
-    return SensorSamples(np.arange(len(q)), np.arange(len(q), dtype=float), q, position, None)
+    return SensorSamples(np.arange(len(q)), np.arange(len(q), dtype=float), q, position=position)
 
 
 @pytest.mark.parametrize("kind", ["urdf", "dh"])

@@ -30,8 +30,8 @@ TORSO = DATA / "torso_two_arms.urdf"
 def _samples(robot, q, tips, position=None):
     n = len(q)
     extra = {} if tips is None else {"tip": tips.astype(float)}
-    return SensorSamples(np.arange(n), np.arange(n, dtype=float), q,
-                         np.zeros((n, 3)) if position is None else position, None, extra)
+    return SensorSamples(np.arange(n), np.arange(n, dtype=float), q, extra=extra,
+                         position=np.zeros((n, 3)) if position is None else position)
 
 
 def _calibrate_and_test(robot, tips_cal, tips_test, seed=0):
