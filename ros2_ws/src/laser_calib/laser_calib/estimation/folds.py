@@ -12,7 +12,7 @@ import numpy as np
 
 # A reading this share of the covered span past its ends still counts as inside:
 # the extreme poses of a random k-fold always lie just outside their training
-# folds, and that is interpolation in effect, not a new region of the workspace.
+# folds, a step past the data rather than a region of the workspace it never saw.
 RANGE_SLACK = 0.05
 
 
