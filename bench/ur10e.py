@@ -45,7 +45,7 @@ def convert(source: Path, robot) -> SensorSamples:
     rpy = np.array([[float(row[k]) for k in ("phix1", "phiy1", "phiz1")] for row in rows])
     quaternion = Rotation.from_euler("xyz", rpy).as_quat(scalar_first=True)
     n = len(rows)
-    return SensorSamples(np.arange(n), np.arange(n, dtype=float), q, position, quaternion)
+    return SensorSamples(np.arange(n), np.arange(n, dtype=float), q, position=position, quaternion=quaternion)
 
 
 def stats(values: np.ndarray, factor: float) -> dict:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from laser_calib.diagnosis.engine import distance_stats
+from laser_calib.report.statistics import summary
 from laser_calib.io.samples import Samples
 from laser_calib.model.kinematics import forward, predict
 from laser_calib.model.robot import Robot
@@ -36,9 +36,9 @@ def truth_errors(nominal: Robot, calibrated: Robot, true: Robot, n_poses: int = 
         & (np.abs(truth_spots.spots[..., 1]) <= true.screen.half_z).all(axis=1)
     out = {"poses": int(n_poses), "spot_poses": int(on_screen.sum()), "end_effector": {}, "spot": {}}
     for label, name, robot in (("before", "nominal", nominal), ("after", "calibrated", calibrated)):
-        out["end_effector"][label] = distance_stats(np.linalg.norm(origin[name] - origin["true"], axis=1))
+        out["end_effector"][label] = summary(np.linalg.norm(origin[name] - origin["true"], axis=1), 1e3, "_mm")
         spots = predict(robot, q[on_screen]).spots                       # (M,2,2)
-        out["spot"][label] = distance_stats(np.linalg.norm(spots - truth_spots.spots[on_screen], axis=2).ravel())
+        out["spot"][label] = summary(np.linalg.norm(spots - truth_spots.spots[on_screen], axis=2), 1e3, "_mm")
     return out
 
 
