@@ -2,14 +2,16 @@
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from laser_calib.cli.main import main
 from laser_calib.model.kinematics import rot_x, rot_y
-from laser_calib.model.robot_file import load_robot
-from laser_calib.sim.simulation import bundled_robot
+from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.io.samples import save_samples
+from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +50,33 @@ def test_estimate_writes_calibrated_robot_result_and_report(simulated, tmp_path,
     assert np.allclose(calibrated.vector(), nominal.vector() + values)
     report = (out / "report.md").read_text()
     assert "convergence.png" in report and (out / "convergence.png").stat().st_size > 10000
+    residuals = np.genfromtxt(out / "residuals.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    test = residuals[residuals["set"] == "test"]
+    assert len(residuals) == 60 and len(test) == 30
+    # The table's per-pose distances are the ones the result's statistics summarise.
+    assert math.isclose(np.nanmean(test["l1_distance_m"]) * 1e3, result["spot_error"]["test"]["after"]["laser1"]["mean_mm"])
+
+
+def test_repeated_poses_give_iso9283_repeatability(tmp_path):
+    """30 poses each measured twice with Gaussian spot noise sigma: per laser, the two
+    visits lie |d|/2 from their barycentre, so RP = |d|/2 (S_l = 0) with d ~ N(0, 2 sigma^2 I):
+    E[RP] = sigma sqrt(pi)/2, std of the mean over 30 poses 0.463 sigma / sqrt(30)."""
+    sigma, rng = 1e-3, np.random.default_rng(4)
+    nominal = bundled_robot("paper-7dof")
+    true = nominal.with_errors(true_errors(nominal, rng))
+    q = sample_poses([nominal, true], 30, rng)
+    measured, _ = measure(true, np.vstack([q, q]), rng, NoiseSpec(spot=sigma, joint=0.0, distribution="normal"))
+    save_samples(replace(measured, pose=np.tile(np.arange(30), 2)), tmp_path / "twice.csv")
+    save_robot(nominal, tmp_path / "robot.yaml")
+    out = tmp_path / "est"
+    assert main(["estimate", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "twice.csv"),
+                 "--spot-sigma", str(sigma), "--out", str(out)]) == 0
+    iso = json.loads((out / "result.json").read_text())["iso9283_spot"]["calibration"]
+    for laser in ("laser1", "laser2"):
+        seen = iso[laser]["poses"]
+        assert seen >= 25 and iso[laser]["visits"] == 2 * seen
+        expected, spread = sigma * math.sqrt(math.pi) / 2 * 1e3, 0.463 * sigma / math.sqrt(seen) * 1e3
+        assert abs(iso[laser]["RP"]["mean"] - expected) < 4 * spread, iso[laser]
 
 
 def test_identify_prints_the_table(simulated, capsys):

@@ -92,7 +92,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                                sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
                                         "test": str(args.test) if args.test else None})
     _summary(calibration)
-    print(f"wrote {args.out}/robot_calibrated.yaml, result.json, report.md")
+    print(f"wrote {args.out}/robot_calibrated.yaml, result.json, report.md, residuals.csv")
     return 0
 
 

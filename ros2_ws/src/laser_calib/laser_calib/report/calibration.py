@@ -21,7 +21,7 @@ from laser_calib.io.samples import Samples
 from laser_calib.model.kinematics import predict
 from laser_calib.model.robot import Robot
 from laser_calib.report.plots import display_units
-from laser_calib.report.statistics import laser_stats
+from laser_calib.report.statistics import iso9283, laser_stats
 
 
 def finite_or_none(value: float):
@@ -67,6 +67,17 @@ class Calibration:
         return {name: {"before": laser_stats(s.distances("nominal")), "after": laser_stats(s.distances("calibrated"))}
                 for name, s in self.sets.items()}
 
+    def repeatability(self) -> dict:
+        """ISO 9283 AP / RP (mm) of each laser's spot over the poses visited more than
+        once, per set, the calibrated model's spot standing for the command."""
+        out = {}
+        for name, s in self.sets.items():
+            by_laser = {f"laser{j + 1}": iso9283(s.samples.pose, s.samples.spots[:, j], s.calibrated[:, j], 1e3)
+                        for j in range(s.samples.spots.shape[1])}
+            if any(v is not None for v in by_laser.values()):
+                out[name] = by_laser
+        return out
+
     def to_json(self) -> dict:
         """The content of result.json."""
         est, options = self.estimate, self.options
@@ -97,6 +108,7 @@ class Calibration:
             "chi2": est.fit.chi2,
             "dof": est.fit.dof,
             "spot_error": self.spot_error,
+            "iso9283_spot": self.repeatability(),
             "iterations": est.fit.iterations,
             "converged": bool(est.fit.converged),
             "restarts": est.restarts,

@@ -19,9 +19,10 @@ from laser_calib.io.samples import Samples
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import dump_robot
 from laser_calib.report.calibration import Calibration, calibrate
+from laser_calib.report.pose_table import save_pose_table, spot_columns
 from laser_calib.report.plots import display_units, plot_convergence, plot_histogram, plot_screen, stats_table
 
-OUTPUTS = ("robot_calibrated.yaml", "result.json", "report.md")
+OUTPUTS = ("robot_calibrated.yaml", "result.json", "report.md", "residuals.csv")
 
 
 def run_estimate(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path,
@@ -48,12 +49,14 @@ def result_json(calibration: Calibration) -> str:
 
 
 def write_outputs(calibration: Calibration, out_dir: str | Path, truth: np.ndarray | None = None) -> None:
-    """The three files and the plots into out_dir. ``truth`` (n,) true errors, when
+    """The files (OUTPUTS) and the plots into out_dir. ``truth`` (n,) true errors, when
     known (simulation), is drawn in the convergence plot."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "robot_calibrated.yaml").write_text(calibrated_robot_yaml(calibration))
     (out / "result.json").write_text(result_json(calibration))
+    save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal))
+                     for name, s in calibration.sets.items()}, out / "residuals.csv")
     write_plots(calibration, out, truth)
     (out / "report.md").write_text(report_markdown(calibration, truth is not None))
 
@@ -83,6 +86,14 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     if est.warnings:
         lines += ["**Warnings**", ""] + [f"- {w}" for w in est.warnings] + [""]
     lines += ["## Spot error (distance between measured and predicted spot)", ""] + stats_table(calibration.spot_error)
+    repeated = calibration.repeatability()
+    if repeated:
+        lines += ["", "ISO 9283 on the spots of poses visited more than once (mm; AP: barycentre to the calibrated "
+                  "model's spot, RP: repeatability):", "", "| set | laser | poses | AP mean | AP max | RP mean | RP max |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += [f"| {name} | {laser[-1]} | {f['poses']} | {f['AP']['mean']:.3f} | {f['AP']['max']:.3f} | "
+                  f"{f['RP']['mean']:.3f} | {f['RP']['max']:.3f} |"
+                  for name, by_laser in repeated.items() for laser, f in by_laser.items() if f is not None]
     ident = est.identifiability
     lines += ["", "## Identifiability", "",
               f"Rank {ident.rank} of {len(ident.names)}, scaled condition number {ident.condition:.3g}."]
