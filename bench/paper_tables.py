@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 from laser_calib.estimation.estimate import EstimateOptions, estimate
-from laser_calib.estimation.solvers import Problem
+from laser_calib.estimation.problem import Problem
 from laser_calib.report.statistics import laser_stats, spot_distances
 from laser_calib.model.kinematics import predict
 from laser_calib.measurement.base import NoiseModel, whiten

@@ -12,7 +12,7 @@ from laser_calib.diagnosis.structure import POSE, Series, binned_test
 from laser_calib.sim.effect_truth import TEMPERATURE, draw_truth, effect_session, hooks, visibility
 from laser_calib.io.errors import InputError
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
-from laser_calib.estimation.solvers import EkfOptions
+from laser_calib.estimation.ekf import EkfOptions
 from laser_calib.model.kinematics import forward
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot_file import dump_robot, robot_from_dict

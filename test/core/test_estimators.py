@@ -12,7 +12,8 @@ import pytest
 from scipy.stats import chi2
 
 from laser_calib.estimation.estimate import EstimateOptions, estimate, prior_sigmas
-from laser_calib.estimation.solvers import EkfOptions, Problem
+from laser_calib.estimation.ekf import EkfOptions
+from laser_calib.estimation.problem import Problem
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.sim.simulation import NoiseSpec, paper_session
@@ -88,9 +89,9 @@ def test_prior_adds_its_information():
     sigma = prior_sigmas(model, 33, options)
     noise = NoiseModel(options.spot_sigma, options.joint_sigma)
     x = session.errors
-    _, jac_plain, _, _ = Problem(model, noise, np.ones(33, bool)).stack(x)
-    _, jac_prior, _, _ = Problem(model, noise, np.ones(33, bool), sigma).stack(x)
-    gained = (jac_prior.T @ jac_prior - jac_plain.T @ jac_plain) / np.outer(model.scales, model.scales)
+    plain_normal = Problem(model, noise, np.ones(33, bool)).normal_equations(x)
+    prior_normal = Problem(model, noise, np.ones(33, bool), sigma).normal_equations(x)
+    gained = (prior_normal.information - plain_normal.information) / np.outer(model.scales, model.scales)
     tol = np.where(np.array(model.scales) == 0.010, 0.010, np.deg2rad(1.0))
     assert np.allclose(gained, np.diag(1 / tol ** 2), rtol=1e-9, atol=1e-6 / tol.min() ** 2)
     plain = estimate(session.nominal, cal, _options(session))

@@ -11,7 +11,7 @@ from laser_calib.diagnosis.engine import DiagnoseOptions, supports
 from laser_calib.effects import CameraDistortion, EffectModel, JointScale, Periodic, ScreenShape
 from laser_calib.io.errors import InputError
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
-from laser_calib.estimation.solvers import EkfOptions
+from laser_calib.estimation.ekf import EkfOptions
 from laser_calib.model.kinematics import forward
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.model.robot_file import dump_robot, robot_from_dict

@@ -16,9 +16,12 @@ import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
-from laser_calib.estimation.solvers import EkfOptions
+from laser_calib.estimation.ekf import EkfOptions
+from laser_calib.estimation.lm import LmOptions
+from laser_calib.estimation.problem import whitened_factor
+from laser_calib.report.progress import Progress
 from laser_calib.estimation.identifiability import analyse
-from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
@@ -64,13 +67,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _options(args: argparse.Namespace) -> EstimateOptions:
-    ekf = EkfOptions(progress=_progress if args.method == "ekf" else None)
+def _options(args: argparse.Namespace, progress: Progress | None = None) -> EstimateOptions:
+    lm, ekf = LmOptions(progress=progress), EkfOptions(progress=progress)
     return EstimateOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                            prior=args.prior or args.prior_length is not None or args.prior_angle_deg is not None,
                            prior_length=args.prior_length if args.prior_length is not None else 0.010,
                            prior_angle=np.deg2rad(args.prior_angle_deg if args.prior_angle_deg is not None else 1.0),
-                           robust=args.robust, fixed=tuple(args.fix), ekf=ekf)
+                           robust=args.robust, fixed=tuple(args.fix), lm=lm, ekf=ekf)
 
 
 def _bag_samples(path: str, robot) -> object:
@@ -86,11 +89,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = _bag_samples(args.bag, robot) if args.bag else load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
-    options = _options(args)
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
-    calibration = run_estimate(robot, samples, options, args.out, test,
-                               sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
-                                        "test": str(args.test) if args.test else None})
+    with Progress(args.method, unit="iteration") as progress:
+        calibration = run_estimate(robot, samples, _options(args, progress), args.out, test,
+                                   sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
+                                            "test": str(args.test) if args.test else None})
     _summary(calibration)
     print(f"wrote {args.out}/robot_calibrated.yaml, result.json, report.md, residuals.csv")
     return 0
@@ -109,10 +112,9 @@ def cmd_identify(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
     model = SpotModel(robot, samples)
-    res = model.residuals(np.zeros(robot.n_params), True)
-    _, jac = whiten(res, NoiseModel(args.spot_sigma, args.joint_sigma).whitener(res))
-    print(f"{robot.name}: {len(samples)} poses, {int(res.valid.sum())} spots")
-    print(analyse(jac, model.scales, model.names).table())
+    factor, n_values = whitened_factor(model, NoiseModel(args.spot_sigma, args.joint_sigma), np.zeros(robot.n_params))
+    print(f"{robot.name}: {len(samples)} poses, {n_values // 2} spots")
+    print(analyse(factor, model.scales, model.names).table())
     return 0
 
 

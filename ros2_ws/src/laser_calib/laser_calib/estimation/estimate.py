@@ -25,10 +25,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from laser_calib.estimation.solvers import EkfOptions, Fit, LmOptions, Problem, extended_kalman, levenberg_marquardt
+from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.identifiability import Identifiability, analyse
-from laser_calib.measurement.base import (ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, count_values,
-                                          whiten)
+from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
+from laser_calib.estimation.problem import Fit, Problem, whitened_factor
+from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
@@ -130,13 +131,11 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma = options.spot_sigma or TRIAL_SIGMA
     noise = NoiseModel(sigma, options.joint_sigma)
-    res = model.residuals(x0, True)
-    if not res.valid.any():
+    factor, n_values = whitened_factor(model, noise, x0)
+    if n_values == 0:
         raise ValueError("no measured spot to fit (every spot missing or its beam misses the screen)")
-    _, jac = whiten(res, noise.whitener(res))
-    ident = analyse(jac, model.scales, names, user_fixed)
+    ident = analyse(factor, model.scales, names, user_fixed)
     free = ident.free
-    n_values = count_values(res)
     if n_values < free.sum() and prior_sigma is None:
         raise ValueError(f"{n_values} measured values cannot determine {int(free.sum())} parameters; "
                          "measure more poses or use the prior")

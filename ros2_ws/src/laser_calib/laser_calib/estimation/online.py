@@ -12,10 +12,11 @@ the same posterior, but linearised once per pose instead of iterated.
 from __future__ import annotations
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
+from laser_calib.estimation.ekf import information_update
 from laser_calib.estimation.estimate import EstimateOptions, prior_sigmas
 from laser_calib.estimation.identifiability import analyse
+from laser_calib.estimation.problem import whitened_factor
 from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
@@ -44,20 +45,19 @@ class OnlineEkf:
 
     def reset(self) -> None:
         n = self.robot.n_params
-        self.filter = ExtendedKalmanFilter(dim_x=n, dim_z=4)
-        self.filter.x = np.zeros(n)
-        self.filter.P = self.p0.copy()
-        self.filter.Q = np.eye(n) * self.q_noise
+        self.x = np.zeros(n)
+        self.covariance = self.p0.copy()
+        self.q = np.eye(n) * self.q_noise
         self._q: list[np.ndarray] = []
         self._spots: list[np.ndarray] = []
 
     @property
     def errors(self) -> np.ndarray:
-        return self.filter.x.copy()
+        return self.x.copy()
 
     @property
     def std(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.filter.P))
+        return np.sqrt(np.diag(self.covariance))
 
     @property
     def n_samples(self) -> int:
@@ -75,9 +75,8 @@ class OnlineEkf:
         if 4 * self.n_samples < n:
             return np.zeros(n, bool)
         model = SpotModel(self.robot, self.samples())
-        res = model.residuals(self.errors, True)
-        _, jac = whiten(res, self.noise.whitener(res))
-        return analyse(jac, model.scales, model.names).free
+        factor, _ = whitened_factor(model, self.noise, self.errors)
+        return analyse(factor, model.scales, model.names).free
 
     def update(self, q: np.ndarray, spots: np.ndarray) -> None:
         q = np.asarray(q, dtype=float).reshape(1, self.robot.n_joints)
@@ -87,12 +86,11 @@ class OnlineEkf:
         self._q.append(q[0])
         self._spots.append(spots[0])
         pose = Samples(np.zeros(1, int), np.zeros(1), q, spots)
-        res = SpotModel(self.robot, pose).residuals(self.filter.x)
+        res = SpotModel(self.robot, pose).residuals(self.x)
         if not res.valid.any():
             return  # nothing measured (or the beam misses the screen): the pose only joins the record
-        keep = np.repeat(res.valid[0], 2)
+        # Whitened measurement: z = 0, h(x) = -r(x), R = I; an unseen spot's rows are zero.
         r_white, jac_white = whiten(res, self.noise.whitener(res))
-        self.filter.predict()                                          # eq. 13
-        # Whitened measurement: z = 0, h(x) = -r(x), R = I (eq. 14-15).
-        self.filter.update(np.zeros(keep.sum()), lambda x: jac_white[keep], lambda x: -r_white[keep],
-                           R=np.eye(keep.sum()))
+        self.covariance = self.covariance + self.q                     # eq. 13
+        self.x, self.covariance = information_update(self.x, self.covariance, jac_white.T @ jac_white,
+                                                     jac_white.T @ r_white)   # eq. 14-15

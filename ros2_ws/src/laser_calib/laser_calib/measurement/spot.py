@@ -25,6 +25,10 @@ class SpotModel:
     def residuals(self, x: np.ndarray, jacobian: bool = True) -> Residuals:
         return self.evaluate(x, None, jacobian)
 
+    def subset(self, index) -> "SpotModel":
+        """The model on the poses ``index`` (mask, indices or slice)."""
+        return SpotModel(self.robot, self.samples.subset(index))
+
     def evaluate(self, errors: np.ndarray, dq: np.ndarray | None, jacobian: bool = True) -> Residuals:
         """Residuals with errors (n,) or per pose (P,n), and joint offsets dq (P,N)
         added to the readings (effects use this: the Jacobians then hold at the

@@ -12,6 +12,8 @@ import numpy as np  # noqa: E402
 
 from laser_calib.model.robot import Screen, param_kinds  # noqa: E402
 
+# Most poses a scatter plot draws (drawn_poses).
+MAX_DRAWN = 3000
 PANELS = (("link length a", "a"), ("link offset d", "d"), ("link twist alpha", "alpha"),
           ("joint angle theta", "theta"), ("SLM", "slm"))
 
@@ -50,9 +52,21 @@ def plot_convergence(history: np.ndarray, names: tuple[str, ...], n_joints: int,
     save_figure(fig, path)
 
 
+def drawn_poses(n_poses: int, limit: int = MAX_DRAWN) -> np.ndarray:
+    """Indices of the poses a scatter plot draws: all up to ``limit``, else
+    ``limit`` evenly spread over the session (markers beyond a few thousand
+    only hide each other and cost seconds). Statistics never use this."""
+    if n_poses <= limit:
+        return np.arange(n_poses)
+    return np.unique(np.linspace(0, n_poses - 1, limit).round().astype(int))
+
+
 def plot_screen(screen: Screen, measured: np.ndarray, before: np.ndarray, after: np.ndarray, path: Path) -> None:
     """Measured spots and the spots predicted before/after calibration on the screen;
-    measured, before, after (P,2,2) screen (y, z) in m."""
+    measured, before, after (P,2,2) screen (y, z) in m (at most MAX_DRAWN poses drawn)."""
+    n_poses = len(measured)
+    drawn = drawn_poses(n_poses)
+    measured, before, after = measured[drawn], before[drawn], after[drawn]
     fig, ax = plt.subplots(figsize=(6, 6))
     for j, marker in enumerate(("o", "s")):
         ax.plot(measured[:, j, 0], measured[:, j, 1], marker, mfc="none", color="k", ms=6,
@@ -61,6 +75,8 @@ def plot_screen(screen: Screen, measured: np.ndarray, before: np.ndarray, after:
                 label=f"laser {j + 1} nominal model")
         ax.plot(after[:, j, 0], after[:, j, 1], "+", color="tab:green", ms=6,
                 label=f"laser {j + 1} calibrated model")
+    if len(drawn) < n_poses:
+        ax.set_title(f"{len(drawn)} of {n_poses} poses drawn, evenly spread", fontsize=8)
     ax.set_xlim(-screen.half_y, screen.half_y)
     ax.set_ylim(-screen.half_z, screen.half_z)
     ax.set_xlabel("screen y (m)")

@@ -1,0 +1,81 @@
+"""Levenberg-Marquardt on the normal equations of a Problem.
+
+Damped Gauss-Newton in parameters scaled by their characteristic size, so the
+damping treats 10 mm and 1 deg alike. Iteratively reweighted: a trial is
+compared with the current point under the current point's noise weights (the
+joint-noise covariance depends on x); the weights are renewed at each accepted
+point. A trial whose cost is not finite (a step into a region where the model
+overflows) is a rejected step like any other rise of the cost.
+
+Parameters outside ``free`` stay at their start value (the identifiability
+analysis fixes what the data cannot see).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from laser_calib.estimation.problem import Fit, Normal, Problem, make_fit
+
+# progress(done, total, note): called once per iteration; not part of the math
+ProgressCallback = Callable[[int, int, str], None]
+
+
+@dataclass(frozen=True)
+class LmOptions:
+    max_iter: int = 100
+    step_tol: float = 1e-4    # stop when the step is shorter than this many standard deviations
+    cost_tol: float = 1e-12   # ... or the relative cost decrease falls below this
+    damping: float = 1e-3     # initial lambda
+    progress: ProgressCallback | None = field(default=None, compare=False, repr=False)
+
+
+def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = LmOptions()) -> Fit:
+    x = np.array(x0, dtype=float)
+    normal = problem.normal_equations(x)
+    history, costs = [x.copy()], [normal.cost]
+    damping = options.damping
+    converged = False
+    iterations = 0
+    eye = np.eye(len(normal.gradient))
+    while iterations < options.max_iter and not converged:
+        iterations += 1
+        while True:
+            step = np.linalg.solve(normal.information + damping * eye, normal.gradient)
+            # The step's length in standard deviations of the estimate (the information
+            # metric): below step_tol it changes nothing that the data can tell.
+            if np.sqrt(max(step @ normal.information @ step, 0.0)) < options.step_tol:
+                converged = True
+                break
+            trial = x.copy()
+            trial[problem.free] += step * problem.scales
+            candidate = _trial(problem, trial, normal)
+            if candidate is not None and candidate.cost_under <= normal.cost:
+                break
+            damping *= 10.0
+        if converged:
+            break
+        decrease = normal.cost - candidate.cost_under
+        x, normal = trial, candidate
+        history.append(x.copy())
+        costs.append(normal.cost)
+        damping = max(damping / 10.0, 1e-12)
+        converged = decrease <= options.cost_tol * max(normal.cost, 1e-300)
+        if options.progress is not None:
+            options.progress(iterations, options.max_iter, f"cost {normal.cost:.6g}")
+    return make_fit(problem, x, normal, iterations, converged, history, costs)
+
+
+def _trial(problem: Problem, trial: np.ndarray, current: Normal) -> Normal | None:
+    """The trial's normal equations, None when its cost under the current
+    weights is not finite or its own weights cannot be formed (it diverged)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        try:
+            candidate = problem.normal_equations(trial, current.whitener)
+        except np.linalg.LinAlgError:
+            return None
+    finite = np.isfinite(candidate.cost_under) and np.isfinite(candidate.information).all()
+    return candidate if finite else None

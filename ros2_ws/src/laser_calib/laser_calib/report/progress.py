@@ -1,0 +1,74 @@
+"""Progress of a long step on the console, by the terminal conventions.
+
+On a terminal: a tqdm bar with the count, rate and time left, shown only once
+the step has run for ``delay`` seconds (short runs stay quiet). Elsewhere (a
+log file, a pipe, a service): one plain line every ``interval`` seconds, no
+carriage returns. The core calls a callback ``progress(done, total, note)``
+(estimation.lm.ProgressCallback); this module is what the command line passes.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import TextIO
+
+from tqdm import tqdm
+
+
+class Progress:
+    """Callable progress(done, total, note) for one step; close() when it ends
+    (or use it as a context manager)."""
+
+    def __init__(self, desc: str, unit: str = "it", stream: TextIO | None = None,
+                 interval: float = 10.0, delay: float = 2.0):
+        self.desc, self.unit = desc, unit
+        self.stream = sys.stderr if stream is None else stream
+        self.interval, self.delay = interval, delay
+        self.terminal = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self._bar: tqdm | None = None
+        self._start = time.monotonic()
+        self._last_line = self._start
+        self._done = 0
+
+    def __call__(self, done: int, total: int | None = None, note: str = "") -> None:
+        self._done = done
+        if self.terminal:
+            if self._bar is None:
+                self._bar = tqdm(total=total, desc=self.desc, unit=self.unit, file=self.stream,
+                                 delay=self.delay, dynamic_ncols=True, leave=True)
+            self._bar.total = total
+            self._bar.n = done
+            if note:
+                self._bar.set_postfix_str(note, refresh=False)
+            self._bar.refresh()
+            return
+        now = time.monotonic()
+        if now - self._last_line >= self.interval or (now - self._start >= self.delay and self._last_line == self._start):
+            self._last_line = now
+            self.stream.write(self.line(done, total, now - self._start, note) + "\n")
+            self.stream.flush()
+
+    def line(self, done: int, total: int | None, elapsed: float, note: str = "") -> str:
+        """'desc: done/total unit, rate/s, elapsed, ~left' (the plain form)."""
+        rate = done / elapsed if elapsed > 0 else 0.0
+        text = f"{self.desc}: {done}" + (f"/{total}" if total else "") + f" {self.unit}, {rate:.3g} {self.unit}/s, "
+        text += f"{elapsed:.0f} s elapsed"
+        if total and rate > 0:
+            text += f", ~{max(total - done, 0) / rate:.0f} s left"
+        return text + (f"; {note}" if note else "")
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def __deepcopy__(self, memo) -> "Progress":
+        # A handle on the console, not data: options holding it (dataclasses.asdict) share it.
+        return self
+
+    def __enter__(self) -> "Progress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
