@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from laser_calib.estimation.identifiability import analyse
+from laser_calib.estimation.lm import ProgressCallback
+from laser_calib.estimation.problem import pose_blocks
 from laser_calib.model.kinematics import predict
 from laser_calib.measurement.base import NoiseModel, geometric_scales, whiten
 from laser_calib.measurement.spot import SpotModel
@@ -100,53 +102,145 @@ def candidate_poses(robot: Robot, count: int, rng: np.random.Generator, margin: 
 def whitened_jacobians(robot: Robot, q: np.ndarray, spot_sigma: float, joint_sigma: float) -> np.ndarray:
     """(P,4,n) G_p = W_p J_p per pose, in scaled parameters (module docstring)."""
     samples = Samples(np.arange(len(q)), np.arange(len(q), dtype=float), q, np.zeros((len(q), 2, 2)))
-    res = SpotModel(robot, samples).residuals(np.zeros(robot.n_params), True)
-    _, jac = whiten(res, NoiseModel(spot_sigma, joint_sigma).whitener(res))
-    return jac.reshape(len(q), -1, robot.n_params) * geometric_scales(robot.n_joints)
+    noise = NoiseModel(spot_sigma, joint_sigma)
+    g = np.empty((len(q), 4, robot.n_params))
+    for index, block in pose_blocks(SpotModel(robot, samples)):
+        res = block.residuals(np.zeros(robot.n_params), True)
+        g[index] = whiten(res, noise.whitener(res))[1].reshape(-1, 4, robot.n_params)
+    return g * geometric_scales(robot.n_joints)
 
 
-def _gains(g: np.ndarray, inverse: np.ndarray) -> np.ndarray:
-    """log det(I + G M^-1 G^T) for every candidate, g (M,4,k): the rise of log det M."""
-    inner = np.eye(g.shape[1]) + (g @ inverse) @ g.transpose(0, 2, 1)
-    return np.linalg.slogdet(inner)[1]
+def _log_det_plus_identity(q: np.ndarray) -> np.ndarray:
+    """log det(I + Q) for symmetric positive semi-definite Q (M,4,4), by Cholesky."""
+    factor = np.linalg.cholesky(np.eye(q.shape[-1]) + q)
+    return 2.0 * np.log(np.diagonal(factor, axis1=-2, axis2=-1)).sum(axis=-1)
 
 
-def d_optimal(g: np.ndarray, n: int, passes: int) -> tuple[np.ndarray, float]:
-    """Indices (n,) of the candidates g (M,4,k) maximising log det(PRIOR I + sum G^T G)."""
-    k = g.shape[2]
-    info = PRIOR * np.eye(k)
+def _projections(g: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+    """Q_c = G_c M^-1 G_c^T (M,4,4) of every candidate, g (M,4,k): O(M k^2)."""
+    h = (g.reshape(-1, g.shape[2]) @ np.linalg.cholesky(inverse)).reshape(g.shape)
+    return h @ h.transpose(0, 2, 1)
+
+
+class _Design:
+    """The chosen set's information M (k,k), its inverse, and for the exchange
+    Q_c of every candidate kept current by rank-4 updates (Woodbury): adding or
+    removing pose b changes Q_c by -/+ U_c S^-1 U_c^T, U_c = G_c M^-1 G_b^T,
+    S = I +/- Q_b, at O(M k) per change instead of O(M k^2)."""
+
+    def __init__(self, g: np.ndarray):
+        self.g = g
+        self.info = PRIOR * np.eye(g.shape[2])
+        self.inverse = np.eye(g.shape[2]) / PRIOR
+        self.q: np.ndarray | None = None
+
+    def refresh(self) -> None:
+        """Q of every candidate from scratch (no drift from the updates)."""
+        self.q = _projections(self.g, self.inverse)
+        self.gain = _log_det_plus_identity(self.q)
+        self.trace = np.trace(self.q, axis1=1, axis2=2)
+
+    def change(self, b: int, sign: float) -> None:
+        """Add (sign +1) or remove (-1) candidate b."""
+        gb = self.g[b]
+        if self.q is not None:
+            cross = (self.g.reshape(-1, gb.shape[1]) @ (self.inverse @ gb.T)).reshape(-1, 4, 4)  # U_c
+            s = np.eye(4) + sign * self.q[b]
+            self.q -= sign * (cross @ np.linalg.inv(s)) @ cross.transpose(0, 2, 1)
+            self.gain = _log_det_plus_identity(self.q)
+            self.trace = np.trace(self.q, axis1=1, axis2=2)
+        self.info = self.info + sign * gb.T @ gb
+        self.inverse = np.linalg.inv(self.info)
+
+    def gains(self, index: np.ndarray) -> np.ndarray:
+        """log det(I + G_c M^-1 G_c^T) of candidates ``index``, exactly."""
+        return _log_det_plus_identity(_projections(self.g[index], self.inverse))
+
+
+def _lazy_best(design: _Design, bound: np.ndarray, batch: int = 32) -> int:
+    """The candidate of largest gain given upper bounds of every gain (-inf for
+    those not eligible; updated in place with the exact gains it computes):
+    exact gains of the best-bounded few, twice as many each round, until one
+    beats every bound left (log det is submodular, so a gain computed earlier,
+    at less information, bounds it from above: lazy greedy, Minoux)."""
+    eligible = np.isfinite(bound)
+    while True:
+        count = min(batch, int(eligible.sum()))
+        top = np.argpartition(-bound, count - 1)[:count]
+        bound[top] = design.gains(top)
+        best = int(top[np.argmax(bound[top])])
+        rest = np.where(eligible, bound, -np.inf)
+        rest[top] = -np.inf
+        if bound[best] >= rest.max():
+            return best
+        eligible[top] = False
+        batch *= 2
+
+
+def d_optimal(g: np.ndarray, n: int, passes: int,
+              progress: ProgressCallback | None = None) -> tuple[np.ndarray, float]:
+    """Indices (n,) of the candidates g (M,4,k) maximising log det(PRIOR I + sum G^T G).
+
+    Greedy by lazy evaluation (_lazy_best), then Fedorov exchange passes: per
+    slot b, the gain of candidate c against the set without b is bounded by
+    gain_c + tr(Q_c) l / (1 - l), l = the largest eigenvalue of Q_b (Woodbury,
+    log det(A + E) <= log det A + tr E), so only candidates whose bound beats
+    b's own gain are evaluated exactly. Cost: O(M k^2) per pass and O(M k) per
+    swap, beside the few exact evaluations.
+    """
+    design = _Design(g)
+    total = n * (1 + passes)
+    bound = _log_det_plus_identity(g @ g.transpose(0, 2, 1) / PRIOR)
     chosen: list[int] = []
-    for _ in range(n):
-        gain = _gains(g, np.linalg.inv(info))
-        gain[chosen] = -np.inf
-        best = int(np.argmax(gain))
+    for step in range(n):
+        bound[chosen] = -np.inf
+        best = _lazy_best(design, bound)
         chosen.append(best)
-        info += g[best].T @ g[best]
-    for _ in range(passes):
-        swapped = False
+        design.change(best, +1.0)
+        if progress is not None:
+            progress(step + 1, total, "greedy")
+    for done_passes in range(passes):
+        design.refresh()
+        swapped = 0
         for slot in range(n):
             current = chosen[slot]
-            reduced = info - g[current].T @ g[current]
-            gain = _gains(g, np.linalg.inv(reduced))
-            own = gain[current]
-            gain[chosen] = -np.inf
-            best = int(np.argmax(gain))
-            if gain[best] > own + IMPROVEMENT:
-                chosen[slot] = best
-                info = reduced + g[best].T @ g[best]
-                swapped = True
+            own_q = design.q[current]
+            largest = np.linalg.eigvalsh(own_q)[-1]
+            own = -np.linalg.slogdet(np.eye(4) - own_q)[1]
+            bound = design.gain + design.trace * largest / (1.0 - largest)
+            bound[chosen] = -np.inf
+            candidates = np.flatnonzero(bound > own + IMPROVEMENT)
+            if len(candidates):
+                best, value = _best_without(design, current, candidates)
+                if value > own + IMPROVEMENT:
+                    design.change(current, -1.0)
+                    design.change(best, +1.0)
+                    chosen[slot] = best
+                    swapped += 1
+            if progress is not None:
+                progress(n * (1 + done_passes) + slot + 1, total, f"exchange pass {done_passes + 1}: {swapped} swaps")
         if not swapped:
             break
-    return np.array(chosen), float(np.linalg.slogdet(info)[1])
+    return np.array(chosen), float(np.linalg.slogdet(design.info)[1])
 
 
-def plan(robot: Robot, options: PlanOptions) -> Plan:
+def _best_without(design: _Design, current: int, candidates: np.ndarray) -> tuple[int, float]:
+    """The best of ``candidates`` against the set without ``current``, exactly, and its gain."""
+    reduced = np.linalg.inv(design.info - design.g[current].T @ design.g[current])
+    gain = _log_det_plus_identity(_projections(design.g[candidates], reduced))
+    k = int(np.argmax(gain))
+    return int(candidates[k]), float(gain[k])
+
+
+def plan(robot: Robot, options: PlanOptions, progress: ProgressCallback | None = None) -> Plan:
     """N poses maximising the D-criterion of the whitened information (module docstring)."""
     if robot.n_joints == 0 or len(robot.lasers) != 2:
         raise ValueError("pose planning needs a robot with joints and the two-laser module")
     rng = np.random.default_rng(options.seed)
     q = candidate_poses(robot, options.candidates, rng, options.margin)
     g = whitened_jacobians(robot, q, options.spot_sigma, options.joint_sigma)
-    ident = analyse(g.reshape(-1, robot.n_params), np.ones(robot.n_params), robot.param_names)
-    index, log_det = d_optimal(g[:, :, ident.free], options.n, options.passes)
+    # the R factor of the stacked candidates: their singular values, without an (4M,n) SVD
+    factor = np.linalg.qr(g.reshape(-1, robot.n_params), mode="r")
+    ident = analyse(factor, np.ones(robot.n_params), robot.param_names)
+    index, log_det = d_optimal(np.ascontiguousarray(g[:, :, ident.free]), options.n, options.passes, progress)
     return Plan(q[index], log_det, ident.free)

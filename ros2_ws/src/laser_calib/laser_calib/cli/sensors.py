@@ -23,6 +23,7 @@ from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
 from laser_calib.planning import PlanOptions, plan
+from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.model.urdf import load_robot_description
@@ -274,7 +275,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     options = PlanOptions(n=args.n, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                           candidates=args.candidates, margin=args.margin, seed=args.seed)
-    result = plan(robot, options)
+    with Progress("plan", unit="pose") as progress:
+        result = plan(robot, options, progress)
     Path(args.out).write_text(format_poses(result.q))
     print(f"wrote {args.out}: {args.n} poses of {robot.name} (D-optimal, log det {result.log_det:.2f} over "
           f"{int(result.free.sum())} identifiable errors)")

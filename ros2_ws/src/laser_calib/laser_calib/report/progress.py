@@ -27,12 +27,10 @@ class Progress:
         self.interval, self.delay = interval, delay
         self.terminal = hasattr(self.stream, "isatty") and self.stream.isatty()
         self._bar: tqdm | None = None
-        self._start = time.monotonic()
-        self._last_line = self._start
-        self._done = 0
+        self._start: float | None = None  # the first call: the rate counts from there
+        self._last_line = 0.0
 
     def __call__(self, done: int, total: int | None = None, note: str = "") -> None:
-        self._done = done
         if self.terminal:
             if self._bar is None:
                 self._bar = tqdm(total=total, desc=self.desc, unit=self.unit, file=self.stream,
@@ -44,7 +42,10 @@ class Progress:
             self._bar.refresh()
             return
         now = time.monotonic()
-        if now - self._last_line >= self.interval or (now - self._start >= self.delay and self._last_line == self._start):
+        if self._start is None:
+            self._start = self._last_line = now
+        first = self._last_line == self._start
+        if (first and now - self._start >= self.delay) or now - self._last_line >= self.interval:
             self._last_line = now
             self.stream.write(self.line(done, total, now - self._start, note) + "\n")
             self.stream.flush()
