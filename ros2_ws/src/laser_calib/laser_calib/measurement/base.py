@@ -87,11 +87,11 @@ class NoiseModel:
 def whiten(residuals: Residuals, whitener: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """Stacked whitened residuals (M,) and Jacobian (M,n), M = P*C*D."""
     n_poses = residuals.r.shape[0]
-    r = np.einsum("pij,pj->pi", whitener, residuals.r.reshape(n_poses, -1)).ravel()
+    r = (whitener @ residuals.r.reshape(n_poses, -1, 1)).ravel()
     jac = None
     if residuals.jac is not None:
         flat = residuals.jac.reshape(n_poses, -1, residuals.jac.shape[-1])
-        jac = np.einsum("pij,pjn->pin", whitener, flat).reshape(-1, flat.shape[-1])
+        jac = (whitener @ flat).reshape(-1, flat.shape[-1])
     return r, jac
 
 

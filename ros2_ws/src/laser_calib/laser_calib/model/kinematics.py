@@ -250,7 +250,7 @@ def predict(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, jacob
     spots = intersect(robot, state)
     jac = None
     if jacobian:
-        jac = np.einsum("plij,pjn->plin", spot_jacobian(state, spots), state.twists)
+        jac = spot_jacobian(state, spots) @ state.twists[:, None]
     return Prediction(spots.yz, spots.hit, spots.k, jac, state)
 
 
