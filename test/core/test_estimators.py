@@ -5,16 +5,19 @@ estimator (x_hat - x)^T Sigma^-1 (x_hat - x) follows chi^2 with as many degrees
 of freedom as free parameters; the bounds are its 99.9 % quantiles.
 """
 
+import warnings
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from filterpy.kalman import ExtendedKalmanFilter
 from scipy.stats import chi2
 
 from laser_calib.estimation.estimate import EstimateOptions, estimate, prior_sigmas
-from laser_calib.estimation.ekf import EkfOptions
-from laser_calib.estimation.problem import Problem
-from laser_calib.measurement.base import NoiseModel
+from laser_calib.estimation.ekf import EkfOptions, information_update
+from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
+from laser_calib.estimation.problem import Problem, whitened_factor
+from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.sim.simulation import NoiseSpec, paper_session
 
@@ -128,3 +131,64 @@ def test_fixed_parameters_stay_nominal_and_are_reported_without_value():
     for name in ("a1", "theta7"):
         assert np.isnan(est.errors[names.index(name)]) and not est.identifiable[names.index(name)]
         assert est.values[names.index(name)] == 0.0
+
+
+def test_normal_equations_by_blocks_equal_the_stacked_jacobian():
+    """Blocks of 7 poses sum to the normal equations of the whole stack, and the
+    QR factor has the stacked Jacobian's singular values."""
+    session = paper_session("paper-7dof", 3)
+    model = SpotModel(session.nominal, session.samples)
+    noise = NoiseModel(session.noise.spot_sigma, session.noise.joint_sigma)
+    free = np.ones(33, bool)
+    free[5] = False
+    x = session.errors * 0.5
+    res = model.residuals(x, True)
+    r, jac = whiten(res, noise.whitener(res))
+    jac = jac[:, free] * model.scales[free]
+    blocks = Problem(model, noise, free, chunk=7).normal_equations(x)
+    scale = np.abs(jac.T @ jac).max()
+    assert np.allclose(blocks.information, jac.T @ jac, rtol=1e-12, atol=1e-12 * scale)
+    assert np.allclose(blocks.gradient, jac.T @ r, rtol=1e-12, atol=1e-12 * np.abs(jac.T @ r).max())
+    assert blocks.cost == pytest.approx(0.5 * r @ r, rel=1e-12)
+    assert blocks.n_values == 2 * int(res.valid.sum())
+    factor, n_values = whitened_factor(model, noise, x, chunk=7)
+    full = whiten(res, noise.whitener(res))[1]
+    assert n_values == blocks.n_values
+    assert np.allclose(np.linalg.svd(factor, compute_uv=False), np.linalg.svd(full, compute_uv=False),
+                       rtol=1e-10)
+
+
+class _Exponential:
+    """One parameter, predicted = exp(x) at every pose: a Gauss-Newton step from
+    x = 0 towards measured 1e10 overflows exp."""
+
+    names = ("x",)
+    scales = np.ones(1)
+
+    def residuals(self, x, jacobian=True):
+        predicted = np.full((4, 1, 1), np.exp(x[0]))
+        jac = predicted[..., None] if jacobian else None
+        return Residuals(1e10 - predicted, np.ones((4, 1), bool), jac, None, predicted)
+
+
+def test_an_overflowing_trial_is_a_rejected_step_without_warning():
+    problem = Problem(_Exponential(), NoiseModel(1.0), np.ones(1, bool))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = levenberg_marquardt(problem, np.zeros(1), LmOptions(max_iter=200))
+    assert fit.converged and fit.x[0] == pytest.approx(np.log(1e10), rel=1e-9)
+
+
+def test_information_update_is_the_kalman_update():
+    """The shared EKF update against filterpy's Kalman-gain form, R = I."""
+    rng = np.random.default_rng(4)
+    k, m = 6, 4
+    a = rng.normal(size=(k, k))
+    covariance = a @ a.T + np.eye(k)
+    h, residual, x = rng.normal(size=(m, k)), rng.normal(size=m), rng.normal(size=k)
+    reference = ExtendedKalmanFilter(dim_x=k, dim_z=m)
+    reference.x, reference.P = x.copy(), covariance.copy()
+    reference.update(residual + h @ x, lambda s: h, lambda s: h @ s, R=np.eye(m))
+    updated, posterior = information_update(x, covariance, h.T @ h, h.T @ residual)
+    assert np.allclose(updated, reference.x, rtol=1e-10, atol=1e-12)
+    assert np.allclose(posterior, reference.P, rtol=1e-10, atol=1e-12)

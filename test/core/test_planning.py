@@ -1,5 +1,7 @@
 """Pose planning: constraints, the D-criterion with the full noise, the poses file."""
 
+import io
+
 import numpy as np
 import pytest
 
@@ -8,6 +10,7 @@ from laser_calib.model.kinematics import predict
 from laser_calib.planning import PRIOR, PlanOptions, candidate_poses, d_optimal, plan, whitened_jacobians
 from laser_calib.session.poses import format_poses
 from laser_calib.model.robot_file import save_robot
+from laser_calib.report.progress import Progress
 from laser_calib.sim.simulation import bundled_robot
 
 SPOT, JOINT = 2e-3 / np.sqrt(3), np.deg2rad(0.1) / np.sqrt(3)
@@ -80,3 +83,51 @@ def test_plan_command_writes_the_pose_list(run, tmp_path, capsys):
                 "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "at least 1" in err[0] and "inside the screen" in err[1]
+
+
+def _exhaustive(g: np.ndarray, n: int, passes: int) -> list[int]:
+    """Greedy and Fedorov exchange with every candidate's gain recomputed at every step."""
+    def gains(info):
+        inverse = np.linalg.inv(info)
+        return np.linalg.slogdet(np.eye(4) + g @ inverse @ g.transpose(0, 2, 1))[1]
+    info, chosen = PRIOR * np.eye(g.shape[2]), []
+    for _ in range(n):
+        gain = gains(info)
+        gain[chosen] = -np.inf
+        chosen.append(int(np.argmax(gain)))
+        info = info + g[chosen[-1]].T @ g[chosen[-1]]
+    for _ in range(passes):
+        swapped = False
+        for slot in range(n):
+            reduced = info - g[chosen[slot]].T @ g[chosen[slot]]
+            gain = gains(reduced)
+            own = gain[chosen[slot]]
+            gain[chosen] = -np.inf
+            best = int(np.argmax(gain))
+            if gain[best] > own + 1e-9:
+                chosen[slot], info, swapped = best, reduced + g[best].T @ g[best], True
+        if not swapped:
+            break
+    return chosen
+
+
+def test_lazy_search_chooses_what_the_exhaustive_search_chooses():
+    robot = bundled_robot("paper-7dof")
+    q = candidate_poses(robot, 600, np.random.default_rng(5), 0.1)
+    g = whitened_jacobians(robot, q, SPOT, JOINT)
+    calls = []
+    index, value = d_optimal(g, 20, passes=3, progress=lambda done, total, note: calls.append((done, total)))
+    assert list(index) == _exhaustive(g, 20, 3)
+    assert value == pytest.approx(log_det(g[index]), rel=1e-12)
+    assert calls[0] == (1, 80) and [d for d, _ in calls] == sorted(d for d, _ in calls)
+
+
+def test_progress_off_a_terminal_is_plain_lines():
+    stream = io.StringIO()
+    progress = Progress("plan", unit="pose", stream=stream, interval=0.0, delay=0.0)
+    for done in (1, 2, 3):
+        progress(done, 10, "greedy")
+    progress.close()
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 3 and "\r" not in stream.getvalue()
+    assert lines[-1].startswith("plan: 3/10 pose,") and "s left" in lines[-1] and lines[-1].endswith("; greedy")
