@@ -5,9 +5,9 @@ uniform over the whole workspace with both beams on the screen, the paper's
 noise (spot +-2 mm, joints +-0.1 deg, uniform), written as the CSV a user
 would have. Each command runs as its own process, as a user runs it (default
 options: spot sigma estimated from the residual), under /usr/bin/time -v,
-which gives the wall time and the peak resident memory. The growth exponent
-is the slope of log(time) against log(N) over the three largest N (below them
-the interpreter's start and the imports dominate).
+which gives the wall time, the CPU time and the peak resident memory. The
+growth exponent is the slope of log(CPU time) against log(N) over the three
+largest N (below them the interpreter's start and the imports dominate).
 
 Also, in this process: our LM against scipy.optimize.least_squares ('trf' and
 'lm') given our analytic whitened Jacobian, on the same cost (joint sigma 0,
@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -74,15 +75,23 @@ def timed(argv: list[str], timeout: float) -> dict:
     """Wall time (s), peak resident memory (MB) and exit status of one process."""
     command = ["/usr/bin/time", "-v", sys.executable, "-m", "laser_calib.cli"] + argv
     start = time.perf_counter()
+    # its own process group, so that a time-out ends the command and not only /usr/bin/time
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                               env=os.environ | {"PYTHONPATH": str(CORE)}, start_new_session=True)
     try:
-        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout, cwd=ROOT,
-                              env=os.environ | {"PYTHONPATH": str(CORE)})
+        _, stderr = process.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
-        return {"wall_s": None, "peak_mb": None, "status": f"killed at {timeout:.0f} s"}
+        os.killpg(process.pid, signal.SIGKILL)
+        process.communicate()
+        return {"wall_s": None, "cpu_s": None, "peak_mb": None, "status": f"killed at {timeout:.0f} s"}
     wall = time.perf_counter() - start
-    peak = re.search(r"Maximum resident set size \(kbytes\): (\d+)", done.stderr)
-    status = "ok" if done.returncode == 0 else f"exit {done.returncode}: {done.stderr.strip().splitlines()[-1]}"
-    return {"wall_s": wall, "peak_mb": int(peak.group(1)) / 1024 if peak else None, "status": status}
+
+    def figure(label: str) -> float:
+        return float(re.search(label + r": ([\d.]+)", stderr).group(1))
+
+    status = "ok" if process.returncode == 0 else f"exit {process.returncode}: {stderr.strip().splitlines()[-1]}"
+    return {"wall_s": wall, "cpu_s": figure(r"User time \(seconds\)") + figure(r"System time \(seconds\)"),
+            "peak_mb": figure(r"Maximum resident set size \(kbytes\)") / 1024, "status": status}
 
 
 def command_line(name: str, folder: Path, out: Path) -> list[str]:
@@ -100,23 +109,23 @@ def command_line(name: str, folder: Path, out: Path) -> list[str]:
             "--out", str(out / "plan.csv")]
 
 
-def exponent(sizes: list[int], walls: list[float | None]) -> float | None:
-    points = [(n, t) for n, t in zip(sizes, walls) if t is not None][-3:]
+def exponent(sizes: list[int], times: list[float | None]) -> float | None:
+    points = [(n, t) for n, t in zip(sizes, times) if t is not None][-3:]
     if len(points) < 2:
         return None
     return float(np.polyfit(np.log([n for n, _ in points]), np.log([t for _, t in points]), 1)[0])
 
 
 def against_scipy(folder: Path) -> dict:
-    """Our LM and least_squares ('trf', 'lm') with our Jacobian on one cost."""
+    """Our LM and least_squares ('trf', 'lm') with our Jacobian on one cost: CPU seconds, costs."""
     robot = bundled_robot("paper-7dof")
     samples = load_samples(folder / "samples.csv", robot)
     noise = NoiseModel(NoiseSpec().spot_sigma, 0.0)
     problem = Problem(SpotModel(robot, samples), noise, np.ones(robot.n_params, bool))
     x0 = np.zeros(robot.n_params)
-    start = time.perf_counter()
+    start = time.process_time()
     ours = levenberg_marquardt(problem, x0)
-    row = {"poses": len(samples), "ours_s": time.perf_counter() - start, "ours_cost": ours.cost}
+    row = {"poses": len(samples), "ours_s": time.process_time() - start, "ours_cost": ours.cost}
     whitener = noise.whitener(problem.residuals(x0, False))  # constant: joint sigma 0
 
     def residual(x):
@@ -126,9 +135,9 @@ def against_scipy(folder: Path) -> dict:
         return whiten(problem.residuals(x, True), whitener)[1]
 
     for method in ("trf", "lm"):
-        start = time.perf_counter()
+        start = time.process_time()
         fit = least_squares(residual, x0, jac=jacobian, method=method, x_scale=problem.scales)
-        row[f"{method}_s"] = time.perf_counter() - start
+        row[f"{method}_s"] = time.process_time() - start
         row[f"{method}_cost"] = float(fit.cost)
         row[f"{method}_nfev"] = int(fit.nfev)
     return row
@@ -148,16 +157,18 @@ def online_time(folder: Path, count: int = 2000) -> dict:
 
 
 def _cell(r: dict) -> str:
-    return f"{r['wall_s']:.2f} s / {r['peak_mb']:.0f} MB" if r["status"] == "ok" else r["status"]
+    return (f"{r['wall_s']:.1f} s / {r['cpu_s']:.1f} s / {r['peak_mb']:.0f} MB" if r["status"] == "ok"
+            else r["status"])
 
 
 def table(rows: dict, sizes: list[int], exponents: dict, scipy_rows: list[dict], big_plan: dict,
           diagnose_10k: dict, online: dict) -> str:
     lines = ["# Cost against the number of poses (paper 7-DOF, simulated)", "",
-             "Each command as a user runs it (its own process, default options), one run each; wall time (s) / "
-             "peak resident memory (MB) from /usr/bin/time -v. Exponent: slope of log time against log N over "
-             "the three largest N that finished. The machine is shared (2 cores, other work running): the "
-             "times are one run's, not medians.", "",
+             "Each command as a user runs it (its own process, default options), one run each: wall time / "
+             "CPU time (user + system) / peak resident memory, from /usr/bin/time -v. The machine is shared "
+             "(2 cores, other work running), so the CPU time is the steadier figure. Exponent: slope of log "
+             "CPU time against log N over the three largest N that finished (below them the interpreter's "
+             "start and the imports dominate).", "",
              "| command | " + " | ".join(f"N = {n:,}" for n in sizes) + " | exponent |",
              "|---|" + "---|" * (len(sizes) + 1)]
     for name in COMMANDS:
@@ -169,7 +180,7 @@ def table(rows: dict, sizes: list[int], exponents: dict, scipy_rows: list[dict],
               "",
               "## Our LM against scipy.optimize.least_squares with our analytic Jacobian", "",
               "Same whitened cost (spot sigma known, joint sigma 0), all 33 errors free, from nominal.", "",
-              "| poses | ours (s) | trf (s) | lm (s) | trf / ours | lm / ours | cost ours | cost trf - ours | "
+              "| poses | ours (CPU s) | trf (CPU s) | lm (CPU s) | trf / ours | lm / ours | cost ours | cost trf - ours | "
               "cost lm - ours |", "|---|---|---|---|---|---|---|---|---|"]
     for r in scipy_rows:
         lines.append(f"| {r['poses']:,} | {r['ours_s']:.3f} | {r['trf_s']:.3f} | {r['lm_s']:.3f} | "
@@ -203,7 +214,7 @@ def main() -> None:
         diagnose_10k = timed(command_line("diagnose", simulate(10000, args.data / "10000"), Path(scratch) / "10000"),
                              args.timeout)
         print(f"diagnose at 10000: {diagnose_10k}", flush=True)
-    exponents = {name: exponent(args.sizes, [rows[name][str(n)]["wall_s"] for n in args.sizes])
+    exponents = {name: exponent(args.sizes, [rows[name][str(n)]["cpu_s"] for n in args.sizes])
                  for name in COMMANDS}
     scipy_rows = [against_scipy(simulate(n, args.data / str(n))) for n in (min(args.sizes), max(args.sizes))]
     online = online_time(simulate(max(args.sizes), args.data / str(max(args.sizes))))
