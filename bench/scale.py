@@ -67,7 +67,9 @@ def simulate(n: int, folder: Path) -> Path:
                              first_pose=start)[0])
     samples = Samples(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("pose", "stamp", "q", "spots")))
     save_robot(nominal, folder / "robot.yaml", header="The paper's 7-DOF arm, nominal.")
-    save_samples(samples, samples_file)
+    partial = folder / "samples.csv.part"  # renamed when complete: an interrupted run leaves no short file
+    save_samples(samples, partial)
+    partial.rename(samples_file)
     return folder
 
 
