@@ -119,7 +119,7 @@ def test_lazy_search_chooses_what_the_exhaustive_search_chooses():
     index, value = d_optimal(g, 20, passes=3, progress=lambda done, total, note: calls.append((done, total)))
     assert list(index) == _exhaustive(g, 20, 3)
     assert value == pytest.approx(log_det(g[index]), rel=1e-12)
-    assert calls[0] == (1, 80) and [d for d, _ in calls] == sorted(d for d, _ in calls)
+    assert calls[0] == (1, 80) and calls[-1] == (80, 80) and [d for d, _ in calls] == sorted(d for d, _ in calls)
 
 
 def test_progress_off_a_terminal_is_plain_lines():

@@ -221,6 +221,8 @@ def d_optimal(g: np.ndarray, n: int, passes: int,
                 progress(n * (1 + done_passes) + slot + 1, total, f"exchange pass {done_passes + 1}: {swapped} swaps")
         if not swapped:
             break
+    if progress is not None:
+        progress(total, total, "done")
     return np.array(chosen), float(np.linalg.slogdet(design.info)[1])
 
 

@@ -81,6 +81,8 @@ def extended_kalman(problem: Problem, x0: np.ndarray, options: EkfOptions = EkfO
         if options.progress is not None and iterations % 100 == 0:
             options.progress(iterations, options.max_iter,
                              f"state change {change:.2e} (stops below {options.tol:.0e}), cost {costs[-1]:.4g}")
+    if options.progress is not None:
+        options.progress(iterations, iterations, "converged" if converged else "stopped")
     # Report cost, covariance and chi^2 with the problem's own noise model.
     normal = problem.normal_equations(x)
     costs.append(normal.cost)

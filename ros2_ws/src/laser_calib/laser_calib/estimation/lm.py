@@ -66,6 +66,8 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
         converged = decrease <= options.cost_tol * max(normal.cost, 1e-300)
         if options.progress is not None:
             options.progress(iterations, options.max_iter, f"cost {normal.cost:.6g}")
+    if options.progress is not None:
+        options.progress(iterations, iterations, "converged" if converged else "stopped")
     return make_fit(problem, x, normal, iterations, converged, history, costs)
 
 

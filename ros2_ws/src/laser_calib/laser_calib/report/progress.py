@@ -36,10 +36,9 @@ class Progress:
                 self._bar = tqdm(total=total, desc=self.desc, unit=self.unit, file=self.stream,
                                  delay=self.delay, dynamic_ncols=True, leave=True)
             self._bar.total = total
-            self._bar.n = done
             if note:
                 self._bar.set_postfix_str(note, refresh=False)
-            self._bar.refresh()
+            self._bar.update(done - self._bar.n)  # update, not refresh: it keeps tqdm's delay and rate
             return
         now = time.monotonic()
         if self._start is None:
