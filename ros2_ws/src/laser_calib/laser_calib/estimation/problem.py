@@ -9,9 +9,9 @@ into J^T J (k,k) and J^T r (k,) in float64: the stacked Jacobian (M,k) of all
 poses never exists, so memory does not grow with the poses beyond the per-pose
 noise weights (P,CD,CD).
 
-The seam for reweighting (robust IRLS and the like): a caller that changes the
-weights of the whitened residuals builds a Problem on a model that yields the
-reweighted blocks; the solvers only see the normal equations.
+The seam for reweighting (robust IRLS and the like) is Problem.whitened, the
+whitened residual and Jacobian rows of one block: the solvers only see the
+normal equations built from them.
 """
 
 from __future__ import annotations
@@ -112,6 +112,14 @@ class Problem:
         jac = None if res.jac is None else np.where(keep[..., None, None], res.jac, 0.0)
         return replace(res, r=r, valid=keep, jac=jac)
 
+    def whitened(self, index: slice, res: Residuals, whitener: np.ndarray,
+                 jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Whitened residuals (m,) and Jacobian (m,k) in free scaled parameters of
+        the block of poses ``index``. The seam for reweighting (robust IRLS): a
+        subclass that scales these rows changes what every solver minimises."""
+        r, jac = whiten(res if jacobian else replace(res, jac=None), whitener)
+        return r, None if jac is None else jac[:, self.free] * self.scales
+
     def normal_equations(self, x: np.ndarray, weights: np.ndarray | None = None) -> Normal:
         """The normal equations at x under its own weights; with ``weights``
         (P,CD,CD) also x's cost under those (one model evaluation for both)."""
@@ -127,13 +135,12 @@ class Problem:
                 total = len(res.r) if index == slice(None) else n_poses(self.model)
                 whitener = np.empty((total,) + own.shape[1:])
             whitener[index] = own
-            r, jac = whiten(res, own)
-            jac = jac[:, self.free] * self.scales
+            r, jac = self.whitened(index, res, own)
             information += jac.T @ jac
             gradient += jac.T @ r
             cost += 0.5 * r @ r
             if weights is not None:
-                r_under, _ = whiten(replace(res, jac=None), weights[index])
+                r_under, _ = self.whitened(index, res, weights[index], jacobian=False)
                 cost_under += 0.5 * r_under @ r_under
             n_values += count_values(res)
         prior = np.isfinite(self.prior_sigma) & self.free
