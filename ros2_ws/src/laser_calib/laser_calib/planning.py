@@ -46,6 +46,7 @@ from laser_calib.sim.simulation import NoiseSpec
 
 PRIOR = 1.0         # prior information per scaled error: one tolerance (10 mm, 1 deg) standard deviation
 IMPROVEMENT = 1e-9  # least rise of log det that counts as an exchange
+DRAW_BLOCK = 20000  # candidate readings drawn and checked at a time
 
 
 @dataclass(frozen=True)
@@ -85,17 +86,20 @@ class Plan:
 
 def candidate_poses(robot: Robot, count: int, rng: np.random.Generator, margin: float,
                     max_tries: int = 200) -> np.ndarray:
-    """(count,N) readings uniform in the joint limits with both beams on the screen."""
+    """(count,N) readings uniform in the joint limits with both beams on the screen,
+    drawn at most DRAW_BLOCK at a time (bounded memory for large pools)."""
     chosen: list[np.ndarray] = []
+    found = 0
     for _ in range(max_tries):
-        q = rng.uniform(robot.q_min, robot.q_max, (max(2 * count, 256), robot.n_joints))
+        q = rng.uniform(robot.q_min, robot.q_max, (min(max(2 * count, 256), DRAW_BLOCK), robot.n_joints))
         p = predict(robot, q)
         inside = ((np.abs(p.spots[..., 0]) <= robot.screen.half_y - margin)
                   & (np.abs(p.spots[..., 1]) <= robot.screen.half_z - margin))
-        chosen.extend(q[(p.hit & inside).all(axis=1)])
-        if len(chosen) >= count:
-            return np.array(chosen[:count])
-    raise ValueError(f"found only {len(chosen)} of {count} poses with both beams {margin} m inside the screen; "
+        chosen.append(q[(p.hit & inside).all(axis=1)])
+        found += len(chosen[-1])
+        if found >= count:
+            return np.concatenate(chosen)[:count]
+    raise ValueError(f"found only {found} of {count} poses with both beams {margin} m inside the screen; "
                      "lower the margin or check the joint limits")
 
 
