@@ -20,8 +20,8 @@ import numpy as np
 
 from laser_calib.estimation.problem import Fit, Normal, Problem, make_fit
 
-# progress(done, total, note): called once per iteration; not part of the math
-ProgressCallback = Callable[[int, int, str], None]
+# progress(done, total or None when unknown, note): called once per iteration; not part of the math
+ProgressCallback = Callable[[int, int | None, str], None]
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,8 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
         damping = max(damping / 10.0, 1e-12)
         converged = decrease <= options.cost_tol * max(normal.cost, 1e-300)
         if options.progress is not None:
-            options.progress(iterations, options.max_iter, f"cost {normal.cost:.6g}")
+            # no total: LM stops long before max_iter, a time left from it would mislead
+            options.progress(iterations, None, f"cost {normal.cost:.6g}")
     if options.progress is not None:
         options.progress(iterations, iterations, "converged" if converged else "stopped")
     return make_fit(problem, x, normal, iterations, converged, history, costs)
