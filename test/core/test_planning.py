@@ -131,3 +131,17 @@ def test_progress_off_a_terminal_is_plain_lines():
     lines = stream.getvalue().splitlines()
     assert len(lines) == 3 and "\r" not in stream.getvalue()
     assert lines[-1].startswith("plan: 3/10 pose,") and "s left" in lines[-1] and lines[-1].endswith("; greedy")
+
+
+def test_progress_restarts_its_rate_when_the_count_falls_back():
+    """A second fit reports from 1 again: its rate is its own, not the first fit's."""
+    stream = io.StringIO()
+    progress = Progress("lm", stream=stream, interval=0.0, delay=0.0)
+    progress(1, None)
+    progress._start -= 100.0  # the first fit ran for 100 s
+    progress(1, None)
+    assert "0.01 it/s" in stream.getvalue().splitlines()[-1]
+    progress(2, None)
+    progress._start -= 100.0
+    progress(1, None)  # the next fit
+    assert " 0 s elapsed" in stream.getvalue().splitlines()[-1]

@@ -29,19 +29,25 @@ class Progress:
         self._bar: tqdm | None = None
         self._start: float | None = None  # the first call: the rate counts from there
         self._last_line = 0.0
+        self._done = 0
 
     def __call__(self, done: int, total: int | None = None, note: str = "") -> None:
+        # a count that falls back is the next run of the step (another fit): rate and time from there
+        restart = done < self._done
+        self._done = done
         if self.terminal:
             if self._bar is None:
                 self._bar = tqdm(total=total, desc=self.desc, unit=self.unit, file=self.stream,
                                  delay=self.delay, dynamic_ncols=True, leave=True)
+            if restart:
+                self._bar.reset(total)
             self._bar.total = total
             if note:
                 self._bar.set_postfix_str(note, refresh=False)
             self._bar.update(done - self._bar.n)  # update, not refresh: it keeps tqdm's delay and rate
             return
         now = time.monotonic()
-        if self._start is None:
+        if self._start is None or restart:
             self._start = self._last_line = now
         first = self._last_line == self._start
         if (first and now - self._start >= self.delay) or now - self._last_line >= self.interval:
