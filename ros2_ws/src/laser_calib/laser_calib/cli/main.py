@@ -17,20 +17,21 @@ import numpy as np
 from laser_calib.io.errors import InputError
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.solvers import EkfOptions
-from laser_calib.estimation.identifiability import analyse
+from laser_calib.estimation.identifiability import STD_FACTOR, analyse
 from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
-from laser_calib.io.bag import read_samples
+from laser_calib.io.bag import read_samples_checked
 from laser_calib.io.samples import check_joint_range, load_samples, save_samples
 from laser_calib.sim.simulation import CASES, NoiseSpec, paper_session
 from laser_calib.cli import diagnose as diagnose_cli
 from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
-from laser_calib.cli.arguments import non_negative, positive
+from laser_calib.cli.arguments import (non_negative, out_file, out_folder, positive, positive_int, print_warnings,
+                                      sigma_angle, sigma_length, staged_folder)
 
 EXIT_BAD_INPUT = 2
 
@@ -42,8 +43,14 @@ def _progress(message: str) -> None:
 def cmd_simulate(args: argparse.Namespace) -> int:
     noise = NoiseSpec(spot=args.spot_noise, joint=np.deg2rad(args.joint_noise_deg))
     session = paper_session(args.case, args.seed, args.poses_per_span, noise, random_errors=args.random_errors)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    with staged_folder(args.out) as out:
+        _write_simulation(args, session, noise, out)
+    print(f"wrote {args.out}/: robot_nominal.yaml robot_true.yaml samples.csv (all {len(session.samples)} poses), "
+          f"case1..3 calibration/test sets, truth.json")
+    return 0
+
+
+def _write_simulation(args: argparse.Namespace, session, noise: NoiseSpec, out: Path) -> None:
     save_robot(session.nominal, out / "robot_nominal.yaml", header=f"Nominal model ({args.case}).")
     save_robot(session.true, out / "robot_true.yaml",
                header=f"True model of the simulation ({args.case}, seed {args.seed}).")
@@ -59,9 +66,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "joint_noise_halfwidth_rad": noise.joint, "spot_sigma_m": noise.spot_sigma,
         "joint_sigma_rad": noise.joint_sigma,
         "errors": dict(zip(session.nominal.param_names, map(float, session.errors)))}, indent=2))
-    print(f"wrote {out}/: robot_nominal.yaml robot_true.yaml samples.csv (all {len(session.samples)} poses), "
-          f"case1..3 calibration/test sets, truth.json")
-    return 0
 
 
 def _options(args: argparse.Namespace) -> EstimateOptions:
@@ -75,7 +79,10 @@ def _options(args: argparse.Namespace) -> EstimateOptions:
 
 def _bag_samples(path: str, robot) -> object:
     """Samples of a recorded session bag (rosbags: no ROS runtime)."""
-    samples = read_samples(path)
+    samples, lost = read_samples_checked(path)
+    for segment in lost:
+        print(f"warning: {path}: segment {segment} is damaged and was skipped; its samples are lost, the other "
+              "segments were read", file=sys.stderr)
     if samples.n_joints != robot.n_joints:
         raise InputError(path, f"{samples.n_joints} joints in the bag but robot '{robot.name}' has {robot.n_joints}")
     check_joint_range(samples.q, robot, path, samples.pose)
@@ -88,9 +95,12 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     test = load_samples(args.test, robot) if args.test else None
     options = _options(args)
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
-    calibration = run_estimate(robot, samples, options, args.out, test,
-                               sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
-                                        "test": str(args.test) if args.test else None})
+    if test is not None and not test.seen.any():
+        raise InputError(str(args.test), "no spot is measured in the test set (every spot field empty)")
+    with staged_folder(args.out) as out:
+        calibration = run_estimate(robot, samples, options, out, test,
+                                   sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
+                                            "test": str(args.test) if args.test else None})
     _summary(calibration)
     print(f"wrote {args.out}/robot_calibrated.yaml, result.json, report.md, residuals.csv")
     return 0
@@ -101,8 +111,7 @@ def _summary(calibration) -> None:
         b, a = by_model["before"]["all"], by_model["after"]["all"]
         print(f"{set_name:12s} mean spot error {b['mean_mm']:.3f} mm -> {a['mean_mm']:.3f} mm "
               f"(max {b['max_mm']:.3f} -> {a['max_mm']:.3f}; {a['n']} spots)")
-    for warning in calibration.estimate.warnings:
-        print(f"warning: {warning}")
+    print_warnings(list(calibration.estimate.warnings))
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
@@ -112,7 +121,8 @@ def cmd_identify(args: argparse.Namespace) -> int:
     res = model.residuals(np.zeros(robot.n_params), True)
     _, jac = whiten(res, NoiseModel(args.spot_sigma, args.joint_sigma).whitener(res))
     print(f"{robot.name}: {len(samples)} poses, {int(res.valid.sum())} spots")
-    print(analyse(jac, model.scales, model.names).table())
+    # the given noise sets the threshold: what the poses would determine worse than 10 tolerances is listed
+    print(analyse(jac, model.scales, model.names, std_factor=STD_FACTOR).table())
     return 0
 
 
@@ -144,8 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate the paper's session (section IV / V)")
     p.add_argument("--case", choices=CASES, required=True)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True)
-    p.add_argument("--poses-per-span", type=int, default=None,
+    p.add_argument("--out", required=True, type=out_folder)
+    p.add_argument("--poses-per-span", type=positive_int, default=None,
                    help="poses in each of the small-range and whole-workspace sets (paper: 30 / 25)")
     p.add_argument("--spot-noise", type=non_negative, default=0.002, help="half-width of uniform spot noise, m")
     p.add_argument("--joint-noise-deg", type=non_negative, default=0.1, help="half-width of joint disturbance, deg")
@@ -160,29 +170,30 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--bag", help="a recorded session bag (its /samples topic)")
     p.add_argument("--test")
     p.add_argument("--method", choices=METHODS, default="lm")
-    p.add_argument("--spot-sigma", type=positive, default=None,
+    p.add_argument("--spot-sigma", type=sigma_length, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual)")
-    p.add_argument("--joint-sigma", type=non_negative, default=0.0, help="joint reading noise std, rad")
+    p.add_argument("--joint-sigma", type=sigma_angle, default=0.0, help="joint reading noise std, rad")
     p.add_argument("--prior", action="store_true", help="tolerance prior: 10 mm and 1 deg per error")
     p.add_argument("--prior-length", type=positive, default=None, help="length tolerance, m (implies --prior)")
     p.add_argument("--prior-angle-deg", type=positive, default=None, help="angle tolerance, deg (implies --prior)")
-    p.add_argument("--robust", action="store_true", help="reject outlier spots (rule in result.json docs)")
+    p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
+                   help="robust fit: outlier spots rejected and listed (default; the rule is in result.json)")
     p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, type=out_folder)
     p.set_defaults(func=cmd_estimate)
 
     p = sub.add_parser("identify", help="identifiability table of a pose set")
     p.add_argument("--robot", required=True)
     p.add_argument("--samples", required=True)
-    p.add_argument("--spot-sigma", type=positive, default=0.001)
-    p.add_argument("--joint-sigma", type=non_negative, default=0.0)
+    p.add_argument("--spot-sigma", type=sigma_length, default=0.001)
+    p.add_argument("--joint-sigma", type=sigma_angle, default=0.0)
     p.set_defaults(func=cmd_identify)
 
     p = sub.add_parser("slm-calibrate", help="laser angles from spots at known fixture distances (eq. 16)")
     p.add_argument("--robot", required=True)
     p.add_argument("--measurements", required=True, help="CSV laser,distance,u,v (m)")
-    p.add_argument("--spot-sigma", type=positive, default=None)
-    p.add_argument("--out", required=True, help="robot file to write")
+    p.add_argument("--spot-sigma", type=sigma_length, default=None)
+    p.add_argument("--out", required=True, type=out_file, help="robot file to write")
     p.set_defaults(func=cmd_slm_calibrate)
 
     p = sub.add_parser("replay", help="republish a recorded session bag with its original timing (ROS)")
