@@ -51,7 +51,8 @@ def test_lm_estimates_are_consistent_with_their_covariance(case):
     for seed in range(8):
         session = paper_session(case, seed)
         est = estimate(session.nominal, session.samples, _options(session))
-        assert est.fit.converged and not est.warnings
+        # the 4-DOF arm's two sum-only pairs are one rank-deficiency line; nothing else
+        assert est.fit.converged and all(w.startswith("rank deficient") for w in est.warnings)
         d2.append(_mahalanobis(est, _gauge_truth(session, est)))
         dof = int(est.identifiable.sum())
         assert d2[-1] < chi2.ppf(0.999, dof), (seed, d2[-1])
@@ -97,7 +98,8 @@ def test_prior_adds_its_information():
     gained = (prior_normal.information - plain_normal.information) / np.outer(model.scales, model.scales)
     tol = np.where(np.array(model.scales) == 0.010, 0.010, np.deg2rad(1.0))
     assert np.allclose(gained, np.diag(1 / tol ** 2), rtol=1e-9, atol=1e-6 / tol.min() ** 2)
-    plain = estimate(session.nominal, cal, _options(session))
+    # the same free set in both (case 1 has a direction beyond the noise threshold)
+    plain = estimate(session.nominal, cal, _options(session, std_factor=None))
     with_prior = estimate(session.nominal, cal, options)
     assert np.all(with_prior.std <= plain.std * 1.001)
 
@@ -116,7 +118,7 @@ def test_robust_rejects_a_wrong_detection():
     spots = session.samples.spots.copy()
     spots[17, 1] += [0.03, -0.02]  # one spot 36 mm off: a reflection taken for the laser
     samples = replace(session.samples, spots=spots)
-    plain = estimate(session.nominal, samples, _options(session))
+    plain = estimate(session.nominal, samples, _options(session, robust=False))
     robust = estimate(session.nominal, samples, _options(session, robust=True))
     assert robust.rejected == ((17, 1),)
     assert any("exceeds the noise model" in w for w in plain.warnings)

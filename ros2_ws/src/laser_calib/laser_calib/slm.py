@@ -15,8 +15,6 @@ and their standard deviations by first-order propagation.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -25,7 +23,7 @@ import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Laser, Robot
-from laser_calib.io.samples import parse_number
+from laser_calib.io.read import csv_rows, parse_int, parse_number, read_text
 
 COLUMNS = ("laser", "distance", "u", "v")
 
@@ -48,7 +46,8 @@ def _slope(distance: np.ndarray, value: np.ndarray, sigma: float | None) -> tupl
     if sigma is None:
         dof = len(distance) - 2
         if dof < 1:
-            return float(coef[0]), math.nan
+            raise ValueError("with spots at only two distances the slope's error is unknown: give --spot-sigma "
+                             "or measure at three or more distances")
         resid = value - design @ coef
         sigma = float(np.sqrt(resid @ resid / dof))
     return float(coef[0]), float(sigma * np.sqrt(cov_unit[0, 0]))
@@ -72,10 +71,7 @@ def fit_laser(distance: np.ndarray, uv: np.ndarray, sigma: float | None = None) 
 def load_measurements(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """CSV with header laser,distance,u,v (laser 1 or 2; metres) -> {laser: (D (K,), uv (K,2))}."""
     path = Path(path)
-    try:
-        rows = list(csv.reader(io.StringIO(path.read_text())))
-    except OSError as exc:
-        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
+    rows = csv_rows(read_text(path), str(path))
     if not rows or tuple(c.strip() for c in rows[0]) != COLUMNS:
         raise InputError(f"{path}: header", f"expected {','.join(COLUMNS)}")
     data: dict[int, list[tuple[float, float, float]]] = {1: [], 2: []}
@@ -84,10 +80,7 @@ def load_measurements(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarra
             continue
         if len(row) != 4:
             raise InputError(f"{path}: line {line}", f"{len(row)} fields, expected 4")
-        try:
-            laser = int(row[0])
-        except ValueError:
-            raise InputError(f"{path}: line {line}, field laser", f"not an integer: {row[0]!r}") from None
+        laser = parse_int(row[0], f"{path}: line {line}, field laser")
         if laser not in data:
             raise InputError(f"{path}: line {line}, field laser", f"expected 1 or 2, got {laser}")
         values = [parse_number(cell, f"{path}: line {line}, field {name}") for name, cell in zip(COLUMNS[1:], row[1:])]

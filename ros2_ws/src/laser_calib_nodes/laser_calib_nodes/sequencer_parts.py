@@ -82,7 +82,7 @@ def declare(node) -> SimpleNamespace:
         method=d("estimate.method", "lm", "Final estimate: 'lm' or 'ekf'."),
         spot_sigma=d("estimate.spot_sigma", 0.0, "Final estimate: spot sigma, m (0: estimate it)."),
         prior=d("estimate.prior", False, "Final estimate: tolerance prior."),
-        robust=d("estimate.robust", False, "Final estimate: reject outlying spots."),
+        robust=d("estimate.robust", True, "Final estimate: robust fit, outlying spots rejected."),
         diagnose=d("estimate.diagnose", False, "Final estimate: residual diagnosis."),
         mode=d("estimate.mode", "service", "Final estimate: 'service' (the estimator's Estimate service), "
                                            "'local' (in this process) or 'none'."),

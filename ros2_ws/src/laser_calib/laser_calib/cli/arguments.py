@@ -1,18 +1,35 @@
 """Argument types of the command line: each checks one text and returns its
 value, or raises argparse.ArgumentTypeError (argparse then prints one line and
-exits with status 2)."""
+exits with status 2); output folders written all or nothing (staged_folder);
+warnings printed one line each."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+from laser_calib.estimation.estimate import NOT_CONVERGED
+from laser_calib.io.errors import InputError
+from laser_calib.io.read import parse_int, parse_number
+
+
+# Plausible noise levels: a spot or position noise outside 1 nm .. 1 m, or a
+# joint noise over 0.5 rad (29 deg), is a unit mistake, not a sensor.
+SIGMA_LENGTH = (1e-9, 1.0)
+MAX_SIGMA_ANGLE = 0.5
 
 
 def _number(text: str, allow_zero: bool) -> float:
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        value = parse_number(text, "")
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r} ({exc.problem})") from None
     if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
         raise argparse.ArgumentTypeError(f"expected a {'non-negative' if allow_zero else 'positive'} number, "
                                          f"got {text}")
@@ -27,11 +44,29 @@ def non_negative(text: str) -> float:
     return _number(text, allow_zero=True)
 
 
+def sigma_length(text: str) -> float:
+    """A noise standard deviation in metres."""
+    value = positive(text)
+    if not SIGMA_LENGTH[0] <= value <= SIGMA_LENGTH[1]:
+        raise argparse.ArgumentTypeError(f"{text} m is not a plausible noise level (expected "
+                                         f"{SIGMA_LENGTH[0]:g} .. {SIGMA_LENGTH[1]:g} m; lengths are in metres)")
+    return value
+
+
+def sigma_angle(text: str) -> float:
+    """A joint noise standard deviation in radians (0: none)."""
+    value = non_negative(text)
+    if value > MAX_SIGMA_ANGLE:
+        raise argparse.ArgumentTypeError(f"{text} rad is not a plausible joint noise (at most {MAX_SIGMA_ANGLE} "
+                                         "rad; angles are in radians)")
+    return value
+
+
 def _integer(text: str, minimum: int) -> int:
     try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        value = parse_int(text, "")
+    except InputError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text[:40]!r}") from None
     if value < minimum:
         raise argparse.ArgumentTypeError(f"expected an integer of at least {minimum}, got {text}")
     return value
@@ -59,3 +94,67 @@ def fraction(text: str) -> float:
     if value >= 1:
         raise argparse.ArgumentTypeError(f"expected a fraction between 0 and 1, got {text}")
     return value
+
+
+def print_warnings(warnings: list[str]) -> None:
+    """One line each on the console; an unconverged fit is an error line."""
+    for warning in warnings:
+        print(f"{'error' if warning.startswith(NOT_CONVERGED) else 'warning'}: {warning}")
+
+
+def _writable_ancestor(path: Path) -> Path:
+    """The nearest existing folder at or above path's parent, which must be writable."""
+    ancestor = path.absolute().parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"{path}: cannot write under {ancestor}")
+    return ancestor
+
+
+def out_folder(text: str) -> str:
+    """An output folder: absent (created) or an existing folder, under a writable one."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} exists and is not a folder")
+    _writable_ancestor(path)
+    return text
+
+
+def out_file(text: str) -> str:
+    """An output file: not a folder, in an existing writable folder."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder; give the name of the file to write")
+    if not path.absolute().parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: the folder {path.absolute().parent} does not exist")
+    _writable_ancestor(path)
+    return text
+
+
+@contextmanager
+def staged_folder(out: str) -> Iterator[Path]:
+    """A fresh folder beside ``out`` to write into. On success its files replace
+    the same names in ``out`` (other files there are left and named, so it is
+    clear what this run wrote); on failure it is removed, so a failed run leaves
+    no half-written folder."""
+    target = Path(out)
+    try:
+        target.absolute().parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=target.absolute().parent))
+    except OSError as exc:
+        raise InputError(out, f"cannot write ({exc.strerror or exc})") from None
+    try:
+        yield stage
+        target.mkdir(exist_ok=True)
+        written = sorted(p.name for p in stage.iterdir())
+        for name in written:
+            os.replace(stage / name, target / name)
+    except OSError as exc:
+        raise InputError(out, f"cannot write ({exc.strerror or exc})") from None
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    others = sorted(p.name for p in target.iterdir() if p.name not in written)
+    if others:
+        print(f"note: {out}/ also holds files this run did not write (left as they were): "
+              + ", ".join(others[:6]) + (f" and {len(others) - 6} more" if len(others) > 6 else ""))

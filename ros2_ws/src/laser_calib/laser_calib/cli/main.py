@@ -20,20 +20,21 @@ from laser_calib.estimation.ekf import EkfOptions
 from laser_calib.estimation.lm import LmOptions
 from laser_calib.estimation.problem import whitened_factor
 from laser_calib.report.progress import Progress
-from laser_calib.estimation.identifiability import analyse
+from laser_calib.estimation.identifiability import STD_FACTOR, analyse
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
-from laser_calib.io.bag import read_samples
+from laser_calib.io.bag import read_samples_checked
 from laser_calib.io.samples import check_joint_range, load_samples, save_samples
 from laser_calib.sim.simulation import CASES, NoiseSpec, paper_session
 from laser_calib.cli import diagnose as diagnose_cli
 from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
-from laser_calib.cli.arguments import non_negative, positive
+from laser_calib.cli.arguments import (non_negative, out_file, out_folder, positive, positive_int, print_warnings,
+                                      sigma_angle, sigma_length, staged_folder)
 
 EXIT_BAD_INPUT = 2
 
@@ -45,8 +46,14 @@ def _progress(message: str) -> None:
 def cmd_simulate(args: argparse.Namespace) -> int:
     noise = NoiseSpec(spot=args.spot_noise, joint=np.deg2rad(args.joint_noise_deg))
     session = paper_session(args.case, args.seed, args.poses_per_span, noise, random_errors=args.random_errors)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    with staged_folder(args.out) as out:
+        _write_simulation(args, session, noise, out)
+    print(f"wrote {args.out}/: robot_nominal.yaml robot_true.yaml samples.csv (all {len(session.samples)} poses), "
+          f"case1..3 calibration/test sets, truth.json")
+    return 0
+
+
+def _write_simulation(args: argparse.Namespace, session, noise: NoiseSpec, out: Path) -> None:
     save_robot(session.nominal, out / "robot_nominal.yaml", header=f"Nominal model ({args.case}).")
     save_robot(session.true, out / "robot_true.yaml",
                header=f"True model of the simulation ({args.case}, seed {args.seed}).")
@@ -62,9 +69,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "joint_noise_halfwidth_rad": noise.joint, "spot_sigma_m": noise.spot_sigma,
         "joint_sigma_rad": noise.joint_sigma,
         "errors": dict(zip(session.nominal.param_names, map(float, session.errors)))}, indent=2))
-    print(f"wrote {out}/: robot_nominal.yaml robot_true.yaml samples.csv (all {len(session.samples)} poses), "
-          f"case1..3 calibration/test sets, truth.json")
-    return 0
 
 
 def _options(args: argparse.Namespace, progress: Progress | None = None) -> EstimateOptions:
@@ -78,7 +82,10 @@ def _options(args: argparse.Namespace, progress: Progress | None = None) -> Esti
 
 def _bag_samples(path: str, robot) -> object:
     """Samples of a recorded session bag (rosbags: no ROS runtime)."""
-    samples = read_samples(path)
+    samples, lost = read_samples_checked(path)
+    for segment in lost:
+        print(f"warning: {path}: segment {segment} is damaged and was skipped; its samples are lost, the other "
+              "segments were read", file=sys.stderr)
     if samples.n_joints != robot.n_joints:
         raise InputError(path, f"{samples.n_joints} joints in the bag but robot '{robot.name}' has {robot.n_joints}")
     check_joint_range(samples.q, robot, path, samples.pose)
@@ -90,8 +97,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     samples = _bag_samples(args.bag, robot) if args.bag else load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
-    with Progress(args.method, unit="iteration") as progress:
-        calibration = run_estimate(robot, samples, _options(args, progress), args.out, test,
+    if test is not None and not test.seen.any():
+        raise InputError(str(args.test), "no spot is measured in the test set (every spot field empty)")
+    with staged_folder(args.out) as out, Progress(args.method, unit="iteration") as progress:
+        calibration = run_estimate(robot, samples, _options(args, progress), out, test,
                                    sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
                                             "test": str(args.test) if args.test else None})
     _summary(calibration)
@@ -104,8 +113,7 @@ def _summary(calibration) -> None:
         b, a = by_model["before"]["all"], by_model["after"]["all"]
         print(f"{set_name:12s} mean spot error {b['mean_mm']:.3f} mm -> {a['mean_mm']:.3f} mm "
               f"(max {b['max_mm']:.3f} -> {a['max_mm']:.3f}; {a['n']} spots)")
-    for warning in calibration.estimate.warnings:
-        print(f"warning: {warning}")
+    print_warnings(list(calibration.estimate.warnings))
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
@@ -114,7 +122,8 @@ def cmd_identify(args: argparse.Namespace) -> int:
     model = SpotModel(robot, samples)
     factor, n_values = whitened_factor(model, NoiseModel(args.spot_sigma, args.joint_sigma), np.zeros(robot.n_params))
     print(f"{robot.name}: {len(samples)} poses, {n_values // 2} spots")
-    print(analyse(factor, model.scales, model.names).table())
+    # the given noise sets the threshold: what the poses would determine worse than 10 tolerances is listed
+    print(analyse(factor, model.scales, model.names, std_factor=STD_FACTOR).table())
     return 0
 
 
@@ -146,8 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate the paper's session (section IV / V)")
     p.add_argument("--case", choices=CASES, required=True)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True)
-    p.add_argument("--poses-per-span", type=int, default=None,
+    p.add_argument("--out", required=True, type=out_folder)
+    p.add_argument("--poses-per-span", type=positive_int, default=None,
                    help="poses in each of the small-range and whole-workspace sets (paper: 30 / 25)")
     p.add_argument("--spot-noise", type=non_negative, default=0.002, help="half-width of uniform spot noise, m")
     p.add_argument("--joint-noise-deg", type=non_negative, default=0.1, help="half-width of joint disturbance, deg")
@@ -162,29 +171,30 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--bag", help="a recorded session bag (its /samples topic)")
     p.add_argument("--test")
     p.add_argument("--method", choices=METHODS, default="lm")
-    p.add_argument("--spot-sigma", type=positive, default=None,
+    p.add_argument("--spot-sigma", type=sigma_length, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual)")
-    p.add_argument("--joint-sigma", type=non_negative, default=0.0, help="joint reading noise std, rad")
+    p.add_argument("--joint-sigma", type=sigma_angle, default=0.0, help="joint reading noise std, rad")
     p.add_argument("--prior", action="store_true", help="tolerance prior: 10 mm and 1 deg per error")
     p.add_argument("--prior-length", type=positive, default=None, help="length tolerance, m (implies --prior)")
     p.add_argument("--prior-angle-deg", type=positive, default=None, help="angle tolerance, deg (implies --prior)")
-    p.add_argument("--robust", action="store_true", help="reject outlier spots (rule in result.json docs)")
+    p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
+                   help="robust fit: outlier spots rejected and listed (default; the rule is in result.json)")
     p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, type=out_folder)
     p.set_defaults(func=cmd_estimate)
 
     p = sub.add_parser("identify", help="identifiability table of a pose set")
     p.add_argument("--robot", required=True)
     p.add_argument("--samples", required=True)
-    p.add_argument("--spot-sigma", type=positive, default=0.001)
-    p.add_argument("--joint-sigma", type=non_negative, default=0.0)
+    p.add_argument("--spot-sigma", type=sigma_length, default=0.001)
+    p.add_argument("--joint-sigma", type=sigma_angle, default=0.0)
     p.set_defaults(func=cmd_identify)
 
     p = sub.add_parser("slm-calibrate", help="laser angles from spots at known fixture distances (eq. 16)")
     p.add_argument("--robot", required=True)
     p.add_argument("--measurements", required=True, help="CSV laser,distance,u,v (m)")
-    p.add_argument("--spot-sigma", type=positive, default=None)
-    p.add_argument("--out", required=True, help="robot file to write")
+    p.add_argument("--spot-sigma", type=sigma_length, default=None)
+    p.add_argument("--out", required=True, type=out_file, help="robot file to write")
     p.set_defaults(func=cmd_slm_calibrate)
 
     p = sub.add_parser("replay", help="republish a recorded session bag with its original timing (ROS)")

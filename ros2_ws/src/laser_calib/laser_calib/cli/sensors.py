@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from laser_calib.cli.arguments import add_robot_arguments, fraction, positive
+from laser_calib.cli.arguments import (add_robot_arguments, fraction, non_negative, non_negative_int, out_file,
+                                      out_folder, positive, positive_int, print_warnings, sigma_angle, sigma_length,
+                                      staged_folder)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
@@ -42,12 +44,11 @@ from laser_calib.io.sensor_samples import load_sensor_samples, save_sensor_sampl
 
 def cmd_import_positioner(args: argparse.Namespace) -> int:
     robot, samples = read_positioner(args.data)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    save_robot(robot, out / "robot.yaml", header=f"Two-axis positioner imported from {args.data} "
-               "(laser-calib import-positioner): nominal standard D-H and the source's frame guesses.")
-    save_sensor_samples(samples, out / "samples.csv")
-    print(f"wrote {out}/robot.yaml and samples.csv ({len(samples)} pose measurements)")
+    with staged_folder(args.out) as out:
+        save_robot(robot, out / "robot.yaml", header=f"Two-axis positioner imported from {args.data} "
+                   "(laser-calib import-positioner): nominal standard D-H and the source's frame guesses.")
+        save_sensor_samples(samples, out / "samples.csv")
+    print(f"wrote {args.out}/robot.yaml and samples.csv ({len(samples)} pose measurements)")
     return 0
 
 
@@ -235,7 +236,10 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
               "rotation_length_m_per_rad": fit.rotation_length, "sigma_m": fit.estimate.sigma,
               "chi2": fit.estimate.fit.chi2, "dof": fit.estimate.fit.dof,
               "parameters": _parameters(fit, robot), "insample": _summaries(table),
-              "warnings": list(fit.nominal.warnings + fit.estimate.warnings)}
+              "rejected_poses": [int(samples.pose[p]) for p, _ in fit.estimate.rejected],
+              "robust": fit.estimate.robust,
+              "warnings": list(dict.fromkeys([f"nominal (frames-only) fit: {w}" for w in fit.nominal.warnings]
+                                             + list(fit.estimate.warnings)))}
     accuracy = _accuracy(samples, fit.model, fit)
     if accuracy:
         result["insample"]["iso9283"] = accuracy
@@ -256,18 +260,19 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         chosen = result["diagnosis"]["stages"][-1]
         lines.append(f"diagnosis: {chosen['model']} (held-out mean {chosen['heldout_mean_mm']:.3f} mm); "
                      f"verdict: {result['diagnosis']['verdict']}")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if robot.chain is not None:
-        written = save_calibrated_urdf(fit.corrected(robot), robot, fit.estimate.identifiable, out, str(args.robot))
-    else:
-        save_robot(fit.corrected(robot), out / "robot_calibrated.yaml",
-                   header=f"Calibrated from {args.samples} (laser-calib calibrate-poses).")
-        written = ("robot_calibrated.yaml",)
-    (out / "result.json").write_text(json.dumps(result, indent=2))
-    save_pose_table(sets, out / "residuals.csv")
-    lines += [f"warning: {w}" for w in result["warnings"]]
-    print("\n".join(lines + [f"wrote {out}/{', '.join(written)}, result.json and residuals.csv"]))
+    with staged_folder(args.out) as out:
+        if robot.chain is not None:
+            written = save_calibrated_urdf(fit.corrected(robot), robot, fit.estimate.identifiable, out,
+                                           str(args.robot))
+        else:
+            save_robot(fit.corrected(robot), out / "robot_calibrated.yaml",
+                       header=f"Calibrated from {args.samples} (laser-calib calibrate-poses).")
+            written = ("robot_calibrated.yaml",)
+        (out / "result.json").write_text(json.dumps(result, indent=2))
+        save_pose_table(sets, out / "residuals.csv")
+    print("\n".join(lines))
+    print_warnings(result["warnings"])
+    print(f"wrote {args.out}/{', '.join(written)}, result.json and residuals.csv")
     return 0
 
 
@@ -287,15 +292,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add import-positioner, calibrate-poses and plan to cli.py's subcommands."""
     p = sub.add_parser("import-positioner", help="import the real two-axis positioner data set")
     p.add_argument("--data", required=True, help="folder with measurements.yaml and pose_initial_guesses.yaml")
-    p.add_argument("--out", required=True, help="folder for robot.yaml and samples.csv")
+    p.add_argument("--out", required=True, type=out_folder, help="folder for robot.yaml and samples.csv")
     p.set_defaults(func=cmd_import_positioner)
 
     p = sub.add_parser("calibrate-poses", help="D-H errors and frames from point or pose samples")
     add_robot_arguments(p)
     p.add_argument("--samples", required=True, help="CSV pose,stamp,q1..qN,x,y,z[,qw,qx,qy,qz]")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, type=out_folder)
     p.add_argument("--method", choices=METHODS, default="lm")
-    p.add_argument("--sigma", type=positive, default=None,
+    p.add_argument("--sigma", type=sigma_length, default=None,
                    help="noise std per position value, m (default: estimated from the residual)")
     p.add_argument("--rotation-length", type=positive, default=None,
                    help="m/rad weighing rotation residuals (default: estimated from the residuals)")
@@ -304,8 +309,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frame-prior-length", type=positive, default=None, help="prior std of frame offsets, m")
     p.add_argument("--frame-prior-angle-deg", type=positive, default=None, help="prior std of frame angles, deg")
     p.add_argument("--scale", action="store_true", help="estimate the sensor's scale per axis")
-    p.add_argument("--robust", action="store_true", help="reject outlying samples and refit")
-    p.add_argument("--folds", type=int, default=5, help="k of the k-fold held-out error (0: none)")
+    p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
+                   help="robust fit: outlying samples rejected and listed (default; rule in result.json)")
+    p.add_argument("--folds", type=non_negative_int, default=5, help="k of the k-fold held-out error (0: none)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fold split")
     p.add_argument("--chronological", type=fraction, default=None, metavar="FRACTION",
                    help="also calibrate on the first FRACTION of the poses in measurement order and test on the rest")
@@ -317,15 +323,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("plan", help="D-optimal calibration poses (spot and joint noise)")
     p.add_argument("--robot", required=True)
-    p.add_argument("--n", type=int, required=True, help="number of poses")
-    p.add_argument("--out", required=True, help="CSV pose,q1..qN (rad)")
-    p.add_argument("--spot-sigma", type=positive, default=PlanOptions(1).spot_sigma,
+    p.add_argument("--n", type=int, required=True, help="number of poses (the planner checks it)")
+    p.add_argument("--out", required=True, type=out_file, help="CSV pose,q1..qN (rad)")
+    p.add_argument("--spot-sigma", type=sigma_length, default=PlanOptions(1).spot_sigma,
                    help="spot noise std per coordinate, m (default: the paper's +-2 mm uniform)")
-    p.add_argument("--joint-sigma", type=float, default=PlanOptions(1).joint_sigma,
+    p.add_argument("--joint-sigma", type=sigma_angle, default=PlanOptions(1).joint_sigma,
                    help="joint disturbance std, rad (default: the paper's +-0.1 deg uniform)")
-    p.add_argument("--candidates", type=int, default=PlanOptions(1).candidates,
+    p.add_argument("--candidates", type=positive_int, default=PlanOptions(1).candidates,
                    help="random poses to choose from (at least --n)")
-    p.add_argument("--margin", type=float, default=PlanOptions(1).margin,
+    p.add_argument("--margin", type=non_negative, default=PlanOptions(1).margin,
                    help="keep both nominal spots this far inside the screen edge, m")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_plan)

@@ -2,20 +2,26 @@
 (command line, ROS estimator service and online node, replay).
 
 estimate(robot, samples, options) runs, in order:
+0. impossible spots (impossible_spots): a spot outside the screen, or one given
+   where the nominal beam misses the screen by far, is flagged per pose and
+   left out (a warning line lists them);
 1. identifiability at the nominal model: parameters the spots cannot separate
    are fixed at nominal and reported as merged (never as numbers);
-2. if no spot sigma is given, a first fit estimates it from the residual
+2. robust (the default, robust.py): IRLS with the Cauchy loss and a MAD scale
+   on the same Jacobians, then gross outliers rejected and listed;
+3. if no spot sigma is given, a fit estimates it from the residual
    (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used;
-3. the fit (LM or the paper's EKF), with the optional prior (a manufacturing
+4. identifiability again with the noise in use: a direction whose standard
+   deviation exceeds STD_FACTOR times its tolerance scale is held too (not
+   with the prior, which bounds every direction by its tolerance);
+5. the fit (LM or the paper's EKF), with the optional prior (a manufacturing
    tolerance per parameter type, mean zero);
-4. with a known sigma, a chi^2 test: if chi^2 exceeds dof by more than
+6. with a known sigma, a chi^2 test: if chi^2 exceeds dof by more than
    6 sqrt(2 dof), the minimum is suspect (a wrong local minimum, an outlier or
    an unmodelled effect); LM restarts from seeded random starts within twice
-   the parameter scales and keeps the lowest cost; if still suspect, it says so;
-5. robust (optional), the stated rule: after a fit, the seen spot with the
-   largest whitened residual is dropped if its squared norm exceeds
-   chi^2_2(0.999) = 13.82 (with the sigma in use), and the fit is repeated;
-   at most 10 % of the spots are dropped; dropped spots are listed.
+   the parameter scales and keeps the lowest cost; if still suspect, it says so.
+Rank deficiency, an unconverged fit, dropped spots and a noise level far from
+the given one are one warning line each (Estimate.warnings).
 """
 
 from __future__ import annotations
@@ -26,25 +32,37 @@ from dataclasses import dataclass
 import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
-from laser_calib.estimation.identifiability import Identifiability, analyse
+from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import Fit, Problem, whitened_factor
-from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel
+from laser_calib.estimation.robust import ROBUST_RULE, robust_fit
+from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, count_values
+from laser_calib.measurement.frames import FRAMES
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
 
 METHODS = ("lm", "ekf")
 TRIAL_SIGMA = 0.001
-CHI2_2_999 = 13.815510557964274  # 99.9 % quantile of chi^2 with 2 degrees of freedom
+# A spot given where the nominal beam lands beyond the screen edge by more than
+# this fraction of the half size cannot be that laser's: nominal errors move a
+# spot by centimetres, not by a fifth of the screen.
+MISS_MARGIN = 0.2
+NOISE_RATIO = 2.0  # the residual's noise beyond 2x or below 1/2 the given sigma: a warning
+LISTED = 8         # poses named in one warning line
+MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
+FAR_SCALES = 10.0  # a fitted error beyond 10 tolerance scales (100 mm, 10 deg) is not a manufacturing error
+NOT_CONVERGED = "NOT CONVERGED"  # how an unconverged fit's warning starts (the console makes it an error line)
 
 
 @dataclass(frozen=True)
 class EstimateOptions:
     """method 'lm' or 'ekf'; spot_sigma (m) per spot coordinate, None to estimate it;
     joint_sigma (rad) of the joint readings; prior: tolerance prior_length (m) /
-    prior_angle (rad) per error; robust outlier rejection; fixed: parameter names
-    held at nominal; restarts of LM when the minimum is suspect."""
+    prior_angle (rad) per error; robust outlier rejection (robust.py); fixed:
+    parameter names held at nominal; restarts of LM when the minimum is suspect;
+    std_factor: the identifiability threshold (identifiability.py), None for
+    the numerical rank only."""
 
     method: str = "lm"
     spot_sigma: float | None = None
@@ -52,10 +70,11 @@ class EstimateOptions:
     prior: bool = False
     prior_length: float = LENGTH_SCALE
     prior_angle: float = ANGLE_SCALE
-    robust: bool = False
+    robust: bool = True
     fixed: tuple[str, ...] = ()
     restarts: int = 6
     seed: int = 0
+    std_factor: float | None = STD_FACTOR
     lm: LmOptions = LmOptions()
     ekf: EkfOptions = EkfOptions()
 
@@ -69,7 +88,10 @@ class EstimateOptions:
 @dataclass(frozen=True)
 class Estimate:
     """The result: fit holds x, the covariance and the history; sigma is the spot
-    sigma used (estimated when sigma_estimated)."""
+    sigma used (estimated when sigma_estimated); rejected: (pose index, channel)
+    of the spots the robust rule dropped; impossible: (pose index, channel,
+    reason) of the spots refused before the fit; robust: the rule and its
+    figures, None when off."""
 
     names: tuple[str, ...]
     identifiable: np.ndarray
@@ -81,6 +103,8 @@ class Estimate:
     warnings: tuple[str, ...]
     wall_time: float
     restarts: int = 0
+    impossible: tuple[tuple[int, int, str], ...] = ()
+    robust: dict | None = None
 
     @property
     def values(self) -> np.ndarray:
@@ -110,15 +134,62 @@ def prior_sigmas(model: MeasurementModel, n_geometric: int, options: EstimateOpt
     return sigma
 
 
+def impossible_spots(robot: Robot, samples: Samples, model: SpotModel) -> list[tuple[int, int, str]]:
+    """(pose index, laser index, reason) of every given spot that cannot be:
+    outside the screen, or where the nominal beam misses the screen by far."""
+    half = np.array([robot.screen.half_y, robot.screen.half_z])
+    seen = samples.seen
+    out = []
+    outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
+    nominal = model.residuals(np.zeros(len(model.names)), False)   # valid: the beam meets the screen plane ahead
+    beyond = np.abs(nominal.predicted) - half * (1 + MISS_MARGIN)
+    misses = seen & ~outside & ~(nominal.valid & (beyond <= 0).all(axis=2))
+    for p, j in zip(*np.nonzero(outside)):
+        y, z = samples.spots[p, j]
+        out.append((int(p), int(j), f"outside the screen (y, z = {y:.4g}, {z:.4g} m; half sizes "
+                                    f"{half[0]:.4g}, {half[1]:.4g} m)"))
+    for p, j in zip(*np.nonzero(misses)):
+        out.append((int(p), int(j), "the nominal beam misses the screen by far"))
+    return sorted(out)
+
+
 def estimate(robot: Robot, samples: Samples, options: EstimateOptions = EstimateOptions()) -> Estimate:
     """Geometric errors (4N+5) of ``robot`` from spot samples."""
     model = SpotModel(robot, samples)
-    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options))
+    impossible = impossible_spots(robot, samples, model)
+    outside = sum(why.startswith("outside") for *_, why in impossible)
+    if outside and outside == samples.seen.sum():
+        raise ValueError(f"every spot lies outside the screen (half sizes {robot.screen.half_y:g}, "
+                         f"{robot.screen.half_z:g} m): spot coordinates are in metres (these look like millimetres)")
+    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), impossible=impossible)
+
+
+def pose_ids(model: MeasurementModel) -> np.ndarray:
+    """(P,) the pose ids of the model's samples (effects wrap a base model)."""
+    while not hasattr(model, "samples") and hasattr(model, "base"):
+        model = model.base
+    return np.asarray(model.samples.pose)
+
+
+def listing(model: MeasurementModel, units: list[tuple[int, int]]) -> str:
+    ids = pose_ids(model)
+    many = len(units) > 1 and len({c for _, c in units}) > 1
+    names = [f"pose {ids[p]}" + (f" laser {c + 1}" if many else "") for p, c in units[:LISTED]]
+    return ", ".join(names) + (f" and {len(units) - LISTED} more" if len(units) > LISTED else "")
+
+
+def _analysis(model: MeasurementModel, noise: NoiseModel, x0: np.ndarray, fixed: np.ndarray,
+              excluded: np.ndarray | None, std_factor: float | None) -> tuple[Identifiability, int]:
+    factor, n_values = whitened_factor(model, noise, x0, excluded)
+    if n_values == 0:
+        raise ValueError("no measured spot to fit (every spot missing, refused, or its beam misses the screen)")
+    return analyse(factor, model.scales, tuple(model.names), fixed, std_factor=std_factor), n_values
 
 
 def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigma: np.ndarray | None = None,
-                   x0: np.ndarray | None = None) -> Estimate:
-    """The same steps on any measurement model (geometric + effects, other sensors)."""
+                   x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] = ()) -> Estimate:
+    """The same steps on any measurement model (geometric + effects, other sensors).
+    impossible: (pose index, channel, reason) of units refused before the fit."""
     start = time.perf_counter()
     names = tuple(model.names)
     n = len(names)
@@ -131,13 +202,24 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma = options.spot_sigma or TRIAL_SIGMA
     noise = NoiseModel(sigma, options.joint_sigma)
-    factor, n_values = whitened_factor(model, noise, x0)
-    if n_values == 0:
-        raise ValueError("no measured spot to fit (every spot missing or its beam misses the screen)")
-    ident = analyse(factor, model.scales, names, user_fixed)
+    excluded = None
+    if impossible:
+        excluded = np.zeros(model.residuals(x0, False).valid.shape, bool)
+        for p, c, _ in impossible:
+            excluded[p, c] = True
+        warnings.append(f"{len(impossible)} physically impossible measurements refused, not fitted: "
+                        + "; ".join(f"pose {pose_ids(model)[p]} laser {c + 1}: {why}"
+                                    for p, c, why in impossible[:LISTED])
+                        + (f" and {len(impossible) - LISTED} more" if len(impossible) > LISTED else ""))
+    # With a prior every direction is bounded by its tolerance: the prior, not
+    # the threshold, decides what the data add.
+    factor = options.std_factor if prior_sigma is None else None
+    given_factor = None if options.spot_sigma is None else factor
+    ident, n_values = _analysis(model, noise, x0, user_fixed, excluded, given_factor)
     free = ident.free
-    if n_values < free.sum() and prior_sigma is None:
-        raise ValueError(f"{n_values} measured values cannot determine {int(free.sum())} parameters; "
+    # as many values as parameters fit exactly: nothing tests the fit or estimates the noise
+    if n_values <= free.sum() and prior_sigma is None:
+        raise ValueError(f"{n_values} measured values cannot determine and check {int(free.sum())} parameters; "
                          "measure more poses or use the prior")
 
     def fit(problem: Problem, start_x: np.ndarray) -> Fit:
@@ -145,41 +227,81 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
             return levenberg_marquardt(problem, start_x, options.lm)
         return extended_kalman(problem, start_x, options.ekf)
 
+    rejected: list[tuple[int, int]] = []
+    robust = None
+    start_x = x0
+    if options.robust:
+        outcome = robust_fit(model, noise, free, prior_sigma, x0, fit, excluded)
+        rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
+        if rejected:
+            excluded = outcome.rejected if excluded is None else excluded | outcome.rejected
+        # The fits below start from x0 as without the robust rule: on clean data the
+        # result is least squares bit for bit, whichever front end ran it.
+        seen = model.residuals(x0, False).valid
+        kept = int((seen if excluded is None else seen & ~excluded).sum())
+        robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
+                  "weights_converged": outcome.converged, "rejected": len(rejected), "kept": kept}
+        if rejected:
+            warnings.append(f"robust: {len(rejected)} of {kept + len(rejected)} measurements rejected as outliers "
+                            f"and not fitted: {listing(model, rejected)}")
+        if outcome.overflow:
+            warnings.append(f"robust: {outcome.overflow} of {kept} measurements lie beyond the outlier limit: "
+                            "the model does not fit the data (an unmodelled effect or wrong nominal model); "
+                            "none rejected")
+        if not outcome.converged:
+            warnings.append(f"robust: the weights did not settle in {outcome.rounds} rounds")
+
     sigma_estimated = options.spot_sigma is None
     if sigma_estimated:
-        trial = levenberg_marquardt(Problem(model, noise, free), x0, options.lm)
+        trial = levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x, options.lm)
         sigma = TRIAL_SIGMA * float(np.sqrt(trial.chi2 / trial.dof))
         noise = NoiseModel(max(sigma, 1e-9), options.joint_sigma)
+        start_x = trial.x
+    if sigma_estimated or rejected:
+        ident, _ = _analysis(model, noise, x0, user_fixed, excluded, factor)
+        free = ident.free
+    held = [name for name, keep, user in zip(names, free, user_fixed) if not keep and not user]
+    if held:
+        warnings.append(f"rank deficient: the data determine {ident.rank} of {n - int(user_fixed.sum())} "
+                        f"parameters; held at nominal, reported as combinations: {', '.join(held)}")
+    start_x = np.where(free, start_x, x0)
 
-    problem = Problem(model, noise, free, prior_sigma)
-    result = fit(problem, x0)
+    problem = Problem(model, noise, free, prior_sigma, excluded)
+    result = fit(problem, start_x)
     restarts = 0
     if not sigma_estimated and _suspect(result):
-        rng = np.random.default_rng(options.seed)
-        for _ in range(options.restarts):
-            restarts += 1
-            start_x = x0.copy()
-            start_x[free] += rng.uniform(-2, 2, int(free.sum())) * model.scales[free]
-            candidate = levenberg_marquardt(problem, start_x, options.lm)
-            if candidate.cost < result.cost - 1e-9 * max(result.cost, 1.0):
-                result = candidate
-            if not _suspect(result):
-                break
+        result, restarts = _restart(problem, result, x0, free, model.scales, options)
         if _suspect(result):
-            warnings.append(f"chi^2/dof = {result.chi2 / result.dof:.2f} with spot sigma {sigma * 1e3:.3g} mm: "
-                            "the residual exceeds the noise model (outliers, an unmodelled effect, or a wrong "
-                            "noise level); restarts found no better minimum")
+            warnings.append(f"chi^2/dof = {result.chi2 / result.dof:.2f} with spot sigma {sigma * 1e3:.3g} mm "
+                            f"(the residual says {sigma * np.sqrt(result.chi2 / result.dof) * 1e3:.3g} mm): the "
+                            "residual exceeds the noise model (outliers, an unmodelled effect, or a wrong noise "
+                            "level); restarts found no better minimum")
         else:
             warnings.append(f"the first minimum was suspect; restart {restarts} found a lower one")
-
-    rejected: list[tuple[int, int]] = []
-    if options.robust:
-        result, rejected = _reject_outliers(model, noise, free, prior_sigma, result, fit)
+    elif not sigma_estimated and result.chi2 / result.dof < NOISE_RATIO ** -2:
+        warnings.append(f"noise: the residual says {sigma * np.sqrt(result.chi2 / result.dof) * 1e3:.3g} mm per "
+                        f"value, far below the given spot sigma {sigma * 1e3:.3g} mm (standard deviations are "
+                        "overstated)")
+    start_res = Problem(model, noise, free, excluded=excluded).residuals(x0, False)
+    lost = (count_values(start_res) - result.n_values) // start_res.r.shape[2]
+    if lost > 0:
+        warnings.append(f"the fit lost {lost} measurements: at the fitted errors their beams no longer reach the "
+                        "screen, so the cost fell by dropping them; this minimum is not a calibration")
+    if sigma_estimated and sigma < MIN_SIGMA:
+        warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
+                        "(repeated poses?), so they test nothing and the standard deviations mean nothing")
+    # frames are guesses, not drawings: only the robot's own errors have a tolerance
+    own = free & np.array([name.split("_", 1)[0] not in FRAMES for name in names])
+    size = np.abs(result.x) / model.scales
+    if np.any(own & (size > FAR_SCALES)):
+        worst = int(np.argmax(np.where(own, size, 0.0)))
+        warnings.append(f"implausible: {names[worst]} is fitted at {size[worst]:.0f} times its tolerance scale; a "
+                        "wrong minimum, a wrong nominal model or data the model cannot explain")
     if not result.converged:
-        warnings.append(f"{options.method} stopped after {result.iterations} iterations without converging")
-
+        warnings.append(f"{NOT_CONVERGED}: {options.method} stopped after {result.iterations} iterations; the "
+                        "values are not a minimum")
     return Estimate(names, free.copy(), ident, result, sigma, sigma_estimated, tuple(rejected), tuple(warnings),
-                    time.perf_counter() - start, restarts)
+                    time.perf_counter() - start, restarts, tuple(impossible), robust)
 
 
 def _suspect(result: Fit) -> bool:
@@ -187,21 +309,18 @@ def _suspect(result: Fit) -> bool:
     return result.chi2 > dof + 6.0 * np.sqrt(2.0 * dof)
 
 
-def _reject_outliers(model, noise, free, prior_sigma, result: Fit, fit) -> tuple[Fit, list[tuple[int, int]]]:
-    res = model.residuals(result.x, True)
-    n_spots = int(res.valid.sum())
-    excluded = np.zeros(res.valid.shape, bool)
-    rejected: list[tuple[int, int]] = []
-    while len(rejected) < max(1, n_spots // 10):
-        problem = Problem(model, noise, free, prior_sigma, excluded)
-        res = problem.residuals(result.x, True)
-        white = np.einsum("pij,pj->pi", noise.whitener(res), res.r.reshape(len(res.r), -1))
-        d2 = (white.reshape(res.r.shape) ** 2).sum(axis=2)
-        d2[~res.valid] = 0.0
-        worst = np.unravel_index(np.argmax(d2), d2.shape)
-        if d2[worst] <= CHI2_2_999:
+def _restart(problem: Problem, result: Fit, x0: np.ndarray, free: np.ndarray, scales: np.ndarray,
+             options: EstimateOptions) -> tuple[Fit, int]:
+    """Seeded random LM starts within twice the scales; the lowest cost wins."""
+    rng = np.random.default_rng(options.seed)
+    restarts = 0
+    for _ in range(options.restarts):
+        restarts += 1
+        start_x = x0.copy()
+        start_x[free] += rng.uniform(-2, 2, int(free.sum())) * scales[free]
+        candidate = levenberg_marquardt(problem, start_x, options.lm)
+        if candidate.cost < result.cost - 1e-9 * max(result.cost, 1.0):
+            result = candidate
+        if not _suspect(result):
             break
-        excluded[worst] = True
-        rejected.append((int(worst[0]), int(worst[1])))
-        result = fit(Problem(model, noise, free, prior_sigma, excluded), result.x)
-    return result, rejected
+    return result, restarts

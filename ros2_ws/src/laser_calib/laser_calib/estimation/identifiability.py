@@ -1,11 +1,23 @@
 """What the measurements can and cannot separate.
 
 The stacked, whitened measurement Jacobian J (M,n) is scaled column-wise by
-each parameter's characteristic size (10 mm, 1 deg) so that singular values
-compare like with like. Directions with a singular value below ``rel_tol`` of
-the largest are invisible to the data; the estimators fix one parameter per
-such direction at its nominal value and say which parameters carry the
-combination instead.
+each parameter's characteristic size (10 mm, 1 deg: the tolerance scales) so
+that singular values compare like with like. A singular value s of the scaled
+J is the inverse of the standard deviation, in tolerance units, of the
+estimate along its direction. A direction is not identifiable when
+
+- s < rel_tol * s_max: numerically invisible (exact rank deficiency), or
+- s < 1 / std_factor (only when the whitening used the real noise): the data
+  determines it worse than std_factor times its tolerance, so a fitted value
+  would be the noise's, not the robot's (a joint that never moves, a pose set
+  that barely spans a direction).
+
+The estimators then hold one parameter per such direction at nominal and say
+which parameters carry the combination. The combinations are canonical: for
+each held parameter f, the direction e_f - c with c the least-squares
+compensation of f's column by the kept columns. It is unique (the kept columns
+are independent), so every machine and BLAS prints the same text, and each
+combination names only f and the kept parameters that carry it.
 """
 
 from __future__ import annotations
@@ -15,14 +27,23 @@ from dataclasses import dataclass
 import numpy as np
 
 REL_TOL = 1e-7
+# A direction whose standard deviation exceeds STD_FACTOR times its tolerance
+# scale (10 mm / 1 deg) is not identifiable: its fitted value would be mostly
+# noise: at 10 tolerances (100 mm, 10 deg) it is no measurement of the robot.
+# It keeps every direction of the paper's arms at their noise (the weakest,
+# 7-DOF theta7 - slm_rz, has 2-4 tolerances) and holds what a joint that never
+# moves leaves (hundreds of tolerances).
+STD_FACTOR = 10.0
+TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed
 
 
 @dataclass(frozen=True)
 class Identifiability:
-    """singular_values (min(M,n),) of the scaled Jacobian; rank; condition number
-    (largest / smallest kept singular value); free (n,) parameters kept;
-    null_combinations: one text per invisible direction; merged: fixed parameter
-    name -> the parameters that carry its combination."""
+    """singular_values (min(M,n),) of the scaled Jacobian; rank (directions kept);
+    condition number (largest / smallest kept singular value); free (n,)
+    parameters kept; null_combinations: one text per held direction; merged:
+    held parameter name -> the parameters that carry its combination;
+    min_singular: the threshold that was applied."""
 
     names: tuple[str, ...]
     singular_values: np.ndarray
@@ -31,6 +52,7 @@ class Identifiability:
     free: np.ndarray
     null_combinations: tuple[str, ...]
     merged: dict[str, str]
+    min_singular: float = 0.0
 
     def table(self) -> str:
         lines = [f"parameters: {len(self.names)}   numerical rank: {self.rank}   "
@@ -38,7 +60,7 @@ class Identifiability:
                  " k  singular value (scaled)"]
         lines += [f"{k + 1:2d}  {s:.4g}" for k, s in enumerate(self.singular_values)]
         if self.null_combinations:
-            lines += ["", "directions that move no spot (coefficients in units of 10 mm / 1 deg; "
+            lines += ["", "directions the data cannot determine (coefficients in units of 10 mm / 1 deg; "
                       "+1 d1 -1 d2 means only the sum d1 + d2 is seen):"]
             lines += [f"  {text}" for text in self.null_combinations]
             lines += ["", "fixed at nominal (merged):"]
@@ -48,7 +70,7 @@ class Identifiability:
         return "\n".join(lines)
 
 
-def describe(vector: np.ndarray, names: tuple[str, ...], threshold: float = 0.05) -> str:
+def describe(vector: np.ndarray, names: tuple[str, ...], threshold: float = TERM_THRESHOLD) -> str:
     v = vector / np.abs(vector).max()
     v = v * np.sign(v[np.flatnonzero(np.abs(v) > threshold)[0]])  # first term positive: one canonical text
     terms = [f"{c:+.2f} {names[i]}" for i, c in enumerate(v) if abs(c) > threshold]
@@ -56,43 +78,50 @@ def describe(vector: np.ndarray, names: tuple[str, ...], threshold: float = 0.05
 
 
 def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
-            fixed: np.ndarray | None = None, rel_tol: float = REL_TOL) -> Identifiability:
+            fixed: np.ndarray | None = None, rel_tol: float = REL_TOL,
+            std_factor: float | None = None) -> Identifiability:
     """Identifiability of the parameters from a whitened Jacobian (M,n).
 
     Parameters are kept greedily in their natural order (base to tip), so of a
     pair that only acts as a sum the one nearer the base is kept and carries it.
     ``fixed`` (n,) marks parameters the user holds; they are never kept.
+    std_factor: apply the noise threshold (module docstring); only meaningful
+    when the Jacobian was whitened with the real measurement noise.
     """
     n = jacobian.shape[1]
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    scaled = jacobian * scales
+    # R (n,n) of J's QR has J's column geometry (J[:,S] = Q R[:,S]): every test
+    # below runs on it, so a long measurement stack is factored once.
+    r_factor = np.linalg.qr(jacobian * scales, mode="r")
+    if r_factor.shape[0] < n:  # fewer values than parameters
+        r_factor = np.vstack([r_factor, np.zeros((n - r_factor.shape[0], n))])
     candidates = np.flatnonzero(~fixed)
-    _, singular, vt = np.linalg.svd(scaled[:, candidates], full_matrices=False)
+    singular = np.linalg.svd(r_factor[:, candidates], compute_uv=False)
     top = singular[0] if singular.size and singular[0] > 0 else 1.0
-    rank = int((singular > rel_tol * top).sum())
+    threshold = rel_tol * top
+    if std_factor is not None:
+        threshold = max(threshold, 1.0 / std_factor)
 
-    kept: list[int] = list(candidates)
-    if rank < len(candidates):
-        kept = []
-        for j in candidates:
-            trial = scaled[:, kept + [j]]
-            if np.linalg.svd(trial, compute_uv=False)[-1] > rel_tol * top:
-                kept.append(j)
+    kept: list[int] = []
+    for j in candidates:
+        if np.linalg.svd(r_factor[:, kept + [j]], compute_uv=False)[-1] > threshold:
+            kept.append(j)
     free = np.zeros(n, bool)
     free[kept] = True
 
-    if vt.shape[0] < len(candidates):  # fewer values than parameters: complete the basis
-        vt = np.linalg.svd(scaled[:, candidates])[2]
-    null = vt[rank:].T  # (len(candidates), n - rank) in scaled coordinates
-    null_full = np.zeros((n, null.shape[1]))
-    null_full[candidates] = null
-    combinations = tuple(describe(null_full[:, k], names) for k in range(null_full.shape[1]))
-    merged = {}
-    projector = null_full @ null_full.T
+    combinations, merged = [], {}
     for j in np.flatnonzero(~free & ~fixed):
-        partners = [names[i] for i in np.flatnonzero(np.abs(projector[j]) > 0.05) if i != j and free[i]]
+        direction = np.zeros(n)
+        direction[j] = 1.0
+        if kept:
+            direction[kept] = -np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0]
+        combinations.append(describe(direction, names))
+        weight = np.abs(direction) / np.abs(direction).max()
+        partners = [names[i] for i in kept if weight[i] > TERM_THRESHOLD]
         merged[names[j]] = ("not separable from " + ", ".join(partners) + "; fixed at nominal, "
-                            "those parameters carry the combination") if partners else "not seen by the data; fixed at nominal"
-    kept_singular = singular[:rank]
-    condition = float(kept_singular[0] / kept_singular[-1]) if rank else float("inf")
-    return Identifiability(tuple(names), singular, rank, condition, free, combinations, merged)
+                            "those parameters carry the combination") if partners else \
+            "not determined by the data; fixed at nominal"
+    kept_singular = np.linalg.svd(r_factor[:, kept], compute_uv=False) if kept else np.zeros(0)
+    condition = float(kept_singular[0] / kept_singular[-1]) if kept else float("inf")
+    return Identifiability(tuple(names), singular, len(kept), condition, free, tuple(combinations), merged,
+                           float(threshold))

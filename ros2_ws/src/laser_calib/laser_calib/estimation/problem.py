@@ -61,18 +61,20 @@ def pose_blocks(model: MeasurementModel, chunk: int = CHUNK_POSES) -> Iterator[t
         yield index, model.subset(index)
 
 
-def whitened_factor(model: MeasurementModel, noise: NoiseModel, x: np.ndarray,
+def whitened_factor(model: MeasurementModel, noise: NoiseModel, x: np.ndarray, excluded: np.ndarray | None = None,
                     chunk: int = CHUNK_POSES) -> tuple[np.ndarray, int]:
     """R (min(M,n),n) with R^T R = J^T J of the whitened Jacobian (M,n) of all
-    parameters at x, and the measured values counted. R comes from QR of each
-    block stacked under the running R (tall-skinny QR), so it has the singular
-    values and right singular vectors of J itself: identifiability.analyse(R)
-    decides as on J, without forming J^T J (which would square its condition)."""
+    parameters at x, without the units ``excluded`` (P,C), and the measured
+    values counted. R comes from QR of each block stacked under the running R
+    (tall-skinny QR), so it has the singular values and right singular vectors
+    of J itself: identifiability.analyse(R) decides as on J, without forming
+    J^T J (which would square its condition)."""
+    problem = Problem(model, noise, np.ones(len(model.names), bool), excluded=excluded, chunk=chunk)
     factor = np.zeros((0, len(model.names)))
     n_values = 0
-    for _, block in pose_blocks(model, chunk):
-        res = block.residuals(x, True)
-        _, jac = whiten(res, noise.whitener(res))
+    for index, block in pose_blocks(model, chunk):
+        res = problem._excluding(block.residuals(x, True), index)
+        _, jac = whiten(res, noise.for_poses(index).whitener(res))
         factor = np.linalg.qr(np.vstack([factor, jac]), mode="r")
         n_values += count_values(res)
     return factor, n_values
@@ -130,7 +132,7 @@ class Problem:
         whitener = None
         for index, block in pose_blocks(self.model, self.chunk):
             res = self._excluding(block.residuals(x, True), index)
-            own = self.noise.whitener(res)
+            own = self.noise.for_poses(index).whitener(res)
             if whitener is None:
                 total = len(res.r) if index == slice(None) else n_poses(self.model)
                 whitener = np.empty((total,) + own.shape[1:])

@@ -118,10 +118,14 @@ def _prior(model: MeasurementModel, options: SensorFitOptions) -> np.ndarray | N
     return sigma
 
 
-def _rotation_length(model: MeasurementModel, x: np.ndarray, current: float) -> float:
-    """RMS translation / RMS rotation residual, m/rad (rotation values unscaled)."""
-    res = model.residuals(x, False)
-    values = res.r[res.valid]
+def _rotation_length(model: MeasurementModel, fit: Estimate, current: float) -> float:
+    """RMS translation / RMS rotation residual, m/rad (rotation values unscaled),
+    over the poses the fit kept (a rejected outlier would set the ratio)."""
+    res = model.residuals(fit.values, False)
+    keep = res.valid.copy()
+    for p, c in fit.rejected:
+        keep[p, c] = False
+    values = res.r[keep]
     translation = np.sqrt(np.mean(values[:, :3] ** 2))
     rotation = np.sqrt(np.mean(values[:, 3:] ** 2)) / current
     return float(translation / max(rotation, 1e-12))
@@ -157,7 +161,7 @@ def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = 
     full = fit(model, fixed, nominal.values)
     if samples.kind == "pose" and options.rotation_length is None:
         for _ in range(VARIANCE_STEPS):
-            length = _rotation_length(model, full.values, length)
+            length = _rotation_length(model, full, length)
             model = build(length)
             nominal = fit(model, fixed + not_frames, nominal.values)
             full = fit(model, fixed, full.values)

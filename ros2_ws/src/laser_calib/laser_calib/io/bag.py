@@ -6,10 +6,12 @@ replay, resume). The crash-safe writer is bag_writer.py.
 from __future__ import annotations
 
 import math
+import tempfile
 from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
+import yaml
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.typesys import Stores, get_typestore, get_types_from_msg
 from rosbags.typesys.store import Typestore
@@ -110,21 +112,74 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int, list[Qos]]]:
 
 def read_samples(path: str | Path, topic: str = SAMPLES_TOPIC) -> Samples:
     """The measured samples of a session bag (its /samples messages, in order), as the core's Samples."""
+    return read_samples_checked(path, topic)[0]
+
+
+def read_samples_checked(path: str | Path, topic: str = SAMPLES_TOPIC) -> tuple[Samples, list[str]]:
+    """Samples and the damaged segments lost, one text each. If the bag cannot
+    be read whole, each segment is read on its own and the intact ones kept."""
     path = Path(path)
+    try:
+        rows = _sample_rows(path, topic)
+        lost: list[str] = []
+    except InputError as whole:
+        with tempfile.TemporaryDirectory(prefix="bag-segments-") as root:
+            segments = _segments(path, Path(root))
+            if len(segments) < 2:
+                raise whole from None
+            rows, lost = [], []
+            for name, single in segments:
+                try:
+                    rows += _sample_rows(single, topic, str(path / name))
+                except InputError as exc:
+                    lost.append(f"{name} ({exc.problem})")
+        if len(lost) == len(segments):
+            raise whole from None
+    if not rows:
+        raise InputError(str(path), f"topic {topic} holds no samples")
+    return samples_from_rows(rows, str(path)), lost
+
+
+def _sample_rows(path: Path, topic: str, label: str | None = None) -> list:
     reader = _reader(path)
+    label = label or str(path)
     rows = []
     try:
         connections = [c for c in reader.connections if c.topic == topic]
         if not connections:
-            raise InputError(str(path), f"no topic {topic} in the bag (not a calibration session bag?)")
-        for index, (connection, _, raw) in enumerate(reader.messages(connections=connections)):
-            msg = reader.deserialize(raw, connection.msgtype)
-            rows.append(sample_row_from_msg(msg, f"{path}: {topic} message {index + 1}"))
+            raise InputError(label, f"no topic {topic} in the bag (not a calibration session bag?)")
+        try:
+            for index, (connection, _, raw) in enumerate(reader.messages(connections=connections)):
+                msg = reader.deserialize(raw, connection.msgtype)
+                rows.append(sample_row_from_msg(msg, f"{label}: {topic} message {index + 1}"))
+        except InputError:
+            raise
+        except Exception as exc:  # a damaged segment: rosbags raises several types
+            raise InputError(label, f"cannot read bag ({exc})") from None
     finally:
         reader.close()
-    if not rows:
-        raise InputError(str(path), f"topic {topic} holds no samples")
-    return samples_from_rows(rows, str(path))
+    return rows
+
+
+def _segments(path: Path, root: Path) -> list[tuple[str, Path]]:
+    """(file name, a one-segment bag of it) per segment listed in the metadata:
+    a folder under root with a link to the segment and its own metadata."""
+    try:
+        meta = yaml.safe_load((path / METADATA).read_text())
+        info = meta["rosbag2_bagfile_information"]
+        files = list(info.get("files") or [])
+    except Exception:  # no readable metadata: nothing to split
+        return []
+    out = []
+    for entry in files:
+        single = root / Path(entry["path"]).stem
+        single.mkdir()
+        (single / entry["path"]).symlink_to((path / entry["path"]).absolute())
+        one = dict(info, relative_file_paths=[entry["path"]], files=[entry],
+                   message_count=entry.get("message_count", 0))
+        (single / METADATA).write_text(yaml.safe_dump({**meta, "rosbag2_bagfile_information": one}))
+        out.append((entry["path"], single))
+    return out
 
 
 def sample_row_from_msg(msg, where: str) -> tuple[int, float, np.ndarray, np.ndarray]:

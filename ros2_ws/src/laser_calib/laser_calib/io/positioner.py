@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import yaml
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.read import finite_number, load_yaml, read_text
 from laser_calib.model.robot import STANDARD, Joint, Robot, Slm
 from laser_calib.measurement.frames import POSE_KEYS, Pose, with_frames
 from laser_calib.measurement.rotations import quaternion_to_matrix
@@ -39,12 +39,7 @@ BASE_IN_WORLD = Pose(quaternion_to_matrix(np.array([math.cos(math.pi / 4), math.
 
 
 def _read_yaml(path: Path) -> Any:
-    try:
-        return yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise InputError(str(path), f"not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    return load_yaml(read_text(path), str(path))
 
 
 def _pose(where: str, mapping: Any) -> np.ndarray:
@@ -53,10 +48,7 @@ def _pose(where: str, mapping: Any) -> np.ndarray:
         raise InputError(where, "expected a pose mapping x, y, z, qw, qx, qy, qz")
     values = []
     for key in POSE_KEYS:
-        value = mapping.get(key)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise InputError(f"{where}.{key}", f"expected a finite number, got {value!r}")
-        values.append(float(value))
+        values.append(finite_number(mapping.get(key), f"{where}.{key}"))
     if abs(np.linalg.norm(values[3:]) - 1.0) > 1e-3:
         raise InputError(where, f"quaternion norm {np.linalg.norm(values[3:]):.6g} is not 1")
     return np.array(values)

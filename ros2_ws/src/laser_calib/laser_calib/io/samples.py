@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.read import csv_rows, parse_int, parse_number, read_text
 from laser_calib.model.robot import Robot
 
 SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
@@ -93,7 +94,7 @@ def _header_error(source: str, problem: str) -> InputError:
 
 def read_table(text: str, source: str, expected_header: str) -> tuple[list[str], list[list[str]], int]:
     """Header, data rows and joint count N of a 'pose,stamp,q1..qN,...' CSV."""
-    rows = list(csv.reader(io.StringIO(text)))
+    rows = csv_rows(text, source)
     while rows and not any(cell.strip() for cell in rows[-1]):
         rows.pop()
     if not rows:
@@ -111,17 +112,6 @@ def read_table(text: str, source: str, expected_header: str) -> tuple[list[str],
     return header, rows[1:], n_q
 
 
-def parse_number(cell: str, where: str) -> float:
-    """A finite number from one CSV field, or one line naming ``where``."""
-    try:
-        value = float(cell)
-    except ValueError:
-        raise InputError(where, f"not a number: {cell!r}") from None
-    if not math.isfinite(value):
-        raise InputError(where, f"not finite ({cell})")
-    return value
-
-
 def parse_table(header: list[str], rows: list[list[str]], source: str,
                 may_be_empty: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Pose ids (P,) and the other columns as numbers (P, C-1), NaN only where a
@@ -135,10 +125,7 @@ def parse_table(header: list[str], rows: list[list[str]], source: str,
         line = r + 2
         if len(row) != len(header):
             raise InputError(f"{source}: line {line}", f"{len(row)} fields, header has {len(header)}")
-        try:
-            pose[r] = int(row[0])
-        except ValueError:
-            raise InputError(f"{source}: line {line}, field pose", f"not an integer: {row[0]!r}") from None
+        pose[r] = parse_int(row[0], f"{source}: line {line}, field pose")
         for c, cell in enumerate(row[1:], start=1):
             name = header[c]
             cell = cell.strip()
@@ -170,6 +157,9 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
         raise _header_error(source, what)
     if robot is not None and n_q != robot.n_joints:
         raise _header_error(source, f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints} joints")
+    if robot is not None and not robot.lasers:
+        raise InputError(source, f"spot samples need the robot's lasers, but robot '{robot.name}' has no "
+                                 "'lasers:' (add the two lasers' gamma, beta to its file)")
     pose, values = parse_table(header, rows, source, SPOT_COLUMNS)
     n = len(pose)
     spots = values[:, 1 + n_q:5 + n_q].reshape(n, 2, 2)
@@ -190,17 +180,14 @@ def check_joint_range(q: np.ndarray, robot: Robot, source: str, pose: np.ndarray
     if outside.any():
         r, i = np.argwhere(outside)[0]
         label = f"pose {pose[r]}" if pose is not None else f"row {r}"
+        hint = " (readings are in radians; this looks like degrees)" if abs(q[r, i]) > 2 * math.pi + 0.5 else ""
         raise InputError(f"{source}: {label}, field q{i + 1}",
-                         f"{q[r, i]:.6g} rad outside the joint range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]")
+                         f"{q[r, i]:.6g} rad outside the joint range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]"
+                         + hint)
 
 
 def load_samples(path: str | Path, robot: Robot | None = None) -> Samples:
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
-    return parse_samples(text, str(path), robot)
+    return parse_samples(read_text(path), str(Path(path)), robot)
 
 
 def format_samples(samples: Samples) -> str:

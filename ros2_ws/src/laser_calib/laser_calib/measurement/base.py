@@ -61,6 +61,11 @@ class NoiseModel:
     sigma: float
     joint_sigma: float | np.ndarray = 0.0
 
+    def for_poses(self, index: slice) -> "NoiseModel":
+        """The noise model of a block of poses (solvers go by blocks); the same for
+        every pose here, per pose where a subclass weighs them (robust.WeightedNoise)."""
+        return self
+
     def whitener(self, residuals: Residuals) -> np.ndarray:
         """(P,CD,CD) inverse Cholesky factors of each pose's covariance.
 

@@ -9,32 +9,48 @@ from typing import Any, Mapping
 import yaml
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.model.robot import CONVENTIONS, PAPER, Joint, Laser, Robot, Screen, Slm
 
-_KNOWN_KEYS = {"name", "joints", "slm", "lasers", "screen", "gravity", "convention"}
+_KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "convention")
+EXTRA_KEYS = ("effects", "frames")  # read by effects/catalog.py and measurement/frames.py
+JOINT_KEYS = ("a", "d", "alpha", "theta0", "min", "max", "type")
+SLM_KEYS = ("a", "d", "alpha", "theta", "beta")
+LASER_KEYS = ("gamma", "beta")
+SCREEN_KEYS = ("half_y", "half_z")
+# Units check: no arm has a link over 100 m, no fixed angle over 4 pi rad; such a
+# value is a length in mm or an angle in degrees.
+MAX_LENGTH = 100.0
+MAX_ANGLE = 4 * math.pi
+LIMIT_ANGLE = 100.0  # joint limits: several turns are possible, 100 rad (5730 deg) is degrees
 
 
-def _number(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None) -> float:
-    if key not in mapping:
-        if default is not None:
-            return default
-        raise InputError(where, f"missing key '{key}'")
-    value = mapping[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"{where}.{key}", f"expected a number, got {type(value).__name__} {value!r}")
-    if not math.isfinite(value):
-        raise InputError(f"{where}.{key}", f"not finite ({value})")
-    return float(value)
-
-
-def _mapping(where: str, value: Any) -> Mapping[str, Any]:
+def _mapping(where: str, value: Any, known: tuple[str, ...]) -> Mapping[str, Any]:
     if not isinstance(value, Mapping):
         raise InputError(where, f"expected a mapping, got {type(value).__name__}")
+    known_keys(where, value, known)
+    return value
+
+
+def _length(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None) -> float:
+    value = yaml_number(where, mapping, key, default)
+    if abs(value) > MAX_LENGTH:
+        raise InputError(f"{where}.{key}", f"{value:g} m is not a plausible length: lengths are in metres "
+                                           "(this looks like millimetres)")
+    return value
+
+
+def _angle(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None,
+           limit: float = MAX_ANGLE) -> float:
+    value = yaml_number(where, mapping, key, default)
+    if abs(value) > limit:
+        raise InputError(f"{where}.{key}", f"{value:g} rad is not a plausible angle: angles are in radians "
+                                           "(this looks like degrees)")
     return value
 
 
 def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
-    data = _mapping(source, data)
+    data = _mapping(source, data, _KNOWN_KEYS + EXTRA_KEYS)
     for key in ("name", "joints"):
         if key not in data:
             raise InputError(source, f"missing key '{key}'")
@@ -45,12 +61,16 @@ def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
     joints = []
     for i, entry in enumerate(data["joints"]):
         where = f"{source}: joints[{i}] (joint {i + 1})"
-        entry = _mapping(where, entry)
+        entry = _mapping(where, entry, JOINT_KEYS)
         kind = entry.get("type", "revolute")
         if kind not in ("revolute", "prismatic"):
             raise InputError(f"{where}.type", f"expected revolute or prismatic, got {kind!r}")
-        joint = Joint(*(_number(where, entry, k) for k in ("a", "d", "alpha", "theta0", "min", "max")),
-                      prismatic=kind == "prismatic")
+        prismatic = kind == "prismatic"
+        # a prismatic joint's limits are lengths
+        limit = (lambda key: _length(where, entry, key)) if prismatic else \
+            (lambda key: _angle(where, entry, key, limit=LIMIT_ANGLE))
+        joint = Joint(_length(where, entry, "a"), _length(where, entry, "d"), _angle(where, entry, "alpha"),
+                      _angle(where, entry, "theta0"), limit("min"), limit("max"), prismatic=prismatic)
         if joint.min >= joint.max:
             raise InputError(where, f"min {joint.min} is not below max {joint.max}")
         joints.append(joint)
@@ -58,9 +78,9 @@ def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
     slm = None
     if "slm" in data:
         where = f"{source}: slm"
-        slm_map = _mapping(where, data["slm"])
-        slm = Slm(*(_number(where, slm_map, k) for k in ("a", "d", "alpha", "theta")),
-                  beta=_number(where, slm_map, "beta", 0.0))
+        slm_map = _mapping(where, data["slm"], SLM_KEYS)
+        slm = Slm(_length(where, slm_map, "a"), _length(where, slm_map, "d"), _angle(where, slm_map, "alpha"),
+                  _angle(where, slm_map, "theta"), beta=_angle(where, slm_map, "beta", 0.0))
     # No lasers: an arm measured by another sensor (sensors/); with an SLM, exactly two.
     laser_list = data.get("lasers", [])
     if not isinstance(laser_list, list) or len(laser_list) not in (0, 2):
@@ -70,21 +90,21 @@ def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
     lasers = []
     for j, entry in enumerate(laser_list):
         where = f"{source}: lasers[{j}]"
-        entry = _mapping(where, entry)
-        lasers.append(Laser(_number(where, entry, "gamma"), _number(where, entry, "beta", 0.0)))
+        entry = _mapping(where, entry, LASER_KEYS)
+        lasers.append(Laser(_angle(where, entry, "gamma"), _angle(where, entry, "beta", 0.0)))
     screen = Screen()
     if "screen" in data:
         where = f"{source}: screen"
-        screen_map = _mapping(where, data["screen"])
-        screen = Screen(_number(where, screen_map, "half_y", 1.0), _number(where, screen_map, "half_z", 1.0))
+        screen_map = _mapping(where, data["screen"], SCREEN_KEYS)
+        screen = Screen(_length(where, screen_map, "half_y", 1.0), _length(where, screen_map, "half_z", 1.0))
         if screen.half_y <= 0 or screen.half_z <= 0:
             raise InputError(where, "half sizes must be positive")
     gravity = (0.0, 0.0, -1.0)
     if "gravity" in data:
         g = data["gravity"]
-        if (not isinstance(g, list) or len(g) != 3
-                or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in g)):
+        if not isinstance(g, list) or len(g) != 3:
             raise InputError(f"{source}: gravity", "expected a list of three numbers")
+        g = [finite_number(v, f"{source}: gravity[{i}]") for i, v in enumerate(g)]
         norm = math.sqrt(sum(v * v for v in g))
         if not math.isfinite(norm) or norm == 0:
             raise InputError(f"{source}: gravity", "expected a non-zero finite vector")
@@ -92,24 +112,13 @@ def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
     convention = data.get("convention", PAPER)
     if convention not in CONVENTIONS:
         raise InputError(f"{source}: convention", f"expected one of {', '.join(CONVENTIONS)}, got {convention!r}")
-    extra = {k: v for k, v in data.items() if k not in _KNOWN_KEYS}
+    extra = {k: v for k, v in data.items() if k in EXTRA_KEYS}
     return Robot(name=data["name"], joints=tuple(joints), slm=slm, lasers=tuple(lasers), screen=screen,
                  gravity=gravity, convention=convention, extra=extra)
 
 
 def load_robot(path: str | Path) -> Robot:
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f"line {mark.line + 1}" if mark else "YAML"
-        raise InputError(f"{path}: {line}", f"not valid YAML ({getattr(exc, 'problem', exc)})") from None
-    return robot_from_dict(data, str(path))
+    return robot_from_dict(load_yaml(read_text(path), str(path)), str(path))
 
 
 def robot_to_dict(robot: Robot) -> dict[str, Any]:

@@ -114,6 +114,9 @@ class Calibration:
             "restarts": est.restarts,
             "wall_time_s": est.wall_time,
             "rejected_spots": [{"pose": int(self.samples.pose[p]), "laser": j + 1} for p, j in est.rejected],
+            "impossible_spots": [{"pose": int(self.samples.pose[p]), "laser": j + 1, "reason": why}
+                                 for p, j, why in est.impossible],
+            "robust": est.robust,
             "warnings": list(est.warnings),
             "inputs": self.sources,
         }

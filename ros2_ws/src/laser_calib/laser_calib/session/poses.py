@@ -7,18 +7,15 @@ load_poses reads.
 
 from __future__ import annotations
 
-import csv
-import io
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-import yaml
 
 from laser_calib.io.errors import InputError
-from laser_calib.io.samples import check_joint_range, parse_number
+from laser_calib.io.read import csv_rows, finite_number, load_yaml, parse_int, parse_number, read_text
+from laser_calib.io.samples import check_joint_range
 from laser_calib.model.robot import Robot
 from laser_calib.session.durable import write_durably
 from laser_calib.sim.simulation import sample_poses
@@ -47,10 +44,7 @@ def load_poses(path: str | Path, robot: Robot) -> PoseSequence:
     """Pose list from YAML (``poses:`` list of [q1..qN] or {pose: id, q: [...]}) or
     CSV (header with q1..qN, optionally pose and test (0/1); other columns ignored)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise InputError(str(path), f"cannot read ({exc.strerror})") from None
+    text = read_text(path)
     test: list[bool] = []
     if path.suffix.lower() in (".yaml", ".yml"):
         ids, rows = _poses_from_yaml(text, str(path), robot)
@@ -67,20 +61,11 @@ def _check_row(values: Sequence, where: str, robot: Robot) -> list[float]:
     if not isinstance(values, (list, tuple)) or len(values) != robot.n_joints:
         count = len(values) if isinstance(values, (list, tuple)) else "not a list of"
         raise InputError(where, f"{count} joint positions, robot '{robot.name}' has {robot.n_joints}")
-    out = []
-    for i, value in enumerate(values):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise InputError(f"{where}, q{i + 1}", f"expected a finite number (rad), got {value!r}")
-        out.append(float(value))
-    return out
+    return [finite_number(value, f"{where}, q{i + 1}") for i, value in enumerate(values)]
 
 
 def _poses_from_yaml(text: str, source: str, robot: Robot) -> tuple[list[int], list[list[float]]]:
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        raise InputError(f"{source}: line {mark.line + 1}" if mark else source, "not valid YAML") from None
+    data = load_yaml(text, source)
     if isinstance(data, dict):
         if "poses" not in data:
             raise InputError(source, "missing key 'poses'")
@@ -105,7 +90,7 @@ def _poses_from_yaml(text: str, source: str, robot: Robot) -> tuple[list[int], l
 
 
 def _poses_from_csv(text: str, source: str, robot: Robot) -> tuple[list[int], list[list[float]], list[bool]]:
-    lines = [row for row in csv.reader(io.StringIO(text)) if any(cell.strip() for cell in row)]
+    lines = [row for row in csv_rows(text, source) if any(cell.strip() for cell in row)]
     if not lines:
         raise InputError(source, "empty file")
     header = [cell.strip() for cell in lines[0]]
@@ -125,10 +110,7 @@ def _poses_from_csv(text: str, source: str, robot: Robot) -> tuple[list[int], li
         if pose_col is None:
             ids.append(r)
         else:
-            try:
-                ids.append(int(row[pose_col]))
-            except ValueError:
-                raise InputError(f"{source}: line {line}, field pose", f"not an integer: {row[pose_col]!r}") from None
+            ids.append(parse_int(row[pose_col], f"{source}: line {line}, field pose"))
         rows.append([parse_number(row[i], f"{source}: line {line}, field {name}") for name, i in zip(columns, index)])
         if test_col is not None:
             if row[test_col].strip() not in ("0", "1"):

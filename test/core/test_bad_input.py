@@ -1,0 +1,251 @@
+"""Every class of bad input (issue 9, section 3): one line on stderr naming the
+file, field or option, exit status 2, never a traceback, never a silent result.
+
+Each case writes its files into a folder and returns the command line; a new
+class is one more entry. Property-based cases (hypothesis) throw arbitrary
+text at the readers: they return a value or raise InputError, nothing else.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from laser_calib.cli.main import main
+from laser_calib.io.errors import InputError
+from laser_calib.io.read import load_yaml
+from laser_calib.io.samples import format_samples, load_samples, parse_samples
+from laser_calib.io.sensor_samples import parse_sensor_samples
+from laser_calib.model.robot_file import dump_robot, robot_from_dict, robot_to_dict
+from laser_calib.sim.simulation import bundled_robot, paper_session
+
+ROBOT = bundled_robot("paper-4dof")
+SESSION = paper_session("paper-4dof", 0, n_per_span=6)
+SAMPLES = format_samples(SESSION.samples)
+
+
+def _files(folder: Path, robot: str | None = None, samples: str | None = None) -> tuple[str, str]:
+    (folder / "robot.yaml").write_text(dump_robot(ROBOT) if robot is None else robot)
+    (folder / "samples.csv").write_text(SAMPLES if samples is None else samples)
+    return str(folder / "robot.yaml"), str(folder / "samples.csv")
+
+
+def _estimate(folder: Path, robot: str | None = None, samples: str | None = None, *extra: str) -> list[str]:
+    r, s = _files(folder, robot, samples)
+    return ["estimate", "--robot", r, "--samples", s, "--out", str(folder / "out"), *extra]
+
+
+def _cell(row: int, column: str, value: str) -> str:
+    """SAMPLES with one field replaced."""
+    lines = SAMPLES.splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index(column)] = value
+    lines[row] = ",".join(cells)
+    return "\n".join(lines) + "\n"
+
+
+def _robot_yaml(edit) -> str:
+    data = robot_to_dict(ROBOT)
+    edit(data)
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def _robot_text(replace_from: str, replace_to: str) -> str:
+    text = dump_robot(ROBOT)
+    assert replace_from in text
+    return text.replace(replace_from, replace_to, 1)
+
+
+def _poses(folder: Path, header: str, row: str = "0,0.0,0.1,0.2,0.3,0.4,1.0,0.5,0.2,1.0,0.0,0.0") -> list[str]:
+    robot = bundled_robot("paper-4dof")
+    (folder / "robot.yaml").write_text(dump_robot(robot))
+    (folder / "poses.csv").write_text(header + "\n" + row + "\n")
+    return ["calibrate-poses", "--robot", str(folder / "robot.yaml"), "--samples", str(folder / "poses.csv"),
+            "--out", str(folder / "out")]
+
+
+def _slm(folder: Path, rows: str, *extra: str) -> list[str]:
+    (folder / "robot.yaml").write_text(dump_robot(ROBOT))
+    (folder / "slm.csv").write_text("laser,distance,u,v\n" + rows)
+    return ["slm-calibrate", "--robot", str(folder / "robot.yaml"), "--measurements", str(folder / "slm.csv"),
+            "--out", str(folder / "slm.yaml"), *extra]
+
+
+def _no_spots_test(folder: Path) -> list[str]:
+    empty = SESSION.samples.subset(np.arange(3))
+    text = format_samples(type(empty)(empty.pose, empty.stamp, empty.q, np.full_like(empty.spots, np.nan)))
+    (folder / "test.csv").write_text(text)
+    return _estimate(folder) + ["--test", str(folder / "test.csv")]
+
+
+BOMB = "a: &a [x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b, *b]\n"
+
+CASES = {
+    "non-UTF-8 samples": (lambda d: _files(d) and _latin1(d), "samples.csv"),
+    "pose id 10^30": (lambda d: _estimate(d, samples=_cell(1, "pose", "1" + "0" * 30)), "field pose"),
+    "field over 131072 characters": (lambda d: _estimate(d, samples=_cell(1, "q1", "1" * 140000)), "samples.csv"),
+    "0_1 with Python underscores": (lambda d: _estimate(d, samples=_cell(1, "q1", "0_1")), "field q1"),
+    "spot 1e300": (lambda d: _estimate(d, samples=_cell(2, "l1_y", "1e300")), "field l1_y"),
+    "test file with every spot missing": (_no_spots_test, "test.csv"),
+    "400-digit integer in YAML": (lambda d: _estimate(d, robot=_robot_text("a: 0.0", "a: " + "9" * 400)), "robot.yaml"),
+    "recursive anchor": (lambda d: _estimate(d, robot="name: &a [*a]\n"), "robot.yaml"),
+    "5000-deep nesting": (lambda d: _estimate(d, robot="name: " + "[" * 5000 + "]" * 5000 + "\n"), "robot.yaml"),
+    "YAML bomb under an unknown key": (lambda d: _estimate(d, robot=dump_robot(ROBOT) + BOMB), "robot.yaml"),
+    "misspelled screen": (lambda d: _estimate(d, robot=_robot_yaml(lambda r: r.__setitem__("screan", r.pop("screen")))),
+                          "did you mean 'screen'"),
+    "misspelled beta": (lambda d: _estimate(d, robot=_robot_yaml(
+        lambda r: r["lasers"][0].__setitem__("bta", r["lasers"][0].pop("beta")))), "did you mean 'beta'"),
+    "duplicated key": (lambda d: _estimate(d, robot=_robot_text("{a: 0.0,", "{a: 0.0, a: 0.1,")), "duplicated key 'a'"),
+    "no lasers with spot samples": (lambda d: _estimate(d, robot=_robot_yaml(lambda r: r.pop("lasers"))), "lasers"),
+    "lengths in millimetres": (lambda d: _estimate(d, robot=_robot_yaml(
+        lambda r: r["joints"][1].__setitem__("a", 350.0))), "millimetres"),
+    "angles in degrees": (lambda d: _estimate(d, robot=_robot_yaml(
+        lambda r: r["joints"][1].__setitem__("alpha", 90.0))), "degrees"),
+    "spots in millimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(
+        SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q, SESSION.samples.spots * 1e3))), "millimetres"),
+    "joint readings in degrees": (lambda d: _estimate(d, samples=_cell(1, "q2", "45")), "degrees"),
+    "pose CSV without qz": (lambda d: _poses(d, "pose,stamp,q1,q2,q3,q4,x,y,z,qw,qx,qy"), "qz"),
+    "positions in millimetres": (lambda d: _poses(d, "pose,stamp,q1,q2,q3,q4,x,y,z", "0,0.0,0.1,0.2,0.3,0.4,1000,500,200"),
+                                 "millimetres"),
+    "SLM u = 1e300": (lambda d: _slm(d, "1,0.5,1e300,0\n1,1.0,0,0\n2,0.5,0,0\n2,1.0,0,0\n"), "field u"),
+    "SLM two equal distances": (lambda d: _slm(d, "1,0.5,0,0\n1,0.5,0.1,0\n2,0.5,0,0\n2,1.0,0,0\n"), "laser 1"),
+    "SLM two distances, no sigma": (lambda d: _slm(d, "1,0.5,0,0\n1,1.0,0.1,0\n2,0.5,0,0\n2,1.0,0,0\n"),
+                                    "--spot-sigma"),
+    "--spot-sigma 1e300": (lambda d: _estimate(d, None, None, "--spot-sigma", "1e300"), "--spot-sigma"),
+    "--spot-sigma 1e-300": (lambda d: _estimate(d, None, None, "--spot-sigma", "1e-300"), "--spot-sigma"),
+    "plan --joint-sigma inf": (lambda d: _files(d) and ["plan", "--robot", str(d / "robot.yaml"), "--n", "5", "--out",
+                                                         str(d / "p.csv"), "--joint-sigma", "inf"], "--joint-sigma"),
+    "simulate --poses-per-span 0": (lambda d: ["simulate", "--case", "paper-4dof", "--out", str(d / "s"),
+                                               "--poses-per-span", "0"], "--poses-per-span"),
+    "--out is a file": (lambda d: (d / "taken").write_text("x") and _estimate(d)[:-1] + [str(d / "taken")], "--out"),
+    "--out unwritable": (lambda d: _estimate(d)[:-1] + ["/proc/x/y"], "/proc"),
+    "plan --out is a folder": (lambda d: _files(d) and ["plan", "--robot", str(d / "robot.yaml"), "--n", "5", "--out",
+                                                         str(d)], "--out"),
+    "slm --out is a folder": (lambda d: _slm(d, "1,0.5,0,0\n1,1.0,0,0\n2,0.5,0,0\n2,1.0,0,0\n")[:-1] + [str(d)],
+                              "--out"),
+}
+
+
+def _latin1(folder: Path) -> list[str]:
+    """Samples whose header holds a Latin-1 byte: not UTF-8."""
+    (folder / "samples.csv").write_bytes(SAMPLES.replace("pose", "p\xe9se", 1).encode("latin-1"))
+    return ["estimate", "--robot", str(folder / "robot.yaml"), "--samples", str(folder / "samples.csv"),
+            "--out", str(folder / "out")]
+
+
+def _run(argv: list[str]) -> int:
+    try:
+        return main(argv)
+    except SystemExit as exc:  # argparse's own one-line errors
+        return exc.code
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_input_is_one_line_and_exit_2(name, tmp_path, capsys):
+    make, expected = CASES[name]
+    argv = make(tmp_path)
+    code = _run(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, (name, err)
+    # one error line, the last (argparse prints its usage and progress lines may precede it)
+    assert not any("Traceback" in line for line in err)
+    assert [line for line in err if line.startswith("laser-calib")] == err[-1:], err
+    assert expected in err[-1], err[-1]
+    assert not (tmp_path / "out").exists()      # nothing half-written
+
+
+def test_a_byte_order_mark_is_accepted(tmp_path):
+    (tmp_path / "samples.csv").write_bytes(b"\xef\xbb\xbf" + SAMPLES.encode())
+    assert np.array_equal(load_samples(tmp_path / "samples.csv", ROBOT).q, SESSION.samples.q)
+
+
+def test_a_failed_run_leaves_no_folder_and_a_reused_one_is_named(tmp_path, capsys):
+    robot, samples = _files(tmp_path)
+    empty = format_samples(type(SESSION.samples)(SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q,
+                                                 np.full_like(SESSION.samples.spots, np.nan)))
+    Path(samples).write_text(empty)
+    assert _run(["estimate", "--robot", robot, "--samples", samples, "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.partial-*"))
+    Path(samples).write_text(SAMPLES)
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "old_plot.png").write_text("from another run")
+    capsys.readouterr()
+    assert _run(["estimate", "--robot", robot, "--samples", samples, "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "old_plot.png" in out and (tmp_path / "out" / "result.json").exists()
+
+
+TEXT = st.text(alphabet=st.characters(blacklist_categories=("Cs",)), max_size=30)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(column=st.sampled_from(SAMPLES.splitlines()[0].split(",")), row=st.integers(1, 5), value=TEXT)
+def test_any_sample_field_parses_or_is_one_input_error(column, row, value):
+    text = _cell(row, column, value.replace(",", "").replace("\n", "").replace("\r", "").replace('"', ""))
+    try:
+        samples = parse_samples(text, "s.csv", ROBOT)
+    except InputError as exc:
+        assert "\n" not in str(exc)
+        return
+    assert np.isfinite(samples.q).all() and np.all(np.abs(samples.spots[samples.seen]) <= 1e12)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(path=st.lists(st.sampled_from(["name", "joints", "slm", "lasers", "screen", 0, 1, "a", "d", "alpha",
+                                      "theta0", "min", "max", "gamma", "beta", "half_y"]), min_size=1, max_size=3),
+       value=st.one_of(TEXT, st.integers(), st.floats(allow_nan=True), st.none(), st.booleans(),
+                       st.lists(st.integers(), max_size=3)))
+def test_any_robot_edit_loads_or_is_one_input_error(path, value):
+    data = robot_to_dict(ROBOT)
+    node = data
+    for key in path[:-1]:
+        node = node.get(key) if isinstance(node, dict) else (node[key] if isinstance(node, list)
+                                                              and isinstance(key, int) and key < len(node) else None)
+        if node is None:
+            return
+    if isinstance(node, dict):
+        node[path[-1]] = value
+    elif isinstance(node, list) and isinstance(path[-1], int) and path[-1] < len(node):
+        node[path[-1]] = value
+    try:
+        robot_from_dict(load_yaml(yaml.safe_dump(data), "r.yaml"), "r.yaml")
+    except InputError as exc:
+        assert "\n" not in str(exc)
+
+
+@settings(max_examples=100, deadline=None)
+@given(value=TEXT)
+def test_any_pose_field_parses_or_is_one_input_error(value):
+    header = "pose,stamp,q1,q2,q3,q4,x,y,z,qw,qx,qy,qz"
+    cell = value.replace(",", "").replace("\n", "").replace("\r", "").replace('"', "")
+    try:
+        parse_sensor_samples(f"{header}\n0,0.0,0.1,0.2,0.3,0.4,1.0,{cell},0.2,1.0,0.0,0.0,0.0\n", "p.csv")
+    except InputError as exc:
+        assert "\n" not in str(exc)
+
+
+def test_a_bag_with_one_damaged_segment_keeps_the_intact_ones(tmp_path):
+    from laser_calib.io import bag
+    from laser_calib.io.bag_writer import SegmentedBagWriter
+    store = bag.typestore()
+    sample, spot = store.types["laser_calib_interfaces/msg/Sample"], store.types["laser_calib_interfaces/msg/Spot"]
+    header, time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
+    writer = SegmentedBagWriter(tmp_path / "bag", tmp_path / ".recording",
+                                {"/samples": ("laser_calib_interfaces/msg/Sample", [bag.qos(True, True, 100)])}, store)
+    for k in range(5):
+        msg = sample(header(time(1000 + k, 0), "screen"), k, ["j"], np.array([0.1 * k]),
+                     [spot(0.1, 0.2, True), spot(float("nan"), float("nan"), False)], 3)
+        writer.write("/samples", 10 ** 9 * (1000 + k), store.serialize_cdr(msg, "laser_calib_interfaces/msg/Sample"))
+        writer.rotate()
+    writer.close()
+    damaged = tmp_path / "bag" / "bag_2.mcap"
+    damaged.write_bytes(damaged.read_bytes()[:-40])
+    with pytest.raises(InputError):
+        bag._sample_rows(tmp_path / "bag", bag.SAMPLES_TOPIC)    # the bag as a whole cannot be read
+    samples, lost = bag.read_samples_checked(tmp_path / "bag")
+    assert list(samples.pose) == [0, 1, 3, 4] and len(lost) == 1 and lost[0].startswith("bag_2.mcap")

@@ -1,0 +1,147 @@
+"""Robust estimation (estimation/robust.py): gross outliers rejected and listed,
+clean data untouched, the same rule for spots, points and poses, LM and the EKF.
+
+Bounds: the fit without the outliers is least squares on the clean spots, so
+its Mahalanobis distance to the truth follows chi^2 with as many degrees of
+freedom as free parameters (99.9 % quantile); a clean set loses a unit with
+probability 1 % by construction of the limit, so 8 clean sets lose at most one
+unit except with probability < 0.3 %.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from laser_calib.estimation.estimate import EstimateOptions, estimate
+from laser_calib.estimation.robust import WeightedNoise
+from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, pose_errors
+from laser_calib.cli.arguments import print_warnings
+from laser_calib.estimation.ekf import EkfOptions
+from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
+from laser_calib.estimation.problem import Problem
+from laser_calib.measurement.base import NoiseModel
+from laser_calib.measurement.chain import chain_names
+from laser_calib.measurement.spot import SpotModel
+from laser_calib.sim.simulation import paper_session
+from test_sensors import SIGMA_T, rig, simulate
+
+
+def _options(session, **kw):
+    return EstimateOptions(spot_sigma=session.noise.spot_sigma, joint_sigma=session.noise.joint_sigma, **kw)
+
+
+def _mahalanobis(est, truth):
+    free = est.identifiable
+    delta = (est.errors - truth)[free]
+    return float(delta @ np.linalg.solve(est.fit.covariance[np.ix_(free, free)], delta))
+
+
+def test_a_zero_weight_is_the_same_as_leaving_the_spot_out():
+    session = paper_session("paper-7dof", 1)
+    model = SpotModel(session.nominal, session.samples)
+    noise = NoiseModel(session.noise.spot_sigma, session.noise.joint_sigma)
+    free = np.ones(len(model.names), bool)
+    weights = np.ones(session.samples.spots.shape[:2])
+    weights[[3, 17, 40], [0, 1, 1]] = 0.0
+    excluded = weights == 0
+    x0 = np.zeros(len(model.names))
+    weighted = levenberg_marquardt(Problem(model, WeightedNoise(noise.sigma, noise.joint_sigma, weights), free), x0)
+    left_out = levenberg_marquardt(Problem(model, noise, free, excluded=excluded), x0)
+    assert np.allclose(weighted.x, left_out.x, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["lm", "ekf"])
+def test_ten_percent_of_spots_anywhere_on_the_screen_are_all_rejected(method):
+    session = paper_session("paper-7dof", 2)
+    rng = np.random.default_rng(2)
+    seen = np.argwhere(session.samples.seen)
+    picks = seen[rng.choice(len(seen), len(seen) // 10, replace=False)]
+    spots = session.samples.spots.copy()
+    half = np.array([session.nominal.screen.half_y, session.nominal.screen.half_z])
+    spots[picks[:, 0], picks[:, 1]] = rng.uniform(-half, half, (len(picks), 2))
+    samples = replace(session.samples, spots=spots)
+    est = estimate(session.nominal, samples, _options(session, method=method, ekf=EkfOptions(r=None)))
+    assert set(est.rejected) == {(int(p), int(j)) for p, j in picks}
+    assert any(w.startswith(f"robust: {len(picks)} of") for w in est.warnings)
+    assert _mahalanobis(est, session.errors) < chi2.ppf(0.999, int(est.identifiable.sum()))
+    assert est.robust["rule"].startswith("IRLS with the Cauchy loss")
+
+
+def test_clean_data_lose_nothing():
+    lost = 0
+    for seed in range(8):
+        session = paper_session("paper-7dof", 20 + seed)
+        lost += len(estimate(session.nominal, session.samples, EstimateOptions()).rejected)
+    assert lost <= 1
+
+
+def test_impossible_spots_are_refused_per_pose():
+    session = paper_session("paper-7dof", 4)
+    spots = session.samples.spots.copy()
+    p = int(np.argmax(session.samples.seen.all(axis=1)))
+    spots[p, 0] = [1.7, 0.0]            # beyond the 1 m half-screen
+    spots[p + 1, 1] = [5e5, -1e6]       # a 1e6 m detection
+    est = estimate(session.nominal, replace(session.samples, spots=spots), _options(session, method="ekf"))
+    assert [(i, c) for i, c, _ in est.impossible] == [(p, 0), (p + 1, 1)]
+    line = next(w for w in est.warnings if "physically impossible" in w)
+    assert f"pose {session.samples.pose[p]} laser 1: outside the screen" in line
+    assert _mahalanobis(est, session.errors) < chi2.ppf(0.999, int(est.identifiable.sum()))
+
+
+def test_spots_where_the_beam_cannot_reach_the_screen_are_refused():
+    session = paper_session("paper-7dof", 5)
+    samples = session.samples
+    q = samples.q.copy()
+    q[7] = q[7] + np.pi / 2 * np.r_[1, 1, 0, 0, 0, 0, 0]    # turned away: its given spots cannot be its own
+    q = np.clip(q, session.nominal.q_min, session.nominal.q_max)
+    est = estimate(session.nominal, replace(samples, q=q), _options(session))
+    refused = {(i, c) for i, c, _ in est.impossible} | set(est.rejected)
+    assert {(7, c) for c in range(2) if samples.seen[7, c]} <= refused
+
+
+@pytest.mark.parametrize("size", [1.0, 1e6])
+def test_one_far_point_cannot_move_a_sensor_calibration(size):
+    robot = rig()
+    truth = np.zeros(len(chain_names(robot)))
+    samples = simulate(robot, truth, 40, 9, "point")
+    position = samples.position.copy()
+    position[11] += size * np.array([0.6, -0.8, 0.0])
+    options = SensorFitOptions(estimate=EstimateOptions(spot_sigma=SIGMA_T))
+    fit = calibrate(robot, replace(samples, position=position), options)
+    clean = calibrate(robot, samples.subset(np.arange(40) != 11), options)
+    assert fit.estimate.rejected == ((11, 0),)
+    errors, _ = pose_errors(fit.model, fit.estimate.values)
+    reference, _ = pose_errors(clean.model, clean.estimate.values)
+    # the same fit as without the point: its in-sample errors agree far inside the noise
+    assert np.allclose(np.delete(errors, 11), reference, rtol=0, atol=0.01 * SIGMA_T)
+
+
+def test_a_noise_far_from_the_given_one_is_one_warning_line():
+    session = paper_session("paper-7dof", 7)
+    small = estimate(session.nominal, session.samples, EstimateOptions(
+        spot_sigma=session.noise.spot_sigma / 10, joint_sigma=session.noise.joint_sigma, restarts=1))
+    large = estimate(session.nominal, session.samples, EstimateOptions(
+        spot_sigma=session.noise.spot_sigma * 10, joint_sigma=session.noise.joint_sigma))
+    assert sum("the residual says" in w for w in small.warnings) == 1
+    assert sum("far below the given spot sigma" in w for w in large.warnings) == 1
+
+
+def test_an_unconverged_fit_is_an_error_line(capsys):
+    session = paper_session("paper-7dof", 7)
+    est = estimate(session.nominal, session.samples, _options(session, lm=LmOptions(max_iter=1)))
+    assert not est.fit.converged
+    print_warnings(list(est.warnings))
+    assert any(line.startswith("error: NOT CONVERGED") for line in capsys.readouterr().out.splitlines())
+
+
+def test_sixty_identical_poses_are_loud():
+    """The issue's case: every pose the same. Rank, the exact fit and the
+    implausible values are each one warning line, not a quiet 0.000 mm."""
+    session = paper_session("paper-7dof", 0)
+    same = replace(session.samples, q=np.repeat(session.samples.q[:1], 60, axis=0),
+                   spots=np.repeat(session.samples.spots[:1], 60, axis=0))
+    est = estimate(session.nominal, same, EstimateOptions())
+    assert any(w.startswith("rank deficient: the data determine 4 of 33") for w in est.warnings)
+    assert any(w.startswith(("noise: the residual is", "the fit lost", "implausible")) for w in est.warnings)
