@@ -144,20 +144,26 @@ def die_with_parent() -> None:
 
 
 def launch_actions(specs: list[NodeSpec]) -> list:
-    """launch_ros Node actions of specs, and a shutdown of the launch when any of them exits
-    (the sequencer: the session is over; another: it failed, its reason is in its output)."""
+    """launch_ros Node actions of specs, and the end of the launch when any of them exits: a
+    shutdown when the sequencer (last) ends with 0, the session done; an error (launch exits 1,
+    naming the node; the node's own one-line reason is in its output) when any exits non-zero."""
     from launch.actions import EmitEvent, RegisterEventHandler
     from launch.event_handlers import OnProcessExit
     from launch.events import Shutdown
     from launch_ros.actions import Node
 
+    def ended(event, _context, executable: str, last: bool):
+        if event.returncode != 0:
+            raise RuntimeError(f"{executable} exited with code {event.returncode}")
+        return [EmitEvent(event=Shutdown(reason="session finished" if last else f"{executable} exited"))]
+
     actions = []
     for spec in specs:
         node = Node(package=PACKAGE, executable=spec.executable, name=spec.executable, output="screen",
                     parameters=[*spec.param_files, spec.params], remappings=list(spec.remaps))
-        reason = "session finished" if spec is specs[-1] else f"{spec.executable} exited"
         actions += [node, RegisterEventHandler(OnProcessExit(
-            target_action=node, on_exit=[EmitEvent(event=Shutdown(reason=reason))]))]
+            target_action=node, on_exit=lambda event, context, name=spec.executable, last=spec is specs[-1]:
+            ended(event, context, name, last)))]
     return actions
 
 
