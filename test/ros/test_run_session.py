@@ -1,0 +1,67 @@
+"""scripts/run-session owns its session: a second session on the live folder is
+refused in one line naming the owner's PID, and SIGKILL of run-session leaves no
+node running (they die with their launcher) and no stale lock. Runs without
+ros2cli (run-session starts laser_calib_nodes.graph, not `ros2 launch`)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+from ros_harness import ROOT, Ros
+
+RUN_SESSION = str(ROOT / "scripts" / "run-session")
+
+
+def children(pid: int) -> list[int]:
+    """Every live descendant of pid (from /proc)."""
+    parent_of = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            parent_of[int(entry.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+    found, frontier = [], [pid]
+    while frontier:
+        kids = [p for p, parent in parent_of.items() if parent in frontier]
+        found += kids
+        frontier = kids
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_second_session_refused_and_sigkill_leaves_no_node(ros: Ros, tmp_path):
+    from laser_calib.session.lock import LOCK_NAME, SessionLock
+    out = tmp_path / "session"
+    args = [RUN_SESSION, "--no-setup", "--out", str(out), "--poses", "10", "--speed", "4.0"]
+    proc = ros.start_command("run-session", args)
+    deadline = time.monotonic() + 300
+    while not (out / "samples.csv").exists():
+        assert proc.poll() is None, ros.log("run-session")
+        assert time.monotonic() < deadline, ros.log("run-session")
+        time.sleep(0.1)
+    owner = int((out / LOCK_NAME).read_text())
+    nodes = [pid for pid in children(proc.pid) if b"lib/laser_calib_nodes/" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+    assert len(nodes) == 5, nodes
+
+    second = ros.run(args, timeout=120)
+    lines = second.stderr.strip().splitlines()
+    assert second.returncode == 2 and len(lines) == 1 and f"PID {owner}" in lines[0], second
+
+    os.kill(proc.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 30
+    while any(alive(pid) for pid in nodes + [owner]) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [pid for pid in nodes + [owner] if alive(pid)], ros.log("run-session")
+    SessionLock(out).acquire().release()  # no stale lock: the folder can be resumed
