@@ -251,3 +251,20 @@ def test_calibrate_action_feedback_and_cancel(finished, tmp_path):
     finally:
         codes = ros.stop_all()
     assert codes["estimator"] == 0, ros.log("estimator")
+
+
+def test_hardware_launch_with_a_mismatched_arm_file_ends_with_its_reason(tmp_path):
+    """The shipped dynamixel_arm.yaml (4 servos) with the 7-DOF robot: one line, the launch ends."""
+    ros = Ros(tmp_path)
+    shown = ros.run(["ros2", "launch", "laser_calib_nodes", "hardware.launch.py", "--show-args"], timeout=60)
+    assert shown.returncode == 0 and "'arm_params'" in shown.stdout, shown
+    ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py", f"robot:={ROBOT}",
+                                 f"calibration:={tmp_path / 'none.yaml'}", f"output_dir:={tmp_path / 'session'}"])
+    try:
+        code = ros.wait_exit("launch", 120)
+    finally:
+        ros.stop_all()
+    log = ros.log("launch")
+    assert code == 1, log[-3000:]
+    assert re.search(r"\[arm_driver-\d+\] error: .*dynamixel.ids has 4 entries, the arm has 7 joints", log), log
+    assert "arm_driver exited with code 2" in log and "Traceback" not in log, log[-3000:]
