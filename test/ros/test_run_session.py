@@ -65,3 +65,15 @@ def test_second_session_refused_and_sigkill_leaves_no_node(ros: Ros, tmp_path):
         time.sleep(0.2)
     assert not [pid for pid in nodes + [owner] if alive(pid)], ros.log("run-session")
     SessionLock(out).acquire().release()  # no stale lock: the folder can be resumed
+
+
+def test_lock_names_its_owner_and_is_released(tmp_path):
+    import pytest
+    from laser_calib.session.lock import SessionBusy, SessionLock
+    folder = tmp_path / "new" / "session"
+    first = SessionLock(folder).acquire()           # creates the folder
+    with pytest.raises(SessionBusy, match=f"in use by a running session \\(PID {os.getpid()}\\)"):
+        SessionLock(folder).acquire()
+    first.release()
+    with SessionLock(folder):
+        pass
