@@ -72,8 +72,26 @@ def test_lock_names_its_owner_and_is_released(tmp_path):
     from laser_calib.session.lock import SessionBusy, SessionLock
     folder = tmp_path / "new" / "session"
     first = SessionLock(folder).acquire()           # creates the folder
-    with pytest.raises(SessionBusy, match=f"in use by a running session \\(PID {os.getpid()}\\)"):
+    with pytest.raises(SessionBusy, match=f"in use by a running session \\(PID {os.getpid()}\\)") as busy:
         SessionLock(folder).acquire()
+    assert busy.value.owner == os.getpid()
     first.release()
     with SessionLock(folder):
         pass
+
+
+def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
+    out = tmp_path / "session"
+    proc = ros.start_command("run-session", [RUN_SESSION, "--no-setup", "--out", str(out), "--poses", "10",
+                                             "--speed", "4.0"])
+    deadline = time.monotonic() + 300
+    while not (out / "samples.csv").exists():
+        assert proc.poll() is None and time.monotonic() < deadline, ros.log("run-session")
+        time.sleep(0.1)
+    nodes = [pid for pid in children(proc.pid) if b"lib/laser_calib_nodes/" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+    ros.interrupt("run-session")  # the terminal's Ctrl-C: the runner forwards it, the nodes get it twice
+    assert ros.wait_exit("run-session", 30) == 130, ros.log("run-session")
+    assert not [pid for pid in nodes if alive(pid)]
+    logs = {path.name: path.read_text() for path in (out / "logs").glob("*.log")}
+    assert len(logs) == 5 and not [name for name, text in logs.items() if "Traceback" in text], logs
+    assert "run again with the same --out to resume" in ros.log("run-session")

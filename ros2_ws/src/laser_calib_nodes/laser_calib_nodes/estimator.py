@@ -1,24 +1,17 @@
-"""estimator: online EKF on each measurement, batch estimate on request.
+"""estimator: online EKF on each measurement, batch estimate on request
+(topics, QoS, services, the action and parameters: the package README).
 
-Inputs (``input``, read-only): 'samples' (default): laser_calib_interfaces/Sample
-on samples, one averaged measurement per pose as the sequencer (or replay)
-publishes them, subscribed with both the sequencer's transient-local QoS and
-the default one (`ros2 topic pub`), each (pose, stamp) counted once.
-'stream': joint_states and spots paired by header stamp within sync_tolerance
-s (sync.StampSynchronizer), a pair counted only when every |joint velocity| is
-below stream.max_joint_speed (for an arm driven by something else).
-Each measurement updates the online EKF (estimation.online.OnlineEkf); then
-dh_parameters (DhParameters, transient local) and calibration_markers
-(MarkerArray, frame `screen`, markers.py) are published.
-Private services: ~/estimate (Estimate): batch estimate of the request's or the
-accumulated samples by laser_calib.session.estimate.run_calibration (the command
-line's code path), one request at a time while measurements flow in; a bad
-request gets success = false and one line. ~/reset (std_srvs/Trigger): forget
-the samples, restart the EKF. Action ~/calibrate (Calibrate, calibrate.py): the
-estimate and the diagnosis with feedback and cancel.
-Run-time parameters (validated): spot_sigma (requests with spot_sigma 0; the
-online EKF from its next ~/reset), stream.max_joint_speed, markers; the rest
-are read-only.
+Input 'samples' (Sample, as the sequencer or replay publishes them; subscribed
+with the sequencer's transient-local QoS and with the default one, each (pose,
+stamp) counted once) or 'stream' (joint_states + spots paired by stamp within
+sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed).
+Each measurement updates the online EKF, then dh_parameters and
+calibration_markers (markers.py) are published. ~/estimate runs
+laser_calib.session.estimate.run_calibration (the command line's code path), one
+request at a time while measurements flow in, a bad request answered with
+success = false and one line; ~/reset forgets the samples; ~/calibrate is the
+action (calibrate.py). spot_sigma, stream.max_joint_speed and markers can be
+set at run time (validated); the rest are read-only.
 """
 
 from __future__ import annotations
