@@ -9,7 +9,7 @@ from laser_calib.cli.main import main as cli_main
 from laser_calib.diagnosis.engine import DiagnoseOptions, TooFewPoses, diagnose, minimum_poses
 from laser_calib.io.samples import save_samples
 from laser_calib.model.robot_file import save_robot
-from laser_calib.session.estimate import estimate_options, run_and_collect
+from laser_calib.session.estimate import estimate_options, run_calibration
 from laser_calib.sim.simulation import paper_session
 
 
@@ -46,7 +46,7 @@ def test_diagnose_refuses_too_few_poses_in_one_line(tmp_path, capsys):
 
 def test_the_nodes_estimate_succeeds_with_the_diagnosis_skipped():
     s = session(5)
-    outcome = run_and_collect(s.nominal, s.samples, estimate_options("lm", 0.0, False, False), None, diagnose=True)
+    outcome = run_calibration(s.nominal, s.samples, estimate_options("lm", 0.0, False, False), None, diagnose=True)
     assert outcome.message.endswith("diagnosis skipped: 10 poses, at least 12 needed")
     assert '"skipped"' in outcome.diagnosis_json
-    assert np.isfinite(outcome.calibrated.vector()).all()
+    assert np.isfinite(outcome.calibration.calibrated.vector()).all()

@@ -12,7 +12,6 @@ one-line message and the node keeps serving.
 from __future__ import annotations
 
 import json
-import tempfile
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -21,7 +20,7 @@ from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 
 from laser_calib.io.errors import InputError
-from laser_calib.session.estimate import estimate_options, run_and_collect, run_diagnosis, with_diagnosis
+from laser_calib.session.estimate import estimate_options, run_calibration, run_diagnosis
 
 from laser_calib_nodes import common
 
@@ -48,7 +47,7 @@ class CalibrateServer:
                 options = estimate_options(request.method, request.spot_sigma or node.spot_sigma, request.prior,
                                            request.robust)
                 stage("estimate", 0.0)
-                outcome = run_and_collect(node.robot, samples, options, request.output_dir or None,
+                outcome = run_calibration(node.robot, samples, options, request.output_dir or None,
                                           sources={"robot": node.robot_path, "samples": source})
                 if request.diagnose and goal.is_cancel_requested:
                     goal.canceled()
@@ -56,11 +55,9 @@ class CalibrateServer:
                     return result
                 if request.diagnose:
                     stage("diagnosis", 0.5, outcome.message)
-                    with tempfile.TemporaryDirectory(prefix="laser_calib_diagnosis_") as tmp:
-                        diagnosis = run_diagnosis(node.robot, samples, options, outcome.result,
-                                                  Path(request.output_dir or tmp))
-                    outcome = replace(outcome, diagnosis_json=json.dumps(diagnosis),
-                                      message=with_diagnosis(outcome.message, diagnosis))
+                    diagnosis = run_diagnosis(node.robot, samples, options,
+                                              Path(request.output_dir) if request.output_dir else None)
+                    outcome = replace(outcome, diagnosis_json=json.dumps(diagnosis))
             except InputError as exc:
                 result.message = str(exc)
                 node.get_logger().warning(f"calibration refused: {exc}")

@@ -237,7 +237,7 @@ class Estimator(Node):
         response.result_json = result_json(calibration)
         response.calibrated_robot_yaml = calibrated_robot_yaml(calibration)
         response.success = True
-        response.message = calibration.summary()
+        response.message = outcome.message
 
 
 def main(args=None) -> int:
