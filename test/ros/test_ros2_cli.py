@@ -192,6 +192,11 @@ def test_ros2_run_service_param_and_topics(tmp_path):
     ros.start_command("spot_detector", run + ["spot_detector"] + params)
     try:
         wait_for(lambda: "input 'samples'" in ros.log("estimator"), 120, "the estimator", ros, "estimator")
+        # the wheels' packages are on AMENT_PREFIX_PATH (scripts/env.sh), and the action is built
+        header = ros2(ros, "interface", "show", "std_msgs/msg/Header")
+        assert header.returncode == 0 and "builtin_interfaces/Time stamp" in header.stdout, header
+        action = ros2(ros, "interface", "show", "laser_calib_interfaces/action/Calibrate")
+        assert action.returncode == 0 and "fraction_done" in action.stdout, action
         spin = ["--spin-time", "10"]
         got = ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin)
         assert got.returncode == 0 and "0.0" in got.stdout, got

@@ -95,3 +95,11 @@ def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
     logs = {path.name: path.read_text() for path in (out / "logs").glob("*.log")}
     assert len(logs) == 5 and not [name for name, text in logs.items() if "Traceback" in text], logs
     assert "run again with the same --out to resume" in ros.log("run-session")
+
+
+def test_env_sh_puts_the_wheels_packages_on_the_ament_path(ros: Ros):
+    """ament_index (ros2 interface, launch) finds the wheels' packages after `source scripts/env.sh`."""
+    found = ros.run([str(ROOT / ".venv" / "bin" / "python"), "-c",
+                     "from ament_index_python.packages import get_package_share_directory as share; "
+                     "print(share('std_msgs')); print(share('laser_calib_interfaces'))"])
+    assert found.returncode == 0, found.stderr
