@@ -6,8 +6,8 @@ camera driver's image topic, estimator and sequencer.
         output_dir:=/data/session image:=/camera/image_raw
 
 The camera driver is yours (any node publishing sensor_msgs/Image of the
-calibrated camera, with the sensor-data QoS most drivers use); its image topic
-is remapped to camera/image_raw. The node graph is
+calibrated camera; the QoS spot_detector subscribes with is in the package
+README's table); its image topic is remapped to camera/image_raw. The node graph is
 laser_calib_nodes.graph.hardware_nodes; as session.launch.py, the launch takes
 the session folder's lock and ends when the sequencer or any node exits.
 """
