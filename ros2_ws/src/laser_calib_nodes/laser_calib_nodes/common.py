@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import signal
 import sys
+import threading
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -184,6 +185,18 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     traceback); a NodeError's code; 1 unexpected errors.
     """
     graph.die_with_parent()
+    # rclpy's signal handlers call the one installed before rclpy.init: this one notes the
+    # signal, so that an error it causes inside rclpy (a KeyboardInterrupt while a large
+    # message is converted surfaces as RuntimeError) is taken for the stop it is.
+    stopped = threading.Event()
+
+    def on_signal(signum, _frame):
+        stopped.set()
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
     rclpy.init(args=args)
     node = None
     executor = None
@@ -213,9 +226,9 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         print(f"error: {exc}", file=sys.stderr, flush=True)
         code = 2
     except Exception:
-        if rclpy.ok():
+        if rclpy.ok() and not stopped.is_set():
             raise
-        code = 0  # Ctrl-C/SIGTERM shut the context down under a running callback (e.g. a publish)
+        code = 0  # Ctrl-C/SIGTERM under a running callback (a publish, a message being taken)
     finally:
         # A terminal's Ctrl-C reaches a node under `ros2 launch` twice (from the terminal and from
         # launch); once shutting down, a second one must not break the cleanup with a traceback.
