@@ -22,8 +22,8 @@ def session(poses_per_span: int):
 def test_minimum_poses_follows_the_folds_and_the_estimate_rule():
     # 5 folds of 12 poses: 3, 3, 2, 2, 2; the smallest training fold holds 9 poses, 36 values >= 33
     assert minimum_poses(33, 4.0, 5) == 12
-    assert minimum_poses(1, 4.0, 5) == 10     # at least two poses a fold
-    assert minimum_poses(33, 0.0, 5) == 10    # no measured value: the estimate says so itself
+    assert minimum_poses(1, 4.0, 5) == 5      # at least a pose a fold
+    assert minimum_poses(33, 0.0, 5) == 5     # no measured value: the estimate says so itself
 
 
 def test_the_minimum_is_enough():

@@ -42,7 +42,7 @@ def alive(pid: int) -> bool:
 
 
 def test_second_session_refused_and_sigkill_leaves_no_node(ros: Ros, tmp_path):
-    from laser_calib.session.lock import LOCK_NAME, SessionLock
+    from laser_calib.session.lock import LOCK_FILE, SessionLock
     out = tmp_path / "session"
     args = [RUN_SESSION, "--no-setup", "--out", str(out), "--poses", "10", "--speed", "4.0"]
     proc = ros.start_command("run-session", args)
@@ -51,7 +51,7 @@ def test_second_session_refused_and_sigkill_leaves_no_node(ros: Ros, tmp_path):
         assert proc.poll() is None, ros.log("run-session")
         assert time.monotonic() < deadline, ros.log("run-session")
         time.sleep(0.1)
-    owner = int((out / LOCK_NAME).read_text())
+    owner = int((out / LOCK_FILE).read_text())
     nodes = [pid for pid in children(proc.pid) if b"lib/laser_calib_nodes/" in Path(f"/proc/{pid}/cmdline").read_bytes()]
     assert len(nodes) == 5, nodes
 
@@ -64,20 +64,28 @@ def test_second_session_refused_and_sigkill_leaves_no_node(ros: Ros, tmp_path):
     while any(alive(pid) for pid in nodes + [owner]) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not [pid for pid in nodes + [owner] if alive(pid)], ros.log("run-session")
-    SessionLock(out).acquire().release()  # no stale lock: the folder can be resumed
+    SessionLock(out).acquire()  # no stale lock: the folder can be resumed
 
 
-def test_lock_names_its_owner_and_is_released(tmp_path):
+def test_lock_held_by_the_parent_is_the_sessions_own(tmp_path):
+    """A sequencer started by the session's launcher finds the lock held by its parent and
+    goes on; any other process is refused, naming the owner."""
+    import subprocess
+    import sys
     import pytest
     from laser_calib.session.lock import SessionBusy, SessionLock
     folder = tmp_path / "new" / "session"
-    first = SessionLock(folder).acquire()           # creates the folder
-    with pytest.raises(SessionBusy, match=f"in use by a running session \\(PID {os.getpid()}\\)") as busy:
-        SessionLock(folder).acquire()
+    held = SessionLock(folder)
+    held.acquire()                                  # creates the folder
+    with pytest.raises(SessionBusy, match=f"in use by the session of PID {os.getpid()} ") as busy:
+        SessionLock(folder).acquire()               # this very process is not its own parent
     assert busy.value.owner == os.getpid()
-    first.release()
-    with SessionLock(folder):
-        pass
+    child = subprocess.run([sys.executable, "-c", "import sys; from laser_calib.session.lock import SessionLock; "
+                            "SessionLock(sys.argv[1]).acquire(); print('through')", str(folder)],
+                           capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT / "ros2_ws" / "src"
+                                                                                             / "laser_calib")})
+    assert child.returncode == 0 and child.stdout.strip() == "through", child.stderr
+    held.release()
 
 
 def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
