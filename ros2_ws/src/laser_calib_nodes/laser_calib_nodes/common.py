@@ -191,8 +191,9 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     stopped = threading.Event()
 
     def on_signal(signum, _frame):
+        first = not stopped.is_set()
         stopped.set()
-        if signum == signal.SIGINT:
+        if first and signum == signal.SIGINT:  # a second Ctrl-C must not break the cleanup
             raise KeyboardInterrupt
 
     for sig in (signal.SIGINT, signal.SIGTERM):
