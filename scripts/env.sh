@@ -2,7 +2,8 @@
 #   source scripts/env.sh
 # It activates .venv (ROS 2 Jazzy from PyPI wheels) and the colcon install of
 # ros2_ws, so the node executables in ros2_ws/install/laser_calib_nodes/lib/
-# laser_calib_nodes/ and `python -c "import rclpy, laser_calib_interfaces"` work.
+# laser_calib_nodes/ and `python -c "import rclpy, laser_calib_interfaces"` work, and
+# `ros2` when the ROS 2 command line is installed in .venv (.ci/run does it).
 # Without .venv but on a ROS install (/opt/ros/<distro>, e.g. docker/Dockerfile),
 # it sources that ROS instead.
 # Traffic stays on this host unless ROS_AUTOMATIC_DISCOVERY_RANGE is already set.
@@ -22,6 +23,17 @@ elif [ -f "/opt/ros/${ROS_DISTRO:-jazzy}/setup.bash" ]; then
 fi
 # shellcheck disable=SC1091
 source "$_lc_root/ros2_ws/install/setup.bash"
+if [ -x "$_lc_root/.venv/bin/python" ]; then
+  # The wheels' packages (std_msgs, rcl_interfaces, ...) are installed in the venv's prefix:
+  # without it on AMENT_PREFIX_PATH, ament_index (ros2 interface, launch) does not find them.
+  case ":$AMENT_PREFIX_PATH:" in
+    *":$_lc_root/.venv:"*) ;;
+    *) export AMENT_PREFIX_PATH="$AMENT_PREFIX_PATH:$_lc_root/.venv" ;;
+  esac
+  # The real ros2 command line, when installed (../shared/tools/ros2cli/install.sh .venv).
+  # shellcheck disable=SC1091
+  if [ -f "$_lc_root/.venv/opt/ros2cli/env.sh" ]; then source "$_lc_root/.venv/opt/ros2cli/env.sh"; fi
+fi
 [ -n "$_lc_nounset" ] && set -u
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
 export LASER_CALIB_NODES="$_lc_root/ros2_ws/install/laser_calib_nodes/lib/laser_calib_nodes"

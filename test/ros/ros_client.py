@@ -7,6 +7,7 @@
     ros_client.py reset                        call estimator/reset
     ros_client.py estimate-accumulated         Estimate with use_accumulated
     ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
+    ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
 """
 
 from __future__ import annotations
@@ -131,6 +132,39 @@ def estimate_accumulated() -> dict:
     return response_dict(call(node, node.create_client(Estimate, "estimator/estimate"), request))
 
 
+def calibrate(diagnose: bool, cancel: bool) -> dict:
+    """A Calibrate goal on the accumulated samples; with cancel, canceled as soon as accepted
+    (the server honours it after the estimate stage). The final status, feedback stages, result."""
+    from action_msgs.msg import GoalStatus
+    from rclpy.action import ActionClient
+    from laser_calib_interfaces.action import Calibrate
+    node = rclpy.create_node("test_calibrate")
+    client = ActionClient(node, Calibrate, "estimator/calibrate")
+    if not client.wait_for_server(timeout_sec=TIMEOUT):
+        raise SystemExit("no action server estimator/calibrate")
+    stages = []
+    sent = client.send_goal_async(Calibrate.Goal(use_accumulated=True, method="lm", diagnose=diagnose),
+                                  feedback_callback=lambda msg: stages.append(msg.feedback.stage))
+    rclpy.spin_until_future_complete(node, sent, timeout_sec=TIMEOUT)
+    handle = sent.result()
+    if handle is None or not handle.accepted:
+        raise SystemExit("goal not accepted")
+    if cancel:
+        rclpy.spin_until_future_complete(node, handle.cancel_goal_async(), timeout_sec=TIMEOUT)
+    done = handle.get_result_async()
+    rclpy.spin_until_future_complete(node, done, timeout_sec=5 * TIMEOUT)
+    if not done.done():
+        raise SystemExit("no result")
+    names = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_CANCELED: "canceled",
+             GoalStatus.STATUS_ABORTED: "aborted"}
+    result = done.result()
+    for _ in range(20):  # feedback published just before the result may arrive just after it
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return {"status": names.get(result.status, str(result.status)), "stages": stages,
+            "success": result.result.success, "message": result.result.message,
+            "diagnosis_json": result.result.diagnosis_json, "sample_count": result.result.parameters.sample_count}
+
+
 def sample(pose: int, q, spots) -> Sample:
     msg = Sample()
     msg.header.stamp.sec = 1000 + pose
@@ -235,6 +269,8 @@ def main() -> int:
             result = reset()
         elif command == "estimate-accumulated":
             result = estimate_accumulated()
+        elif command == "calibrate":
+            result = calibrate("diagnose" in sys.argv[2:], "cancel" in sys.argv[2:])
         elif command == "bad-and-concurrent":
             result = bad_and_concurrent(sys.argv[2])
         else:

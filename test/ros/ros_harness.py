@@ -13,6 +13,7 @@ import itertools
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -39,6 +40,15 @@ def workspace_missing() -> str | None:
     if not (INSTALL / "laser_calib_interfaces").is_dir():
         return "laser_calib_interfaces not built: run scripts/setup"
     return None
+
+
+def ros2_missing() -> str | None:
+    """Why tests of the real ros2 command line cannot run here, or None."""
+    reason = workspace_missing()
+    if reason is None and shutil.which("ros2", path=workspace_env()["PATH"]) is None:
+        reason = ("the ros2 command line is not installed (../shared/tools/ros2cli/install.sh .venv; "
+                  ".ci/run does it when ../shared is there)")
+    return reason
 
 
 _ENV: dict | None = None
@@ -69,13 +79,25 @@ class Ros:
     def start(self, name: str, *ros_args: str, node: str | None = None, params: bool = True) -> subprocess.Popen:
         """Start an executable with --ros-args (the session parameter file first)."""
         node = node or name
-        log = self.tmp / f"{name}.log"
         args = [str(BIN / node), "--ros-args"] + (["--params-file", str(PARAMS)] if params else []) + list(ros_args)
+        return self.start_command(name, args)
+
+    def start_command(self, name: str, args: list[str]) -> subprocess.Popen:
+        """Start any command (`ros2 launch ...`) as a terminal starts a job: its own process
+        group, which stop() signals as a whole, as Ctrl-C does."""
+        log = self.tmp / f"{name}.log"
         handle = open(log, "ab")
         proc = subprocess.Popen(args, env=self.env, stdout=handle, stderr=subprocess.STDOUT, start_new_session=True)
         handle.close()
         self.procs[name], self.logs[name] = proc, log
         return proc
+
+    def interrupt(self, name: str) -> None:
+        """Ctrl-C in the job's terminal: SIGINT to its whole process group."""
+        try:
+            os.killpg(self.procs[name].pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
 
     def run(self, args: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
         return subprocess.run(args, env=self.env, capture_output=True, text=True, timeout=timeout)
@@ -98,7 +120,7 @@ class Ros:
         """SIGINT (Ctrl-C) and the exit code; SIGKILL if it does not exit."""
         proc = self.procs[name]
         if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
+            self.interrupt(name)
             try:
                 proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
@@ -107,9 +129,9 @@ class Ros:
         return proc.returncode
 
     def stop_all(self) -> dict[str, int]:
-        for proc in self.procs.values():
+        for name, proc in self.procs.items():
             if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
+                self.interrupt(name)
         deadline = time.monotonic() + 10
         codes = {}
         for name, proc in self.procs.items():

@@ -4,21 +4,24 @@ message conversions and the main() wrapper (exit 0 on Ctrl-C, one line on bad in
 from __future__ import annotations
 
 import math
+import signal
 import sys
+import threading
 from typing import Any, Callable, Sequence
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException, Executor, SingleThreadedExecutor
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException, ParameterException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
 
 from laser_calib.io import bag
+from laser_calib_nodes import graph
 
 # Topic and service names (relative: a namespace or a remap moves them).
 JOINT_STATES = "joint_states"
@@ -32,8 +35,12 @@ SAMPLES = "samples"
 PROGRESS = "session/progress"
 DH_PARAMETERS = "dh_parameters"
 MARKERS = "calibration_markers"
+# The estimator's private services and action (~/estimate is /estimator/estimate for a node
+# named estimator); ESTIMATE_SERVICE is the name another node calls.
 ESTIMATE_SERVICE = "estimator/estimate"
-RESET_SERVICE = "estimator/reset"
+PRIVATE_ESTIMATE = "~/estimate"
+PRIVATE_RESET = "~/reset"
+PRIVATE_CALIBRATE = "~/calibrate"
 SCREEN_FRAME = "screen"
 
 # QoS. Results and session state are transient-local (a late subscriber gets the last one).
@@ -42,6 +49,14 @@ STREAM_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, durabi
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 # Images (4 MB) are reliable: best effort over Fast DDS loses most frames of this size.
 IMAGE_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+# Camera input: the sensor-data profile (best effort, keep last 5) that camera drivers publish
+# with; a best-effort subscription also takes a reliable publisher's frames (camera_sim's).
+SENSOR_QOS = qos_profile_sensor_data
+# Samples from any publisher: a default-QoS one (volatile, e.g. `ros2 topic pub`) matches
+# only a volatile subscription; the sequencer's history (transient local) only a
+# transient-local one. The estimator subscribes with both and counts each sample once.
+SAMPLES_INPUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                               durability=DurabilityPolicy.VOLATILE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # Every sample of a session is kept for late subscribers (an estimator started late).
 SAMPLES_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,
@@ -79,6 +94,46 @@ def declare(node: Node, name: str, default: Any, description: str, read_only: bo
         raise NodeError(f"parameter {name}: expected {type(default).__name__}, got {type(value).__name__} "
                         f"{value!r}", 2)
     return value
+
+
+def dynamic(node: Node, rules: dict[str, tuple[str, Callable[[Any], str | None]]]) -> None:
+    """Make parameters settable at run time (declared with read_only=False): rules maps a
+    parameter to (the node attribute holding its value, check(value) -> problem or None).
+    A set request with a wrong type or a value its check refuses changes nothing and is
+    answered with the reason; an integer for a floating-point parameter is that number.
+    The values declared are checked first (NodeError, exit 2)."""
+    for name, (attr, check) in rules.items():
+        problem = check(getattr(node, attr))
+        if problem:
+            raise NodeError(f"parameter {name}: {problem}", 2)
+
+    def on_set(params) -> SetParametersResult:
+        updates = {}
+        for param in params:
+            if param.name not in rules:
+                continue  # the read-only ones rclpy refuses itself
+            attr, check = rules[param.name]
+            value, current = param.value, getattr(node, attr)
+            if isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            problem = (f"expected {type(current).__name__}, got {type(value).__name__}"
+                       if type(value) is not type(current) else check(value))
+            if problem:
+                return SetParametersResult(successful=False, reason=f"{param.name}: {problem}")
+            updates[attr] = value
+        for attr, value in updates.items():
+            setattr(node, attr, value)
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(on_set)
+
+
+def non_negative_metres(value: float) -> str | None:
+    return None if math.isfinite(value) and value >= 0 else f"expected >= 0 m, got {value}"
+
+
+def positive(value: float) -> str | None:
+    return None if math.isfinite(value) and value > 0 else f"expected > 0, got {value}"
 
 
 def robot_param(node: Node, name: str = "robot", default: str = "", description: str | None = None):
@@ -129,6 +184,20 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     Exit codes: 0 normal or Ctrl-C/SIGTERM; 2 bad input (one line, no
     traceback); a NodeError's code; 1 unexpected errors.
     """
+    graph.die_with_parent()
+    # rclpy's signal handlers call the one installed before rclpy.init: this one notes the
+    # signal, so that an error it causes inside rclpy (a KeyboardInterrupt while a large
+    # message is converted surfaces as RuntimeError) is taken for the stop it is.
+    stopped = threading.Event()
+
+    def on_signal(signum, _frame):
+        first = not stopped.is_set()
+        stopped.set()
+        if first and signum == signal.SIGINT:  # a second Ctrl-C must not break the cleanup
+            raise KeyboardInterrupt
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
     rclpy.init(args=args)
     node = None
     executor = None
@@ -154,11 +223,17 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     except (ParameterException, InvalidParameterTypeException, InvalidParameterValueException) as exc:
         print(f"error: parameter: {exc}", file=sys.stderr, flush=True)
         code = 2
+    except OSError as exc:  # a file the parameters name cannot be read or written
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        code = 2
     except Exception:
-        if rclpy.ok():
+        if rclpy.ok() and not stopped.is_set():
             raise
-        code = 0  # Ctrl-C/SIGTERM shut the context down under a running callback (e.g. a publish)
+        code = 0  # Ctrl-C/SIGTERM under a running callback (a publish, a message being taken)
     finally:
+        # A terminal's Ctrl-C reaches a node under `ros2 launch` twice (from the terminal and from
+        # launch); once shutting down, a second one must not break the cleanup with a traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         if node is not None:
             close = getattr(node, "close", None)
             try:

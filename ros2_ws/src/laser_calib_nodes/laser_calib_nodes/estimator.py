@@ -1,34 +1,21 @@
-"""estimator: online EKF on each measurement, batch estimate on request.
+"""estimator: online EKF on each measurement, batch estimate on request
+(topics, QoS, services, the action and parameters: the package README).
 
-Inputs (``input``):
-  'samples'  samples (laser_calib_interfaces/Sample): one synchronized,
-             averaged measurement per pose, as the sequencer publishes them
-             (and replay republishes them). The default.
-  'stream'   joint_states (sensor_msgs/JointState) and spots
-             (laser_calib_interfaces/SpotPair), paired by header stamp within
-             ``sync_tolerance`` s (sync.StampSynchronizer); a pair counts only
-             when every |joint velocity| is below ``stream.max_joint_speed``
-             (the arm is still). For a live arm driven by something other than
-             the sequencer.
-Each measurement is accumulated and updates the online EKF
-(laser_calib.estimation.online.OnlineEkf); after each update the node publishes
-  dh_parameters (laser_calib_interfaces/DhParameters, transient local)
-  calibration_markers (visualization_msgs/MarkerArray, frame `screen`): the
-    measured spots, the spots predicted by the current estimate, and the two
-    beams of the latest pose.
-Services
-  estimator/estimate (laser_calib_interfaces/Estimate): batch estimate of the
-    request's samples or of the accumulated ones, by
-    laser_calib.session.estimate.run_calibration (the command line's code path). Bad
-    requests get success = false and a one-line message; the node keeps serving.
-    Requests are served one at a time (a mutually exclusive callback group);
-    measurements keep flowing in meanwhile (another group, a lock on the state).
-  estimator/reset (std_srvs/Trigger): forget the accumulated samples, restart the EKF.
+Input 'samples' (Sample, as the sequencer or replay publishes them; subscribed
+with the sequencer's transient-local QoS and with the default one, each (pose,
+stamp) counted once) or 'stream' (joint_states + spots paired by stamp within
+sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed).
+Each measurement updates the online EKF, then dh_parameters and
+calibration_markers (markers.py) are published. ~/estimate runs
+laser_calib.session.estimate.run_calibration (the command line's code path), one
+request at a time while measurements flow in, a bad request answered with
+success = false and one line; ~/reset forgets the samples; ~/calibrate is the
+action (calibrate.py). spot_sigma, stream.max_joint_speed and markers can be
+set at run time (validated); the rest are read-only.
 """
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 import traceback
@@ -39,24 +26,19 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker, MarkerArray
-from geometry_msgs.msg import Point
-from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import MarkerArray
 
 from laser_calib.io.errors import InputError
-from laser_calib.model.kinematics import predict
 from laser_calib.io.samples import Samples
 
 from laser_calib.io import bag
 
 from laser_calib_nodes import common
+from laser_calib_nodes.calibrate import CalibrateServer
+from laser_calib_nodes.markers import MAX_POINTS, calibration_markers, online_parameters
 from laser_calib.report.files import calibrated_robot_yaml, report_markdown, result_json
 from laser_calib.session.estimate import estimate_options, laser_statistics, online_options, run_calibration
 from laser_calib.session.sync import StampSynchronizer
-
-MAX_MARKER_POINTS = 2000
-
-LASER_COLOURS = ((1.0, 0.1, 0.1), (0.1, 0.9, 0.1))
 
 
 class Estimator(Node):
@@ -69,14 +51,17 @@ class Estimator(Node):
         self.sync_tol = d("sync_tolerance", 0.02, "'stream': max stamp difference of a pair, s (at least half "
                                                    "the joint_states period).")
         self.max_speed = d("stream.max_joint_speed", 0.002, "'stream': a pair counts only when every |joint "
-                                                            "velocity| is below this, rad/s.")
-        self.spot_sigma = d("spot_sigma", 0.0, "Spot sigma, m, for the online EKF and for requests with "
-                                               "spot_sigma 0; 0: estimate it (batch) / 1 mm (online).")
-        self.markers_on = d("markers", True, "Publish calibration_markers.")
+                                                            "velocity| is below this, rad/s.",
+                           read_only=False)
+        self.spot_sigma = d("spot_sigma", 0.0, "Spot sigma, m, for requests with spot_sigma 0 and the online "
+                                               "EKF (from its next reset); 0: estimate it (batch) / 1 mm (online).",
+                            read_only=False)
+        self.markers_on = d("markers", True, "Publish calibration_markers.", read_only=False)
         if self.input not in ("samples", "stream"):
             raise common.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
-        if not (math.isfinite(self.spot_sigma) and self.spot_sigma >= 0):
-            raise common.NodeError(f"parameter spot_sigma: expected >= 0 m, got {self.spot_sigma}", 2)
+        common.dynamic(self, {"spot_sigma": ("spot_sigma", common.non_negative_metres),
+                              "stream.max_joint_speed": ("max_speed", common.positive),
+                              "markers": ("markers_on", lambda value: None)})
 
         from laser_calib_interfaces.msg import DhParameters, Sample, SpotPair, SpotStatistics
         from laser_calib_interfaces.srv import Estimate
@@ -92,16 +77,17 @@ class Estimator(Node):
         inputs = MutuallyExclusiveCallbackGroup()
         services = MutuallyExclusiveCallbackGroup()
         if self.input == "samples":
-            self.create_subscription(Sample, common.SAMPLES, self.on_sample, common.SAMPLES_QOS,
-                                     callback_group=inputs)
+            for qos in (common.SAMPLES_QOS, common.SAMPLES_INPUT_QOS):
+                self.create_subscription(Sample, common.SAMPLES, self.on_sample, qos, callback_group=inputs)
         else:
             self.sync = StampSynchronizer(self.sync_tol)
             self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.STREAM_QOS,
                                      callback_group=inputs)
             self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.STREAM_QOS,
                                      callback_group=inputs)
-        self.create_service(Estimate, common.ESTIMATE_SERVICE, self.on_estimate, callback_group=services)
-        self.create_service(Trigger, common.RESET_SERVICE, self.on_reset, callback_group=services)
+        self.create_service(Estimate, common.PRIVATE_ESTIMATE, self.on_estimate, callback_group=services)
+        self.create_service(Trigger, common.PRIVATE_RESET, self.on_reset, callback_group=services)
+        self.calibrate = CalibrateServer(self)
         self.get_logger().info(f"robot '{self.robot.name}' ({self.robot.n_params} parameters), input "
                                f"'{self.input}'")
 
@@ -162,66 +148,20 @@ class Estimator(Node):
             errors = np.array(self.online.errors, dtype=float)
             std = np.array(self.online.std, dtype=float)
             identifiable = np.array(self.online.identifiable, dtype=bool)
-        self.publish_online(errors, std, identifiable, count)
-        if self.markers_on:
-            self.publish_markers(errors)
-
-    def publish_online(self, errors: np.ndarray, std: np.ndarray, identifiable: np.ndarray, count: int) -> None:
-        msg = self.DhParameters()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.header.frame_id = common.SCREEN_FRAME
-        msg.robot_name = self.robot.name
-        msg.method = "ekf"
-        msg.names = list(self.robot.param_names)
-        values = np.nan_to_num(errors)
-        msg.values = [float(v) for v in self.robot.vector() + values]
-        msg.errors = [float(v) for v in errors]
-        msg.std = [float(v) for v in std]
-        msg.identifiable = [bool(v) for v in identifiable]
-        msg.iterations = 0
-        msg.sample_count = count
-        self.param_pub.publish(msg)
-
-    def publish_markers(self, errors: np.ndarray) -> None:
-        with self.lock:
-            rows = self.rows[-MAX_MARKER_POINTS // 2:]
-        q = np.array([r[2] for r in rows])
-        measured = np.array([r[3] for r in rows])
-        prediction = predict(self.robot, q, np.nan_to_num(errors))
         stamp = self.get_clock().now().to_msg()
-        array = MarkerArray()
-
-        def marker(ns: str, ident: int, kind: int, scale: float, colour, alpha=1.0) -> Marker:
-            m = Marker()
-            m.header.stamp = stamp
-            m.header.frame_id = common.SCREEN_FRAME
-            m.ns, m.id, m.type, m.action = ns, ident, kind, Marker.ADD
-            m.pose.orientation.w = 1.0
-            m.scale.x = m.scale.y = m.scale.z = scale
-            m.color = ColorRGBA(r=colour[0], g=colour[1], b=colour[2], a=alpha)
-            return m
-
-        for j in range(2):
-            points = marker("measured", j, Marker.SPHERE_LIST, 0.01, LASER_COLOURS[j])
-            points.points = [Point(x=0.0, y=float(s[0]), z=float(s[1])) for s in measured[:, j] if np.isfinite(s).all()]
-            predicted = marker("predicted", j, Marker.SPHERE_LIST, 0.006, (0.2, 0.4, 1.0), 0.8)
-            hit = prediction.hit[:, j]
-            predicted.points = [Point(x=0.0, y=float(s[0]), z=float(s[1])) for s in prediction.spots[hit, j]]
-            beam = marker("beams", j, Marker.LINE_LIST, 0.003, LASER_COLOURS[j], 0.7)
-            if hit[-1]:
-                origin = prediction.state.origin[-1]
-                end = prediction.spots[-1, j]
-                beam.points = [Point(x=float(origin[0]), y=float(origin[1]), z=float(origin[2])),
-                               Point(x=0.0, y=float(end[0]), z=float(end[1]))]
-            array.markers += [points, predicted, beam]
-        self.marker_pub.publish(array)
+        self.param_pub.publish(online_parameters(self.robot, errors, std, identifiable, count, stamp))
+        if self.markers_on:
+            with self.lock:
+                rows = self.rows[-MAX_POINTS // 2:]
+            self.marker_pub.publish(calibration_markers(self.robot, np.array([r[2] for r in rows]),
+                                                        np.array([r[3] for r in rows]), errors, stamp))
 
     # ---- services ----
     def on_reset(self, request, response):
         with self.lock:
             self.rows = []
             self.keys = set()
-            self.online.reset()
+            self.online = self.make_online()
             if self.input == "stream":
                 self.sync.reset()
         response.success = True
@@ -297,11 +237,11 @@ class Estimator(Node):
         response.result_json = result_json(calibration)
         response.calibrated_robot_yaml = calibrated_robot_yaml(calibration)
         response.success = True
-        response.message = calibration.summary()
+        response.message = outcome.message
 
 
 def main(args=None) -> int:
-    return common.run(Estimator, args, make_executor=lambda: MultiThreadedExecutor(num_threads=3))
+    return common.run(Estimator, args, make_executor=lambda: MultiThreadedExecutor(num_threads=4))
 
 
 if __name__ == "__main__":

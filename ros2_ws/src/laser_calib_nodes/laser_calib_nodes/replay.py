@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 import time
 
@@ -27,6 +28,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from laser_calib.io.errors import InputError
 
 from laser_calib.io import bag
+from laser_calib_nodes.graph import die_with_parent
 
 
 def message_class(msgtype: str):
@@ -83,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"replay: {exc}", file=sys.stderr)
         return 2
 
+    die_with_parent()
     rclpy.init(args=["replay"] + ros_args)
     node = rclpy.create_node("replay")
     code = 0
@@ -126,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"replay: {exc}", file=sys.stderr)
         code = 2
     finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not break the cleanup
         node.destroy_node()
         rclpy.try_shutdown()
     return code

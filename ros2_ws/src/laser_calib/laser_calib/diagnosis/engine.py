@@ -324,6 +324,25 @@ def _distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
     return np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
 
 
+class TooFewPoses(InputError):
+    """A data limit, not a failure: too few poses to cross-validate (minimum_poses)."""
+
+    def __init__(self, n_poses: int, needed: int):
+        super().__init__("samples", f"{n_poses} poses, at least {needed} needed for the diagnosis")
+        self.n_poses, self.needed = n_poses, needed
+
+
+def minimum_poses(n_errors: int, values_per_pose: float, folds: int) -> int:
+    """The fewest poses the diagnosis runs on: one per fold (estimation.folds.kfold_labels), and
+    the smallest training fold (all poses but the largest fold) holding at least as many
+    measured values as there are geometric errors, below which its estimate is refused
+    (estimate_model)."""
+    n = folds
+    while values_per_pose > 0 and (n - math.ceil(n / folds)) * values_per_pose < n_errors:
+        n += 1
+    return n
+
+
 class _Fitter:
     """Fits and cross-validates models on one calibration set, all with
     estimate_model, the same folds and one reference noise model: the noise
@@ -663,6 +682,11 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
     the verdict; test (the same kind of data) predicted at every stage."""
     start = time.perf_counter()
     notes = list(notes)
+    n_poses = len(data.samples.q)
+    needed = minimum_poses(len(data.base().names) - len(data.fixed), data.measured_values() / max(n_poses, 1),
+                           options.folds)
+    if n_poses < needed:
+        raise TooFewPoses(n_poses, needed)
     fitter = _Fitter(data, options)
     pool = [c for c in data.candidates() if supports(fitter.base, c)]
     training_values = data.measured_values() * (options.folds - 1) / options.folds

@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from laser_calib.diagnosis.engine import DiagnoseOptions, diagnose, write_outputs as write_diagnosis
+from laser_calib.diagnosis.engine import DiagnoseOptions, TooFewPoses, diagnose, write_outputs as write_diagnosis
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
@@ -44,6 +44,12 @@ class Outcome:
     calibration: Calibration
     diagnosis_json: str
 
+    @property
+    def message(self) -> str:
+        """The calibration's summary line, and why the diagnosis was skipped when it was."""
+        skipped = json.loads(self.diagnosis_json).get("skipped") if self.diagnosis_json else None
+        return f"{self.calibration.summary()}; {skipped}" if skipped else self.calibration.summary()
+
 
 def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
                     diagnose: bool = False, sources: dict | None = None) -> Outcome:
@@ -68,10 +74,14 @@ def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out:
 
     Its files (diagnosis.json, report.md with plots, robot_calibrated.yaml with
     the effects) go to out/diagnosis/, beside the geometric estimate's, when out
-    is given. Always LM: the diagnosis runs dozens of fits. Returns the JSON.
+    is given. Always LM: the diagnosis runs dozens of fits. Returns the JSON; too few
+    poses for it is a data limit, not an error: {"skipped": "diagnosis skipped: ..."}.
     """
-    diagnosis = diagnose(robot, samples, options=DiagnoseOptions(
-        method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma or None))
+    try:
+        diagnosis = diagnose(robot, samples, options=DiagnoseOptions(
+            method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma or None))
+    except TooFewPoses as exc:
+        return {"skipped": f"diagnosis skipped: {exc.n_poses} poses, at least {exc.needed} needed"}
     if out is not None:
         write_diagnosis(diagnosis, out / "diagnosis", {"robot": robot.name, "samples": f"{len(samples)} session samples"})
     return diagnosis.to_json()

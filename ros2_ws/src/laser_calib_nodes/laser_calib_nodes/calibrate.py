@@ -1,0 +1,70 @@
+"""The estimator's ~/calibrate action (laser_calib_interfaces/Calibrate): the
+long-running calibration, the batch estimate of ~/estimate and then the
+diagnosis, beside the service.
+
+Feedback when each stage starts ('estimate', 'diagnosis') and at the end
+('done'). A cancel is honoured between the stages (the result says what was
+done); a stage once started runs to its end (the core's fits have no hook to
+stop them). Goals are served one at a time; bad goals are aborted with a
+one-line message and the node keeps serving.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import replace
+from pathlib import Path
+
+from rclpy.action import ActionServer, CancelResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+
+from laser_calib.io.errors import InputError
+from laser_calib.session.estimate import estimate_options, run_calibration, run_diagnosis
+
+from laser_calib_nodes import common
+
+
+class CalibrateServer:
+    def __init__(self, node):
+        from laser_calib_interfaces.action import Calibrate
+        self.node, self.Calibrate = node, Calibrate
+        self.busy = threading.Lock()
+        # reentrant: cancel requests are taken while a goal executes
+        self.server = ActionServer(node, Calibrate, common.PRIVATE_CALIBRATE, self.execute,
+                                   cancel_callback=lambda goal: CancelResponse.ACCEPT,
+                                   callback_group=ReentrantCallbackGroup())
+
+    def execute(self, goal):
+        node, request, result = self.node, goal.request, self.Calibrate.Result()
+
+        def stage(name: str, fraction: float, message: str = "") -> None:
+            goal.publish_feedback(self.Calibrate.Feedback(stage=name, fraction_done=fraction, message=message))
+
+        with self.busy:
+            try:
+                samples, source = node.request_samples(request)
+                options = estimate_options(request.method, request.spot_sigma or node.spot_sigma, request.prior,
+                                           request.robust)
+                stage("estimate", 0.0)
+                outcome = run_calibration(node.robot, samples, options, request.output_dir or None,
+                                          sources={"robot": node.robot_path, "samples": source})
+                if request.diagnose and goal.is_cancel_requested:
+                    goal.canceled()
+                    result.message = f"canceled before the diagnosis; the estimate: {outcome.message}"
+                    return result
+                if request.diagnose:
+                    stage("diagnosis", 0.5, outcome.message)
+                    diagnosis = run_diagnosis(node.robot, samples, options,
+                                              Path(request.output_dir) if request.output_dir else None)
+                    outcome = replace(outcome, diagnosis_json=json.dumps(diagnosis))
+            except InputError as exc:
+                result.message = str(exc)
+                node.get_logger().warning(f"calibration refused: {exc}")
+                goal.abort()
+                return result
+        node.fill(result, outcome, len(samples))
+        stage("done", 1.0, outcome.message)
+        goal.succeed()
+        node.get_logger().info(outcome.message)
+        return result

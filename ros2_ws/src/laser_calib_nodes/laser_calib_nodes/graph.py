@@ -1,0 +1,279 @@
+"""The node graphs of a calibration session, defined once.
+
+session.launch.py and hardware.launch.py build their launch actions from
+session_nodes / hardware_nodes, and scripts/run-session starts the same
+processes without the launch library (``python -m laser_calib_nodes.graph``),
+so that the main job runs on a machine without ros2cli and the two cannot
+drift. Either way the starter first takes the session folder's lock
+(laser_calib.session.lock), every node dies with its starter
+(die_with_parent), and a node that exits ends the session within seconds.
+
+    python -m laser_calib_nodes.graph output_dir:=DIR [robot:=FILE] [poses:=N] ... [-- SEQUENCER ROS ARGS]
+
+takes the launch file's arguments (SESSION_ARGS) in its ``name:=value`` form.
+ROS-free: nothing here imports rclpy (launch only inside launch_actions).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ament_index_python.packages import get_package_prefix, get_package_share_directory
+
+from laser_calib.io.errors import InputError
+from laser_calib.session.folder import SessionDir
+from laser_calib.session.lock import SessionLock
+
+PACKAGE = "laser_calib_nodes"
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+STOP_SECONDS = 5.0    # from SIGINT to SIGKILL when stopping the nodes
+
+
+def share(*parts: str) -> str:
+    return os.path.join(get_package_share_directory(PACKAGE), *parts)
+
+
+# name: (default, description); default None: required. The launch file's arguments.
+SESSION_ARGS = {
+    "output_dir": (None, "Session directory (created; a partial session is resumed)."),
+    "robot": (share("config", "robots", "humanoid_arm_7dof.yaml"), "Nominal robot model file (YAML)."),
+    "poses": ("60", "Poses to generate."),
+    "span": ("whole", "'whole' or 'small'."),
+    "seed": ("0", "Pose generator seed."),
+    "method": ("lm", "Final estimate: 'lm' or 'ekf'."),
+    "params": (share("config", "session.yaml"), "ROS parameter file of the nodes."),
+    "speed": ("", "Simulated joint speed, rad/s (empty: the parameter file's)."),
+}
+HARDWARE_ARGS = {
+    "output_dir": (None, "Session directory (created; a partial session is resumed)."),
+    "robot": (None, "Nominal robot model file (YAML)."),
+    "arm_params": (share("config", "dynamixel_arm.yaml"), "arm_driver parameters (Dynamixel port, ids, ticks)."),
+    "calibration": (None, "Screen calibration file of the camera."),
+    "image": ("/camera/image_raw", "Camera image topic."),
+    "poses_file": ("", "Pose list; empty: generate."),
+    "poses": ("60", "Poses to generate."),
+    "params": (share("config", "session.yaml"), "ROS parameter file of the other nodes."),
+}
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node process: its executable (= node name), parameter files, then parameter overrides."""
+
+    executable: str
+    param_files: tuple[str, ...]
+    params: dict = field(default_factory=dict)
+    remaps: tuple[tuple[str, str], ...] = ()
+
+    def command(self) -> list[str]:
+        args = [os.path.join(get_package_prefix(PACKAGE), "lib", PACKAGE, self.executable), "--ros-args"]
+        for path in self.param_files:
+            args += ["--params-file", path]
+        for name, value in self.params.items():
+            args += ["-p", f"{name}:={value}"]
+        for old, new in self.remaps:
+            args += ["-r", f"{old}:={new}"]
+        return args
+
+
+def integer(values: dict, name: str) -> int:
+    try:
+        return int(values[name])
+    except ValueError:
+        raise InputError(name, f"expected an integer, got {values[name]!r}") from None
+
+
+def session_nodes(values: dict) -> list[NodeSpec]:
+    """The simulated session; the sequencer last (the session ends when it ends)."""
+    files = (values["params"],)
+    robot = {"robot": values["robot"]}
+    arm = dict(robot, **{"sim.true_robot_out": os.path.join(values["output_dir"], "robot_true.yaml")})
+    if values["speed"]:
+        arm["sim.joint_speed"] = float(values["speed"])
+    sequencer = dict(robot, output_dir=values["output_dir"], poses=integer(values, "poses"), span=values["span"],
+                     seed=integer(values, "seed"), **{"estimate.method": values["method"]})
+    return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", files, arm), NodeSpec("camera_sim", files),
+            NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)]
+
+
+def hardware_nodes(values: dict) -> list[NodeSpec]:
+    """A real arm (arm_driver on Dynamixel) and a camera driver of the user's; the sequencer last."""
+    files = (values["params"],)
+    robot = {"robot": values["robot"]}
+    sequencer = dict(robot, output_dir=values["output_dir"], poses_file=values["poses_file"],
+                     poses=integer(values, "poses"))
+    return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", (values["arm_params"],), robot),
+            NodeSpec("spot_detector", files, {"calibration": values["calibration"]},
+                     (("camera/image_raw", values["image"]),)),
+            NodeSpec("sequencer", files, sequencer)]
+
+
+_held: list[SessionLock] = []  # the locks this process holds, for its lifetime
+
+
+def take_folder(output_dir: str) -> None:
+    """Create the session folder (nodes write into it from their start) and take its lock;
+    a folder that holds a finished session is refused before any node starts."""
+    lock = SessionLock(output_dir)
+    lock.acquire()
+    if SessionDir(output_dir).state() == "finished":
+        lock.release()
+        raise InputError(output_dir, "holds a finished session; choose another output_dir")
+    _held.append(lock)
+
+
+def die_with_parent() -> None:
+    """Ask the kernel to SIGTERM this process when its parent ends (even by SIGKILL), so
+    that no node runs on without the launcher that owns the session. Linux only."""
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent ended before prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def launch_actions(specs: list[NodeSpec]) -> list:
+    """launch_ros Node actions of specs, and the end of the launch when any of them exits: a
+    shutdown when the sequencer (last) ends with 0, the session done; an error (launch exits 1,
+    naming the node; the node's own one-line reason is in its output) when any exits non-zero."""
+    from launch.actions import EmitEvent, RegisterEventHandler
+    from launch.event_handlers import OnProcessExit
+    from launch.events import Shutdown
+    from launch_ros.actions import Node
+
+    def ended(event, _context, executable: str, last: bool):
+        if event.returncode != 0:
+            raise RuntimeError(f"{executable} exited with code {event.returncode}")
+        return [EmitEvent(event=Shutdown(reason="session finished" if last else f"{executable} exited"))]
+
+    actions = []
+    for spec in specs:
+        node = Node(package=PACKAGE, executable=spec.executable, name=spec.executable, output="screen",
+                    parameters=[*spec.param_files, spec.params], remappings=list(spec.remaps))
+        actions += [node, RegisterEventHandler(OnProcessExit(
+            target_action=node, on_exit=lambda event, context, name=spec.executable, last=spec is specs[-1]:
+            ended(event, context, name, last)))]
+    return actions
+
+
+def launch_description(spec: dict, make_nodes) -> "LaunchDescription":
+    """A launch description with spec's arguments whose nodes are make_nodes(values), after
+    the session folder has been taken (take_folder)."""
+    from launch import LaunchDescription
+    from launch.actions import DeclareLaunchArgument, OpaqueFunction
+    from launch.substitutions import LaunchConfiguration
+
+    def start(context):
+        values = {name: LaunchConfiguration(name).perform(context) for name in spec}
+        values["output_dir"] = os.path.abspath(values["output_dir"])
+        take_folder(values["output_dir"])
+        return launch_actions(make_nodes(values))
+
+    arguments = [DeclareLaunchArgument(name, description=text, **({} if default is None else
+                                                                  {"default_value": default}))
+                 for name, (default, text) in spec.items()]
+    return LaunchDescription(arguments + [OpaqueFunction(function=start)])
+
+
+def parse(argv: list[str], spec: dict) -> tuple[dict, list[str]]:
+    """name:=value arguments (the launch file's) and the sequencer's extra ROS arguments after --."""
+    extra = []
+    if "--" in argv:
+        extra = argv[argv.index("--") + 1:]
+        argv = argv[:argv.index("--")]
+    values = {name: default for name, (default, _) in spec.items()}
+    for item in argv:
+        name, sep, value = item.partition(":=")
+        if not sep or name not in spec:
+            raise InputError(item, f"expected NAME:=VALUE with NAME one of {', '.join(spec)}")
+        values[name] = value
+    missing = [name for name, value in values.items() if value is None]
+    if missing:
+        raise InputError(missing[0], "required argument missing")
+    values["output_dir"] = os.path.abspath(values["output_dir"])
+    return values, extra
+
+
+def last_line(path: Path) -> str:
+    lines = [line for line in path.read_text(errors="replace").splitlines() if line.strip()]
+    return lines[-1] if lines else "(no output)"
+
+
+def run_session(values: dict, extra: list[str]) -> int:
+    """Start the graph like `ros2 launch` does: each node's output in output_dir/logs/NAME.log,
+    the sequencer's also on stdout; end when the sequencer ends, a node dies, or on a signal."""
+    specs = session_nodes(values)
+    die_with_parent()  # scripts/run-session killed: this process stops the nodes
+    take_folder(values["output_dir"])
+    logs = Path(values["output_dir"]) / "logs"
+    logs.mkdir(exist_ok=True)
+    stopping = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stopping.set())
+    procs: dict[str, subprocess.Popen] = {}
+    for spec in specs[:-1]:
+        with open(logs / f"{spec.executable}.log", "ab") as log:
+            procs[spec.executable] = subprocess.Popen(spec.command(), stdout=log, stderr=subprocess.STDOUT,
+                                                      preexec_fn=die_with_parent)
+    sequencer = subprocess.Popen(specs[-1].command() + extra, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                 preexec_fn=die_with_parent)
+    tee = threading.Thread(target=copy_lines, args=(sequencer.stdout, logs / "sequencer.log"), daemon=True)
+    tee.start()
+    failed = None
+    while sequencer.poll() is None and not stopping.is_set() and failed is None:
+        failed = next((name for name, proc in procs.items() if proc.poll() is not None), None)
+        time.sleep(0.1)
+    stop([*procs.values(), sequencer])
+    tee.join(timeout=2)
+    if failed:
+        print(f"run-session: {failed} exited with code {procs[failed].returncode}: "
+              f"{last_line(logs / f'{failed}.log')}", file=sys.stderr)
+        return 1
+    return 130 if stopping.is_set() else sequencer.returncode
+
+
+def copy_lines(stream, path: Path) -> None:
+    with open(path, "ab") as log:
+        for line in stream:
+            sys.stdout.buffer.write(line)
+            sys.stdout.flush()
+            log.write(line)
+            log.flush()
+
+
+def stop(procs: list[subprocess.Popen]) -> None:
+    """SIGINT (Ctrl-C) to each live process, SIGKILL to those alive after STOP_SECONDS."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + STOP_SECONDS
+    for proc in procs:
+        try:
+            proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        values, extra = parse(list(sys.argv[1:] if argv is None else argv), SESSION_ARGS)
+        return run_session(values, extra)
+    except InputError as exc:
+        print(f"run-session: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,113 @@
+"""scripts/run-session owns its session: a second session on the live folder is
+refused in one line naming the owner's PID, and SIGKILL of run-session leaves no
+node running (they die with their launcher) and no stale lock. Runs without
+ros2cli (run-session starts laser_calib_nodes.graph, not `ros2 launch`)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+from ros_harness import ROOT, Ros
+
+RUN_SESSION = str(ROOT / "scripts" / "run-session")
+
+
+def children(pid: int) -> list[int]:
+    """Every live descendant of pid (from /proc)."""
+    parent_of = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            parent_of[int(entry.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+    found, frontier = [], [pid]
+    while frontier:
+        kids = [p for p, parent in parent_of.items() if parent in frontier]
+        found += kids
+        frontier = kids
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_second_session_refused_and_sigkill_leaves_no_node(ros: Ros, tmp_path):
+    from laser_calib.session.lock import LOCK_FILE, SessionLock
+    out = tmp_path / "session"
+    args = [RUN_SESSION, "--no-setup", "--out", str(out), "--poses", "10", "--speed", "4.0"]
+    proc = ros.start_command("run-session", args)
+    deadline = time.monotonic() + 300
+    while not (out / "samples.csv").exists():
+        assert proc.poll() is None, ros.log("run-session")
+        assert time.monotonic() < deadline, ros.log("run-session")
+        time.sleep(0.1)
+    owner = int((out / LOCK_FILE).read_text())
+    nodes = [pid for pid in children(proc.pid) if b"lib/laser_calib_nodes/" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+    assert len(nodes) == 5, nodes
+
+    second = ros.run(args, timeout=120)
+    lines = second.stderr.strip().splitlines()
+    assert second.returncode == 2 and len(lines) == 1 and f"PID {owner}" in lines[0], second
+
+    os.kill(proc.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 30
+    while any(alive(pid) for pid in nodes + [owner]) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [pid for pid in nodes + [owner] if alive(pid)], ros.log("run-session")
+    SessionLock(out).acquire()  # no stale lock: the folder can be resumed
+
+
+def test_lock_held_by_the_parent_is_the_sessions_own(tmp_path):
+    """A sequencer started by the session's launcher finds the lock held by its parent and
+    goes on; any other process is refused, naming the owner."""
+    import subprocess
+    import sys
+    import pytest
+    from laser_calib.session.lock import SessionBusy, SessionLock
+    folder = tmp_path / "new" / "session"
+    held = SessionLock(folder)
+    held.acquire()                                  # creates the folder
+    with pytest.raises(SessionBusy, match=f"in use by the session of PID {os.getpid()} ") as busy:
+        SessionLock(folder).acquire()               # this very process is not its own parent
+    assert busy.value.owner == os.getpid()
+    child = subprocess.run([sys.executable, "-c", "import sys; from laser_calib.session.lock import SessionLock; "
+                            "SessionLock(sys.argv[1]).acquire(); print('through')", str(folder)],
+                           capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT / "ros2_ws" / "src"
+                                                                                             / "laser_calib")})
+    assert child.returncode == 0 and child.stdout.strip() == "through", child.stderr
+    held.release()
+
+
+def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
+    out = tmp_path / "session"
+    proc = ros.start_command("run-session", [RUN_SESSION, "--no-setup", "--out", str(out), "--poses", "10",
+                                             "--speed", "4.0"])
+    deadline = time.monotonic() + 300
+    while not (out / "samples.csv").exists():
+        assert proc.poll() is None and time.monotonic() < deadline, ros.log("run-session")
+        time.sleep(0.1)
+    nodes = [pid for pid in children(proc.pid) if b"lib/laser_calib_nodes/" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+    ros.interrupt("run-session")  # the terminal's Ctrl-C: the runner forwards it, the nodes get it twice
+    assert ros.wait_exit("run-session", 30) == 130, ros.log("run-session")
+    assert not [pid for pid in nodes if alive(pid)]
+    logs = {path.name: path.read_text() for path in (out / "logs").glob("*.log")}
+    assert len(logs) == 5 and not [name for name, text in logs.items() if "Traceback" in text], logs
+    assert "run again with the same --out to resume" in ros.log("run-session")
+
+
+def test_env_sh_puts_the_wheels_packages_on_the_ament_path(ros: Ros):
+    """ament_index (ros2 interface, launch) finds the wheels' packages after `source scripts/env.sh`."""
+    found = ros.run([str(ROOT / ".venv" / "bin" / "python"), "-c",
+                     "from ament_index_python.packages import get_package_share_directory as share; "
+                     "print(share('std_msgs')); print(share('laser_calib_interfaces'))"])
+    assert found.returncode == 0, found.stderr
