@@ -14,7 +14,8 @@ import pytest
 from scipy import stats
 
 from laser_calib.cli.main import main as cli_main
-from laser_calib.diagnosis.engine import EXPLAINED, STRUCTURE, diagnose, write_outputs
+from laser_calib.diagnosis.engine import diagnose, write_outputs
+from laser_calib.diagnosis.options import EXPLAINED, STRUCTURE
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic, calibrated_model
 from laser_calib.effects.catalog import camera_distortion, screen_shape
 from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignJointError, draw_truth, effect_session, hooks, sized)

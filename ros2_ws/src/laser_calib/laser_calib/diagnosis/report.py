@@ -4,7 +4,6 @@ the style of ../report.py."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -13,26 +12,25 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from laser_calib.report.plots import save_figure  # noqa: E402
+from laser_calib.diagnosis.result import Analysis, Diagnosis  # noqa: E402
 from laser_calib.diagnosis.structure import Series, Test, binned_test  # noqa: E402
 
-if TYPE_CHECKING:
-    from laser_calib.diagnosis.engine import Analysis, Diagnosis
 
 
-def _find(analysis: "Analysis", response: str, covariate: str) -> tuple[Series, Series] | None:
+def _find(analysis: Analysis, response: str, covariate: str) -> tuple[Series, Series] | None:
     r = next((s for s in analysis.responses if s.name == response), None)
     c = next((s for s in analysis.covariates if s.name == covariate), None)
     return None if r is None or c is None else (r, c)
 
 
-def deciding_test(diagnosis: "Diagnosis") -> Test | None:
+def deciding_test(diagnosis: Diagnosis) -> Test | None:
     """The covariate the geometric residual followed most strongly (the first
     effect's evidence), or, with nothing found, the strongest remaining one."""
     tests = diagnosis.before.tests or diagnosis.after.tests
     return tests[0] if tests else None
 
 
-def plot_residual(diagnosis: "Diagnosis", test: Test, path: Path) -> None:
+def plot_residual(diagnosis: Diagnosis, test: Test, path: Path) -> None:
     """The response against the covariate, geometric fit and final model side by
     side: every pose (or spot) and the binned means with their standard errors."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
@@ -80,7 +78,7 @@ def _stat(s: dict | None, key: str) -> str:
     return "-" if not s or s[key] is None else f"{s[key]:.3f}"
 
 
-def markdown(diagnosis: "Diagnosis", result: dict, plots: dict[str, str]) -> str:
+def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
     samples, test = diagnosis.samples, diagnosis.test_samples
     noise = result["noise"]
     lines = [f"# Diagnosis of {diagnosis.robot.name}: what the geometric model lacks", "",
@@ -141,7 +139,7 @@ def markdown(diagnosis: "Diagnosis", result: dict, plots: dict[str, str]) -> str
     return "\n".join(lines) + "\n"
 
 
-def write_report(diagnosis: "Diagnosis", result: dict, out: Path) -> None:
+def write_report(diagnosis: Diagnosis, result: dict, out: Path) -> None:
     """report.md with residual.png and stages.png in ``out``."""
     plots = {"stages": "stages.png"}
     plot_stages(result["stages"], out / "stages.png")
