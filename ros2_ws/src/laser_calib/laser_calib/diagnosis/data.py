@@ -12,7 +12,7 @@ from laser_calib.effects.base import SPOT, Effect
 from laser_calib.effects.catalog import candidates
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.io.samples import Samples
-from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
+from laser_calib.measurement.base import NoiseModel, Residuals, RobotModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.kinematics import forward
 from laser_calib.model.robot import Robot
@@ -34,7 +34,7 @@ class Data(Protocol):
     samples: Readings
     fixed: tuple[str, ...]
 
-    def base(self) -> MeasurementModel: ...
+    def base(self) -> RobotModel: ...
 
     def candidates(self) -> list[Effect]: ...
 
@@ -70,8 +70,8 @@ class SpotData:
         return spot_responses(res, noise, beams), spot_covariates(self.samples, beams)
 
 
-def supports(base: MeasurementModel, effect: Effect) -> bool:
+def supports(base: RobotModel, effect: Effect) -> bool:
     """Whether the base model can carry the effect: spot effects need spots."""
-    return effect.family != SPOT or isinstance(base, SpotModel)
+    return effect.family != SPOT or base.measures_spots
 
 

@@ -1,5 +1,5 @@
 """EffectModel: the geometric spot model plus effect blocks, as one
-MeasurementModel (measurement.py), so LM, the EKF, the identifiability analysis
+MeasurementModel (measurement/base.py), so LM, the EKF, the identifiability analysis
 and estimate_model run on it unchanged.
 
 x = [geometric errors (4N+5), block of effect 1, block of effect 2, ...]
@@ -24,13 +24,12 @@ out of the Jacobian.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import ClassVar, Sequence
 
 import numpy as np
 
 from laser_calib.model.kinematics import forward
-from laser_calib.measurement.base import Residuals
-from laser_calib.measurement.spot import SpotModel
+from laser_calib.measurement.base import Residuals, RobotModel
 from laser_calib.effects.base import JOINT, PARAM, SPOT, Effect
 
 
@@ -47,18 +46,21 @@ class Bases:
 
 
 class EffectModel:
-    """A SpotModel with effects. names/scales: the geometric ones, then each
+    """A robot measurement model with effects. names/scales: the geometric ones, then each
     effect's; ``blocks`` maps each effect to its slice of x.
 
-    Joint and parameter effects need of ``base`` only evaluate(errors, dq,
-    jacobian) with jac_q, robot and samples, so they work on any sensor model
-    that has them; spot effects need the screen, i.e. a SpotModel.
+    ``base`` is any measurement.RobotModel (spot, point, pose); spot effects
+    need one that measures spots. An EffectModel is itself a RobotModel's
+    MeasurementModel part (names, scales, residuals, subset).
     """
 
-    def __init__(self, base: SpotModel, effects: Sequence[Effect] = (), bases: Bases | None = None):
-        if any(e.family == SPOT for e in effects) and not isinstance(base, SpotModel):
+    measures_spots: ClassVar[bool] = False  # set per instance from the base
+
+    def __init__(self, base: RobotModel, effects: Sequence[Effect] = (), bases: Bases | None = None):
+        if any(e.family == SPOT for e in effects) and not base.measures_spots:
             raise ValueError("spot effects (screen shape, camera distortion) need the laser spot model")
         self.base = base
+        self.measures_spots = base.measures_spots
         self.robot = base.robot
         self.samples = base.samples
         self.effects = tuple(effects)
@@ -91,9 +93,7 @@ class EffectModel:
 
     def subset(self, index) -> "EffectModel":
         """The model on the poses ``index`` (mask or indices), bases sliced."""
-        base = (self.base.subset(index) if hasattr(self.base, "subset")
-                else type(self.base)(self.robot, self.samples.subset(index)))
-        return EffectModel(base, self.effects, self.bases.subset(index))
+        return EffectModel(self.base.subset(index), self.effects, self.bases.subset(index))
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         """Geometric errors (n,) and each effect's values."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from laser_calib.io.samples import Samples
@@ -11,7 +13,10 @@ from laser_calib.model.robot import Robot
 
 
 class SpotModel:
-    """The paper's model: spots of the two lasers from the geometric errors."""
+    """The paper's model: spots of the two lasers from the geometric errors
+    (a measurement.RobotModel)."""
+
+    measures_spots: ClassVar[bool] = True
 
     def __init__(self, robot: Robot, samples: Samples):
         if samples.n_joints != robot.n_joints:
@@ -24,6 +29,9 @@ class SpotModel:
 
     def residuals(self, x: np.ndarray, jacobian: bool = True) -> Residuals:
         return self.evaluate(x, None, jacobian)
+
+    def subset(self, index) -> "SpotModel":
+        return SpotModel(self.robot, self.samples.subset(index))
 
     def evaluate(self, errors: np.ndarray, dq: np.ndarray | None, jacobian: bool = True) -> Residuals:
         """Residuals with errors (n,) or per pose (P,n), and joint offsets dq (P,N)
