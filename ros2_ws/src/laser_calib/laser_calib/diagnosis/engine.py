@@ -52,12 +52,14 @@ import math
 import time
 from dataclasses import replace
 
+from laser_calib.diagnosis.compensator import Compensator
 from laser_calib.diagnosis.data import Data, SpotData, supports
+from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.selection import parameter_report, select
-from laser_calib.diagnosis.verdict import analysis, evidence, verdict_noise
+from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.io.errors import InputError
@@ -121,9 +123,17 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
     noise = verdict_noise(final, data.samples, options)
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
-    verdict, said = evidence(after, noise, options.alpha)
+    samples = data.samples
+    detection = detect(final.model.names, final.model.residuals(final.estimate.values, True), noise_model,
+                       samples.q, samples.stamp, dict(samples.extra), fitter.fold, options.seed)
+    verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha)
+    compensator = compensated = None
+    if options.compensate and detection.p <= options.alpha and detection.gain > 0:
+        compensator = Compensator.of(detection)
+        if test is not None:
+            compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), final.estimate.values)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
                      noise, before, after, verdict, said, parameter_report(final, alternatives), options,
-                     time.perf_counter() - start, merged, tuple(notes))
+                     time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated)
 

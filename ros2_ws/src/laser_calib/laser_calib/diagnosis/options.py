@@ -5,7 +5,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-EXPLAINED, STRUCTURE = "explained", "structure remains"
+EXPLAINED, STRUCTURE, UNDETERMINED = "explained", "structure remains", "undetermined"
+MIN_DETECTOR_POSES = 30   # below this the flexible detector sees only large structure
+# An estimated noise sigma this many times its rated value (robot file) is structure:
+# the maximum-likelihood sigma from 100+ values has a relative error under 10 %.
+NOISE_EXCESS = 2.0
 MIN_REPEAT_DOF = 8        # repeated-pose scatter with fewer degrees of freedom is not used
 EQUIVALENT_P = 0.05       # held-out errors this close are "not significantly different"
 SEPARABLE_CORRELATION = 0.99
@@ -18,7 +22,8 @@ class DiagnoseOptions:
     of the measurements, None when not known; folds of the cross-validation;
     alpha the significance level of every test; max_effects added at most;
     shortlist fitted per round; seed of the fold split and of LM restarts;
-    restarts of LM for the geometric fit (estimation.EstimateOptions)."""
+    restarts of LM for the geometric fit (estimation.EstimateOptions);
+    compensate: keep the learned compensator when it wins held-out."""
 
     method: str = "lm"
     spot_sigma: float | None = None
@@ -29,6 +34,7 @@ class DiagnoseOptions:
     shortlist: int = 4
     seed: int = 0
     restarts: int = 6
+    compensate: bool = True
 
     def __post_init__(self):
         if self.spot_sigma is not None and not (math.isfinite(self.spot_sigma) and self.spot_sigma > 0):

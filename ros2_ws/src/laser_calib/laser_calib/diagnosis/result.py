@@ -8,6 +8,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from laser_calib.diagnosis.compensator import Compensator
+from laser_calib.diagnosis.detector import Detection
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.diagnosis.structure import Readings, Series, Test
 from laser_calib.effects.base import Effect
@@ -115,6 +117,9 @@ class Diagnosis:
     wall_time: float
     merged: dict[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = field(default_factory=tuple)
+    detection: Detection | None = None
+    compensator: Compensator | None = None
+    compensated_test: np.ndarray | None = None  # (P_test, L) m, the final model with the compensator
 
     @property
     def final(self) -> Fitted:
@@ -157,6 +162,13 @@ class Diagnosis:
             "options": {k: v for k, v in self.options.__dict__.items()},
             "wall_time_s": self.wall_time,
             "notes": list(self.notes),
+            "detector": None if self.detection is None else {
+                "heldout_gain": self.detection.gain, "p": self.detection.p, "null_99": self.detection.null_99,
+                "importance": [{"input": n, "mse_increase": v, "std": s} for n, v, s in self.detection.importance]},
+            "compensator": None if self.compensator is None else {
+                "heldout_gain": self.compensator.heldout_gain, "file": "compensator.json",
+                "targets": [t for t, u in zip(self.compensator.targets, self.compensator.used) if u],
+                "test": None if self.compensated_test is None else distance_stats(self.compensated_test)},
         }
 
 

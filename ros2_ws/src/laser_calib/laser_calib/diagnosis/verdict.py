@@ -9,11 +9,15 @@ import numpy as np
 from scipy import stats
 
 from laser_calib.diagnosis.data import Data
+from laser_calib.diagnosis.detector import Detection
 from laser_calib.diagnosis.noise import noise_components, pure_error
-from laser_calib.diagnosis.options import EXPLAINED, MIN_REPEAT_DOF, STRUCTURE, DiagnoseOptions
+from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_REPEAT_DOF, NOISE_EXCESS, STRUCTURE,
+                                           UNDETERMINED, DiagnoseOptions)
 from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo
 from laser_calib.diagnosis.structure import Readings, pose_covariates, pose_responses, structure_tests
+from laser_calib.effects.base import positive_number
 from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.model.robot import Robot
 
 def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions) -> NoiseInfo:
     """The noise model of the verdict and the test of the residual level.
@@ -59,8 +63,27 @@ def analysis(data: Data, fitted: Fitted, noise: NoiseModel) -> Analysis:
     return Analysis(structure_tests(resp, cov), resp, cov)
 
 
+def rated_noise(robot: Robot) -> tuple[float | None, float | None]:
+    """What the robot file says its camera and encoders can do: the optional
+    keys spot_sigma (m) and joint_reading_sigma (rad), None where absent."""
+    return tuple(positive_number("robot", robot.extra, key) if key in robot.extra else None
+                 for key in ("spot_sigma", "joint_reading_sigma"))
 
-def evidence(after: Analysis, noise: NoiseInfo, alpha: float) -> tuple[str, str]:
+
+def excess_noise(noise: NoiseInfo, rated: tuple[float | None, float | None]) -> str | None:
+    """The sentence saying an estimated noise component is far above its rated value, or None."""
+    for name, value, source, limit, unit, factor in (
+            ("spot", noise.spot_sigma, noise.spot_source, rated[0], "mm", 1e3),
+            ("joint-reading", noise.joint_sigma, noise.joint_source, rated[1], "deg", float(np.degrees(1.0)))):
+        if source == "estimated" and limit is not None and value > NOISE_EXCESS * limit:
+            return (f"the estimated {name} sigma, {value * factor:.3g} {unit}, is {value / limit:.1f} times what the "
+                    f"robot file says the hardware can do ({limit * factor:.3g} {unit}): structure taken as noise")
+    return None
+
+
+def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, rated: tuple[float | None, float | None],
+             n_poses: int, alpha: float) -> tuple[str, str]:
+    """The verdict and its evidence (engine docstring, 3.)."""
     tests = after.tests
     structure = bool(tests) and tests[0].p_adjusted < alpha
     level_fail = noise.level_p is not None and noise.level_p < alpha
@@ -83,6 +106,17 @@ def evidence(after: Analysis, noise: NoiseInfo, alpha: float) -> tuple[str, str]
     else:
         parts.append(f"The residual level is not tested: the noise is not fully given and there are "
                      f"{'too few' if noise.repeat_dof else 'no'} repeated poses ({sigma_text}).")
-    return (STRUCTURE if structure or level_fail else EXPLAINED), " ".join(parts)
+    detected = detection.p <= alpha and detection.gain > 0
+    parts.append(("Detector: " if detected else "Detector, nothing significant: ") + detection.sentence() + ".")
+    excess = excess_noise(noise, rated)
+    if excess:
+        parts.append(f"Noise: {excess}.")
+    if structure or level_fail or detected or excess:
+        return STRUCTURE, " ".join(parts)
+    if noise.level_test is None and n_poses < MIN_DETECTOR_POSES:
+        parts.append(f"Undetermined: the level is not tested and {n_poses} poses are too few for the detector "
+                     f"to see more than large structure (it needs about {MIN_DETECTOR_POSES}).")
+        return UNDETERMINED, " ".join(parts)
+    return EXPLAINED, " ".join(parts)
 
 

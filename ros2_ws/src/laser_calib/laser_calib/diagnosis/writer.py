@@ -10,10 +10,12 @@ from laser_calib.diagnosis.report import write_report
 from laser_calib.diagnosis.result import Diagnosis
 from laser_calib.model.robot_file import save_robot
 
+
 def write_outputs(diagnosis: Diagnosis, out_dir: str | Path, sources: dict[str, str | None] | None = None) -> dict:
     """diagnosis.json, robot_calibrated.yaml (geometric corrections and the
-    ``effects:`` key, docs/effects.md) and report.md with its plots into
-    out_dir; returns the JSON dictionary."""
+    ``effects:`` key, docs/effects.md), compensator.json when the learned
+    compensator was kept (diagnosis.compensator.load_compensator) and
+    report.md with its plots into out_dir; returns the JSON dictionary."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result = diagnosis.to_json()
@@ -28,6 +30,8 @@ def write_outputs(diagnosis: Diagnosis, out_dir: str | Path, sources: dict[str, 
               + "".join(f"\nEffect parameter not separable from the geometric errors (the model uses the "
                         f"value, which has no meaning alone): {u}" for u in unseparated))
     save_robot(diagnosis.calibrated_robot(), out / "robot_calibrated.yaml", header=header)
+    if diagnosis.compensator is not None:
+        diagnosis.compensator.save(out / "compensator.json")
     write_report(diagnosis, result, out)
     return result
 

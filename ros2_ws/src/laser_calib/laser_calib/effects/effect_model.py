@@ -34,6 +34,18 @@ from laser_calib.effects.base import JOINT, PARAM, SPOT, Effect
 
 
 @dataclass(frozen=True)
+class Fixed:
+    """Offsets with no parameter (a learned compensator's, diagnosis.compensator):
+    joint offsets dq (P,N) rad and geometric-parameter offsets (P,n)."""
+
+    dq: np.ndarray
+    errors: np.ndarray
+
+    def subset(self, index) -> "Fixed":
+        return Fixed(self.dq[index], self.errors[index])
+
+
+@dataclass(frozen=True)
 class Bases:
     """Precomputed joint and parameter bases, None where no effect of that family."""
 
@@ -56,7 +68,8 @@ class EffectModel:
 
     measures_spots: ClassVar[bool] = False  # set per instance from the base
 
-    def __init__(self, base: RobotModel, effects: Sequence[Effect] = (), bases: Bases | None = None):
+    def __init__(self, base: RobotModel, effects: Sequence[Effect] = (), bases: Bases | None = None,
+                 fixed: Fixed | None = None):
         if any(e.family == SPOT for e in effects) and not base.measures_spots:
             raise ValueError("spot effects (screen shape, camera distortion) need the laser spot model")
         self.base = base
@@ -74,6 +87,7 @@ class EffectModel:
             start += len(effect.params)
         self.n_effect_params = start
         self.bases = self._bases() if bases is None else bases
+        self.fixed = fixed
         self._spot = sorted((e.order, i) for i, e in enumerate(self.effects) if e.family == SPOT)
         self._geometric = [i for i, e in enumerate(self.effects) if e.family == JOINT and e.geometric_basis]
 
@@ -93,7 +107,8 @@ class EffectModel:
 
     def subset(self, index) -> "EffectModel":
         """The model on the poses ``index`` (mask or indices), bases sliced."""
-        return EffectModel(self.base.subset(index), self.effects, self.bases.subset(index))
+        return EffectModel(self.base.subset(index), self.effects, self.bases.subset(index),
+                           None if self.fixed is None else self.fixed.subset(index))
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         """Geometric errors (n,) and each effect's values."""
@@ -105,8 +120,14 @@ class EffectModel:
         """Per-pose errors (n,) or (P,n) and joint offsets dq (P,N) or None at x."""
         x = np.asarray(x, float)
         geometric, p = x[:self.n_geometric], x[self.n_geometric:]
-        errors = geometric if self.bases.param is None else geometric + self.bases.param @ p
-        return errors, None if self.bases.joint is None else self.joint_basis(geometric) @ p
+        joint_basis = self.joint_basis(geometric)
+        return self._with_fixed(geometric if self.bases.param is None else geometric + self.bases.param @ p,
+                                None if joint_basis is None else joint_basis @ p)
+
+    def _with_fixed(self, errors: np.ndarray, dq: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        if self.fixed is None:
+            return errors, dq
+        return errors + self.fixed.errors, self.fixed.dq if dq is None else dq + self.fixed.dq
 
     def joint_basis(self, geometric: np.ndarray) -> np.ndarray | None:
         """Bq (P,N,K) at the geometric errors (n,)."""
@@ -123,8 +144,8 @@ class EffectModel:
         x = np.asarray(x, float)
         geometric, p = x[:self.n_geometric], x[self.n_geometric:]
         joint_basis = self.joint_basis(geometric)
-        dq = None if joint_basis is None else joint_basis @ p
-        errors = geometric if self.bases.param is None else geometric + self.bases.param @ p
+        errors, dq = self._with_fixed(geometric if self.bases.param is None else geometric + self.bases.param @ p,
+                                      None if joint_basis is None else joint_basis @ p)
         res = self.base.evaluate(errors, dq, jacobian)
         spot_columns: dict[int, np.ndarray] = {}
         if self._spot:
