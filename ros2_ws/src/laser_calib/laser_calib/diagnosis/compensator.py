@@ -9,8 +9,12 @@ significant (the test that decides it held each pose out), it never replaces
 a physical effect (the report lists it apart, with its gain) and it acts
 through the kinematics, so it applies to any pose and any measurement model:
 
-    model  = compensator.apply(effect_model)       # EffectModel with the offsets
-    spots  = model.residuals(x, False).predicted
+    compensator = load_compensator("compensator.json")
+    spots = compensator.predict(EffectModel(SpotModel(robot, samples), effects))   # (P,2,2)
+
+with robot the nominal robot of the diagnosis and effects those of its
+robot_calibrated.yaml (effects_from_robot): the file holds the geometric
+errors and effect values refitted together with the compensation (backfit).
 
 File (JSON, compensator.json of a diagnosis): inputs, targets (theta_j are
 joint offsets, alpha_j twist offsets), the basis (standardisation, knots,
@@ -22,25 +26,32 @@ the samples it is applied to (from q = 0), as in the calibration.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 
-from laser_calib.diagnosis.detector import Basis, Detection, input_table
+from sklearn.base import clone
+
+from laser_calib.diagnosis.detector import Basis, Detection, OffsetRegression, design, input_table
+from laser_calib.estimation.estimate import EstimateOptions, estimate_model
+from laser_calib.measurement.base import NoiseModel
 from laser_calib.effects.effect_model import EffectModel, Fixed
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
 
 VERSION = 1
+BACKFIT = 3  # rounds of model refit / regression refit
 
 
 @dataclass(frozen=True)
 class Compensator:
     """inputs (d,) names; targets (m,) parameter names; used (m,) the targets
     the regression has; coef (m', b) rad per basis function; heldout_gain the
-    detector's held-out gain (fraction of the whitened residual sum of squares)."""
+    detector's held-out gain of the regression (fraction of the whitened
+    residual sum of squares); names and values (n,) of the model it completes
+    (its geometric errors and effect parameters refitted with the compensation)."""
 
     inputs: tuple[str, ...]
     targets: tuple[str, ...]
@@ -48,14 +59,17 @@ class Compensator:
     basis: Basis
     coef: np.ndarray
     heldout_gain: float
+    names: tuple[str, ...] = ()
+    values: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @classmethod
-    def of(cls, detection: Detection) -> "Compensator":
-        regression = detection.regression
+    def of(cls, regression: OffsetRegression, detection: Detection, names: tuple[str, ...], values: np.ndarray
+           ) -> "Compensator":
         width = regression.basis(np.zeros((1, len(detection.inputs)))).shape[1]
         used = (np.ones(len(detection.targets), bool) if regression.used is None else np.asarray(regression.used))
         coef = regression.ridge_.coef_.reshape(-1, width) / regression.basis.size
-        return cls(detection.inputs, detection.targets, used, regression.basis, coef, detection.gain)
+        return cls(detection.inputs, detection.targets, used, regression.basis, coef, detection.compensation_gain,
+                   tuple(names), np.asarray(values, float))
 
     def offsets(self, robot: Robot, q: np.ndarray, stamp: np.ndarray, extra: Mapping[str, np.ndarray]
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -85,18 +99,42 @@ class Compensator:
         padded[:, :errors.shape[1]] = errors  # sensor models append their frames after the D-H errors
         return EffectModel(model.base, model.effects, model.bases, Fixed(dq, padded))
 
-    def predict(self, model: EffectModel, x: np.ndarray) -> np.ndarray:
-        """The compensated prediction (P,C,D) of ``model``'s poses at parameters x."""
-        return self.apply(model).residuals(x, False).predicted
+    def predict(self, model: EffectModel) -> np.ndarray:
+        """The compensated prediction (P,C,D) of ``model``'s poses (the model of
+        the diagnosis, on any samples) at the compensator's own values."""
+        if tuple(model.names) != self.names:
+            raise InputError("compensator", f"made for the model {', '.join(self.names[-3:])}..., not "
+                                            f"{', '.join(model.names[-3:])}...")
+        return self.apply(model).residuals(self.values, False).predicted
 
     def to_json(self) -> dict:
         return {"version": VERSION, "inputs": list(self.inputs), "targets": list(self.targets),
                 "used": self.used.tolist(), "mean": self.basis.mean.tolist(), "std": self.basis.std.tolist(),
                 "knots": self.basis.knots.tolist(), "pairs": self.basis.pairs.tolist(), "size": self.basis.size,
-                "coef_rad": self.coef.tolist(), "heldout_gain": self.heldout_gain}
+                "coef_rad": self.coef.tolist(), "heldout_gain": self.heldout_gain,
+                "model": {"names": list(self.names), "values": self.values.tolist()}}
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_json(), indent=1))
+
+
+def backfit(detection: Detection, model: EffectModel, x: np.ndarray, options: EstimateOptions,
+            noise: NoiseModel) -> Compensator:
+    """The compensator and the model's values fitted together by backfitting:
+    the model refitted with the compensation's offsets fixed, the regression
+    refitted to the residual the model alone leaves, BACKFIT times (the
+    geometric errors had absorbed part of what the compensation now carries)."""
+    regression = detection.compensation
+    names, z = input_table(model.samples.q, model.samples.stamp, dict(model.samples.extra))
+    z = z[:, [names.index(n) for n in detection.inputs]]
+    compensator = Compensator.of(regression, detection, model.names, x)
+    for _ in range(BACKFIT):
+        x = estimate_model(compensator.apply(model), replace(options, restarts=0), None, x).values
+        X, y, _, _ = design(model.names, model.residuals(x, True), noise, z)
+        regression = clone(regression).fit(X, y.ravel())
+        compensator = Compensator.of(regression, detection, model.names, x)
+    return replace(compensator, values=estimate_model(compensator.apply(model), replace(options, restarts=0), None,
+                                                      x).values)
 
 
 def load_compensator(path: str | Path) -> Compensator:
@@ -110,7 +148,8 @@ def load_compensator(path: str | Path) -> Compensator:
         coef = np.array(data["coef_rad"], float)
         used = np.array(data["used"], bool)
         compensator = Compensator(tuple(data["inputs"]), tuple(data["targets"]), used, basis, coef,
-                                  float(data["heldout_gain"]))
+                                  float(data["heldout_gain"]), tuple(data["model"]["names"]),
+                                  np.array(data["model"]["values"], float))
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise InputError(str(path), f"not a compensator file ({error})") from None
     if coef.shape != (int(used.sum()), basis(np.zeros((1, len(compensator.inputs)))).shape[1]):

@@ -141,7 +141,8 @@ class Detection:
     """The detector's finding: held-out gain (1 - SSE/SS0 over the folds), its
     permutation p, the null gains' 99th percentile, the inputs by permutation
     importance (name, mean increase of the MSE in whitened units^2, its std),
-    the regression refitted on all poses, the direction names and the inputs."""
+    the regression refitted on all poses, the direction names and the inputs;
+    the regression on all directions (the compensator's) and its held-out gain."""
 
     gain: float
     p: float
@@ -150,6 +151,8 @@ class Detection:
     regression: OffsetRegression
     targets: tuple[str, ...]
     inputs: tuple[str, ...]
+    compensation: OffsetRegression
+    compensation_gain: float
 
     def sentence(self) -> str:
         named = ", ".join(f"{n} ({v:.2g})" for n, v, _ in self.importance[:4] if v > 0) or "no input singly"
@@ -184,22 +187,31 @@ def ridge_path_sse(train: np.ndarray, y_train: np.ndarray, held: np.ndarray, y_h
     return out
 
 
+def design(names: tuple[str, ...], res: Residuals, noise: NoiseModel, z: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, tuple[str, ...], np.ndarray]:
+    """The regression's rows X (P*V, d+m) and whitened residuals y (P,V) of a
+    fit's residual res at inputs z (P,d); the direction names and directions (P,V,m)."""
+    n_poses = len(z)
+    whitener = noise.whitener(res)
+    y = np.einsum("pij,pj->pi", whitener, res.r.reshape(n_poses, -1))
+    targets, g = directions(names, res, whitener, res.jac_q.shape[-1])
+    X = np.concatenate([np.repeat(z, y.shape[1], axis=0), g.reshape(-1, g.shape[-1])], axis=1)
+    return X, y, targets, g
+
+
 def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndarray, stamp: np.ndarray,
            extra: dict[str, np.ndarray], fold: np.ndarray, seed: int) -> Detection:
     """The detector (module docstring) on a fit's residual res (with jac, jac_q),
     the model's parameter names, the poses' readings, stamps and extra columns,
     the engine's fold of each pose (P,) and a seed for the permutations."""
     n_poses, n_joints = q.shape
-    whitener = noise.whitener(res)
-    y = np.einsum("pij,pj->pi", whitener, res.r.reshape(n_poses, -1))           # (P,V)
-    targets, g = directions(names, res, whitener, n_joints)                       # (P,V,m)
     input_names, z = input_table(q, stamp, extra)
     varying = np.ptp(z, axis=0) > MIN_SPREAD
     input_names, z = [n for n, v in zip(input_names, varying) if v], z[:, varying]
+    X, y, targets, g = design(names, res, noise, z)
     size = float(np.sqrt(np.mean(g[np.any(g != 0, axis=-1)] ** 2)))
     basis = Basis.of(z, int(varying[:n_joints].sum()), size)
     n_values = y.shape[1]
-    X = np.concatenate([np.repeat(z, n_values, axis=0), g.reshape(n_poses * n_values, -1)], axis=1)
     rng = np.random.default_rng(seed)
     orders = [np.arange(n_poses)] + [rng.permutation(n_poses) for _ in range(PERMUTATIONS)]
     Y = np.stack([y[order].ravel() for order in orders], axis=1)                  # (P*V, 1+B)
@@ -221,6 +233,10 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
     used = np.zeros(g.shape[-1], bool)
     used[m if m < g.shape[-1] else slice(None)] = True
     regression = OffsetRegression(basis, z.shape[1], float(ALPHAS[a]), used).fit(X, Y[:, 0])
+    # The compensator is the regression on every direction: one direction that mimics another on
+    # these poses (joints 1 and 3 of a 7-DOF arm) predicts them but not other poses.
+    joint_alpha = int(np.argmax(all_gains[-1, :, 0]))
+    compensation = OffsetRegression(basis, z.shape[1], float(ALPHAS[joint_alpha])).fit(X, Y[:, 0])
     importance: tuple[tuple[str, float, float], ...] = ()
     if gains[0] > 0:
         found = permutation_importance(regression, X, Y[:, 0], scoring="neg_mean_squared_error", n_repeats=5,
@@ -229,4 +245,4 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
         importance = tuple((input_names[c], float(found.importances_mean[c]), float(found.importances_std[c]))
                            for c in ranked)
     return Detection(float(gains[0]), p, float(np.quantile(gains[1:], 0.99)), importance, regression, targets,
-                     tuple(input_names))
+                     tuple(input_names), compensation, float(all_gains[-1, joint_alpha, 0]))

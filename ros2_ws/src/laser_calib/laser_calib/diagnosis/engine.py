@@ -52,7 +52,7 @@ import math
 import time
 from dataclasses import replace
 
-from laser_calib.diagnosis.compensator import Compensator
+from laser_calib.diagnosis.compensator import backfit
 from laser_calib.diagnosis.data import Data, SpotData, supports
 from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
@@ -128,10 +128,10 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
                        samples.q, samples.stamp, dict(samples.extra), fitter.fold, options.seed)
     verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha)
     compensator = compensated = None
-    if options.compensate and detection.p <= options.alpha and detection.gain > 0:
-        compensator = Compensator.of(detection)
+    if options.compensate and detection.p <= options.alpha and detection.compensation_gain > 0:
+        compensator = backfit(detection, final.model, final.estimate.values, fitter.fit_options, noise_model)
         if test is not None:
-            compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), final.estimate.values)
+            compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), compensator.values)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
                      noise, before, after, verdict, said, parameter_report(final, alternatives), options,
