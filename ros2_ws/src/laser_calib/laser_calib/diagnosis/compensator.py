@@ -65,10 +65,9 @@ class Compensator:
     @classmethod
     def of(cls, regression: OffsetRegression, detection: Detection, names: tuple[str, ...], values: np.ndarray
            ) -> "Compensator":
-        width = regression.basis(np.zeros((1, len(detection.inputs)))).shape[1]
-        used = (np.ones(len(detection.targets), bool) if regression.used is None else np.asarray(regression.used))
-        coef = regression.ridge_.coef_.reshape(-1, width) / regression.basis.size
-        return cls(detection.inputs, detection.targets, used, regression.basis, coef, detection.compensation_gain,
+        full = regression.coefficients(len(detection.targets))
+        used = np.any(full != 0, axis=1)
+        return cls(detection.inputs, detection.targets, used, regression.basis, full[used], detection.gain,
                    tuple(names), np.asarray(values, float))
 
     def offsets(self, robot: Robot, q: np.ndarray, stamp: np.ndarray, extra: Mapping[str, np.ndarray]
@@ -124,7 +123,7 @@ def backfit(detection: Detection, model: EffectModel, x: np.ndarray, options: Es
     the model refitted with the compensation's offsets fixed, the regression
     refitted to the residual the model alone leaves, BACKFIT times (the
     geometric errors had absorbed part of what the compensation now carries)."""
-    regression = detection.compensation
+    regression = detection.regression
     names, z = input_table(model.samples.q, model.samples.stamp, dict(model.samples.extra))
     z = z[:, [names.index(n) for n in detection.inputs]]
     compensator = Compensator.of(regression, detection, model.names, x)

@@ -22,9 +22,9 @@ residual on z predicted held-out residuals worse than zero (held-out gain
 -0.2 to -0.4 and -0.05 to -0.1 where this finds structure), while f_j(z) of a
 joint coupling or a step in time is a simple function.
 
-The regression is fitted with each direction alone (an error of one joint or
-one link: fewer terms, more power) and with all together; the one of the best
-held-out gain counts, the choice inside the permutation test.
+The regression is fitted on sub-models (submodels: one direction with one
+input, or with a pair of joint readings); the one of
+the best held-out gain counts, the choice inside the permutation test.
 
 Test: the held-out gain 1 - SSE / SS0 over the engine's folds (each pose's
 residual predicted by the fit on the other folds, SS0 that of predicting 0),
@@ -106,18 +106,21 @@ class OffsetRegression(BaseEstimator, RegressorMixin):
     is fixed from the calibration poses, so every fold shares it."""
 
     def __init__(self, basis: Basis | None = None, n_inputs: int = 0, alpha: float = 1.0,
-                 used: np.ndarray | None = None):
+                 columns: np.ndarray | None = None):
         self.basis = basis
         self.n_inputs = n_inputs
         self.alpha = alpha
-        self.used = used
+        self.columns = columns
+
+    def all_features(self, X: np.ndarray) -> np.ndarray:
+        """(rows, m b): every direction times every basis function (direction-major)."""
+        z, g = X[:, :self.n_inputs], X[:, self.n_inputs:]
+        return (g[:, :, None] * self.basis(z)[:, None, :]).reshape(len(X), -1) / self.basis.size
 
     def features(self, X: np.ndarray) -> np.ndarray:
-        """(rows, m' b): the directions in ``used`` (all when None) times the basis."""
-        z, g = X[:, :self.n_inputs], X[:, self.n_inputs:]
-        if self.used is not None:
-            g = g[:, self.used]
-        return (g[:, :, None] * self.basis(z)[:, None, :]).reshape(len(X), -1) / self.basis.size
+        """The ``columns`` of all_features (all when None)."""
+        features = self.all_features(X)
+        return features if self.columns is None else features[:, self.columns]
 
     def fit(self, X: np.ndarray, y: np.ndarray) -> "OffsetRegression":
         self.ridge_ = Ridge(alpha=self.alpha, fit_intercept=False).fit(self.features(X), y)
@@ -126,14 +129,12 @@ class OffsetRegression(BaseEstimator, RegressorMixin):
     def predict(self, X: np.ndarray) -> np.ndarray:
         return self.ridge_.predict(self.features(X))
 
-    def offsets(self, z: np.ndarray) -> np.ndarray:
-        """(P,m) the fitted f_j at inputs z (P,d), in the units of the directions'
-        parameters (0 for the directions not used)."""
-        values = self.basis(z)
-        used = np.ones(self.ridge_.coef_.size // values.shape[1], bool) if self.used is None else self.used
-        out = np.zeros((len(z), len(used)))
-        out[:, used] = values @ self.ridge_.coef_.reshape(-1, values.shape[1]).T / self.basis.size
-        return out
+    def coefficients(self, n_directions: int) -> np.ndarray:
+        """(m, b) coefficients per direction and basis function (rad; 0 where not used)."""
+        width = self.basis(self.basis.mean[None, :]).shape[1]
+        out = np.zeros(n_directions * width)
+        out[slice(None) if self.columns is None else self.columns] = self.ridge_.coef_ / self.basis.size
+        return out.reshape(n_directions, width)
 
 
 @dataclass(frozen=True)
@@ -141,8 +142,8 @@ class Detection:
     """The detector's finding: held-out gain (1 - SSE/SS0 over the folds), its
     permutation p, the null gains' 99th percentile, the inputs by permutation
     importance (name, mean increase of the MSE in whitened units^2, its std),
-    the regression refitted on all poses, the direction names and the inputs;
-    the regression on all directions (the compensator's) and its held-out gain."""
+    the best regression refitted on all poses (the compensator's), the
+    direction names and the inputs."""
 
     gain: float
     p: float
@@ -151,8 +152,6 @@ class Detection:
     regression: OffsetRegression
     targets: tuple[str, ...]
     inputs: tuple[str, ...]
-    compensation: OffsetRegression
-    compensation_gain: float
 
     def sentence(self) -> str:
         named = ", ".join(f"{n} ({v:.2g})" for n, v, _ in self.importance[:4] if v > 0) or "no input singly"
@@ -173,16 +172,31 @@ def directions(names: tuple[str, ...], res: Residuals, whitener: np.ndarray, n_j
     return targets, np.einsum("pij,pjm->pim", whitener, columns)
 
 
-def ridge_path_sse(train: np.ndarray, y_train: np.ndarray, held: np.ndarray, y_held: np.ndarray) -> np.ndarray:
+def submodels(basis: Basis, n_inputs: int, n_directions: int) -> list[np.ndarray]:
+    """Column sets of all_features: each direction with each input's splines,
+    each direction with a pair of joint readings (both splines and their
+    product). A smooth error of one joint or link following
+    one or two inputs is found with few terms; all inputs at once on 80 poses
+    overfit so much that they miss it (held-out gain -0.07 where one input gave 0.24)."""
+    n_splines = N_KNOTS + DEGREE - 1
+    width = n_inputs * n_splines + len(basis.pairs)
+    spline = [np.arange(k * n_splines, (k + 1) * n_splines) for k in range(n_inputs)]
+    local = spline + [np.concatenate([spline[i], spline[k], [n_inputs * n_splines + p]])
+                      for p, (i, k) in enumerate(basis.pairs)]
+    return [j * width + cols for j in range(n_directions) for cols in local]
+
+
+def ridge_path_sse(gram: np.ndarray, cross: np.ndarray, held: np.ndarray, y_held: np.ndarray) -> np.ndarray:
     """(len(ALPHAS), T) held-out sum of squares of the ridge fits (no intercept)
-    of T targets at every penalty: the closed form from one SVD of the training
-    features (sklearn's Ridge would refactor per penalty, 8 times the cost)."""
-    u, s, vt = np.linalg.svd(train, full_matrices=False)
-    uty = u.T @ y_train                                           # (r,T)
-    held_v = held @ vt.T                                          # (H,r)
-    out = np.empty((len(ALPHAS), y_train.shape[1]))
+    of T targets at every penalty, from the training Gram matrix F^T F (k,k)
+    and F^T Y (k,T): one eigendecomposition serves every penalty (sklearn's
+    Ridge would refactor per penalty and sub-model, the detector's cost)."""
+    values, vectors = np.linalg.eigh(gram)
+    rotated = vectors.T @ cross                                     # (k,T)
+    held_v = held @ vectors                                         # (H,k)
+    out = np.empty((len(ALPHAS), cross.shape[1]))
     for a, alpha in enumerate(ALPHAS):
-        predicted = held_v @ (uty * (s / (s ** 2 + alpha))[:, None])
+        predicted = held_v @ (rotated / (np.maximum(values, 0.0) + alpha)[:, None])
         out[a] = ((y_held - predicted) ** 2).sum(axis=0)
     return out
 
@@ -216,27 +230,21 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
     orders = [np.arange(n_poses)] + [rng.permutation(n_poses) for _ in range(PERMUTATIONS)]
     Y = np.stack([y[order].ravel() for order in orders], axis=1)                  # (P*V, 1+B)
     rows_fold = np.repeat(fold, n_values)
-    features = OffsetRegression(basis, z.shape[1]).features(X)
-    width = features.shape[1] // g.shape[-1]
-    # Each direction alone (an error of one joint or one link), and all together.
-    subsets = [np.arange(j * width, (j + 1) * width) for j in range(g.shape[-1])] + [np.arange(features.shape[1])]
+    features = OffsetRegression(basis, z.shape[1]).all_features(X)
+    subsets = submodels(basis, z.shape[1], g.shape[-1])
     sse = np.zeros((len(subsets), len(ALPHAS), Y.shape[1]))
     for k in np.unique(fold):
         train, held = rows_fold != k, rows_fold == k
+        gram, cross = features[train].T @ features[train], features[train].T @ Y[train]
+        held_features, held_y = features[held], Y[held]
         for m, columns in enumerate(subsets):
-            sse[m] += ridge_path_sse(features[train][:, columns], Y[train], features[held][:, columns], Y[held])
+            sse[m] += ridge_path_sse(gram[np.ix_(columns, columns)], cross[columns], held_features[:, columns], held_y)
     # The model and penalty of the best held-out gain, for the data and for every permutation alike.
     all_gains = 1.0 - sse / np.maximum((Y ** 2).sum(axis=0), 1e-300)
     gains = all_gains.reshape(-1, Y.shape[1]).max(axis=0)
     p = float((1 + np.sum(gains[1:] >= gains[0])) / (PERMUTATIONS + 1))
     m, a = np.unravel_index(int(np.argmax(all_gains[..., 0])), all_gains.shape[:2])
-    used = np.zeros(g.shape[-1], bool)
-    used[m if m < g.shape[-1] else slice(None)] = True
-    regression = OffsetRegression(basis, z.shape[1], float(ALPHAS[a]), used).fit(X, Y[:, 0])
-    # The compensator is the regression on every direction: one direction that mimics another on
-    # these poses (joints 1 and 3 of a 7-DOF arm) predicts them but not other poses.
-    joint_alpha = int(np.argmax(all_gains[-1, :, 0]))
-    compensation = OffsetRegression(basis, z.shape[1], float(ALPHAS[joint_alpha])).fit(X, Y[:, 0])
+    regression = OffsetRegression(basis, z.shape[1], float(ALPHAS[a]), subsets[m]).fit(X, Y[:, 0])
     importance: tuple[tuple[str, float, float], ...] = ()
     if gains[0] > 0:
         found = permutation_importance(regression, X, Y[:, 0], scoring="neg_mean_squared_error", n_repeats=5,
@@ -245,4 +253,4 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
         importance = tuple((input_names[c], float(found.importances_mean[c]), float(found.importances_std[c]))
                            for c in ranked)
     return Detection(float(gains[0]), p, float(np.quantile(gains[1:], 0.99)), importance, regression, targets,
-                     tuple(input_names), compensation, float(all_gains[-1, joint_alpha, 0]))
+                     tuple(input_names))

@@ -124,12 +124,15 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
     samples = data.samples
-    detection = detect(final.model.names, final.model.residuals(final.estimate.values, True), noise_model,
+    # Whitened by the verdict's noise model: every value then has unit variance, which the
+    # permutation test needs (the poses' residuals exchangeable under "no structure").
+    detector_noise = noise_model
+    detection = detect(final.model.names, final.model.residuals(final.estimate.values, True), detector_noise,
                        samples.q, samples.stamp, dict(samples.extra), fitter.fold, options.seed)
     verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha)
     compensator = compensated = None
-    if options.compensate and detection.p <= options.alpha and detection.compensation_gain > 0:
-        compensator = backfit(detection, final.model, final.estimate.values, fitter.fit_options, noise_model)
+    if options.compensate and detection.p <= options.alpha and detection.gain > 0:
+        compensator = backfit(detection, final.model, final.estimate.values, fitter.fit_options, detector_noise)
         if test is not None:
             compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), compensator.values)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}

@@ -115,6 +115,7 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
                 lines.append(f"\n{e['name']} ({e['where']}): the data explained as well by "
                              f"{', '.join(e['indistinguishable_from'])} (held-out error not significantly "
                              "different); the one with the lower BIC was taken.")
+    lines += _detector_lines(result)
     lines += ["", "## Residual against the deciding covariate", ""]
     if "residual" in plots:
         lines += [f"Before (geometric fit) and after (final model): {plots['residual_caption']}.", "",
@@ -137,6 +138,29 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
         lines.append(f"| {t.response} | {t.covariate} | {t.f:.3g} | {t.dof[0]}, {t.dof[1]} | {t.p_adjusted:.2g} | "
                      f"{t.eta2:.2f} |")
     return "\n".join(lines) + "\n"
+
+
+def _detector_lines(result: dict) -> list[str]:
+    """The flexible detector's finding and the learned compensator, apart from the physical effects."""
+    found, kept = result.get("detector"), result.get("compensator")
+    if found is None:
+        return []
+    lines = ["", "## Flexible detector", "",
+             f"Held-out gain {100 * found['heldout_gain']:.1f} % of the whitened residual sum of squares "
+             f"(permutation p = {found['p']:.2g}; 99 % of permuted gains below {100 * found['null_99']:.1f} %)."]
+    if found["importance"] and found["heldout_gain"] > 0:
+        lines += ["", "| input | MSE increase when permuted | std |", "|---|---|---|"]
+        lines += [f"| {i['input']} | {i['mse_increase']:.3g} | {i['std']:.2g} |" for i in found["importance"][:6]]
+    lines += ["", "## Learned compensator", ""]
+    if kept is None:
+        lines.append("Not kept: the detector found no significant held-out gain.")
+    else:
+        test = kept["test"]
+        lines.append(f"Kept (compensator.json): held-out gain {100 * kept['heldout_gain']:.1f} %"
+                     + (f"; test RMS with it {test['rms_mm']:.3f} mm" if test else "")
+                     + ". It is not a physical effect: the effects above are the model; this only corrects what "
+                       "they leave.")
+    return lines
 
 
 def write_report(diagnosis: Diagnosis, result: dict, out: Path) -> None:
