@@ -175,6 +175,8 @@ def test_command_line_writes_diagnosis_robot_and_report(tmp_path):
     assert result["effects"][0]["name"] == "backlash" and result["effects"][0]["where"] == "joint 3"
     assert {"name", "value", "std"} <= set(result["effects"][0]["parameters"][0])
     assert result["verdict"] in (EXPLAINED, STRUCTURE) and result["evidence"]
+    # The command line always gives the held-out error with the selection nested in the folds.
+    assert result["heldout_nested"]["n"] == result["stages"][-1]["cv"]["n"]
     report = (out / "report.md").read_text()
     assert "![residual](residual.png)" in report and (out / "residual.png").exists()
     # The calibrated robot file predicts the test poses as the final model did.

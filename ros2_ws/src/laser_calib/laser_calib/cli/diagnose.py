@@ -22,7 +22,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     test = load_samples(args.test, robot) if args.test else None
     options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                               folds=args.folds, max_effects=args.max_effects, seed=args.seed,
-                              compensate=not args.no_compensator)
+                              compensate=not args.no_compensator, nested=True)
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
           file=sys.stderr, flush=True)
     diagnosis = diagnose(robot, samples, test, options=options)
@@ -33,6 +33,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         s = stage[where]
         print(f"{stage['model']}: {where} spot error mean {s['mean_mm']:.3f} mm, rms {s['rms_mm']:.3f} mm, "
               f"max {s['max_mm']:.3f} mm")
+    nested = result["heldout_nested"]
+    print(f"held out with the selection inside the folds: spot error rms {nested['rms_mm']:.3f} mm")
     kept = result["compensator"]
     if kept:
         test = kept["test"]

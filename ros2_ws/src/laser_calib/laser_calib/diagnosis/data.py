@@ -25,7 +25,8 @@ class Data(Protocol):
     parameter names of the base model held at their nominal values in every
     fit; base(): the base measurement model on all P poses (its subset(index)
     gives the folds); candidates(): the effects to select from (those the base
-    model cannot carry are dropped by the engine); measured_values(): the
+    model cannot carry are dropped by the engine); subset(index): the same
+    data on the poses ``index``; measured_values(): the
     number of measured values; series(): the measurement-level responses and
     covariates of the verdict's structure tests.
     """
@@ -35,6 +36,8 @@ class Data(Protocol):
     fixed: tuple[str, ...]
 
     def base(self) -> RobotModel: ...
+
+    def subset(self, index: np.ndarray) -> "Data": ...
 
     def candidates(self) -> list[Effect]: ...
 
@@ -55,6 +58,9 @@ class SpotData:
 
     def base(self) -> SpotModel:
         return SpotModel(self.robot, self.samples)
+
+    def subset(self, index: np.ndarray) -> "SpotData":
+        return SpotData(self.robot, self.samples.subset(index), self.fixed)
 
     def candidates(self) -> list[Effect]:
         return candidates(self.robot, self.samples)

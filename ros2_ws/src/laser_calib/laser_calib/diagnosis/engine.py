@@ -52,15 +52,18 @@ import math
 import time
 from dataclasses import replace
 
+import numpy as np
+
 from laser_calib.diagnosis.compensator import backfit
 from laser_calib.diagnosis.data import Data, SpotData, supports
 from laser_calib.diagnosis.detector import detect
-from laser_calib.diagnosis.fitter import Fitter, distances
+from laser_calib.diagnosis.fitter import Fitter, distances, fold_index
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.selection import parameter_report, select
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
+from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
@@ -98,6 +101,14 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
     start = time.perf_counter()
     notes = list(notes)
     fitter = Fitter(data, options)
+    fits, rounds, alternatives = select(fitter, candidate_pool(data, fitter, options, notes), options)
+    nested = nested_heldout(data, options) if options.nested else None
+    return finish(data, options, test, fitter, fits, rounds, alternatives, nested, notes, start)
+
+
+def candidate_pool(data: Data, fitter: Fitter, options: DiagnoseOptions, notes: list[str]) -> list[Effect]:
+    """The candidates the base model supports, none when a training fold is too
+    small to select on (the reason appended to ``notes``)."""
     pool = [c for c in data.candidates() if supports(fitter.base, c)]
     training_values = data.measured_values() * (options.folds - 1) / options.folds
     n_errors = len(fitter.base.names) - len(data.fixed)
@@ -112,8 +123,31 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
                      f"{math.ceil(needed * options.folds / (options.folds - 1) / max(per_pose, 1e-9))} poses); "
                      "only the geometric model and the residual tests are reported")
         pool = []
-    fits, rounds, alternatives = select(fitter, pool, options)
+    return pool
 
+
+def nested_heldout(data: Data, options: DiagnoseOptions) -> np.ndarray:
+    """(P,L) held-out spot distances (m) of the whole procedure, selection
+    included: per outer fold (a split unlike the selection's), the selection
+    on the other folds alone, the pose predicted by the model it chose there."""
+    n_poses = len(data.samples.q)
+    fold = fold_index(n_poses, options.folds, options.seed + 1)
+    whole = data.base()
+    out = None
+    for k in range(options.folds):
+        train, held = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
+        inner = data.subset(train)
+        fitter = Fitter(inner, options)
+        chosen = select(fitter, candidate_pool(inner, fitter, options, []), options)[0][-1]
+        predicted = distances(EffectModel(whole, chosen.effects).subset(held), chosen.estimate.values)
+        out = np.full((n_poses,) + predicted.shape[1:], np.nan) if out is None else out
+        out[held] = predicted
+    return out
+
+
+def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitter, fits, rounds, alternatives,
+           nested: np.ndarray | None, notes: list[str], start: float) -> Diagnosis:
+    """The stages' test errors, the verdict, the detector and the compensator."""
     stages = []
     for fitted in fits:
         test_d = None if test is None else distances(EffectModel(test.base(), fitted.effects),
@@ -138,5 +172,5 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
                      noise, before, after, verdict, said, parameter_report(final, alternatives), options,
-                     time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated)
+                     time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested)
 

@@ -23,7 +23,9 @@ class DiagnoseOptions:
     alpha the significance level of every test; max_effects added at most;
     shortlist fitted per round; seed of the fold split and of LM restarts;
     restarts of LM for the geometric fit (estimation.EstimateOptions);
-    compensate: keep the learned compensator when it wins held-out."""
+    compensate: keep the learned compensator when it wins held-out; nested:
+    the held-out error of the whole procedure, selection inside the folds
+    (folds + 1 selections; the command line always asks for it)."""
 
     method: str = "lm"
     spot_sigma: float | None = None
@@ -35,6 +37,7 @@ class DiagnoseOptions:
     seed: int = 0
     restarts: int = 6
     compensate: bool = True
+    nested: bool = False
 
     def __post_init__(self):
         if self.spot_sigma is not None and not (math.isfinite(self.spot_sigma) and self.spot_sigma > 0):

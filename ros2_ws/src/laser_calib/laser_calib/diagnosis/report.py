@@ -98,6 +98,10 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
         lines.append(f"| {k} | {s['model']} | {s['parameters']} | {_stat(s['cal'], 'rms_mm')} | "
                      f"{_stat(s['cv'], 'rms_mm')} | {_stat(s['test'], 'mean_mm')} | {_stat(s['test'], 'rms_mm')} | "
                      f"{_stat(s['test'], 'max_mm')} | {s['bic']:.1f} |")
+    if result.get("heldout_nested"):
+        lines += ["", f"Held out with the selection inside the folds (the whole procedure redone on each "
+                      f"training part): RMS {result['heldout_nested']['rms_mm']:.3f} mm; the CV column above "
+                      "chose its effects on all the poses."]
     lines += ["", f"![stages]({plots['stages']})", "", "## Effects", ""]
     if not result["effects"]:
         lines.append("None added.")

@@ -120,6 +120,7 @@ class Diagnosis:
     detection: Detection | None = None
     compensator: Compensator | None = None
     compensated_test: np.ndarray | None = None  # (P_test, L) m, the final model with the compensator
+    nested: np.ndarray | None = None  # (P, L) m held out with the selection inside the folds (engine.nested_heldout)
 
     @property
     def final(self) -> Fitted:
@@ -147,6 +148,7 @@ class Diagnosis:
                        for s in self.stages],
             "effects": list(self.parameters),
             "not_identifiable": dict(self.merged),
+            "heldout_nested": None if self.nested is None else distance_stats(self.nested),
             "verdict": self.verdict,
             "evidence": self.evidence,
             "noise": {"spot_sigma_m": self.noise.spot_sigma, "spot_sigma_source": self.noise.spot_source,

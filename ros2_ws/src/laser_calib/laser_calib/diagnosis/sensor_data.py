@@ -175,6 +175,9 @@ class SensorData:
     def base(self) -> PointModel | PoseModel:
         return make_model(self.robot, self.samples, self.rotation_length, True)
 
+    def subset(self, index: np.ndarray) -> "SensorData":
+        return replace(self, samples=self.samples.subset(index))
+
     def candidates(self) -> list[Effect]:
         extra = [] if self.scale else [SensorScale.of(self.base())]
         return extra + candidates(self.robot, self.samples)

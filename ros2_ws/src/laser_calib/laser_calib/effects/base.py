@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-import math
 from typing import Any, ClassVar, Mapping
 
 import numpy as np
@@ -33,22 +32,15 @@ import numpy as np
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot import Robot
+from laser_calib.model.robot_file import _number
 
 JOINT, PARAM, SPOT = "joint", "param", "spot"
 # The YAML 'type' of every concrete effect -> its class, filled as each class is defined.
 REGISTRY: dict[str, type["Effect"]] = {}
 
 
-def yaml_number(where: str, entry: Mapping[str, Any], key: str, default: float | None = None) -> float:
-    """A finite number of a YAML entry (``default`` when absent, if given); InputError naming the key."""
-    if key not in entry:
-        if default is not None:
-            return default
-        raise InputError(where, f"missing key '{key}'")
-    value = entry[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(f"{where}.{key}", f"expected a finite number, got {value!r}")
-    return float(value)
+# One validator of YAML numbers for the robot file and its effects entry (robot_file's).
+yaml_number = _number
 
 
 def positive_number(where: str, entry: Mapping[str, Any], key: str, default: float | None = None) -> float:
