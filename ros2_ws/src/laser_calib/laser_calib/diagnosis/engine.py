@@ -59,7 +59,7 @@ from laser_calib.diagnosis.data import Data, SpotData, supports
 from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances, fold_index
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
-from laser_calib.diagnosis.result import Diagnosis, Stage
+from laser_calib.diagnosis.result import Diagnosis, Stage, distance_stats
 from laser_calib.diagnosis.selection import parameter_report, select
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
@@ -70,7 +70,7 @@ from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.model.robot import Robot
 
-__all__ = ["DiagnoseOptions", "Diagnosis", "diagnose", "run", "supports", "write_outputs"]
+__all__ = ["DiagnoseOptions", "Diagnosis", "diagnose", "distance_stats", "run", "supports", "write_outputs"]
 
 
 def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_sigma: float | None = None,
