@@ -57,20 +57,21 @@ import numpy as np
 from laser_calib.diagnosis.compensator import backfit
 from laser_calib.diagnosis.data import Data, SpotData, supports
 from laser_calib.diagnosis.detector import detect
-from laser_calib.diagnosis.fitter import Fitter, distances, fold_index
+from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
-from laser_calib.diagnosis.result import Diagnosis, Stage, distance_stats
+from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.selection import parameter_report, select
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
+from laser_calib.estimation.folds import kfold_labels
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.model.robot import Robot
 
-__all__ = ["DiagnoseOptions", "Diagnosis", "diagnose", "distance_stats", "run", "supports", "write_outputs"]
+__all__ = ["DiagnoseOptions", "Diagnosis", "diagnose", "run", "supports", "write_outputs"]
 
 
 def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_sigma: float | None = None,
@@ -131,7 +132,7 @@ def nested_heldout(data: Data, options: DiagnoseOptions) -> np.ndarray:
     included: per outer fold (a split unlike the selection's), the selection
     on the other folds alone, the pose predicted by the model it chose there."""
     n_poses = len(data.samples.q)
-    fold = fold_index(n_poses, options.folds, options.seed + 1)
+    fold = kfold_labels(n_poses, options.folds, options.seed + 1)
     whole = data.base()
     out = None
     for k in range(options.folds):

@@ -16,21 +16,12 @@ from laser_calib.diagnosis.result import Fitted
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
+from laser_calib.estimation.folds import kfold_labels
 from laser_calib.measurement.base import NoiseModel, whiten
 
 def distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
     res = model.residuals(x, False)
     return np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
-
-
-def fold_index(n_poses: int, folds: int, seed: int) -> np.ndarray:
-    """(P,) fold of each pose: a seeded permutation cut into ``folds`` parts."""
-    if n_poses < 2 * folds:
-        raise ValueError(f"{n_poses} poses are too few for {folds}-fold cross-validation")
-    order = np.random.default_rng(seed).permutation(n_poses)
-    fold = np.empty(n_poses, int)
-    fold[order] = np.arange(n_poses) % folds
-    return fold
 
 
 class Fitter:
@@ -46,7 +37,7 @@ class Fitter:
         self.fit_options = EstimateOptions(method=options.method, spot_sigma=options.spot_sigma,
                                            joint_sigma=options.joint_sigma or 0.0, restarts=options.restarts,
                                            seed=options.seed, fixed=data.fixed)
-        self.fold = fold_index(len(data.samples.q), options.folds, options.seed)
+        self.fold = kfold_labels(len(data.samples.q), options.folds, options.seed)
         self.reference = NoiseModel(options.spot_sigma or 1.0, options.joint_sigma or 0.0)
         self.merged: dict[str, str] = {}
 

@@ -17,6 +17,7 @@ from laser_calib.effects.catalog import effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate
 from laser_calib.model.robot import Robot
+from laser_calib.report.statistics import summary
 
 @dataclass(frozen=True)
 class Fitted:
@@ -140,15 +141,15 @@ class Diagnosis:
     def to_json(self) -> dict:
         return {
             "robot": self.robot.name,
-            "stages": [{"model": s.label, "cal": distance_stats(s.fitted.cal), "cv": distance_stats(s.fitted.cv),
-                        "test": None if s.test is None else distance_stats(s.test),
+            "stages": [{"model": s.label, "cal": summary(s.fitted.cal, 1e3, "_mm"), "cv": summary(s.fitted.cv, 1e3, "_mm"),
+                        "test": None if s.test is None else summary(s.test, 1e3, "_mm"),
                         "parameters": int(s.fitted.estimate.identifiable.sum()),
                         "bic": s.fitted.bic, "spot_sigma_m": s.fitted.estimate.sigma,
                         "chi2": s.fitted.estimate.fit.chi2, "dof": s.fitted.estimate.fit.dof}
                        for s in self.stages],
             "effects": list(self.parameters),
             "not_identifiable": dict(self.merged),
-            "heldout_nested": None if self.nested is None else distance_stats(self.nested),
+            "heldout_nested": None if self.nested is None else summary(self.nested, 1e3, "_mm"),
             "verdict": self.verdict,
             "evidence": self.evidence,
             "noise": {"spot_sigma_m": self.noise.spot_sigma, "spot_sigma_source": self.noise.spot_source,
@@ -170,20 +171,10 @@ class Diagnosis:
             "compensator": None if self.compensator is None else {
                 "heldout_gain": self.compensator.heldout_gain, "file": "compensator.json",
                 "targets": [t for t, u in zip(self.compensator.targets, self.compensator.used) if u],
-                "test": None if self.compensated_test is None else distance_stats(self.compensated_test)},
+                "test": None if self.compensated_test is None else summary(self.compensated_test, 1e3, "_mm")},
         }
 
 
 def _test_json(t: Test) -> dict:
     return {"response": t.response, "covariate": t.covariate, "F": t.f, "dof": list(t.dof), "p": t.p,
             "p_adjusted": t.p_adjusted, "eta2": t.eta2}
-
-
-def distance_stats(distances: np.ndarray) -> dict:
-    """n, mean, rms and max (mm) of the Euclidean spot distances over every seen spot."""
-    d = distances[np.isfinite(distances)] * 1e3
-    if d.size == 0:
-        return {"n": 0, "mean_mm": None, "rms_mm": None, "max_mm": None}
-    return {"n": int(d.size), "mean_mm": float(d.mean()), "rms_mm": float(np.sqrt(np.mean(d ** 2))),
-            "max_mm": float(d.max())}
-
