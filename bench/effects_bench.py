@@ -25,10 +25,11 @@ added effect that worsens the test error).
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from typing import Callable
 
-from _common import write_results
+from _common import RESULTS, write_results
 
 import numpy as np
 from scipy import stats
@@ -37,8 +38,10 @@ from laser_calib.diagnosis.engine import diagnose
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic
 from laser_calib.effects.catalog import camera_distortion, screen_shape
 from laser_calib.effects.effect_model import EffectModel
-from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignJointError, TrueEffect, Truth, draw_truth,
-                                      effect_session, sized)
+from laser_calib.effects.effect_model import Fixed
+from laser_calib.effects.joint import gravity_torques
+from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignError, ForeignJointError, TrueEffect, Truth, draw_truth,
+                                          effect_session, sized)
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
@@ -112,6 +115,82 @@ OUTSIDE_JOINT = {"paper-7dof": {"cubic": 0, "step": 1, "coupling": 3},
 INSIDE_SPAN = {"cubic"}
 
 
+# The foreign family (issue 13): six kinds of error outside the library, each at
+# joints drawn per seed (never tuned to a place), sized like the library effects
+# (VISIBILITY). Each maker takes the nominal robot and the seed's generator and
+# returns offsets(true robot, samples) -> (P, n) of the geometric parameters.
+def _span(robot: Robot, joint: int, q: np.ndarray) -> np.ndarray:
+    """q of the joint mapped to [-1, 1] over its range."""
+    middle, half = (robot.q_max[joint] + robot.q_min[joint]) / 2, (robot.q_max[joint] - robot.q_min[joint]) / 2
+    return (q[:, joint] - middle) / half
+
+
+def _on(robot: Robot, column: int, values: np.ndarray) -> np.ndarray:
+    out = np.zeros((len(values), robot.n_params))
+    out[:, column] = values
+    return out
+
+
+def _two(rng: np.random.Generator, n: int) -> tuple[int, int]:
+    first, second = rng.choice(n, 2, replace=False)
+    return int(first), int(second)
+
+
+def foreign_coupling(robot: Robot, rng: np.random.Generator) -> ForeignError:
+    i, j = _two(rng, robot.n_joints)
+    return ForeignError(f"coupling: dq{i + 1} ~ q{j + 1}",
+                        lambda r, s: _on(r, 4 * i + 3, _span(r, j, s.q)))
+
+
+def foreign_stiffness(robot: Robot, rng: np.random.Generator) -> ForeignError:
+    i, k = _two(rng, robot.n_joints)
+    return ForeignError(f"stiffness of joint {i + 1} varying with q{k + 1}",
+                        lambda r, s: _on(r, 4 * i + 3, gravity_torques(r, s.q)[:, i] * (1 + 0.8 * np.sin(s.q[:, k]))))
+
+
+def foreign_polynomial(robot: Robot, rng: np.random.Generator) -> ForeignError:
+    i, mix = int(rng.integers(robot.n_joints)), float(rng.uniform(-1, 1))
+    t4, t5 = np.polynomial.chebyshev.Chebyshev.basis(4), np.polynomial.chebyshev.Chebyshev.basis(5)
+    return ForeignError(f"polynomial error of joint {i + 1} (T4 {mix:+.2f} T5)",
+                        lambda r, s: _on(r, 4 * i + 3, t4(_span(r, i, s.q)) + mix * t5(_span(r, i, s.q))))
+
+
+def foreign_step(robot: Robot, rng: np.random.Generator) -> ForeignError:
+    i, when = int(rng.integers(robot.n_joints)), float(rng.uniform(0.3, 0.7)) * N_CAL * PERIOD
+    return ForeignError(f"offset of joint {i + 1} steps at {when:.0f} s",
+                        lambda r, s: _on(r, 4 * i + 3, (s.stamp > when).astype(float)))
+
+
+def foreign_bending(robot: Robot, rng: np.random.Generator) -> ForeignError:
+    i = int(rng.integers(robot.n_joints - 1))
+    return ForeignError(f"link {i + 1} bends under the load beyond it (twist)",
+                        lambda r, s: _on(r, 4 * i + 2, gravity_torques(r, s.q)[:, i + 1]))
+
+
+def foreign_two_joint(robot: Robot, rng: np.random.Generator) -> ForeignError:
+    i, j = _two(rng, robot.n_joints)
+    phase = float(rng.uniform(0, np.pi))
+    return ForeignError(f"error of joint {i + 1} ~ sin q{j + 1} sin(q{i + 1} + {phase:.2f})",
+                        lambda r, s: _on(r, 4 * i + 3, np.sin(s.q[:, j]) * np.sin(s.q[:, i] + phase)))
+
+
+FOREIGN = {"f_coupling": foreign_coupling, "f_stiffness": foreign_stiffness, "f_polynomial": foreign_polynomial,
+           "f_step": foreign_step, "f_bending": foreign_bending, "f_two_joint": foreign_two_joint}
+COMPENSATED_MARGIN = 1.25
+EXPLAINED_MARGIN = 1.3
+
+
+def true_offsets_rms(session, truth: ForeignError, options: EstimateOptions) -> float:
+    """Test RMS (mm) of the geometric errors fitted on the calibration set with the true foreign offsets known."""
+    def model(samples):
+        errors = truth.param_offsets(session.true, samples)
+        return EffectModel(SpotModel(session.nominal, samples), (), None, Fixed(np.zeros_like(samples.q), errors))
+    est = estimate_model(model(session.cal), options)
+    test = model(session.test).residuals(est.values, False)
+    d = np.linalg.norm(test.r, axis=-1)[test.valid]
+    return float(np.sqrt(np.mean(d ** 2)) * 1e3)
+
+
 def not_worse(diagnosis) -> bool:
     """The final model is not significantly worse than the geometric fit on the
     test poses: one-sided Wilcoxon signed-rank test over test poses of the
@@ -144,6 +223,8 @@ def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given
             truth_effects.append(sized(robot, errors, context, drawn, NOISE, visible))
         elif kind in OUTSIDE:
             truth_effects.append(OUTSIDE[kind](robot, robot_joint))
+        elif kind in FOREIGN:
+            truth_effects.append(sized(robot, errors, context, FOREIGN[kind](robot, rng), NOISE, visible))
         return list(truth_effects)
 
     session = effect_session(case, seed, make_truth, N_CAL, N_TEST, NOISE, PERIOD)
@@ -160,7 +241,10 @@ def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given
            "visibility": visible if kind in PLACES[case] else None,
            "chosen": chosen, "verdict": result["verdict"],
            "geometric_test_rms_mm": stages[0]["test"]["rms_mm"], "final_test_rms_mm": stages[-1]["test"]["rms_mm"],
-           "time_s": elapsed, "evidence": result["evidence"]}
+           "time_s": elapsed, "evidence": result["evidence"],
+           "detector_gain": result["detector"]["heldout_gain"], "detector_p": result["detector"]["p"],
+           "compensated_test_rms_mm": (result["compensator"]["test"]["rms_mm"] if result["compensator"]
+                                       else stages[-1]["test"]["rms_mm"])}
     if kind in PLACES[case]:
         truth = truth_effects[0]
         row["truth"] = truth.effect.label
@@ -180,6 +264,13 @@ def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given
     elif kind == "none":
         row["checks"] = {"explained": result["verdict"] == "explained", "nothing_added": not chosen,
                          "under_30s": elapsed < TIME_LIMIT}
+    elif kind in FOREIGN:
+        row["truth"] = truth_effects[0].name
+        true_rms = row["true_model_test_rms_mm"] = true_offsets_rms(session, truth_effects[0], options)
+        row["checks"] = {"not_explained": result["verdict"] != "explained",
+                         "honest": result["verdict"] != "explained" or row["final_test_rms_mm"] <= EXPLAINED_MARGIN * true_rms,
+                         "compensated_within_25pct": row["compensated_test_rms_mm"] <= COMPENSATED_MARGIN * true_rms,
+                         "under_30s": elapsed < TIME_LIMIT}
     else:
         row["truth"] = f"{truth_effects[0].name} (joint {robot_joint + 1})"
         row["checks"] = {"structure_remains": result["verdict"] == "structure remains",
@@ -187,6 +278,19 @@ def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given
         if kind in INSIDE_SPAN:
             del row["checks"]["structure_remains"]
     return row
+
+
+def summary(rows: list[dict]) -> dict:
+    """The targets of issue 13 over the rows: the library set (every check), the
+    foreign family (not "explained", never "explained" beyond 1.3x the true
+    model's test RMS, compensated within 25 % of it)."""
+    library = [r for r in rows if r["effect"] not in FOREIGN]
+    foreign = [r for r in rows if r["effect"] in FOREIGN]
+    out = {"library_all_checks": [sum(all(r["checks"].values()) for r in library), len(library)]}
+    if foreign:
+        out.update({key: [sum(r["checks"][key] for r in foreign), len(foreign)]
+                    for key in ("not_explained", "honest", "compensated_within_25pct")})
+    return out
 
 
 def table(rows: list[dict]) -> str:
@@ -209,9 +313,17 @@ def table(rows: list[dict]) -> str:
                      f"{r['geometric_test_rms_mm']:.3f} | {r['final_test_rms_mm']:.3f} | {true_rms} | "
                      f"{r['time_s']:.1f} | {checks} |")
     passed = sum(all(r["checks"].values()) for r in rows)
-    lines += ["", f"{passed} of {len(rows)} cases meet every target; slowest diagnosis "
+    lines += ["", f"{passed} of {len(rows)} cases meet every target (under_30s is wall time on a shared, loaded "
+                  "machine); slowest diagnosis "
                   f"{max(r['time_s'] for r in rows):.1f} s."]
+    lines += [f"- {key}: {n} of {total}" for key, (n, total) in summary(rows).items()]
     return "\n".join(lines) + "\n"
+
+
+def payload(rows: list[dict], start: float) -> dict:
+    return {"noise": {"spot_halfwidth_m": NOISE.spot, "joint_halfwidth_rad": NOISE.joint},
+            "poses": {"calibration": N_CAL, "test": N_TEST}, "summary": summary(rows),
+            "wall_time_s": time.perf_counter() - start, "cases": rows}
 
 
 def main() -> None:
@@ -219,9 +331,11 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3, help="seeds per case (1, 2, ...)")
     parser.add_argument("--given", nargs="+", choices=("both", "spot", "none"), default=["both", "spot"],
                         help="noise given to diagnose: spot and joint sigma, spot sigma only, none")
+    parser.add_argument("--kinds", nargs="+", help="only these simulated kinds (default: all)")
     args = parser.parse_args()
     rows = []
-    kinds = ["none"] + list(PLACES["paper-7dof"]) + list(OUTSIDE)
+    start = time.perf_counter()
+    kinds = args.kinds or list(FOREIGN) + ["none"] + list(PLACES["paper-7dof"]) + list(OUTSIDE)
     for given in args.given:
         for case in PLACES:
             for kind in kinds:
@@ -230,8 +344,10 @@ def main() -> None:
                     print(f"[{given}] {case} {kind} seed {seed}: chose {row['chosen'] or 'nothing'}, "
                           f"{row['verdict']}, {row['time_s']:.1f} s, {row['checks']}", flush=True)
                     rows.append(row)
-    write_results("effects", {"noise": {"spot_halfwidth_m": NOISE.spot, "joint_halfwidth_rad": NOISE.joint},
-                              "poses": {"calibration": N_CAL, "test": N_TEST}, "cases": rows}, table(rows))
+                    # Written after every case: a long run interrupted keeps what it measured.
+                    (RESULTS / "effects.json").write_text(json.dumps(payload(rows, start), indent=2))
+                    (RESULTS / "effects.md").write_text(table(rows))
+    write_results("effects", payload(rows, start), table(rows))
 
 
 if __name__ == "__main__":

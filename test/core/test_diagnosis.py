@@ -8,13 +8,18 @@ arm's lever arms; random signs and shapes come from the seed.
 """
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy import stats
 
 from laser_calib.cli.main import main as cli_main
-from laser_calib.diagnosis.engine import EXPLAINED, STRUCTURE, diagnose, write_outputs
+from laser_calib.diagnosis.engine import diagnose, write_outputs
+from laser_calib.diagnosis.compensator import load_compensator
+from laser_calib.diagnosis.options import EXPLAINED, STRUCTURE, UNDETERMINED
+from laser_calib.effects.effect_model import EffectModel
+from laser_calib.measurement.spot import SpotModel
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic, calibrated_model
 from laser_calib.effects.catalog import camera_distortion, screen_shape
 from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignJointError, draw_truth, effect_session, hooks, sized)
@@ -170,6 +175,8 @@ def test_command_line_writes_diagnosis_robot_and_report(tmp_path):
     assert result["effects"][0]["name"] == "backlash" and result["effects"][0]["where"] == "joint 3"
     assert {"name", "value", "std"} <= set(result["effects"][0]["parameters"][0])
     assert result["verdict"] in (EXPLAINED, STRUCTURE) and result["evidence"]
+    # The command line always gives the held-out error with the selection nested in the folds.
+    assert result["heldout_nested"]["n"] == result["stages"][-1]["cv"]["n"]
     report = (out / "report.md").read_text()
     assert "![residual](residual.png)" in report and (out / "residual.png").exists()
     # The calibrated robot file predicts the test poses as the final model did.
@@ -227,3 +234,55 @@ def test_too_few_poses_to_select_effects_adds_none_and_says_so():
     diagnosis = run(session)
     assert diagnosis.final.effects == () and len(diagnosis.stages) == 1
     assert any("too few poses to select effects" in note for note in diagnosis.notes)
+
+
+def test_outside_effect_with_only_the_spot_sigma_given_is_not_explained():
+    """Issue 13's 7-DOF case: the joint-reading noise, estimated, absorbs a
+    coupling the library lacks; the flexible detector still sees it and names
+    the readings it follows."""
+    def make(robot, errors, context, rng):
+        return [sized(robot, errors, context, coupling(robot, 1), NOISE, VISIBLE)]
+
+    session = effect_session("paper-7dof", SEED, make, 80, 40, NOISE)
+    diagnosis = diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma)
+    assert diagnosis.noise.level_test is None
+    assert diagnosis.detection.p <= diagnosis.options.alpha, diagnosis.evidence
+    assert diagnosis.verdict == STRUCTURE
+    top = [name for name, _, _ in diagnosis.detection.importance[:4]]
+    assert {"q2", "q3"} & set(top), top
+
+
+def test_learned_compensator_is_saved_loaded_and_predicts_as_in_the_diagnosis(tmp_path):
+    def make(robot, errors, context, rng):
+        return [sized(robot, errors, context, coupling(robot, 1), NOISE, VISIBLE)]
+
+    session = effect_session("paper-4dof", SEED, make, 80, 40, NOISE)
+    diagnosis = run(session)
+    assert diagnosis.compensator is not None, diagnosis.evidence
+    result = write_outputs(diagnosis, tmp_path)
+    assert result["compensator"]["file"] == "compensator.json"
+    compensator = load_compensator(tmp_path / "compensator.json")
+    model = EffectModel(SpotModel(session.nominal, session.test), diagnosis.final.effects)
+    spots = compensator.predict(model)
+    d = np.linalg.norm(session.test.spots - spots, axis=-1)
+    assert np.allclose(d[session.test.seen], diagnosis.compensated_test[session.test.seen], atol=1e-12)
+    # It never stands in for a physical effect: the calibrated robot file is the physical model alone.
+    assert "compensator" not in load_robot(tmp_path / "robot_calibrated.yaml").extra
+
+
+def test_estimated_noise_far_above_the_rated_noise_is_structure():
+    """The robot file says its encoders read to 0.002 deg; the data scatter as
+    0.02 deg joint noise would, which the maximum-likelihood estimate finds."""
+    session = effect_session("paper-4dof", SEED, lambda r, e, c, rng: [], 80, 40, NOISE)
+    robot = replace(session.nominal, extra={**session.nominal.extra, "joint_reading_sigma": float(np.deg2rad(0.002))})
+    diagnosis = diagnose(robot, session.cal, session.test, spot_sigma=NOISE.spot_sigma)
+    assert diagnosis.verdict == STRUCTURE
+    assert "robot file says the hardware can do" in diagnosis.evidence
+    assert diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma).verdict == EXPLAINED
+
+
+def test_untested_level_and_too_few_poses_for_the_detector_is_undetermined():
+    session = effect_session("paper-4dof", SEED, lambda r, e, c, rng: [], 20, 10, NOISE)
+    diagnosis = diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma)
+    assert diagnosis.verdict == UNDETERMINED, diagnosis.evidence
+    assert "too few for the detector" in diagnosis.evidence

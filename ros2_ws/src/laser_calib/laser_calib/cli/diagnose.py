@@ -21,7 +21,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     samples = load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
     options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
-                              folds=args.folds, max_effects=args.max_effects, seed=args.seed)
+                              folds=args.folds, max_effects=args.max_effects, seed=args.seed,
+                              compensate=not args.no_compensator, nested=True)
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
           file=sys.stderr, flush=True)
     diagnosis = diagnose(robot, samples, test, options=options)
@@ -32,8 +33,15 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         s = stage[where]
         print(f"{stage['model']}: {where} spot error mean {s['mean_mm']:.3f} mm, rms {s['rms_mm']:.3f} mm, "
               f"max {s['max_mm']:.3f} mm")
+    nested = result["heldout_nested"]
+    print(f"held out with the selection inside the folds: spot error rms {nested['rms_mm']:.3f} mm")
+    kept = result["compensator"]
+    if kept:
+        test = kept["test"]
+        print(f"learned compensator kept: held-out gain {100 * kept['heldout_gain']:.1f} %"
+              + (f", test spot error rms {test['rms_mm']:.3f} mm" if test else ""))
     print(f"verdict: {result['verdict']}. {result['evidence']}")
-    print(f"wrote {args.out}/diagnosis.json, robot_calibrated.yaml, report.md")
+    print(f"wrote {args.out}/diagnosis.json, robot_calibrated.yaml, report.md" + (", compensator.json" if kept else ""))
     return 0
 
 
@@ -52,6 +60,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--folds", type=non_negative_int, default=5, help="cross-validation folds (at least 2)")
     p.add_argument("--max-effects", type=non_negative_int, default=4, help="effects added at most")
     p.add_argument("--seed", type=int, default=0, help="seed of the fold split")
+    p.add_argument("--no-compensator", action="store_true",
+                   help="do not keep the learned compensator even when it wins held-out")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=cmd_diagnose)
 

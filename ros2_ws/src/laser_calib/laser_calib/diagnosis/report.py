@@ -4,7 +4,6 @@ the style of ../report.py."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -13,26 +12,25 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from laser_calib.report.plots import save_figure  # noqa: E402
+from laser_calib.diagnosis.result import Analysis, Diagnosis  # noqa: E402
 from laser_calib.diagnosis.structure import Series, Test, binned_test  # noqa: E402
 
-if TYPE_CHECKING:
-    from laser_calib.diagnosis.engine import Analysis, Diagnosis
 
 
-def _find(analysis: "Analysis", response: str, covariate: str) -> tuple[Series, Series] | None:
+def _find(analysis: Analysis, response: str, covariate: str) -> tuple[Series, Series] | None:
     r = next((s for s in analysis.responses if s.name == response), None)
     c = next((s for s in analysis.covariates if s.name == covariate), None)
     return None if r is None or c is None else (r, c)
 
 
-def deciding_test(diagnosis: "Diagnosis") -> Test | None:
+def deciding_test(diagnosis: Diagnosis) -> Test | None:
     """The covariate the geometric residual followed most strongly (the first
     effect's evidence), or, with nothing found, the strongest remaining one."""
     tests = diagnosis.before.tests or diagnosis.after.tests
     return tests[0] if tests else None
 
 
-def plot_residual(diagnosis: "Diagnosis", test: Test, path: Path) -> None:
+def plot_residual(diagnosis: Diagnosis, test: Test, path: Path) -> None:
     """The response against the covariate, geometric fit and final model side by
     side: every pose (or spot) and the binned means with their standard errors."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
@@ -80,7 +78,7 @@ def _stat(s: dict | None, key: str) -> str:
     return "-" if not s or s[key] is None else f"{s[key]:.3f}"
 
 
-def markdown(diagnosis: "Diagnosis", result: dict, plots: dict[str, str]) -> str:
+def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
     samples, test = diagnosis.samples, diagnosis.test_samples
     noise = result["noise"]
     lines = [f"# Diagnosis of {diagnosis.robot.name}: what the geometric model lacks", "",
@@ -100,6 +98,10 @@ def markdown(diagnosis: "Diagnosis", result: dict, plots: dict[str, str]) -> str
         lines.append(f"| {k} | {s['model']} | {s['parameters']} | {_stat(s['cal'], 'rms_mm')} | "
                      f"{_stat(s['cv'], 'rms_mm')} | {_stat(s['test'], 'mean_mm')} | {_stat(s['test'], 'rms_mm')} | "
                      f"{_stat(s['test'], 'max_mm')} | {s['bic']:.1f} |")
+    if result.get("heldout_nested"):
+        lines += ["", f"Held out with the selection inside the folds (the whole procedure redone on each "
+                      f"training part): RMS {result['heldout_nested']['rms_mm']:.3f} mm; the CV column above "
+                      "chose its effects on all the poses."]
     lines += ["", f"![stages]({plots['stages']})", "", "## Effects", ""]
     if not result["effects"]:
         lines.append("None added.")
@@ -117,6 +119,7 @@ def markdown(diagnosis: "Diagnosis", result: dict, plots: dict[str, str]) -> str
                 lines.append(f"\n{e['name']} ({e['where']}): the data explained as well by "
                              f"{', '.join(e['indistinguishable_from'])} (held-out error not significantly "
                              "different); the one with the lower BIC was taken.")
+    lines += _detector_lines(result)
     lines += ["", "## Residual against the deciding covariate", ""]
     if "residual" in plots:
         lines += [f"Before (geometric fit) and after (final model): {plots['residual_caption']}.", "",
@@ -141,7 +144,30 @@ def markdown(diagnosis: "Diagnosis", result: dict, plots: dict[str, str]) -> str
     return "\n".join(lines) + "\n"
 
 
-def write_report(diagnosis: "Diagnosis", result: dict, out: Path) -> None:
+def _detector_lines(result: dict) -> list[str]:
+    """The flexible detector's finding and the learned compensator, apart from the physical effects."""
+    found, kept = result.get("detector"), result.get("compensator")
+    if found is None:
+        return []
+    lines = ["", "## Flexible detector", "",
+             f"Held-out gain {100 * found['heldout_gain']:.1f} % of the whitened residual sum of squares "
+             f"(permutation p = {found['p']:.2g}; 99 % of permuted gains below {100 * found['null_99']:.1f} %)."]
+    if found["importance"] and found["heldout_gain"] > 0:
+        lines += ["", "| input | MSE increase when permuted | std |", "|---|---|---|"]
+        lines += [f"| {i['input']} | {i['mse_increase']:.3g} | {i['std']:.2g} |" for i in found["importance"][:6]]
+    lines += ["", "## Learned compensator", ""]
+    if kept is None:
+        lines.append("Not kept: the detector found no significant held-out gain.")
+    else:
+        test = kept["test"]
+        lines.append(f"Kept (compensator.json): held-out gain {100 * kept['heldout_gain']:.1f} %"
+                     + (f"; test RMS with it {test['rms_mm']:.3f} mm" if test else "")
+                     + ". It is not a physical effect: the effects above are the model; this only corrects what "
+                       "they leave.")
+    return lines
+
+
+def write_report(diagnosis: Diagnosis, result: dict, out: Path) -> None:
     """report.md with residual.png and stages.png in ``out``."""
     plots = {"stages": "stages.png"}
     plot_stages(result["stages"], out / "stages.png")

@@ -22,13 +22,14 @@ effects composed through ``extend``.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import ClassVar
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from laser_calib.diagnosis.engine import DiagnoseOptions, Diagnosis, run
 from laser_calib.effects import PARAM, Effect, EffectModel, candidates
+from laser_calib.io.errors import InputError
 from laser_calib.diagnosis.structure import SPOT_LEVEL, Series
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
 from laser_calib.model.robot import Robot
@@ -146,6 +147,11 @@ class SensorScale(Effect):
         return np.broadcast_to(np.eye(3), (len(samples), 3, 3))
 
     @classmethod
+    def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "SensorScale":
+        raise InputError(f"{where}.type", "sensor_scale is the sensor calibration's scale option (calibrate "
+                                          "--scale), not an effect of the robot")
+
+    @classmethod
     def of(cls, base: PointModel | PoseModel) -> "SensorScale":
         return cls(param=tuple(base.names.index(n) for n in SCALE_NAMES))
 
@@ -168,6 +174,9 @@ class SensorData:
 
     def base(self) -> PointModel | PoseModel:
         return make_model(self.robot, self.samples, self.rotation_length, True)
+
+    def subset(self, index: np.ndarray) -> "SensorData":
+        return replace(self, samples=self.samples.subset(index))
 
     def candidates(self) -> list[Effect]:
         extra = [] if self.scale else [SensorScale.of(self.base())]

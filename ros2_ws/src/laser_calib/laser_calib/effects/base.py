@@ -25,14 +25,26 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from laser_calib.model.robot import Robot
+from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
+from laser_calib.model.robot import Robot
+from laser_calib.io.read import yaml_number
 
 JOINT, PARAM, SPOT = "joint", "param", "spot"
+# The YAML 'type' of every concrete effect -> its class, filled as each class is defined.
+REGISTRY: dict[str, type["Effect"]] = {}
+
+
+
+def positive_number(where: str, entry: Mapping[str, Any], key: str, default: float | None = None) -> float:
+    value = yaml_number(where, entry, key, default)
+    if value <= 0:
+        raise InputError(f"{where}.{key}", "must be positive")
+    return value
 
 
 @dataclass(frozen=True)
@@ -46,6 +58,18 @@ class Effect(ABC):
     units: ClassVar[tuple[str, ...]]
     # True when the basis depends on the geometric errors (recomputed at each evaluation).
     geometric_basis: ClassVar[bool] = False
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "kind" in cls.__dict__:
+            REGISTRY[cls.kind] = cls
+
+    @classmethod
+    @abstractmethod
+    def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "Effect":
+        """The effect of a robot file's ``effects:`` entry (its constants; the
+        values are read by the caller from ``params``); InputError naming
+        ``where`` and the key on bad input."""
 
     @property
     @abstractmethod
@@ -107,6 +131,10 @@ class JointEffect(Effect):
     def constants(self) -> dict[str, Any]:
         return {"joint": self.joint + 1}
 
+    @classmethod
+    def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "JointEffect":
+        return cls(joint=yaml_joint(robot, entry, where))
+
     @abstractmethod
     def basis(self, robot: Robot, samples: Samples) -> np.ndarray:
         """(P,k): dq_joint = basis @ p, in rad, at the samples' readings and order."""
@@ -137,6 +165,14 @@ class SpotEffect(Effect):
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """spots (P,L,2) m and unit beams (P,L,3) in {0} (finite everywhere) ->
         (new spots (P,L,2), d new / d spots (P,L,2,2), d new / d values (P,L,2,k))."""
+
+
+def yaml_joint(robot: Robot, entry: Mapping[str, Any], where: str) -> int:
+    """The 0-based joint of an entry's 1-based ``joint`` key."""
+    joint = entry.get("joint")
+    if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= robot.n_joints:
+        raise InputError(f"{where}.joint", f"expected a joint number 1..{robot.n_joints}, got {joint!r}")
+    return joint - 1
 
 
 def move_directions(q: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -12,13 +11,13 @@ from laser_calib.io.errors import InputError
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
-from laser_calib.effects.base import JOINT, Effect, move_directions
+from laser_calib.effects.base import REGISTRY, Effect, move_directions, yaml_number
 from laser_calib.effects.drift import STAMP, Drift, length_params
 from laser_calib.effects.joint import JOINT_EFFECTS, Backlash, Compliance, gravity_torques
 from laser_calib.effects.effect_model import EffectModel
-from laser_calib.effects.screen import SPOT_EFFECTS, CameraDistortion, ScreenShape
+from laser_calib.effects.screen import CameraDistortion, ScreenShape
 
-KINDS: dict[str, type] = {cls.kind: cls for cls in (*JOINT_EFFECTS, Drift, *SPOT_EFFECTS)}
+KINDS = REGISTRY  # every effect class registers its YAML type when defined (effects.base.Effect)
 MIN_MOTION = 1e-6  # rad, m or covariate unit: below this a basis is constant over the data
 
 
@@ -69,55 +68,11 @@ def effects_to_yaml(effects: Sequence[Effect], values: Sequence[np.ndarray]) -> 
     return [e.to_yaml(v) for e, v in zip(effects, values)]
 
 
-def _number(where: str, entry: Mapping[str, Any], key: str, default: float | None = None) -> float:
-    if key not in entry:
-        if default is not None:
-            return default
-        raise InputError(where, f"missing key '{key}'")
-    value = entry[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(f"{where}.{key}", f"expected a finite number, got {value!r}")
-    return float(value)
-
-
 def _effect(robot: Robot, entry: Mapping[str, Any], where: str) -> Effect:
     kind = entry.get("type")
-    if kind not in KINDS:
-        raise InputError(f"{where}.type", f"expected one of {', '.join(KINDS)}, got {kind!r}")
-    cls = KINDS[kind]
-    if cls.family == JOINT:
-        joint = entry.get("joint")
-        if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= robot.n_joints:
-            raise InputError(f"{where}.joint", f"expected a joint number 1..{robot.n_joints}, got {joint!r}")
-        if cls is Compliance:
-            span = _number(where, entry, "torque_span", 1.0)
-            if span <= 0:
-                raise InputError(f"{where}.torque_span", "must be positive")
-            return Compliance(joint=joint - 1, torque_span=span)
-        return cls(joint=joint - 1)
-    if cls is Drift:
-        lengths = [robot.param_names[j] for j in length_params(robot)]
-        name = entry.get("parameter")
-        if name not in lengths:
-            raise InputError(f"{where}.parameter", f"expected a length ({', '.join(lengths)}), got {name!r}")
-        covariate = entry.get("covariate")
-        if not isinstance(covariate, str) or not covariate:
-            raise InputError(f"{where}.covariate", f"expected a column name, got {covariate!r}")
-        spread = _number(where, entry, "spread")
-        if spread <= 0:
-            raise InputError(f"{where}.spread", "must be positive")
-        return Drift(param=robot.param_names.index(name), covariate=covariate,
-                     reference=_number(where, entry, "reference"), spread=spread, param_name=name)
-    if cls is ScreenShape:
-        shape = ScreenShape(_number(where, entry, "half_y", robot.screen.half_y),
-                            _number(where, entry, "half_z", robot.screen.half_z))
-        if shape.half_y <= 0 or shape.half_z <= 0:
-            raise InputError(where, "half_y and half_z must be positive")
-        return shape
-    radius = _number(where, entry, "radius", max(robot.screen.half_y, robot.screen.half_z))
-    if radius <= 0:
-        raise InputError(f"{where}.radius", "must be positive")
-    return CameraDistortion(radius)
+    if kind not in REGISTRY:
+        raise InputError(f"{where}.type", f"expected one of {', '.join(REGISTRY)}, got {kind!r}")
+    return REGISTRY[kind].from_yaml(robot, entry, where)
 
 
 def effects_from_robot(robot: Robot, source: str = "<robot>") -> tuple[list[Effect], list[np.ndarray]]:
@@ -134,7 +89,7 @@ def effects_from_robot(robot: Robot, source: str = "<robot>") -> tuple[list[Effe
         if any(same_place(effect, other) for other in effects):
             raise InputError(where, f"{effect.label} appears twice")
         effects.append(effect)
-        values.append(np.array([_number(where, entry, p) for p in effect.params]))
+        values.append(np.array([yaml_number(where, entry, p) for p in effect.params]))
     return effects, values
 
 

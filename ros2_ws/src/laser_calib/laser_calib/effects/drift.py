@@ -13,14 +13,14 @@ peak-to-peak range), its typical truth 3 mm over that spread.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
-from laser_calib.effects.base import ParamEffect
+from laser_calib.effects.base import ParamEffect, positive_number, yaml_number
 
 STAMP = "stamp"
 
@@ -87,6 +87,20 @@ class Drift(ParamEffect):
 
     def basis(self, robot: Robot, samples: Samples) -> np.ndarray:
         return (covariate_values(samples, self.covariate) - self.reference)[:, None]
+
+    @classmethod
+    def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "Drift":
+        names = robot.param_names
+        lengths = [names[j] for j in length_params(robot)]
+        name = entry.get("parameter")
+        if name not in lengths:
+            raise InputError(f"{where}.parameter", f"expected a length ({', '.join(lengths)}), got {name!r}")
+        covariate = entry.get("covariate")
+        if not isinstance(covariate, str) or not covariate:
+            raise InputError(f"{where}.covariate", f"expected a column name, got {covariate!r}")
+        spread = positive_number(where, entry, "spread")
+        return cls(param=names.index(name), covariate=covariate, reference=yaml_number(where, entry, "reference"),
+                   spread=spread, param_name=name)
 
     @classmethod
     def make(cls, robot: Robot, samples: Samples, param_name: str, covariate: str) -> "Drift":

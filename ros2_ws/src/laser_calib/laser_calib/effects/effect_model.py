@@ -1,5 +1,5 @@
 """EffectModel: the geometric spot model plus effect blocks, as one
-MeasurementModel (measurement.py), so LM, the EKF, the identifiability analysis
+MeasurementModel (measurement/base.py), so LM, the EKF, the identifiability analysis
 and estimate_model run on it unchanged.
 
 x = [geometric errors (4N+5), block of effect 1, block of effect 2, ...]
@@ -24,14 +24,25 @@ out of the Jacobian.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import ClassVar, Sequence
 
 import numpy as np
 
 from laser_calib.model.kinematics import forward
-from laser_calib.measurement.base import Residuals
-from laser_calib.measurement.spot import SpotModel
+from laser_calib.measurement.base import Residuals, RobotModel
 from laser_calib.effects.base import JOINT, PARAM, SPOT, Effect
+
+
+@dataclass(frozen=True)
+class Fixed:
+    """Offsets with no parameter (a learned compensator's, diagnosis.compensator):
+    joint offsets dq (P,N) rad and geometric-parameter offsets (P,n)."""
+
+    dq: np.ndarray
+    errors: np.ndarray
+
+    def subset(self, index) -> "Fixed":
+        return Fixed(self.dq[index], self.errors[index])
 
 
 @dataclass(frozen=True)
@@ -47,18 +58,22 @@ class Bases:
 
 
 class EffectModel:
-    """A SpotModel with effects. names/scales: the geometric ones, then each
+    """A robot measurement model with effects. names/scales: the geometric ones, then each
     effect's; ``blocks`` maps each effect to its slice of x.
 
-    Joint and parameter effects need of ``base`` only evaluate(errors, dq,
-    jacobian) with jac_q, robot and samples, so they work on any sensor model
-    that has them; spot effects need the screen, i.e. a SpotModel.
+    ``base`` is any measurement.RobotModel (spot, point, pose); spot effects
+    need one that measures spots. An EffectModel is itself a RobotModel's
+    MeasurementModel part (names, scales, residuals, subset).
     """
 
-    def __init__(self, base: SpotModel, effects: Sequence[Effect] = (), bases: Bases | None = None):
-        if any(e.family == SPOT for e in effects) and not isinstance(base, SpotModel):
+    measures_spots: ClassVar[bool] = False  # set per instance from the base
+
+    def __init__(self, base: RobotModel, effects: Sequence[Effect] = (), bases: Bases | None = None,
+                 fixed: Fixed | None = None):
+        if any(e.family == SPOT for e in effects) and not base.measures_spots:
             raise ValueError("spot effects (screen shape, camera distortion) need the laser spot model")
         self.base = base
+        self.measures_spots = base.measures_spots
         self.robot = base.robot
         self.samples = base.samples
         self.effects = tuple(effects)
@@ -72,6 +87,7 @@ class EffectModel:
             start += len(effect.params)
         self.n_effect_params = start
         self.bases = self._bases() if bases is None else bases
+        self.fixed = fixed
         self._spot = sorted((e.order, i) for i, e in enumerate(self.effects) if e.family == SPOT)
         self._geometric = [i for i, e in enumerate(self.effects) if e.family == JOINT and e.geometric_basis]
 
@@ -91,9 +107,8 @@ class EffectModel:
 
     def subset(self, index) -> "EffectModel":
         """The model on the poses ``index`` (mask or indices), bases sliced."""
-        base = (self.base.subset(index) if hasattr(self.base, "subset")
-                else type(self.base)(self.robot, self.samples.subset(index)))
-        return EffectModel(base, self.effects, self.bases.subset(index))
+        return EffectModel(self.base.subset(index), self.effects, self.bases.subset(index),
+                           None if self.fixed is None else self.fixed.subset(index))
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         """Geometric errors (n,) and each effect's values."""
@@ -105,8 +120,14 @@ class EffectModel:
         """Per-pose errors (n,) or (P,n) and joint offsets dq (P,N) or None at x."""
         x = np.asarray(x, float)
         geometric, p = x[:self.n_geometric], x[self.n_geometric:]
-        errors = geometric if self.bases.param is None else geometric + self.bases.param @ p
-        return errors, None if self.bases.joint is None else self.joint_basis(geometric) @ p
+        joint_basis = self.joint_basis(geometric)
+        return self._with_fixed(geometric if self.bases.param is None else geometric + self.bases.param @ p,
+                                None if joint_basis is None else joint_basis @ p)
+
+    def _with_fixed(self, errors: np.ndarray, dq: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        if self.fixed is None:
+            return errors, dq
+        return errors + self.fixed.errors, self.fixed.dq if dq is None else dq + self.fixed.dq
 
     def joint_basis(self, geometric: np.ndarray) -> np.ndarray | None:
         """Bq (P,N,K) at the geometric errors (n,)."""
@@ -123,8 +144,8 @@ class EffectModel:
         x = np.asarray(x, float)
         geometric, p = x[:self.n_geometric], x[self.n_geometric:]
         joint_basis = self.joint_basis(geometric)
-        dq = None if joint_basis is None else joint_basis @ p
-        errors = geometric if self.bases.param is None else geometric + self.bases.param @ p
+        errors, dq = self._with_fixed(geometric if self.bases.param is None else geometric + self.bases.param @ p,
+                                      None if joint_basis is None else joint_basis @ p)
         res = self.base.evaluate(errors, dq, jacobian)
         spot_columns: dict[int, np.ndarray] = {}
         if self._spot:

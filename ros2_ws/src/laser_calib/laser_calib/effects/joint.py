@@ -11,14 +11,14 @@ periodic error at a joint that moves little).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
 from laser_calib.model.kinematics import forward
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
-from laser_calib.effects.base import JointEffect, move_directions
+from laser_calib.effects.base import JointEffect, move_directions, positive_number, yaml_joint
 
 MRAD = 1e-3
 
@@ -109,6 +109,10 @@ class Compliance(JointEffect):
 
     def basis(self, robot: Robot, samples: Samples) -> np.ndarray:
         return gravity_torques(robot, samples.q)[:, self.joint:self.joint + 1]
+
+    @classmethod
+    def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "Compliance":
+        return cls(joint=yaml_joint(robot, entry, where), torque_span=positive_number(where, entry, "torque_span", 1.0))
 
     @classmethod
     def make(cls, robot: Robot, samples: Samples, joint: int) -> "Compliance":

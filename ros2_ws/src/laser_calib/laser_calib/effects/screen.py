@@ -10,11 +10,12 @@ spot (CameraDistortion).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from laser_calib.effects.base import SpotEffect
+from laser_calib.effects.base import SpotEffect, positive_number
+from laser_calib.model.robot import Robot
 
 MM = 1e-3
 FIXED_POINT_ITERATIONS = 6  # |grad f . t| ~ 1e-3: six iterations reach 1e-18 m
@@ -68,6 +69,11 @@ class ScreenShape(SpotEffect):
 
     def constants(self) -> dict:
         return {"half_y": self.half_y, "half_z": self.half_z}
+
+    @classmethod
+    def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "ScreenShape":
+        return cls(positive_number(where, entry, "half_y", robot.screen.half_y),
+                   positive_number(where, entry, "half_z", robot.screen.half_z))
 
     def _terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """phi (...,5) and d phi / d s (...,5,2) at spots s (...,2)."""
@@ -133,6 +139,10 @@ class CameraDistortion(SpotEffect):
     def constants(self) -> dict:
         return {"radius": self.radius}
 
+    @classmethod
+    def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "CameraDistortion":
+        return cls(positive_number(where, entry, "radius", max(robot.screen.half_y, robot.screen.half_z)))
+
     def apply(self, spots, beams, values):
         k1, k2, p1, p2 = values
         u, v = spots[..., 0] / self.radius, spots[..., 1] / self.radius
@@ -149,5 +159,3 @@ class CameraDistortion(SpotEffect):
         gradient = np.stack([np.stack([dy_du, dy_dv], axis=-1), np.stack([dz_du, dz_dv], axis=-1)], axis=-2)
         return spots + shift, np.eye(2) + gradient / self.radius, d_values
 
-
-SPOT_EFFECTS = (ScreenShape, CameraDistortion)

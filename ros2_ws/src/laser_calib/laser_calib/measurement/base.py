@@ -11,11 +11,11 @@ diagnosis run on all of them unchanged.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from laser_calib.model.robot import param_kinds
+from laser_calib.model.robot import Robot, param_kinds
 
 # Characteristic sizes of one error: the paper's simulated error (10 mm, 1 deg).
 # They scale the parameters for damping and rank decisions and are the default
@@ -37,10 +37,34 @@ class Residuals:
 
 
 class MeasurementModel(Protocol):
+    """What the estimators fit: named parameters and their residuals."""
+
     names: tuple[str, ...]
     scales: np.ndarray  # (n,) characteristic size of each parameter, in its unit
 
     def residuals(self, x: np.ndarray, jacobian: bool = True) -> Residuals: ...
+
+
+class RobotModel(MeasurementModel, Protocol):
+    """A measurement model of a robot's readings: what effects
+    (effects.EffectModel) and the diagnosis build on.
+
+    robot and samples (readings q (P,N), stamp (P,), extra columns, in
+    measurement order); evaluate(params, dq, jacobian): the residuals with the
+    model's parameters (n,) or per pose (P,n) and joint offsets dq (P,N) or
+    None added to the readings, jac_q (P,C,D,N) filled whenever jacobian is
+    True; subset(index): the same model on the poses ``index`` (mask or
+    indices); measures_spots: the residuals are laser spots on the screen
+    (only then can spot effects, screen shape and lens, act on them).
+    """
+
+    robot: Robot
+    samples: Any
+    measures_spots: ClassVar[bool]
+
+    def evaluate(self, params: np.ndarray, dq: np.ndarray | None, jacobian: bool = True) -> Residuals: ...
+
+    def subset(self, index) -> "RobotModel": ...
 
 
 def geometric_scales(n_joints: int) -> np.ndarray:

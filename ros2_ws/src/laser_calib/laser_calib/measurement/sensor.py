@@ -33,6 +33,8 @@ and joint offsets (P,N) as SpotModel.evaluate does, for effect models.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from laser_calib.model.kinematics import joint_jacobian
@@ -50,7 +52,10 @@ SCALE_SCALE = 1e-3  # characteristic size of a scale error: 0.1 % (1 mm at 1 m)
 
 class _SensorModel:
     """What both sensor models share: the robot, its frame guesses, the samples
-    and the map from the model's parameters into the full chain vector."""
+    and the map from the model's parameters into the full chain vector
+    (each model a measurement.RobotModel)."""
+
+    measures_spots: ClassVar[bool] = False
 
     def __init__(self, robot: Robot, samples: SensorSamples, kind: str, scale: bool):
         if samples.n_joints != robot.n_joints:

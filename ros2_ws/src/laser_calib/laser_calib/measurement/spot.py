@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from laser_calib.io.samples import Samples
@@ -11,7 +13,10 @@ from laser_calib.model.robot import Robot
 
 
 class SpotModel:
-    """The paper's model: spots of the two lasers from the geometric errors."""
+    """The paper's model: spots of the two lasers from the geometric errors
+    (a measurement.RobotModel)."""
+
+    measures_spots: ClassVar[bool] = True
 
     def __init__(self, robot: Robot, samples: Samples):
         if samples.n_joints != robot.n_joints:

@@ -13,7 +13,8 @@ from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text,
 from laser_calib.model.robot import CONVENTIONS, PAPER, Joint, Laser, Robot, Screen, Slm
 
 _KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "convention")
-EXTRA_KEYS = ("effects", "frames")  # read by effects/catalog.py and measurement/frames.py
+# Keys other modules read: effects/catalog.py, measurement/frames.py, diagnosis/verdict.py (rated noise).
+EXTRA_KEYS = ("effects", "frames", "spot_sigma", "joint_reading_sigma")
 JOINT_KEYS = ("a", "d", "alpha", "theta0", "min", "max", "type")
 SLM_KEYS = ("a", "d", "alpha", "theta", "beta")
 LASER_KEYS = ("gamma", "beta")

@@ -36,16 +36,41 @@ class TrueEffect:
 
 
 @dataclass(frozen=True)
+class ForeignError:
+    """An error outside the library, for tests of what the library cannot
+    explain: offsets (P,n) of the geometric parameters (theta_j columns are
+    joint offsets) = offsets(robot, samples), robot the true one."""
+
+    name: str
+    offsets: Callable[[Robot, Samples], np.ndarray]
+
+    def param_offsets(self, robot: Robot, samples: Samples) -> np.ndarray:
+        return self.offsets(robot, samples)
+
+    def scaled(self, factor: float) -> "ForeignError":
+        return ForeignError(self.name, lambda robot, samples: factor * self.offsets(robot, samples))
+
+
+@dataclass(frozen=True)
 class ForeignJointError:
-    """A joint error outside the library, for tests of what the library cannot
-    explain: dq of joint ``joint`` (0-based) = offset(samples) rad, (P,)."""
+    """A joint error outside the library: dq of joint ``joint`` (0-based) =
+    offset(samples) rad, (P,)."""
 
     name: str
     joint: int
     offset: Callable[[Samples], np.ndarray]
 
+    def param_offsets(self, robot: Robot, samples: Samples) -> np.ndarray:
+        out = np.zeros((len(samples), robot.n_params))
+        out[:, 4 * self.joint + 3] = self.offset(samples)
+        return out
 
-Truth = TrueEffect | ForeignJointError
+    def scaled(self, factor: float) -> "ForeignJointError":
+        return ForeignJointError(self.name, self.joint, lambda samples: factor * self.offset(samples))
+
+
+Foreign = ForeignError | ForeignJointError
+Truth = TrueEffect | ForeignError | ForeignJointError
 
 
 def draw_truth(effect: Effect, rng: np.random.Generator, size: float = 1.0) -> TrueEffect:
@@ -72,7 +97,8 @@ def visibility(robot: Robot, errors: np.ndarray, context: Samples, truth: Truth,
     if isinstance(truth, TrueEffect):
         motion = jac[:, model.n_geometric:] @ values
     else:
-        moved = res.jac_q[..., truth.joint] * truth.offset(context)[:, None, None]
+        moved = np.einsum("pcdn,pn->pcd", res.jac[..., :robot.n_params],
+                          truth.param_offsets(robot.with_errors(errors), context))
         motion = np.einsum("pij,pj->pi", whitener, moved.reshape(len(moved), -1)).ravel()
     u, s, _ = np.linalg.svd(jac[:, :model.n_geometric], full_matrices=False)
     u = u[:, s > 1e-9 * s[0]]
@@ -85,13 +111,12 @@ def sized(robot: Robot, errors: np.ndarray, context: Samples, truth: Truth, nois
     factor = float(np.sqrt(target / visibility(robot, errors, context, truth, noise)))
     if isinstance(truth, TrueEffect):
         return TrueEffect(truth.effect, truth.values * factor)
-    offset = truth.offset
-    return ForeignJointError(truth.name, truth.joint, lambda samples: factor * offset(samples))
+    return truth.scaled(factor)
 
 
 def hooks(truth: Sequence[Truth]) -> tuple[ParamOffsets | None, SpotTransform | None]:
     """simulation.measure hooks producing the given true effects."""
-    foreign = [t for t in truth if isinstance(t, ForeignJointError)]
+    foreign = [t for t in truth if not isinstance(t, TrueEffect)]
     effects = [t for t in truth if isinstance(t, TrueEffect)]
     blocks = [t for t in effects if t.effect.family in (JOINT, PARAM)]
     spot = sorted((t for t in effects if t.effect.family == SPOT), key=lambda t: t.effect.order)
@@ -102,7 +127,7 @@ def hooks(truth: Sequence[Truth]) -> tuple[ParamOffsets | None, SpotTransform | 
             column = 4 * t.effect.joint + 3 if t.effect.family == JOINT else t.effect.param
             offsets[:, column] += t.effect.basis(robot, context) @ t.values
         for t in foreign:
-            offsets[:, 4 * t.joint + 3] += t.offset(context)
+            offsets += t.param_offsets(robot, context)
         return offsets
 
     def spot_transform(robot: Robot, context: Samples, spots: np.ndarray) -> np.ndarray:

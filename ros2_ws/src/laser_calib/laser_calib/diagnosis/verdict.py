@@ -1,0 +1,122 @@
+"""The verdict: the noise of the final residual, the test of its level and
+the structure tests."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import stats
+
+from laser_calib.diagnosis.data import Data
+from laser_calib.diagnosis.detector import Detection
+from laser_calib.diagnosis.noise import noise_components, pure_error
+from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_REPEAT_DOF, NOISE_EXCESS, STRUCTURE,
+                                           UNDETERMINED, DiagnoseOptions)
+from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo
+from laser_calib.diagnosis.structure import Readings, pose_covariates, pose_responses, structure_tests
+from laser_calib.effects.base import positive_number
+from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.model.robot import Robot
+
+def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions) -> NoiseInfo:
+    """The noise model of the verdict and the test of the residual level.
+
+    Components not given are estimated by maximum likelihood from the final
+    residual (noise_components), so the structure tests weight every pose by
+    its real noise. The level can then be tested only against what was given
+    or measured: a chi^2 test when both components are given, a lack-of-fit F
+    test against the scatter of repeated poses (pure error) when there are
+    any; otherwise it is not tested.
+    """
+    est = final.estimate
+    res = final.model.residuals(est.values, True)
+    m = int(res.valid.sum()) * res.r.shape[2]
+    dof = max(m - int(est.identifiable.sum()), 1)
+    spot, joint = noise_components(res, math.sqrt(m / dof), options.spot_sigma, options.joint_sigma)
+    sources = ("given" if options.spot_sigma is not None else "estimated",
+               "given" if options.joint_sigma is not None else "estimated")
+    noise = NoiseModel(spot, joint)
+    pure, repeat_dof, repeat_rms = pure_error(samples, res, noise)
+    if options.spot_sigma is not None and options.joint_sigma is not None:
+        r, _ = whiten(res, noise.whitener(res))
+        chi2 = float(r @ r)
+        return NoiseInfo(spot, sources[0], joint, sources[1], repeat_dof, repeat_rms, "chi^2", chi2, (dof,),
+                         float(stats.chi2.sf(chi2, dof)))
+    if repeat_dof >= MIN_REPEAT_DOF and dof > repeat_dof:
+        # Lack of fit: the whitened residual beyond the pure error of repeated poses.
+        r, _ = whiten(res, noise.whitener(res))
+        f = ((float(r @ r) - pure) / (dof - repeat_dof)) / (pure / repeat_dof)
+        return NoiseInfo(spot, sources[0], joint, sources[1], repeat_dof, repeat_rms, "lack-of-fit F", f,
+                         (dof - repeat_dof, repeat_dof), float(stats.f.sf(f, dof - repeat_dof, repeat_dof)))
+    return NoiseInfo(spot, sources[0], joint, sources[1], repeat_dof, repeat_rms)
+
+
+def analysis(data: Data, fitted: Fitted, noise: NoiseModel) -> Analysis:
+    """Structure tests of a fit's residual: the pose-level responses and
+    covariates of every measurement model, and the data's measurement-level ones."""
+    model, x = fitted.model, fitted.estimate.values
+    res = model.residuals(x, True)
+    level_resp, level_cov = data.series(model, x, res, noise)
+    resp = pose_responses(model.robot, res, noise) + level_resp
+    cov = pose_covariates(model.robot, data.samples) + level_cov
+    return Analysis(structure_tests(resp, cov), resp, cov)
+
+
+def rated_noise(robot: Robot) -> tuple[float | None, float | None]:
+    """What the robot file says its camera and encoders can do: the optional
+    keys spot_sigma (m) and joint_reading_sigma (rad), None where absent."""
+    return tuple(positive_number("robot", robot.extra, key) if key in robot.extra else None
+                 for key in ("spot_sigma", "joint_reading_sigma"))
+
+
+def excess_noise(noise: NoiseInfo, rated: tuple[float | None, float | None]) -> str | None:
+    """The sentence saying an estimated noise component is far above its rated value, or None."""
+    for name, value, source, limit, unit, factor in (
+            ("spot", noise.spot_sigma, noise.spot_source, rated[0], "mm", 1e3),
+            ("joint-reading", noise.joint_sigma, noise.joint_source, rated[1], "deg", float(np.degrees(1.0)))):
+        if source == "estimated" and limit is not None and value > NOISE_EXCESS * limit:
+            return (f"the estimated {name} sigma, {value * factor:.3g} {unit}, is {value / limit:.1f} times what the "
+                    f"robot file says the hardware can do ({limit * factor:.3g} {unit}): structure taken as noise")
+    return None
+
+
+def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, rated: tuple[float | None, float | None],
+             n_poses: int, alpha: float) -> tuple[str, str]:
+    """The verdict and its evidence (engine docstring, 3.)."""
+    tests = after.tests
+    structure = bool(tests) and tests[0].p_adjusted < alpha
+    level_fail = noise.level_p is not None and noise.level_p < alpha
+    parts = []
+    if tests:
+        parts.append(("Structure: " if structure else "No covariate explains the residual; strongest: ")
+                     + tests[0].sentence() + f", {len(tests)} tests.")
+    sources = {"given": "given", "estimated": "estimated from the residual by maximum likelihood"}
+    sigma_text = (f"spot sigma {noise.spot_sigma * 1e3:.3g} mm {sources[noise.spot_source]}, joint-reading sigma "
+                  f"{np.degrees(noise.joint_sigma):.3g} deg {sources[noise.joint_source]}")
+    if noise.level_test == "chi^2":
+        parts.append(f"Level: chi^2 = {noise.level_statistic:.1f} on {noise.level_dof[0]} dof (ratio "
+                     f"{noise.level_statistic / noise.level_dof[0]:.2f}, p = {noise.level_p:.2g}) with {sigma_text}"
+                     + (": the residual exceeds the noise." if level_fail else "."))
+    elif noise.level_test is not None:
+        parts.append(f"Level: lack-of-fit F = {noise.level_statistic:.3g} on {noise.level_dof[0]}, "
+                     f"{noise.level_dof[1]} dof against the scatter of repeated poses ({noise.repeat_rms * 1e3:.3g} "
+                     f"mm RMS per coordinate; p = {noise.level_p:.2g})"
+                     + (": the residual exceeds the noise" if level_fail else "") + f"; {sigma_text}.")
+    else:
+        parts.append(f"The residual level is not tested: the noise is not fully given and there are "
+                     f"{'too few' if noise.repeat_dof else 'no'} repeated poses ({sigma_text}).")
+    detected = detection.p <= alpha and detection.gain > 0
+    parts.append(("Detector: " if detected else "Detector, nothing significant: ") + detection.sentence() + ".")
+    excess = excess_noise(noise, rated)
+    if excess:
+        parts.append(f"Noise: {excess}.")
+    if structure or level_fail or detected or excess:
+        return STRUCTURE, " ".join(parts)
+    if noise.level_test is None and n_poses < MIN_DETECTOR_POSES:
+        parts.append(f"Undetermined: the level is not tested and {n_poses} poses are too few for the detector "
+                     f"to see more than large structure (it needs about {MIN_DETECTOR_POSES}).")
+        return UNDETERMINED, " ".join(parts)
+    return EXPLAINED, " ".join(parts)
+
+

@@ -1,0 +1,38 @@
+"""The files of a diagnosis."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from laser_calib import __version__
+from laser_calib.diagnosis.report import write_report
+from laser_calib.diagnosis.result import Diagnosis
+from laser_calib.model.robot_file import save_robot
+
+
+def write_outputs(diagnosis: Diagnosis, out_dir: str | Path, sources: dict[str, str | None] | None = None) -> dict:
+    """diagnosis.json, robot_calibrated.yaml (geometric corrections and the
+    ``effects:`` key, docs/effects.md), compensator.json when the learned
+    compensator was kept (diagnosis.compensator.load_compensator) and
+    report.md with its plots into out_dir; returns the JSON dictionary."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    result = diagnosis.to_json()
+    result["inputs"] = sources or {}
+    (out / "diagnosis.json").write_text(json.dumps(result, indent=2))
+    unseparated = [f"{e['name']} ({e['where']}) {p['name']}: {p['note']}" for e in result["effects"]
+                   for p in e["parameters"] if p["value"] is None]
+    merged = "; ".join(f"{k}: {v}" for k, v in diagnosis.merged.items())
+    header = (f"Calibrated by laser_calib {__version__} diagnose from {len(diagnosis.samples)} poses: "
+              f"{diagnosis.final.label}. Verdict: {diagnosis.verdict}."
+              + (f"\nNot identifiable, held at nominal: {merged}" if merged else "")
+              + "".join(f"\nEffect parameter not separable from the geometric errors (the model uses the "
+                        f"value, which has no meaning alone): {u}" for u in unseparated))
+    save_robot(diagnosis.calibrated_robot(), out / "robot_calibrated.yaml", header=header)
+    if diagnosis.compensator is not None:
+        diagnosis.compensator.save(out / "compensator.json")
+    write_report(diagnosis, result, out)
+    return result
+
+
