@@ -1,10 +1,11 @@
 """The layout's rules (docs/architecture.md), checked on the source itself.
 
 The core is ROS-free and never reaches into the nodes package; its subpackages
-import on their own, with no import circle.
+import on their own, with no import circle; modules stay small enough to read.
 """
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -91,3 +92,19 @@ def test_each_subpackage_imports_on_its_own(package):
                           env={"PYTHONPATH": str(CORE.parent), "PATH": "/usr/bin:/bin"})
     assert done.returncode == 0, done.stderr[-2000:]
 
+
+
+def node_modules() -> set[str]:
+    """The modules that are nodes: the nodes package's console entry points."""
+    setup = (SRC / "laser_calib_nodes" / "setup.py").read_text()
+    return set(re.findall(r"=\s*laser_calib_nodes\.(\w+):main", setup))
+
+
+def test_modules_stay_readable():
+    """At most 400 lines a module, 250 a node: a node only converts and calls the core."""
+    nodes = node_modules()
+    assert {"sequencer", "estimator", "spot_detector"} <= nodes
+    files = [(p, 400) for p in CORE_FILES] + [(p, 250 if p.stem in nodes else 400) for p in sorted(NODES.glob("*.py"))]
+    long = [f"{p.relative_to(SRC)}: {n} lines (at most {limit})" for p, limit in files
+            if (n := len(p.read_text().splitlines())) > limit]
+    assert not long, "\n".join(long)

@@ -143,7 +143,10 @@ def calibrate(diagnose: bool, cancel: bool) -> dict:
     if not client.wait_for_server(timeout_sec=TIMEOUT):
         raise SystemExit("no action server estimator/calibrate")
     stages = []
-    sent = client.send_goal_async(Calibrate.Goal(use_accumulated=True, method="lm", diagnose=diagnose),
+    # To be canceled, the goal runs the paper's EKF (hundreds of iterations, against LM's few
+    # milliseconds on 10 poses), so the cancel sent on acceptance arrives while the estimate runs.
+    method = "ekf" if cancel else "lm"
+    sent = client.send_goal_async(Calibrate.Goal(use_accumulated=True, method=method, diagnose=diagnose),
                                   feedback_callback=lambda msg: stages.append(msg.feedback.stage))
     rclpy.spin_until_future_complete(node, sent, timeout_sec=TIMEOUT)
     handle = sent.result()

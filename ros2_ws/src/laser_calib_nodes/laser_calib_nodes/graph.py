@@ -46,6 +46,7 @@ SESSION_ARGS = {
     "output_dir": (None, "Session directory (created; a partial session is resumed)."),
     "robot": (share("config", "robots", "humanoid_arm_7dof.yaml"), "Nominal robot model file (YAML)."),
     "poses": ("60", "Poses to generate."),
+    "test_poses": ("0", "Held-out poses over the whole workspace, measured after the others, never fitted."),
     "span": ("whole", "'whole' or 'small'."),
     "seed": ("0", "Pose generator seed."),
     "method": ("lm", "Final estimate: 'lm' or 'ekf'."),
@@ -98,8 +99,9 @@ def session_nodes(values: dict) -> list[NodeSpec]:
     arm = dict(robot, **{"sim.true_robot_out": os.path.join(values["output_dir"], "robot_true.yaml")})
     if values["speed"]:
         arm["sim.joint_speed"] = float(values["speed"])
-    sequencer = dict(robot, output_dir=values["output_dir"], poses=integer(values, "poses"), span=values["span"],
-                     seed=integer(values, "seed"), **{"estimate.method": values["method"]})
+    sequencer = dict(robot, output_dir=values["output_dir"], poses=integer(values, "poses"),
+                     test_poses=integer(values, "test_poses"), span=values["span"], seed=integer(values, "seed"),
+                     **{"estimate.method": values["method"]})
     return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", files, arm), NodeSpec("camera_sim", files),
             NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)]
 
