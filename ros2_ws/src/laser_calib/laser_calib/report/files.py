@@ -22,8 +22,6 @@ from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.pose_table import save_pose_table, spot_columns
 from laser_calib.report.plots import display_units, plot_convergence, plot_histogram, plot_screen, stats_table
 
-OUTPUTS = ("robot_calibrated.yaml", "result.json", "report.md", "residuals.csv")
-
 
 def run_estimate(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path,
                  test: Samples | None = None, truth: np.ndarray | None = None,
@@ -49,8 +47,9 @@ def result_json(calibration: Calibration) -> str:
 
 
 def write_outputs(calibration: Calibration, out_dir: str | Path, truth: np.ndarray | None = None) -> None:
-    """The files (OUTPUTS) and the plots into out_dir. ``truth`` (n,) true errors, when
-    known (simulation), is drawn in the convergence plot."""
+    """robot_calibrated.yaml, result.json, residuals.csv, report.md and the plots
+    into out_dir. ``truth`` (n,) true errors, when known (simulation), is drawn in
+    the convergence plot."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "robot_calibrated.yaml").write_text(calibrated_robot_yaml(calibration))
