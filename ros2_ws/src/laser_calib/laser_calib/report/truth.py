@@ -18,11 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from laser_calib.report.statistics import summary
 from laser_calib.io.samples import Samples
 from laser_calib.model.kinematics import forward, predict
 from laser_calib.model.robot import Robot
-from laser_calib.report.statistics import laser_stats, spot_distances
+from laser_calib.report.statistics import laser_stats, spot_distances, summary
 
 
 def truth_errors(nominal: Robot, calibrated: Robot, true: Robot, n_poses: int = 2000, seed: int = 0) -> dict:
