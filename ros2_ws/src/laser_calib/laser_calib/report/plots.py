@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from laser_calib.model.robot import Screen, param_kinds  # noqa: E402
+from laser_calib.model.robot import Screen  # noqa: E402
 
 # Most poses a scatter plot draws (drawn_poses).
 MAX_DRAWN = 3000
@@ -24,19 +24,21 @@ def save_figure(fig, path: Path, dpi: int = 90) -> None:
     plt.close(fig)
 
 
-def display_units(n_joints: int) -> np.ndarray:
-    """Factor from SI to report units per error: mm for lengths, deg for angles."""
-    return np.where(param_kinds(n_joints) == "length", 1e3, np.degrees(1.0))
+def display_units(kinds: np.ndarray) -> np.ndarray:
+    """Factor from SI to report units per error of the given kinds (Robot.param_kinds()):
+    mm for lengths, deg for angles."""
+    return np.where(np.asarray(kinds) == "length", 1e3, np.degrees(1.0))
 
 
-def plot_convergence(history: np.ndarray, names: tuple[str, ...], n_joints: int, path: Path,
+def plot_convergence(history: np.ndarray, names: tuple[str, ...], kinds: np.ndarray, path: Path,
                      truth: np.ndarray | None = None) -> None:
-    """Every error against the iteration, grouped like the paper's Fig. 4."""
-    units = display_units(n_joints)
+    """Every error against the iteration, grouped like the paper's Fig. 4 (a URDF
+    robot's joint placements match no D-H panel: its SLM errors only)."""
+    units = display_units(kinds)
     scaled = history * units
     fig, axes = plt.subplots(1, len(PANELS), figsize=(4 * len(PANELS), 3.4))
     for ax, (title, prefix) in zip(axes, PANELS):
-        idx = [i for i, name in enumerate(names[:4 * n_joints + 5])
+        idx = [i for i, name in enumerate(names)
                if (name.startswith("slm") if prefix == "slm" else
                    name.rstrip("0123456789") == prefix)]
         for i in idx:
@@ -46,7 +48,8 @@ def plot_convergence(history: np.ndarray, names: tuple[str, ...], n_joints: int,
         ax.set_title(title)
         ax.set_xlabel("iteration")
         ax.set_ylabel("mm" if prefix in ("a", "d") else ("deg" if prefix != "slm" else "mm / deg"))
-        ax.legend(fontsize=6, ncol=2)
+        if idx:
+            ax.legend(fontsize=6, ncol=2)
         if len(scaled) > 50:
             ax.set_xscale("symlog")
     save_figure(fig, path)
