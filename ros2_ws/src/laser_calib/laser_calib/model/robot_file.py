@@ -152,7 +152,7 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
     """A robot YAML whose arm is a URDF: ``urdf`` (a file), ``robot_description``
     (the text) or ``description`` (given by the caller), exactly one."""
     if "joints" in data:
-        raise InputError(source, "a D-H robot (joints:) takes no URDF text: its arm is its joints")
+        raise InputError(source, "is a D-H robot (joints:) and takes no URDF: give a file of base, tip and lasers")
     data = _mapping(source, data, URDF_KEYS + EXTRA_KEYS)
     given = [key for key in ("urdf", "robot_description") if key in data] + (["topic"] if description else [])
     if len(given) != 1:
