@@ -186,6 +186,8 @@ def call_service(node, samples: Samples) -> str:
         for file, text in (("report.md", response.report_markdown), ("result.json", response.result_json),
                            ("robot_calibrated.yaml", response.calibrated_robot_yaml)):
             (path / file).write_text(text)
+        if node.robot.chain is not None:  # the URDF to apply: the calibrated robot's own text
+            (path / "robot_calibrated.urdf").write_text(load_robot(path / "robot_calibrated.yaml").chain.urdf)
     if response.diagnosis_json:
         (path / "diagnosis.json").write_text(response.diagnosis_json)
     return response.message
