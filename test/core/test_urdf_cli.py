@@ -143,3 +143,24 @@ def test_bad_urdf_robot_yaml_is_one_line_and_exit_2(case, tmp_path, capsys):
 def test_a_bare_urdf_for_a_spot_command_says_what_to_write(capsys):
     assert main(["estimate", "--robot", str(DATA / "paper_arm_7dof.urdf"), "--samples", "s.csv", "--out", "o"]) == 2
     assert "a URDF has no lasers: give a robot YAML with 'urdf: FILE'" in capsys.readouterr().err
+
+
+def test_a_written_tree_robot_reads_back_as_the_same_robot(tmp_path):
+    """Two tips (a list under tip:), errors on every placement: the written YAML
+    (its URDF text with the values folded into the origins) is the same robot."""
+    from laser_calib.model.kinematics import forward
+    from laser_calib.model.robot_file import save_robot
+    from laser_calib.model.urdf import load_urdf_robot
+
+    nominal = load_urdf_robot(DATA / "torso_two_arms.urdf", "base_link", ["left_tool", "right_tool"])
+    rng = np.random.default_rng(5)
+    robot = nominal.with_errors(rng.uniform(-0.01, 0.01, nominal.n_params))
+    save_robot(robot, tmp_path / "tree.yaml")
+    written = yaml.safe_load((tmp_path / "tree.yaml").read_text())
+    assert written["tip"] == ["left_tool", "right_tool"] and "<robot" in written["robot_description"]
+    again = load_robot(tmp_path / "tree.yaml")
+    assert again.param_names == robot.param_names and not again.vector().any()
+    q = rng.uniform(np.maximum(robot.q_min, -3), np.minimum(robot.q_max, 3), (20, robot.n_joints))
+    for tip in range(2):
+        a, b = forward(robot, q, tip=tip), forward(again, q, tip=tip)
+        assert np.abs(a.origin - b.origin).max() < 1e-12 and np.abs(a.rotation - b.rotation).max() < 1e-12
