@@ -164,3 +164,22 @@ def test_a_written_tree_robot_reads_back_as_the_same_robot(tmp_path):
     for tip in range(2):
         a, b = forward(robot, q, tip=tip), forward(again, q, tip=tip)
         assert np.abs(a.origin - b.origin).max() < 1e-12 and np.abs(a.rotation - b.rotation).max() < 1e-12
+
+
+def test_plan_and_slm_calibrate_take_a_urdf_robot(tmp_path):
+    robot_path = _urdf_robot_yaml(tmp_path / "urdf")
+    robot = load_robot(robot_path)
+    assert main(["plan", "--robot", str(robot_path), "--n", "8", "--candidates", "200",
+                 "--out", str(tmp_path / "poses.csv")]) == 0
+    assert len((tmp_path / "poses.csv").read_text().strip().splitlines()) == 1 + 8
+    # spots of the two beams on a fixture at four distances (tan of the beam's angles, exact)
+    rows = ["laser,distance,u,v"]
+    for j, (gamma, beta) in enumerate(robot.laser_angles()):
+        for distance in (0.5, 0.75, 1.0, 1.25):
+            rows.append(f"{j + 1},{distance},{float(distance * np.tan(beta))!r},{float(-distance * np.tan(gamma))!r}")
+    (tmp_path / "slm.csv").write_text("\n".join(rows) + "\n")
+    out = tmp_path / "arm_slm.yaml"
+    assert main(["slm-calibrate", "--robot", str(robot_path), "--measurements", str(tmp_path / "slm.csv"),
+                 "--spot-sigma", "0.0001", "--out", str(out)]) == 0
+    written = load_robot(out)
+    assert written.chain is not None and written.param_names == robot.param_names
