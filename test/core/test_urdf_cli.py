@@ -115,11 +115,11 @@ def test_xacro_arguments_reach_the_xacro(tmp_path):
 BAD = {  # change of the robot YAML -> what the one line says
     "unknown key": ({"joint_names": ["a"]}, "unknown key 'joint_names'"),
     "no base": ({"base": None}, "missing key 'base'"),
-    "no such file": ({"urdf": "missing.urdf"}, "missing.urdf: cannot read"),
+    "no such file": ({"urdf": "missing.urdf"}, "arm.yaml: urdf: no file"),
     "not a URDF": ({"urdf": "arm.stl"}, "urdf: expected a .urdf or .xacro file"),
     "xacro_args on a URDF": ({"xacro_args": {"x": 1}}, "xacro_args: applies to a 'urdf:' file ending in .xacro"),
     "twice": ({"robot_description": "<robot/>"}, "the URDF is given 2 times"),
-    "no such tip": ({"tip": "hand"}, "no link 'hand'"),
+    "no such tip": ({"tip": "hand"}, "no link 'hand'"),  # (robot file .../arm.yaml)
     "tip not text": ({"tip": 3}, "tip: expected a non-empty string"),
     "laser in mm": ({"slm": {"a": 500.0, "d": 0.0, "alpha": 0.0, "theta": 3.14}}, "slm.a: 500 m is not a plausible"),
 }

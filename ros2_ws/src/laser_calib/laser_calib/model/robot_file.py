@@ -172,6 +172,8 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
         path = Path(folder or ".") / name
         if not is_urdf(path):
             raise InputError(f"{source}: urdf", f"expected a .urdf or .xacro file, got {name!r}")
+        if not path.is_file():
+            raise InputError(f"{source}: urdf", f"no file {path}")
         args = data.get("xacro_args", {})
         if not isinstance(args, Mapping) or not all(isinstance(v, (str, int, float)) for v in args.values()):
             raise InputError(f"{source}: xacro_args", "expected a mapping of argument names to values")
@@ -184,8 +186,11 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
     if name is not None and not isinstance(name, str):
         raise InputError(f"{source}: name", f"expected a string, got {type(name).__name__}")
     parts = _lasers_and_screen(data, source)
-    robot = robot_from_urdf(text, base, tips if len(tips) > 1 else tips[0], where, slm=parts["slm"],
-                            lasers=parts["lasers"], screen=parts["screen"], name=name)
+    try:
+        robot = robot_from_urdf(text, base, tips if len(tips) > 1 else tips[0], where, slm=parts["slm"],
+                                lasers=parts["lasers"], screen=parts["screen"], name=name)
+    except InputError as exc:  # a link or joint of the URDF: name the robot file that chose it too
+        raise InputError(exc.where, f"{exc.problem} (robot file {source})") from None
     extra = {k: v for k, v in data.items() if k in EXTRA_KEYS}
     return replace(robot, gravity=parts["gravity"], extra=extra)
 
