@@ -7,6 +7,7 @@
     ros_client.py reset                        call estimator/reset
     ros_client.py estimate-accumulated         Estimate with use_accumulated
     ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
+    ros_client.py estimate-csv SAMPLES.csv      Estimate the samples of a CSV (spot samples, any robot)
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
 """
 
@@ -122,6 +123,17 @@ def reset() -> dict:
     node = rclpy.create_node("test_reset")
     r = call(node, node.create_client(Trigger, "estimator/reset"), Trigger.Request())
     return {"success": r.success, "message": r.message}
+
+
+def estimate_csv(path: str) -> dict:
+    from laser_calib.io.samples import load_samples
+    samples = load_samples(path)
+    node = rclpy.create_node("test_estimate")
+    request = Estimate.Request()
+    request.samples = [sample(int(samples.pose[k]), samples.q[k], samples.spots[k]) for k in range(len(samples))]
+    request.method = "lm"
+    r = call(node, node.create_client(Estimate, "estimator/estimate"), request)
+    return dict(response_dict(r), names=list(r.parameters.names), calibrated_robot_yaml=r.calibrated_robot_yaml)
 
 
 def estimate_accumulated() -> dict:
@@ -270,6 +282,8 @@ def main() -> int:
             result = markers()
         elif command == "reset":
             result = reset()
+        elif command == "estimate-csv":
+            result = estimate_csv(sys.argv[2])
         elif command == "estimate-accumulated":
             result = estimate_accumulated()
         elif command == "calibrate":

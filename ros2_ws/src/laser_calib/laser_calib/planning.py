@@ -38,7 +38,7 @@ from laser_calib.estimation.identifiability import analyse
 from laser_calib.estimation.lm import ProgressCallback
 from laser_calib.estimation.problem import pose_blocks
 from laser_calib.model.kinematics import predict
-from laser_calib.measurement.base import NoiseModel, geometric_scales, whiten
+from laser_calib.measurement.base import NoiseModel, robot_scales, whiten
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
@@ -77,7 +77,7 @@ class PlanOptions:
 @dataclass(frozen=True)
 class Plan:
     """q (n,N) the chosen joint readings, rad; log_det of their information
-    (identifiable errors, scaled); free (4N+5,) the errors in the criterion."""
+    (identifiable errors, scaled); free (n_params,) the errors in the criterion."""
 
     q: np.ndarray
     log_det: float
@@ -111,7 +111,7 @@ def whitened_jacobians(robot: Robot, q: np.ndarray, spot_sigma: float, joint_sig
     for index, block in pose_blocks(SpotModel(robot, samples)):
         res = block.residuals(np.zeros(robot.n_params), True)
         g[index] = whiten(res, noise.whitener(res))[1].reshape(-1, 4, robot.n_params)
-    return g * geometric_scales(robot.n_joints)
+    return g * robot_scales(robot)
 
 
 def _log_det_plus_identity(q: np.ndarray) -> np.ndarray:

@@ -45,8 +45,9 @@ class ArmDriver(Node):
         self.robot, robot_path = common.robot_param(self)
         n = self.robot.n_joints
         names = declare("joint_names", Parameter.Type.STRING_ARRAY,
-                        "Joint names, base to tip (default joint1..jointN).", type_=Parameter.Type.STRING_ARRAY)
-        self.joint_names = list(names) if names else common.default_joint_names(n)
+                        "Joint names, base to tip (default joint1..jointN; a URDF arm's: its joints').",
+                        type_=Parameter.Type.STRING_ARRAY)
+        self.joint_names = list(names) if names else common.default_joint_names(self.robot)
         if len(self.joint_names) != n:
             raise common.NodeError(f"parameter joint_names: {len(self.joint_names)} names, "
                                    f"robot '{self.robot.name}' has {n} joints", 2)

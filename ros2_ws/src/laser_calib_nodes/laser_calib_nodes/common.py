@@ -7,6 +7,8 @@ import math
 import signal
 import sys
 import threading
+import time
+from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -18,6 +20,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 from laser_calib.io.errors import InputError
+from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import load_robot
 
 from laser_calib.io import bag
@@ -136,12 +139,75 @@ def positive(value: float) -> str | None:
     return None if math.isfinite(value) and value > 0 else f"expected > 0, got {value}"
 
 
-def robot_param(node: Node, name: str = "robot", default: str = "", description: str | None = None):
-    path = declare(node, name, default, description or
-                   "Nominal robot model file (YAML, conventions.md), e.g. config/robots/humanoid_arm_7dof.yaml.")
-    if not path:
-        raise NodeError(f"parameter '{name}' is empty: give the robot model file (YAML)", 2)
-    return load_robot(path), path
+ROBOT_HELP = ("Nominal robot model file (YAML, conventions.md; a URDF arm with its lasers: docs/urdf.md), e.g. "
+              "config/robots/humanoid_arm_7dof.yaml.")
+# robot_state_publisher's /robot_description: std_msgs/String, reliable, transient local, depth 1.
+DESCRIPTION_QOS = LATCHED_QOS
+
+
+@dataclass(frozen=True)
+class RobotSource:
+    """Where a node takes its robot from: the robot file, and the URDF text from
+    ``topic`` when set (the file then names base, tip and the lasers, no urdf:)."""
+
+    path: str
+    topic: str
+    timeout: float
+
+    def load(self, node: Node) -> tuple[Robot, str]:
+        """The robot and a label of its source (for result.json); waits for the topic."""
+        if not self.path:
+            raise NodeError("parameter 'robot' is empty: give the robot model file (YAML)", 2)
+        if not self.topic:
+            return load_robot(self.path), self.path
+        text, name = wait_for_description(node, self.topic, self.timeout)
+        return load_robot(self.path, description=text), f"{self.path} with the URDF of {name}"
+
+
+def robot_source(node: Node) -> RobotSource:
+    """Declare the parameters that say where the robot comes from."""
+    path = declare(node, "robot", "", ROBOT_HELP)
+    topic = declare(node, "robot_description_topic", "",
+                    "Take the arm's URDF from this topic (std_msgs/String, reliable + transient local, as "
+                    "robot_state_publisher publishes /robot_description); 'robot' then gives base, tip and the "
+                    "lasers. Empty: the robot file alone.")
+    timeout = declare(node, "robot_description_timeout", 30.0,
+                      "Seconds to wait for the robot description on robot_description_topic before exiting.")
+    if not (math.isfinite(timeout) and timeout > 0):
+        raise NodeError(f"parameter robot_description_timeout: expected > 0 s, got {timeout}", 2)
+    return RobotSource(path, topic, timeout)
+
+
+def robot_param(node: Node) -> tuple[Robot, str]:
+    return robot_source(node).load(node)
+
+
+def wait_for_description(node: Node, topic: str, timeout: float) -> tuple[str, str]:
+    """The first URDF text on topic (its latched one) and the topic's resolved name;
+    NodeError (exit 2) after timeout s. Spins only this subscription's node, before
+    the node is given to its executor."""
+    from std_msgs.msg import String
+
+    texts: list[str] = []
+    subscription = node.create_subscription(String, topic, lambda msg: texts.append(msg.data), DESCRIPTION_QOS)
+    name = subscription.topic_name
+    node.get_logger().info(f"waiting up to {timeout:g} s for the robot description on {name} (std_msgs/String, "
+                           "transient local, as robot_state_publisher publishes it)")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    deadline = time.monotonic() + timeout
+    try:
+        while not texts and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        executor.remove_node(node)
+        executor.shutdown()
+        node.destroy_subscription(subscription)
+    if not texts:
+        raise NodeError(f"no robot description on {name} within {timeout:g} s: is robot_state_publisher running "
+                        "(or set robot_description_topic:='' to use the robot file alone)?", 2)
+    node.get_logger().info(f"robot description received on {name} ({len(texts[0])} characters)")
+    return texts[0], name
 
 
 def stamp_seconds(stamp) -> float:
@@ -172,8 +238,11 @@ def spots_from_msg(spots) -> np.ndarray:
     return out
 
 
-def default_joint_names(n: int) -> list[str]:
-    return [f"joint{i + 1}" for i in range(n)]
+def default_joint_names(robot: Robot) -> list[str]:
+    """A URDF robot's read joints by their URDF names; a D-H robot's joint1..jointN."""
+    if robot.chain is not None:
+        return list(robot.chain.readings)
+    return [f"joint{i + 1}" for i in range(robot.n_joints)]
 
 
 def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,

@@ -8,7 +8,8 @@ drift. Either way the starter first takes the session folder's lock
 (laser_calib.session.lock), every node dies with its starter
 (die_with_parent), and a node that exits ends the session within seconds.
 
-    python -m laser_calib_nodes.graph output_dir:=DIR [robot:=FILE] [poses:=N] ... [-- SEQUENCER ROS ARGS]
+    python -m laser_calib_nodes.graph output_dir:=DIR [robot:=FILE] [robot_description_topic:=/robot_description]
+        [poses:=N] ... [-- SEQUENCER ROS ARGS]
 
 takes the launch file's arguments (SESSION_ARGS) in its ``name:=value`` form.
 ROS-free: nothing here imports rclpy (launch only inside launch_actions).
@@ -41,10 +42,13 @@ def share(*parts: str) -> str:
     return os.path.join(get_package_share_directory(PACKAGE), *parts)
 
 
+DESCRIPTION_TOPIC_HELP = ("Take the arm's URDF from this topic (e.g. /robot_description of robot_state_publisher); "
+                          "robot is then the file of base, tip and lasers (docs/urdf.md). Empty: robot alone.")
 # name: (default, description); default None: required. The launch file's arguments.
 SESSION_ARGS = {
     "output_dir": (None, "Session directory (created; a partial session is resumed)."),
     "robot": (share("config", "robots", "humanoid_arm_7dof.yaml"), "Nominal robot model file (YAML)."),
+    "robot_description_topic": ("", DESCRIPTION_TOPIC_HELP),
     "poses": ("60", "Poses to generate."),
     "test_poses": ("0", "Held-out poses over the whole workspace, measured after the others, never fitted."),
     "span": ("whole", "'whole' or 'small'."),
@@ -56,6 +60,7 @@ SESSION_ARGS = {
 HARDWARE_ARGS = {
     "output_dir": (None, "Session directory (created; a partial session is resumed)."),
     "robot": (None, "Nominal robot model file (YAML)."),
+    "robot_description_topic": ("", DESCRIPTION_TOPIC_HELP),
     "arm_params": (share("config", "dynamixel_arm.yaml"), "arm_driver parameters (Dynamixel port, ids, ticks)."),
     "calibration": (None, "Screen calibration file of the camera."),
     "image": ("/camera/image_raw", "Camera image topic."),
@@ -92,10 +97,17 @@ def integer(values: dict, name: str) -> int:
         raise InputError(name, f"expected an integer, got {values[name]!r}") from None
 
 
+def robot_params(values: dict) -> dict:
+    """The parameters of every node that needs the robot (common.robot_source); the
+    topic only when given (an empty `-p name:=` is no string to ROS)."""
+    topic = values["robot_description_topic"]
+    return {"robot": values["robot"], **({"robot_description_topic": topic} if topic else {})}
+
+
 def session_nodes(values: dict) -> list[NodeSpec]:
     """The simulated session; the sequencer last (the session ends when it ends)."""
     files = (values["params"],)
-    robot = {"robot": values["robot"]}
+    robot = robot_params(values)
     arm = dict(robot, **{"sim.true_robot_out": os.path.join(values["output_dir"], "robot_true.yaml")})
     if values["speed"]:
         arm["sim.joint_speed"] = float(values["speed"])
@@ -109,7 +121,7 @@ def session_nodes(values: dict) -> list[NodeSpec]:
 def hardware_nodes(values: dict) -> list[NodeSpec]:
     """A real arm (arm_driver on Dynamixel) and a camera driver of the user's; the sequencer last."""
     files = (values["params"],)
-    robot = {"robot": values["robot"]}
+    robot = robot_params(values)
     sequencer = dict(robot, output_dir=values["output_dir"], poses_file=values["poses_file"],
                      poses=integer(values, "poses"))
     return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", (values["arm_params"],), robot),

@@ -70,7 +70,9 @@ class Sequencer(Node):
                                    f"{self.joint_speed}", 2)
 
         self.session, self.lock, self.robot, self.poses, state = sequencer_parts.open_session(self)
-        self.joint_names = list(names) if names else None
+        # a URDF arm's joints are named: found by name among joint_states' (which may hold more)
+        self.joint_names = (list(names) if names else
+                            common.default_joint_names(self.robot) if self.robot.chain else None)
 
         # ---- topics and recording ----
         from laser_calib_interfaces.msg import Sample, SessionProgress, SpotPair

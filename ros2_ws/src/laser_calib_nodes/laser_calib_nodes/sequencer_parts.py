@@ -36,7 +36,7 @@ class Stop(Exception):
 def open_session(node):
     """(session, lock, robot, poses, state) from the session parameters; the lock is held."""
     d = lambda *a, **k: common.declare(node, *a, **k)  # noqa: E731
-    robot_path = d("robot", "", "Nominal robot model file (YAML, conventions.md).")
+    robot_source = common.robot_source(node)
     output_dir = d("output_dir", "", "Session directory: samples.csv, bag/, report (created; resumed "
                                      "when it holds a partial session).")
     poses_file = d("poses_file", "", "Pose list (YAML or CSV, rad); empty: generate 'poses' poses.")
@@ -66,13 +66,11 @@ def open_session(node):
     if state == "partial":
         robot, poses = session.load_for_resume()
         return session, lock, robot, poses, state
-    if not robot_path:
-        raise common.NodeError("parameter robot is empty: give the robot model file (YAML)", 2)
-    robot = load_robot(robot_path)
+    robot, robot_label = robot_source.load(node)
     poses = load_poses(poses_file, robot) if poses_file else generate_poses(robot, n_poses, span, seed, repeats, margin)
     poses = with_test_poses(poses, robot, n_test, seed, margin)
     source = poses_file or f"generated: {n_poses} poses, span {span}, seed {seed}, repeats {repeats}"
-    session.start(robot, poses, {"robot": str(robot_path), "poses": source, "test_poses": n_test})
+    session.start(robot, poses, {"robot": robot_label, "poses": source, "test_poses": n_test})
     return session, lock, robot, poses, state
 
 
@@ -188,6 +186,8 @@ def call_service(node, samples: Samples) -> str:
         for file, text in (("report.md", response.report_markdown), ("result.json", response.result_json),
                            ("robot_calibrated.yaml", response.calibrated_robot_yaml)):
             (path / file).write_text(text)
+        if node.robot.chain is not None:  # the URDF to apply: the calibrated robot's own text
+            (path / "robot_calibrated.urdf").write_text(load_robot(path / "robot_calibrated.yaml").chain.urdf)
     if response.diagnosis_json:
         (path / "diagnosis.json").write_text(response.diagnosis_json)
     return response.message
@@ -211,7 +211,7 @@ def sample_msg(node, samples: Samples, r: int):
     msg.header.stamp.sec, msg.header.stamp.nanosec = stamps_from_float(samples.stamp[r])
     msg.header.frame_id = common.SCREEN_FRAME
     msg.pose = int(samples.pose[r])
-    msg.joint_names = node.joint_names or common.default_joint_names(samples.n_joints)
+    msg.joint_names = node.joint_names or common.default_joint_names(node.robot)
     msg.joint_positions = [float(v) for v in samples.q[r]]
     msg.spots = common.spots_to_msg(samples.spots[r], ~np.isnan(samples.spots[r]).any(axis=1))
     msg.frames = int(node.frames)

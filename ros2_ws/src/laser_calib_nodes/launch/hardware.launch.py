@@ -5,7 +5,9 @@ camera driver's image topic, estimator and sequencer.
         arm_params:=/path/dynamixel_arm.yaml calibration:=/path/screen_calibration.yaml \
         output_dir:=/data/session image:=/camera/image_raw
 
-The camera driver is yours (any node publishing sensor_msgs/Image of the
+With ``robot_description_topic:=/robot_description`` the arm's URDF comes from
+robot_state_publisher and ``robot`` is the file of base, tip and lasers
+(docs/urdf.md). The camera driver is yours (any node publishing sensor_msgs/Image of the
 calibrated camera; the QoS spot_detector subscribes with is in the package
 README's table); its image topic is remapped to camera/image_raw. The node graph is
 laser_calib_nodes.graph.hardware_nodes; as session.launch.py, the launch takes

@@ -1,6 +1,8 @@
 """A full simulated calibration session (the node graph scripts/run-session runs).
 
     ros2 launch laser_calib_nodes session.launch.py output_dir:=/tmp/session [poses:=60] [robot:=...]
+    ros2 launch laser_calib_nodes session.launch.py output_dir:=/tmp/session robot:=lasers.yaml \
+        robot_description_topic:=/robot_description    # the arm's URDF from robot_state_publisher
 
 Starts the simulated arm_driver, camera_sim, spot_detector, the estimator and
 the sequencer (laser_calib_nodes.graph.session_nodes, shared with

@@ -28,7 +28,7 @@ from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
 from laser_calib.io.bag import read_samples_checked
 from laser_calib.io.samples import check_joint_range, load_samples, save_samples
-from laser_calib.sim.simulation import CASES, NoiseSpec, paper_session
+from laser_calib.sim.simulation import CASE_POSES, CASES, NoiseSpec, paper_session, robot_session
 from laser_calib.cli import diagnose as diagnose_cli
 from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
@@ -45,7 +45,14 @@ def _progress(message: str) -> None:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     noise = NoiseSpec(spot=args.spot_noise, joint=np.deg2rad(args.joint_noise_deg))
-    session = paper_session(args.case, args.seed, args.poses_per_span, noise, random_errors=args.random_errors)
+    if args.robot:
+        robot = load_robot(args.robot)
+        if not robot.lasers:
+            raise InputError(args.robot, "has no lasers ('slm:' and 'lasers:'): spots cannot be simulated")
+        session = robot_session(robot, args.seed, args.poses_per_span or CASE_POSES["paper-7dof"], noise,
+                                random_errors=args.random_errors)
+    else:
+        session = paper_session(args.case, args.seed, args.poses_per_span, noise, random_errors=args.random_errors)
     with staged_folder(args.out) as out:
         _write_simulation(args, session, noise, out)
     print(f"wrote {args.out}/: robot_nominal.yaml robot_true.yaml samples.csv (all {len(session.samples)} poses), "
@@ -54,9 +61,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _write_simulation(args: argparse.Namespace, session, noise: NoiseSpec, out: Path) -> None:
-    save_robot(session.nominal, out / "robot_nominal.yaml", header=f"Nominal model ({args.case}).")
-    save_robot(session.true, out / "robot_true.yaml",
-               header=f"True model of the simulation ({args.case}, seed {args.seed}).")
+    label = args.case or args.robot
+    save_robot(session.nominal, out / "robot_nominal.yaml", header=f"Nominal model ({label}).")
+    save_robot(session.true, out / "robot_true.yaml", header=f"True model of the simulation ({label}, seed {args.seed}).")
     save_samples(session.samples, out / "samples.csv")
     save_samples(session.truth, out / "truth.csv")
     for case, (cal, test) in session.cases.items():
@@ -65,7 +72,7 @@ def _write_simulation(args: argparse.Namespace, session, noise: NoiseSpec, out: 
             save_samples(session.samples.subset(test), out / f"{case}_test.csv")
             save_samples(session.truth.subset(test), out / f"{case}_test_truth.csv")
     (out / "truth.json").write_text(json.dumps({
-        "case": args.case, "seed": args.seed, "spot_noise_halfwidth_m": noise.spot,
+        "case": args.case, "robot": args.robot, "seed": args.seed, "spot_noise_halfwidth_m": noise.spot,
         "joint_noise_halfwidth_rad": noise.joint, "spot_sigma_m": noise.spot_sigma,
         "joint_sigma_rad": noise.joint_sigma,
         "errors": dict(zip(session.nominal.param_names, map(float, session.errors)))}, indent=2))
@@ -104,7 +111,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                                    sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
                                             "test": str(args.test) if args.test else None})
     _summary(calibration)
-    print(f"wrote {args.out}/robot_calibrated.yaml, result.json, report.md, residuals.csv")
+    urdf = ", robot_calibrated.urdf, urdf_corrections.json" if robot.chain is not None else ""
+    print(f"wrote {args.out}/robot_calibrated.yaml{urdf}, result.json, report.md, residuals.csv")
     return 0
 
 
@@ -153,7 +161,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate the paper's session (section IV / V)")
-    p.add_argument("--case", choices=CASES, required=True)
+    arm = p.add_mutually_exclusive_group(required=True)
+    arm.add_argument("--case", choices=CASES, help="one of the paper's arms")
+    arm.add_argument("--robot", help="any robot YAML with lasers (D-H, or 'urdf:' docs/urdf.md), in the paper's "
+                                     f"session ({CASE_POSES['paper-7dof']} + {CASE_POSES['paper-7dof']} poses unless "
+                                     "--poses-per-span)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, type=out_folder)
     p.add_argument("--poses-per-span", type=positive_int, default=None,

@@ -27,8 +27,7 @@ from laser_calib.io.positioner import read_positioner
 from laser_calib.planning import PlanOptions, plan
 from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
-from laser_calib.model.robot_file import load_robot, save_robot
-from laser_calib.model.urdf import load_robot_description
+from laser_calib.model.robot_file import load_robot, load_robot_description, save_robot
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.diagnosis.sensor_data import diagnose, diagnose_options, heldout_effects
 from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings

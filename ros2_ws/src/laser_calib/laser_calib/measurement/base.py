@@ -15,7 +15,7 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from laser_calib.model.robot import Robot, param_kinds
+from laser_calib.model.robot import Robot
 
 # Characteristic sizes of one error: the paper's simulated error (10 mm, 1 deg).
 # They scale the parameters for damping and rank decisions and are the default
@@ -65,10 +65,6 @@ class RobotModel(MeasurementModel, Protocol):
     def evaluate(self, params: np.ndarray, dq: np.ndarray | None, jacobian: bool = True) -> Residuals: ...
 
     def subset(self, index) -> "RobotModel": ...
-
-
-def geometric_scales(n_joints: int) -> np.ndarray:
-    return np.where(param_kinds(n_joints) == "length", LENGTH_SCALE, ANGLE_SCALE)
 
 
 def robot_scales(robot) -> np.ndarray:

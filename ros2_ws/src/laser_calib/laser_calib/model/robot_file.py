@@ -1,18 +1,31 @@
-"""Robot model YAML (conventions.md), read and written with validation."""
+"""Robot model YAML (conventions.md), read and written with validation.
+
+Two kinds: a D-H robot (``joints:``), or a robot whose arm is a URDF / xacro
+file (``urdf: FILE`` relative to the YAML, ``base:``, ``tip:``, optional
+``xacro_args:``) with the laser module, lasers and screen a URDF has no element
+for (docs/urdf.md). Written, a URDF robot carries its (calibrated) URDF text
+under ``robot_description:``, so the file stands alone; a node that gets the
+text from /robot_description gives it to robot_from_dict instead.
+"""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Mapping
+from dataclasses import replace
+from typing import Any, Mapping, Sequence
 
 import yaml
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.model.robot import CONVENTIONS, PAPER, Joint, Laser, Robot, Screen, Slm
+from laser_calib.model.urdf import calibrated_urdf, is_urdf, robot_from_urdf, urdf_text
 
 _KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "convention")
+# A URDF robot: the arm from the URDF text (a file, the text itself, or the node's topic).
+URDF_KEYS = ("name", "urdf", "robot_description", "xacro_args", "base", "tip", "slm", "lasers", "screen",
+             "gravity")
 # Keys other modules read: effects/catalog.py, measurement/frames.py, diagnosis/verdict.py (rated noise).
 EXTRA_KEYS = ("effects", "frames", "spot_sigma", "joint_reading_sigma")
 JOINT_KEYS = ("a", "d", "alpha", "theta0", "min", "max", "type")
@@ -50,7 +63,13 @@ def _angle(where: str, mapping: Mapping[str, Any], key: str, default: float | No
     return value
 
 
-def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
+def robot_from_dict(data: Any, source: str = "<robot>", folder: Path | None = None,
+                    description: str | None = None) -> Robot:
+    """A robot from its YAML mapping. ``folder``: where a ``urdf:`` file name is
+    looked up (the YAML's folder); ``description``: URDF text from elsewhere
+    (the /robot_description topic) for a URDF robot that names no file."""
+    if isinstance(data, Mapping) and ("joints" not in data or description is not None):
+        return _urdf_robot(data, source, folder, description)
     data = _mapping(source, data, _KNOWN_KEYS + EXTRA_KEYS)
     for key in ("name", "joints"):
         if key not in data:
@@ -75,6 +94,16 @@ def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
         if joint.min >= joint.max:
             raise InputError(where, f"min {joint.min} is not below max {joint.max}")
         joints.append(joint)
+    convention = data.get("convention", PAPER)
+    if convention not in CONVENTIONS:
+        raise InputError(f"{source}: convention", f"expected one of {', '.join(CONVENTIONS)}, got {convention!r}")
+    extra = {k: v for k, v in data.items() if k in EXTRA_KEYS}
+    return Robot(name=data["name"], joints=tuple(joints), convention=convention, extra=extra,
+                 **_lasers_and_screen(data, source))
+
+
+def _lasers_and_screen(data: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """slm, lasers, screen and gravity of a robot mapping (Robot's fields)."""
     # No slm: a robot without lasers (other sensors) and without SLM parameters.
     slm = None
     if "slm" in data:
@@ -110,29 +139,95 @@ def robot_from_dict(data: Any, source: str = "<robot>") -> Robot:
         if not math.isfinite(norm) or norm == 0:
             raise InputError(f"{source}: gravity", "expected a non-zero finite vector")
         gravity = tuple(float(v) / norm for v in g)
-    convention = data.get("convention", PAPER)
-    if convention not in CONVENTIONS:
-        raise InputError(f"{source}: convention", f"expected one of {', '.join(CONVENTIONS)}, got {convention!r}")
+    return {"slm": slm, "lasers": tuple(lasers), "screen": screen, "gravity": gravity}
+
+
+def _string(where: str, value: Any) -> str:
+    if not isinstance(value, str) or not value:
+        raise InputError(where, f"expected a non-empty string, got {value!r}")
+    return value
+
+
+def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, description: str | None) -> Robot:
+    """A robot YAML whose arm is a URDF: ``urdf`` (a file), ``robot_description``
+    (the text) or ``description`` (given by the caller), exactly one."""
+    if "joints" in data:
+        raise InputError(source, "is a D-H robot (joints:) and takes no URDF: give a file of base, tip and lasers")
+    data = _mapping(source, data, URDF_KEYS + EXTRA_KEYS)
+    given = [key for key in ("urdf", "robot_description") if key in data] + (["topic"] if description else [])
+    if len(given) != 1:
+        raise InputError(source, "missing key 'joints' (a D-H robot) or 'urdf' (a URDF or xacro file)" if not given
+                         else f"the URDF is given {len(given)} times ({', '.join(given)}): give it once")
+    for key in ("base", "tip"):
+        if key not in data:
+            raise InputError(source, f"missing key '{key}' (the URDF link the chain "
+                                     f"{'starts' if key == 'base' else 'ends'} at)")
+    base = _string(f"{source}: base", data["base"])
+    tips = data["tip"] if isinstance(data["tip"], list) else [data["tip"]]
+    tips = [_string(f"{source}: tip", tip) for tip in tips]
+    if "xacro_args" in data and not (isinstance(data.get("urdf"), str) and data["urdf"].endswith(".xacro")):
+        raise InputError(f"{source}: xacro_args", "applies to a 'urdf:' file ending in .xacro only")
+    if "urdf" in data:
+        name = _string(f"{source}: urdf", data["urdf"])
+        path = Path(folder or ".") / name
+        if not is_urdf(path):
+            raise InputError(f"{source}: urdf", f"expected a .urdf or .xacro file, got {name!r}")
+        if not path.is_file():
+            raise InputError(f"{source}: urdf", f"no file {path}")
+        args = data.get("xacro_args", {})
+        if not isinstance(args, Mapping) or not all(isinstance(v, (str, int, float)) for v in args.values()):
+            raise InputError(f"{source}: xacro_args", "expected a mapping of argument names to values")
+        text, where = urdf_text(path, {str(k): str(v) for k, v in args.items()}), str(path)
+    else:
+        text = description if description is not None else _string(f"{source}: robot_description",
+                                                                    data["robot_description"])
+        where = source if description is None else f"{source} (robot description)"
+    name = data.get("name")
+    if name is not None and not isinstance(name, str):
+        raise InputError(f"{source}: name", f"expected a string, got {type(name).__name__}")
+    parts = _lasers_and_screen(data, source)
+    try:
+        robot = robot_from_urdf(text, base, tips if len(tips) > 1 else tips[0], where, slm=parts["slm"],
+                                lasers=parts["lasers"], screen=parts["screen"], name=name)
+    except InputError as exc:  # a link or joint of the URDF: name the robot file that chose it too
+        raise InputError(exc.where, f"{exc.problem} (robot file {source})") from None
     extra = {k: v for k, v in data.items() if k in EXTRA_KEYS}
-    return Robot(name=data["name"], joints=tuple(joints), slm=slm, lasers=tuple(lasers), screen=screen,
-                 gravity=gravity, convention=convention, extra=extra)
+    return replace(robot, gravity=parts["gravity"], extra=extra)
 
 
-def load_robot(path: str | Path) -> Robot:
-    return robot_from_dict(load_yaml(read_text(path), str(path)), str(path))
+def load_robot(path: str | Path, description: str | None = None) -> Robot:
+    """A robot YAML; ``description``: the URDF text of a URDF robot whose YAML names none."""
+    if is_urdf(path):
+        raise InputError(str(path), "a URDF has no lasers: give a robot YAML with 'urdf: FILE', 'base:', 'tip:' "
+                                    "and 'slm:' / 'lasers:' / 'screen:' (docs/urdf.md)")
+    return robot_from_dict(load_yaml(read_text(path), str(path)), str(path), Path(path).parent, description)
+
+
+def load_robot_description(path: str | Path, base: str | None = None, tip: Sequence[str] | str | None = None) -> Robot:
+    """--robot: a robot YAML, or a URDF / xacro file with its base and tip link(s) (no lasers)."""
+    if is_urdf(path):
+        if not base or not tip:
+            raise InputError(str(path), "a URDF robot needs --base LINK and --tip LINK")
+        return robot_from_urdf(urdf_text(path), base, tip, str(path))
+    if base or tip:
+        raise InputError(str(path), "--base / --tip apply to a URDF or xacro robot only (a robot YAML names them "
+                                    "with 'base:' and 'tip:')")
+    return load_robot(path)
 
 
 def robot_to_dict(robot: Robot) -> dict[str, Any]:
-    if robot.chain is not None:
-        raise ValueError(f"robot '{robot.name}' comes from a URDF: write it with report.urdf_export, not as YAML")
     data: dict[str, Any] = {"name": robot.name}
-    if robot.convention != PAPER:
+    if robot.chain is not None:  # its values folded into the joint origins: read back, the same robot
+        tips = list(robot.chain.tip_links)
+        data.update(base=robot.chain.base, tip=tips[0] if len(tips) == 1 else tips)
+    elif robot.convention != PAPER:
         data["convention"] = robot.convention
-    data["joints"] = [
-        {"a": j.a, "d": j.d, "alpha": j.alpha, "theta0": j.theta0, "min": j.min, "max": j.max}
-        | ({"type": "prismatic"} if j.prismatic else {})
-        for j in robot.joints
-    ]
+    if robot.chain is None:
+        data["joints"] = [
+            {"a": j.a, "d": j.d, "alpha": j.alpha, "theta0": j.theta0, "min": j.min, "max": j.max}
+            | ({"type": "prismatic"} if j.prismatic else {})
+            for j in robot.joints
+        ]
     s = robot.slm
     if s is not None:
         data["slm"] = {"a": s.a, "d": s.d, "alpha": s.alpha, "theta": s.theta, "beta": s.beta}
@@ -141,6 +236,8 @@ def robot_to_dict(robot: Robot) -> dict[str, Any]:
     data["screen"] = {"half_y": robot.screen.half_y, "half_z": robot.screen.half_z}
     data["gravity"] = list(robot.gravity)
     data.update(robot.extra)
+    if robot.chain is not None:  # last: the long text after the short keys
+        data["robot_description"] = calibrated_urdf(robot)
     return _plain(data)
 
 
@@ -169,7 +266,13 @@ def _represent_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
     return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 
 
+def _represent_str(dumper: yaml.SafeDumper, data: str) -> yaml.Node:
+    # A URDF text as a block, line by line as in the file.
+    return dumper.represent_scalar("tag:yaml.org,2002:str", data, style="|" if "\n" in data else None)
+
+
 _FlowListDumper.add_representer(dict, _represent_dict)
+_FlowListDumper.add_representer(str, _represent_str)
 _FlowListDumper.add_representer(list, _represent_list)
 
 

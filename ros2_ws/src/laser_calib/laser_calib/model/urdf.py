@@ -5,8 +5,10 @@ Parsed with yourdfpy (maintained, pure Python, reads every URDF element and
 keeps mimic and limits; urdfdom-py is not on PyPI for Python 3.12). A .xacro
 file is expanded to URDF text with the ``xacro`` package first. The URDF text
 itself is kept in the chain, so the calibrated description can be written as the
-same file with corrected origins (report/urdf_export.py). The ROS nodes get the
-text from the /robot_description parameter: robot_from_urdf(text, base, tip).
+same file with corrected origins (calibrated_urdf; report/urdf_export.py adds
+the list of corrections). The ROS nodes get the text from the
+/robot_description topic: robot_from_urdf(text, base, tip). A robot YAML names
+the URDF with ``urdf:`` and adds the lasers (robot_file.py, docs/urdf.md).
 
 Joint readings q are the read (non-mimic) movable joints, in the order they are
 met walking from the base to each tip in turn; a mimic joint's source that is
@@ -21,25 +23,28 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from laser_calib.io.errors import InputError
-from laser_calib.model.joint_chain import FIXED_JOINT, PRISMATIC, REVOLUTE, ChainJoint, JointChain
+from laser_calib.measurement.frames import Pose
+from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
+                                           ChainJoint, JointChain)
 from laser_calib.model.robot import Laser, Robot, Screen, Slm
-from laser_calib.model.robot_file import load_robot
 
 URDF_SUFFIXES = (".urdf", ".xacro")
 _KINDS = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC, "fixed": FIXED_JOINT}
 UNLIMITED = 1e3  # rad or m: the range of a continuous joint (no limit in the file)
 
 
-def urdf_text(path: str | Path) -> str:
-    """The URDF text of a .urdf file, or of a .xacro file after expansion."""
+def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None) -> str:
+    """The URDF text of a .urdf file, or of a .xacro file after expansion with
+    ``xacro_args`` (name -> value, as ``xacro file.xacro name:=value``)."""
     path = Path(path)
     try:
         if path.suffix == ".xacro":
             import xacro  # only for xacro input
 
-            return xacro.process_file(str(path)).toxml()
+            return xacro.process_file(str(path), mappings=dict(xacro_args or {})).toxml()
         return path.read_text()
     except OSError as exc:
         raise InputError(str(path), f"cannot read ({exc.strerror})") from None
@@ -158,12 +163,51 @@ def is_urdf(path: str | Path) -> bool:
     return Path(path).suffix in URDF_SUFFIXES
 
 
-def load_robot_description(path: str | Path, base: str | None = None, tip: Sequence[str] | str | None = None) -> Robot:
-    """--robot: a robot YAML, or a URDF / xacro file with its base and tip link(s)."""
-    if is_urdf(path):
-        if not base or not tip:
-            raise InputError(str(path), "a URDF robot needs --base LINK and --tip LINK")
-        return load_urdf_robot(path, base, tip)
-    if base or tip:
-        raise InputError(str(path), "--base / --tip apply to a URDF or xacro robot only")
-    return load_robot(path)
+def _transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rotation, translation
+    return out
+
+
+def calibrated_origins(robot: Robot) -> dict[str, np.ndarray]:
+    """Joint name -> calibrated origin (4,4) of each movable joint of the chain."""
+    chain = robot.chain
+    out = {}
+    for j in chain.movable:
+        joint = chain.joints[j]
+        values = chain.values[chain.block(j):chain.block(j) + len(PLACEMENT_PARAMS)]
+        placed = Pose(joint.origin[:3, :3], joint.origin[:3, 3]).perturbed(values[PLACEMENT])
+        motion = np.eye(4)
+        if joint.kind == PRISMATIC:
+            motion[:3, 3] = joint.axis * values[OFFSET]
+        else:
+            motion[:3, :3] = Rotation.from_rotvec(joint.axis * values[OFFSET]).as_matrix()
+        out[joint.name] = _transform(placed.rotation, placed.translation) @ motion
+    return out
+
+
+def origin_attributes(transform: np.ndarray) -> dict[str, str]:
+    """URDF xyz and rpy (R = Rz(yaw) Ry(pitch) Rx(roll)) at full precision."""
+    rpy = Rotation.from_matrix(transform[:3, :3]).as_euler("xyz")
+    return {"xyz": " ".join(repr(float(v)) for v in transform[:3, 3]),
+            "rpy": " ".join(repr(float(v)) for v in rpy)}
+
+
+def calibrated_urdf(robot: Robot) -> str:
+    """The robot's URDF text with each movable joint's origin replaced by its
+    calibrated one (its chain's values folded in: the text read back is the same
+    robot with zero values)."""
+    from lxml import etree
+
+    root = etree.fromstring(robot.chain.urdf.encode(), etree.XMLParser(remove_blank_text=False))
+    origins = calibrated_origins(robot)
+    for element in root.iter("joint"):
+        name = element.get("name")
+        if name not in origins or element.getparent() is not root:
+            continue
+        origin = element.find("origin")
+        if origin is None:
+            origin = etree.SubElement(element, "origin")
+        for key, value in origin_attributes(origins[name]).items():
+            origin.set(key, value)
+    return etree.tostring(root, encoding="unicode", xml_declaration=False) + "\n"

@@ -81,7 +81,7 @@ class Calibration:
     def to_json(self) -> dict:
         """The content of result.json."""
         est, options = self.estimate, self.options
-        units = display_units(self.robot.n_joints)
+        units = display_units(self.robot.param_kinds())
         errors = []
         for i, name in enumerate(est.names):
             entry = {"name": name, "value": finite_or_none(est.errors[i]), "std": finite_or_none(est.std[i]),

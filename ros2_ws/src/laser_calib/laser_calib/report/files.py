@@ -20,6 +20,7 @@ from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import dump_robot
 from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.pose_table import save_pose_table, spot_columns
+from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.report.plots import display_units, plot_convergence, plot_histogram, plot_screen, stats_table
 
 
@@ -47,12 +48,16 @@ def result_json(calibration: Calibration) -> str:
 
 
 def write_outputs(calibration: Calibration, out_dir: str | Path, truth: np.ndarray | None = None) -> None:
-    """robot_calibrated.yaml, result.json, residuals.csv, report.md and the plots
+    """robot_calibrated.yaml (and, for a URDF robot, robot_calibrated.urdf and
+    urdf_corrections.json), result.json, residuals.csv, report.md and the plots
     into out_dir. ``truth`` (n,) true errors, when known (simulation), is drawn in
     the convergence plot."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "robot_calibrated.yaml").write_text(calibrated_robot_yaml(calibration))
+    if calibration.robot.chain is not None:  # the URDF to apply (docs/urdf.md)
+        save_calibrated_urdf(calibration.calibrated, calibration.robot, calibration.estimate.identifiable, out,
+                             str(calibration.sources.get("robot", "")))
     (out / "result.json").write_text(result_json(calibration))
     save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal))
                      for name, s in calibration.sets.items()}, out / "residuals.csv")
@@ -62,7 +67,7 @@ def write_outputs(calibration: Calibration, out_dir: str | Path, truth: np.ndarr
 
 def write_plots(calibration: Calibration, out: Path, truth: np.ndarray | None) -> None:
     est, robot = calibration.estimate, calibration.robot
-    plot_convergence(est.fit.history, est.names, robot.n_joints, out / "convergence.png", truth)
+    plot_convergence(est.fit.history, est.names, robot.param_kinds(), out / "convergence.png", truth)
     calibration_set = calibration.sets["calibration"]
     plot_screen(robot.screen, calibration_set.samples.spots, calibration_set.nominal, calibration_set.calibrated,
                 out / "screen.png")
@@ -75,7 +80,7 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     """report.md; its plots are the PNGs write_plots puts beside it."""
     est, robot, samples = calibration.estimate, calibration.robot, calibration.samples
     test = calibration.sets["test"].samples if "test" in calibration.sets else None
-    units = display_units(robot.n_joints)
+    units = display_units(robot.param_kinds())
     lines = [f"# Kinematic calibration of {robot.name}", "",
              f"Method: **{calibration.options.method}**, {len(samples)} calibration poses"
              + (f", {len(test)} test poses" if test is not None else "") + ". "

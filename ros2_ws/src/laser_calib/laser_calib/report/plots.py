@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import matplotlib
 
@@ -10,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from laser_calib.model.robot import Screen, param_kinds  # noqa: E402
+from laser_calib.model.robot import Screen  # noqa: E402
 
 # Most poses a scatter plot draws (drawn_poses).
 MAX_DRAWN = 3000
@@ -24,29 +25,45 @@ def save_figure(fig, path: Path, dpi: int = 90) -> None:
     plt.close(fig)
 
 
-def display_units(n_joints: int) -> np.ndarray:
-    """Factor from SI to report units per error: mm for lengths, deg for angles."""
-    return np.where(param_kinds(n_joints) == "length", 1e3, np.degrees(1.0))
+def display_units(kinds: np.ndarray) -> np.ndarray:
+    """Factor from SI to report units per error of the given kinds (Robot.param_kinds()):
+    mm for lengths, deg for angles."""
+    return np.where(np.asarray(kinds) == "length", 1e3, np.degrees(1.0))
 
 
-def plot_convergence(history: np.ndarray, names: tuple[str, ...], n_joints: int, path: Path,
+def _panels(names: tuple[str, ...]) -> list[tuple[str, Callable[[str], bool], str]]:
+    """(title, member(name), unit) of each convergence panel: the D-H groups, or a URDF
+    robot's joint placements (joint_chain.py: <joint>.offset, .x ... .rz); the SLM last."""
+    if any("." in name for name in names):
+        def suffix(name: str) -> str:
+            return name.rpartition(".")[2] if "." in name else ""
+        groups = [("joint offset", lambda n: suffix(n) == "offset", "deg (mm: prismatic)"),
+                  ("placement x, y, z", lambda n: suffix(n) in ("x", "y", "z"), "mm"),
+                  ("placement rx, ry, rz", lambda n: suffix(n) in ("rx", "ry", "rz"), "deg")]
+    else:
+        groups = [(title, lambda n, p=prefix: n.rstrip("0123456789") == p, "mm" if prefix in ("a", "d") else "deg")
+                  for title, prefix in PANELS if prefix != "slm"]
+    return groups + [("SLM", lambda n: n.startswith("slm"), "mm / deg")]
+
+
+def plot_convergence(history: np.ndarray, names: tuple[str, ...], kinds: np.ndarray, path: Path,
                      truth: np.ndarray | None = None) -> None:
     """Every error against the iteration, grouped like the paper's Fig. 4."""
-    units = display_units(n_joints)
+    units = display_units(kinds)
     scaled = history * units
-    fig, axes = plt.subplots(1, len(PANELS), figsize=(4 * len(PANELS), 3.4))
-    for ax, (title, prefix) in zip(axes, PANELS):
-        idx = [i for i, name in enumerate(names[:4 * n_joints + 5])
-               if (name.startswith("slm") if prefix == "slm" else
-                   name.rstrip("0123456789") == prefix)]
+    panels = _panels(names)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.4))
+    for ax, (title, member, unit) in zip(axes, panels):
+        idx = [i for i, name in enumerate(names) if member(name)]
         for i in idx:
             line, = ax.plot(scaled[:, i], label=names[i])
             if truth is not None:
                 ax.axhline(truth[i] * units[i], color=line.get_color(), ls=":", lw=0.8)
         ax.set_title(title)
         ax.set_xlabel("iteration")
-        ax.set_ylabel("mm" if prefix in ("a", "d") else ("deg" if prefix != "slm" else "mm / deg"))
-        ax.legend(fontsize=6, ncol=2)
+        ax.set_ylabel(unit)
+        if idx:
+            ax.legend(fontsize=6, ncol=2)
         if len(scaled) > 50:
             ax.set_xscale("symlog")
     save_figure(fig, path)

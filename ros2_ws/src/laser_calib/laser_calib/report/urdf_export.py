@@ -1,4 +1,5 @@
-"""The calibrated robot as a URDF: the source file with corrected joint origins.
+"""The calibrated robot as a URDF: the source file with corrected joint origins
+(calibrated_urdf, model/urdf.py), and the list of the corrections.
 
 Each movable joint's calibrated placement, origin · E(placement error) ·
 Motion(axis, offset) (joint_chain.py), is one rigid transform: written as the
@@ -22,58 +23,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-from lxml import etree
-from scipy.spatial.transform import Rotation
 
-from laser_calib.measurement.frames import Pose
-from laser_calib.model.joint_chain import OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC
+from laser_calib.model.joint_chain import PLACEMENT_PARAMS, PRISMATIC
 from laser_calib.model.robot import Robot
-
-
-def _transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = rotation, translation
-    return out
-
-
-def calibrated_origins(robot: Robot) -> dict[str, np.ndarray]:
-    """Joint name -> calibrated origin (4,4) of each movable joint of the chain."""
-    chain = robot.chain
-    out = {}
-    for j in chain.movable:
-        joint = chain.joints[j]
-        values = chain.values[chain.block(j):chain.block(j) + len(PLACEMENT_PARAMS)]
-        placed = Pose(joint.origin[:3, :3], joint.origin[:3, 3]).perturbed(values[PLACEMENT])
-        motion = np.eye(4)
-        if joint.kind == PRISMATIC:
-            motion[:3, 3] = joint.axis * values[OFFSET]
-        else:
-            motion[:3, :3] = Rotation.from_rotvec(joint.axis * values[OFFSET]).as_matrix()
-        out[joint.name] = _transform(placed.rotation, placed.translation) @ motion
-    return out
-
-
-def origin_attributes(transform: np.ndarray) -> dict[str, str]:
-    """URDF xyz and rpy (R = Rz(yaw) Ry(pitch) Rx(roll)) at full precision."""
-    rpy = Rotation.from_matrix(transform[:3, :3]).as_euler("xyz")
-    return {"xyz": " ".join(repr(float(v)) for v in transform[:3, 3]),
-            "rpy": " ".join(repr(float(v)) for v in rpy)}
-
-
-def calibrated_urdf(robot: Robot) -> str:
-    """The robot's URDF text with each movable joint's origin replaced by its calibrated one."""
-    root = etree.fromstring(robot.chain.urdf.encode(), etree.XMLParser(remove_blank_text=False))
-    origins = calibrated_origins(robot)
-    for element in root.iter("joint"):
-        name = element.get("name")
-        if name not in origins or element.getparent() is not root:
-            continue
-        origin = element.find("origin")
-        if origin is None:
-            origin = etree.SubElement(element, "origin")
-        for key, value in origin_attributes(origins[name]).items():
-            origin.set(key, value)
-    return etree.tostring(root, encoding="unicode", xml_declaration=False) + "\n"
+from laser_calib.model.urdf import calibrated_origins, calibrated_urdf, origin_attributes
 
 
 def corrections(robot: Robot, nominal: Robot, identifiable: np.ndarray | None = None) -> list[dict]:

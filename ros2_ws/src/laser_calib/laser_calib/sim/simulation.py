@@ -168,12 +168,19 @@ def paper_session(case: str, seed: int, n_per_span: int | None = None, noise: No
                   spot_transform: SpotTransform | None = None) -> Session:
     if case not in CASES:
         raise ValueError(f"unknown case {case!r}; expected one of {', '.join(CASES)}")
+    return robot_session(bundled_robot(case), seed, n_per_span or CASE_POSES[case], noise, random_errors,
+                         param_offsets, spot_transform)
+
+
+def robot_session(nominal: Robot, seed: int, n_per_span: int, noise: NoiseSpec = NoiseSpec(),
+                  random_errors: bool = False, param_offsets: ParamOffsets | None = None,
+                  spot_transform: SpotTransform | None = None) -> Session:
+    """The paper's session (n_per_span small-range, then n_per_span whole-workspace
+    poses, its cases) of any robot with lasers."""
     rng = np.random.default_rng(seed)
-    nominal = bundled_robot(case)
     errors = true_errors(nominal, rng if random_errors else None)
     true = nominal.with_errors(errors)
-    n = n_per_span or CASE_POSES[case]
-    q = np.vstack([sample_poses([nominal, true], n, rng, "small"),
-                   sample_poses([nominal, true], n, rng, "whole")])
+    q = np.vstack([sample_poses([nominal, true], n_per_span, rng, "small"),
+                   sample_poses([nominal, true], n_per_span, rng, "whole")])
     samples, truth = measure(true, q, rng, noise, param_offsets=param_offsets, spot_transform=spot_transform)
-    return Session(nominal, true, errors, samples, truth, paper_cases(n, n), noise)
+    return Session(nominal, true, errors, samples, truth, paper_cases(n_per_span, n_per_span), noise)
