@@ -60,7 +60,7 @@ from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
-from laser_calib.diagnosis.selection import parameter_report, select
+from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
@@ -189,6 +189,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     detection = detect(final.model.names, final.model.residuals(final.estimate.values, True), detector_noise,
                        samples.q, samples.stamp, dict(samples.extra), fitter.fold, options.seed)
     verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha)
+    parameters = parameter_report(final, alternatives)
+    verdict, said = ambiguous_verdict(verdict, said, parameters)
     compensator = compensated = None
     if options.compensate and detection.p <= options.alpha and detection.gain > 0:
         compensator = backfit(detection, final.model, final.estimate.values, fitter.fit_options, detector_noise)
@@ -196,6 +198,6 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
             compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), compensator.values)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
-                     noise, before, after, verdict, said, parameter_report(final, alternatives), options,
+                     noise, before, after, verdict, said, parameters, options,
                      time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested)
 
