@@ -19,19 +19,9 @@ from laser_calib.io.errors import InputError
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.sim.effect_truth import SCREEN_SHAPES, TrueEffect, curved_screen, draw_truth, effect_session, sized
 from laser_calib.sim.simulation import NoiseSpec, bundled_robot
+from test_effects import numeric_jacobian
 
 NOISE = NoiseSpec(spot=0.5e-3, joint=float(np.deg2rad(0.02)))
-
-
-def numeric_jacobian(model, x, columns, step=1e-6):
-    out = np.zeros(model.residuals(x, False).predicted.shape + (len(columns),))
-    for k, j in enumerate(columns):
-        h = step * model.scales[j]
-        plus, minus = x.copy(), x.copy()
-        plus[j] += h
-        minus[j] -= h
-        out[..., k] = (model.residuals(plus, False).predicted - model.residuals(minus, False).predicted) / (2 * h)
-    return out
 
 
 @pytest.mark.parametrize("shape", SCREEN_SHAPES)

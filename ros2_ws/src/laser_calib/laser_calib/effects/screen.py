@@ -136,14 +136,14 @@ class ScreenSurface(Surface):
     library. Coefficients in m; scale 1 mm; typical truth 1 mm.
     """
 
+    kind: ClassVar[str] = "screen_surface"
+    title: ClassVar[str] = "screen not flat (smooth surface)"
+
     centre_y: float
     centre_z: float
     half_y: float
     half_z: float
     degree: int
-
-    kind: ClassVar[str] = "screen_surface"
-    title: ClassVar[str] = "screen not flat (smooth surface)"
 
     @classmethod
     def make(cls, spots: np.ndarray, degree: int) -> "ScreenSurface":

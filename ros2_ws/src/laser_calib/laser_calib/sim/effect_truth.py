@@ -86,17 +86,17 @@ class CurvedScreen(Surface, register=False):
     - bump: a gaussian bump of standard deviation ``width`` at (a, b).
     """
 
+    kind: ClassVar[str] = "curved_screen"
+    title: ClassVar[str] = "curved screen (truth)"
+    params: ClassVar[tuple[str, ...]] = ("amplitude",)
+    units: ClassVar[tuple[str, ...]] = ("m",)
+
     half_y: float
     half_z: float
     shape: str
     width: float
     a: float
     b: float
-
-    kind: ClassVar[str] = "curved_screen"
-    title: ClassVar[str] = "curved screen (truth)"
-    params: ClassVar[tuple[str, ...]] = ("amplitude",)
-    units: ClassVar[tuple[str, ...]] = ("m",)
 
     @property
     def label(self) -> str:
