@@ -80,20 +80,20 @@ def test_limits_follow_the_sensor_kind_and_the_file():
 
 
 def test_distortion_beyond_the_cameras_limit_is_rejected_with_the_reason():
-    """A residual distortion (k1 3 mm at the edge) is found on an unspecified
-    camera and rejected, with its value and the limit, when the robot file
-    says the camera is calibrated (0.5 mm)."""
+    """A residual distortion of the library's size (mm at the edge) is found on
+    an unspecified camera and rejected, with its value and the limit, when the
+    robot file says the camera is calibrated (0.5 mm)."""
     def truth(robot, errors, context, rng):
-        return [TrueEffect(camera_distortion(robot), np.array([3e-3, 0.0, 0.0, 0.0]))]
+        return [sized(robot, errors, context, draw_truth(camera_distortion(robot), rng), NOISE, 300.0)]
 
-    s = effect_session("paper-4dof", 5, truth, 60, 4, NOISE)
+    s = effect_session("paper-7dof", 2, truth, 80, 4, NOISE)
     options = DiagnoseOptions(spot_sigma=NOISE.spot_sigma, joint_sigma=NOISE.joint_sigma, nested=False,
                               compensate=False, max_effects=1)
     found = diagnose(s.nominal, s.cal, options=options)
     assert [e.kind for e in found.final.effects] == ["camera_distortion"]
     calibrated = replace(s.nominal, extra={"sensor_kind": "calibrated_camera"})
     judged = diagnose(calibrated, s.cal, options=options)
-    assert not judged.final.effects
+    assert "camera_distortion" not in [e.kind for e in judged.final.effects]
     outcome = next(r.outcome for r in judged.rounds[0] if r.label.startswith("camera_distortion"))
     assert "outside the calibrated camera's +-0.5 mm" in outcome
 

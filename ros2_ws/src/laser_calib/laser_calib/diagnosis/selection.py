@@ -20,6 +20,7 @@ from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
+from scipy import stats
 
 from laser_calib.diagnosis.fitter import Fitter, fit_test_p, paired_p, rms_mm
 from laser_calib.diagnosis.options import (EQUIVALENT_P, EXPLAINED, SEPARABLE_CORRELATION, UNDETERMINED,
@@ -106,7 +107,7 @@ def surface_ladder(fitter: Fitter, current: Fitted, start: Surface, alpha: float
     """The screen surface of the degree the folds choose: from the library's
     quadratic (degree 2) up, a degree is taken when its held-out chi^2 (the
     same folds as every model) is significantly below that of the degree taken
-    so far (paired_p < alpha), trying LOOK_AHEAD degrees past the last one taken,
+    so far (ranked_p < alpha), trying LOOK_AHEAD degrees past the last one taken,
     up to the degree whose coefficients the data holds VALUES_PER_COEFFICIENT
     values each for (at most MAX_DEGREE)."""
 
@@ -125,9 +126,21 @@ def surface_ladder(fitter: Fitter, current: Fitted, start: Surface, alpha: float
         if degree - taken > LOOK_AHEAD:
             break
         fitted = fit(ScreenSurface.make(fitter.base.samples.spots, degree))
-        if paired_p(best, fitted) < alpha:
+        if ranked_p(best, fitted) < alpha:
             best, taken = fitted, degree
     return best
+
+
+def ranked_p(lower: Fitted, higher: Fitted) -> float:
+    """One-sided Wilcoxon signed-rank p over the calibration poses that the
+    higher degree's held-out chi^2 is smaller. Not the mean (paired_p): a
+    polynomial's held-out error is dominated by the few poses of a fold beyond
+    the spots the other folds cover, where every degree extrapolates; the degree
+    is the one that predicts most poses better."""
+    difference = lower.cv_chi2 - higher.cv_chi2
+    if np.count_nonzero(difference) < 6:
+        return 1.0
+    return float(stats.wilcoxon(difference, alternative="greater").pvalue)
 
 
 def physical_objections(fitted: Fitted, robot) -> list[str]:

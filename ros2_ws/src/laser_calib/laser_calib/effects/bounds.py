@@ -84,7 +84,8 @@ def limit_of(effect: Effect, robot: Robot, source: str = "robot") -> Limit | Non
         value = yaml_number(where, given, quantity)
         if value <= 0:
             raise InputError(f"{where}.{quantity}", "must be positive")
-        return Limit(value, "the robot file's limit", quantity)
+        return Limit(value, "the robot file", quantity)
     limits = {**KIND_LIMITS["unspecified"], **KIND_LIMITS[kind]}
-    who = "any working sensor" if quantity not in KIND_LIMITS[kind] else f"the {kind.replace('_', ' ')}"
+    who = f"the {kind.replace('_', ' ')}" if kind != "unspecified" and quantity in KIND_LIMITS[kind] else \
+        "any working sensor"
     return Limit(limits[quantity], who, quantity)
