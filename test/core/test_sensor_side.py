@@ -10,16 +10,20 @@ import pytest
 from laser_calib.diagnosis.engine import DiagnoseOptions, diagnose
 from laser_calib.diagnosis.options import EXPLAINED, STRUCTURE, UNDETERMINED
 from laser_calib.diagnosis.selection import ambiguous_verdict
+from laser_calib.diagnosis.sensor_data import diagnose as sensor_diagnose
 from laser_calib.effects import EffectModel, effects_from_robot
 from laser_calib.effects.bounds import limit_of
 from laser_calib.effects.catalog import camera_distortion, screen_shape
 from laser_calib.effects.screen import ScreenSurface
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
+from laser_calib.estimation.sensor_fit import SensorFitOptions
 from laser_calib.io.errors import InputError
+from laser_calib.measurement.chain import chain_names
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.sim.effect_truth import SCREEN_SHAPES, TrueEffect, curved_screen, draw_truth, effect_session, sized
 from laser_calib.sim.simulation import NoiseSpec, bundled_robot
 from test_effects import numeric_jacobian
+from test_sensors import SIGMA_T, rig, simulate
 
 NOISE = NoiseSpec(spot=0.5e-3, joint=float(np.deg2rad(0.02)))
 
@@ -127,3 +131,19 @@ def test_a_cubic_screen_is_fitted_as_a_surface_of_higher_degree():
     true_rms = np.sqrt(np.mean(np.linalg.norm(test.r, axis=-1)[test.valid] ** 2))
     final = result.stages[-1].test
     assert np.sqrt(np.nanmean(final ** 2)) <= 1.15 * true_rms
+
+
+def test_a_sensor_scale_no_laser_tracker_has_is_rejected_with_the_reason():
+    """The sensor stretched by 1 % and 0.5 %: selected on an unspecified sensor
+    (within 1 %), rejected on a laser tracker (+-20 ppm) with its value and the limit."""
+    robot = rig()
+    samples = simulate(robot, np.zeros(len(chain_names(robot))), 80, 8, "point")
+    stretched = replace(samples, position=samples.position * np.array([1.005, 0.997, 1.0]))
+    options = SensorFitOptions(estimate=EstimateOptions(spot_sigma=SIGMA_T))
+    engine = DiagnoseOptions(spot_sigma=SIGMA_T, joint_sigma=0.0, max_effects=1, nested=False, compensate=False)
+    assert [e.label for e in sensor_diagnose(robot, stretched, options, engine).final.effects] == ["sensor scale"]
+    tracker = replace(robot, extra={**robot.extra, "sensor_kind": "laser_tracker"})
+    judged = sensor_diagnose(tracker, stretched, options, engine)
+    assert "sensor scale" not in [e.label for e in judged.final.effects]
+    outcome = next(r.outcome for r in judged.rounds[0] if r.label == "sensor scale")
+    assert "% is outside the laser tracker's +-0.002 %" in outcome

@@ -30,11 +30,12 @@ model cannot carry (screen and lens effects without spots) are dropped. It runs:
        calibration poses of the held-out chi^2 (current model minus
        candidate), p < alpha, and
      - its BIC = M ln(chi^2/M) + k ln M is lower (M measured values, k free
-       parameters), and at least one of its parameters is identifiable.
+       parameters), and it is physical (diagnosis.selection: a parameter that
+       can be reported, sensor-side values within their sensor's limits).
    Of those that pass, the one with the lowest held-out chi^2 is added, unless
    another is not significantly worse (paired p >= 0.05) and has a lower BIC
-   (the simpler explanation of the same held-out error; both are reported as
-   indistinguishable). Rounds repeat until none passes or ``max_effects`` are in.
+   (the simpler explanation of the same held-out error, used for the figures;
+   the group is reported as such and never makes the verdict "explained"). Rounds repeat until none passes or ``max_effects`` are in.
 3. the verdict (verdict_noise, _evidence): structure tests of the final
    residual against every covariate (effects.residuals, Bonferroni-adjusted),
    weighted by the noise (components not given re-estimated from the final
