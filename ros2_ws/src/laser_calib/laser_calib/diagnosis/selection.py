@@ -107,7 +107,7 @@ def surface_ladder(fitter: Fitter, current: Fitted, start: Surface, alpha: float
     """The screen surface of the degree the folds choose: from the library's
     quadratic (degree 2) up, a degree is taken when its held-out chi^2 (the
     same folds as every model) is significantly below that of the degree taken
-    so far (ranked_p < alpha), trying LOOK_AHEAD degrees past the last one taken,
+    so far over the poses (ranked_p < alpha) and lower in total, trying LOOK_AHEAD degrees past the last one taken,
     up to the degree whose coefficients the data holds VALUES_PER_COEFFICIENT
     values each for (at most MAX_DEGREE)."""
 
@@ -126,7 +126,9 @@ def surface_ladder(fitter: Fitter, current: Fitted, start: Surface, alpha: float
         if degree - taken > LOOK_AHEAD:
             break
         fitted = fit(ScreenSurface.make(fitter.base.samples.spots, degree))
-        if ranked_p(best, fitted) < alpha:
+        # Most poses predicted better (the rank test) and the held-out error itself lower: a
+        # degree that wins most poses but fails badly where it extrapolates is not taken.
+        if ranked_p(best, fitted) < alpha and fitted.cv_chi2.sum() < best.cv_chi2.sum():
             best, taken = fitted, degree
     return best
 
