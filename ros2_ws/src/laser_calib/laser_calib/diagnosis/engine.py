@@ -128,7 +128,12 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
         raise TooFewPoses(n_poses, needed)
     fitter = Fitter(data, options)
     fits, rounds, alternatives = select(fitter, candidate_pool(data, fitter, options, notes), options)
-    nested = nested_heldout(data, options) if options.nested else None
+    nested = None
+    if options.nested and n_poses - math.ceil(n_poses / options.folds) < needed:
+        notes.append(f"no held-out error with the selection inside the folds: a training part of {n_poses} poses "
+                     f"holds {n_poses - math.ceil(n_poses / options.folds)}, the diagnosis needs {needed}")
+    elif options.nested:
+        nested = nested_heldout(data, options)
     return finish(data, options, test, fitter, fits, rounds, alternatives, nested, notes, start)
 
 
