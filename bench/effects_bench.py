@@ -242,6 +242,8 @@ def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given
            "chosen": chosen, "verdict": result["verdict"],
            "geometric_test_rms_mm": stages[0]["test"]["rms_mm"], "final_test_rms_mm": stages[-1]["test"]["rms_mm"],
            "time_s": elapsed, "evidence": result["evidence"],
+           # The final model's held-out error with the selection inside the folds (DiagnoseOptions.nested).
+           "nested_heldout_rms_mm": result["heldout_nested"]["rms_mm"] if result["heldout_nested"] else None,
            "detector_gain": result["detector"]["heldout_gain"], "detector_p": result["detector"]["p"],
            "compensated_test_rms_mm": (result["compensator"]["test"]["rms_mm"] if result["compensator"]
                                        else stages[-1]["test"]["rms_mm"])}

@@ -17,7 +17,7 @@ from scipy import stats
 from laser_calib.cli.main import main as cli_main
 from laser_calib.diagnosis.engine import diagnose, write_outputs
 from laser_calib.diagnosis.compensator import load_compensator
-from laser_calib.diagnosis.options import EXPLAINED, STRUCTURE, UNDETERMINED
+from laser_calib.diagnosis.options import EXPLAINED, STRUCTURE, UNDETERMINED, DiagnoseOptions
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic, calibrated_model
@@ -64,6 +64,7 @@ def library_session(arm, kind, n_cal=80, n_test=40, seed=SEED):
 
 
 def run(session, **kw):
+    kw.setdefault("options", DiagnoseOptions(nested=False))  # nested selection (6x the time): tested by the CLI test
     return diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma,
                     joint_sigma=NOISE.joint_sigma, **kw)
 

@@ -30,11 +30,12 @@ model cannot carry (screen and lens effects without spots) are dropped. It runs:
        calibration poses of the held-out chi^2 (current model minus
        candidate), p < alpha, and
      - its BIC = M ln(chi^2/M) + k ln M is lower (M measured values, k free
-       parameters), and at least one of its parameters is identifiable.
+       parameters), and it is physical (diagnosis.selection: a parameter that
+       can be reported, sensor-side values within their sensor's limits).
    Of those that pass, the one with the lowest held-out chi^2 is added, unless
    another is not significantly worse (paired p >= 0.05) and has a lower BIC
-   (the simpler explanation of the same held-out error; both are reported as
-   indistinguishable). Rounds repeat until none passes or ``max_effects`` are in.
+   (the simpler explanation of the same held-out error, used for the figures;
+   the group is reported as such and never makes the verdict "explained"). Rounds repeat until none passes or ``max_effects`` are in.
 3. the verdict (verdict_noise, _evidence): structure tests of the final
    residual against every covariate (effects.residuals, Bonferroni-adjusted),
    weighted by the noise (components not given re-estimated from the final
@@ -60,7 +61,7 @@ from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
-from laser_calib.diagnosis.selection import parameter_report, select
+from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
@@ -127,7 +128,12 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
         raise TooFewPoses(n_poses, needed)
     fitter = Fitter(data, options)
     fits, rounds, alternatives = select(fitter, candidate_pool(data, fitter, options, notes), options)
-    nested = nested_heldout(data, options) if options.nested else None
+    nested = None
+    if options.nested and n_poses - math.ceil(n_poses / options.folds) < needed:
+        notes.append(f"no held-out error with the selection inside the folds: a training part of {n_poses} poses "
+                     f"holds {n_poses - math.ceil(n_poses / options.folds)}, the diagnosis needs {needed}")
+    elif options.nested:
+        nested = nested_heldout(data, options)
     return finish(data, options, test, fitter, fits, rounds, alternatives, nested, notes, start)
 
 
@@ -189,6 +195,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     detection = detect(final.model.names, final.model.residuals(final.estimate.values, True), detector_noise,
                        samples.q, samples.stamp, dict(samples.extra), fitter.fold, options.seed)
     verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha)
+    parameters = parameter_report(final, alternatives)
+    verdict, said = ambiguous_verdict(verdict, said, parameters)
     compensator = compensated = None
     if options.compensate and detection.p <= options.alpha and detection.gain > 0:
         compensator = backfit(detection, final.model, final.estimate.values, fitter.fit_options, detector_noise)
@@ -196,6 +204,6 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
             compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), compensator.values)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
-                     noise, before, after, verdict, said, parameter_report(final, alternatives), options,
+                     noise, before, after, verdict, said, parameters, options,
                      time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested)
 

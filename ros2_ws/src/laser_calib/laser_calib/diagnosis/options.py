@@ -25,7 +25,7 @@ class DiagnoseOptions:
     restarts of LM for the geometric fit (estimation.EstimateOptions);
     compensate: keep the learned compensator when it wins held-out; nested:
     the held-out error of the whole procedure, selection inside the folds
-    (folds + 1 selections; the command line always asks for it)."""
+    (folds + 1 selections; the default of the library and the command line)."""
 
     method: str = "lm"
     spot_sigma: float | None = None
@@ -37,7 +37,7 @@ class DiagnoseOptions:
     seed: int = 0
     restarts: int = 6
     compensate: bool = True
-    nested: bool = False
+    nested: bool = True
 
     def __post_init__(self):
         if self.spot_sigma is not None and not (math.isfinite(self.spot_sigma) and self.spot_sigma > 0):

@@ -116,9 +116,8 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
                              f"{p.get('note', '')} |")
         for e in result["effects"]:
             if e["indistinguishable_from"]:
-                lines.append(f"\n{e['name']} ({e['where']}): the data explained as well by "
-                             f"{', '.join(e['indistinguishable_from'])} (held-out error not significantly "
-                             "different); the one with the lower BIC was taken.")
+                lines.append(f"\n{e['group']} (held-out error not significantly different): neither is named "
+                             f"the cause; the figures use {e['name']} ({e['where']}), the lowest BIC.")
     lines += _detector_lines(result)
     lines += ["", "## Residual against the deciding covariate", ""]
     if "residual" in plots:

@@ -1,5 +1,17 @@
 """The selection rounds over the effect library and the report of the
-chosen effects' parameters."""
+chosen effects' parameters.
+
+Besides the statistical rules (engine docstring), a candidate is judged
+physically: a sensor-side effect whose fitted value lies outside what its
+sensor can do (effects.bounds) by more than its standard error is rejected,
+and so is one none of whose parameters can be reported (each is not
+identifiable or not separable from another parameter). The screen is fitted
+as a surface whose degree the held-out error of the folds chooses
+(surface_ladder). Candidates the data cannot tell apart (held-out errors not
+significantly different) are reported as the group: the figures use the one
+with the lowest BIC, the verdict names none of them as the cause
+(ambiguous_verdict).
+"""
 
 from __future__ import annotations
 
@@ -8,12 +20,26 @@ from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
+from scipy import stats
 
 from laser_calib.diagnosis.fitter import Fitter, fit_test_p, paired_p, rms_mm
-from laser_calib.diagnosis.options import EQUIVALENT_P, SEPARABLE_CORRELATION, DiagnoseOptions
+from laser_calib.diagnosis.options import (EQUIVALENT_P, EXPLAINED, SEPARABLE_CORRELATION, UNDETERMINED,
+                                           DiagnoseOptions)
 from laser_calib.diagnosis.result import Fitted, Ranked
 from laser_calib.effects.base import Effect
+from laser_calib.effects.bounds import limit_of
 from laser_calib.effects.catalog import same_place
+from laser_calib.effects.screen import MAX_DEGREE, ScreenShape, ScreenSurface, Surface
+
+# A parameter this correlated with another free one has no value of its own to
+# report, however small its standard error: a slight misfit moves it along the other.
+UNREPORTABLE_CORRELATION = 0.999
+# Measured values per screen-surface coefficient at least: the highest degree tried.
+VALUES_PER_COEFFICIENT = 10
+# Degrees tried past the last one that improved the held-out error significantly
+# (a symmetric shape gains little from an odd degree and much from the next even one).
+LOOK_AHEAD = 2
+
 
 def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
            ) -> tuple[list[Fitted], list[tuple[Ranked, ...]], list[list[str]]]:
@@ -28,19 +54,16 @@ def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
         if not remaining:
             break
         screened = fitter.screen(current, remaining)
-        x0 = current.estimate.values
         fits, ranked = [], {}
         for effect, _, _ in screened[:options.shortlist]:
-            fitted = fitter.fit(current.effects + (effect,), np.concatenate([x0, np.zeros(len(effect.params))]))
+            fitted = candidate_fit(fitter, current, effect, options.alpha)
             p_fit = min(1.0, fit_test_p(current, fitted) * len(remaining))
             p_heldout = paired_p(current, fitted)
             delta_bic = fitted.bic - current.bic
-            block = fitted.model.blocks[-1]
-            identifiable = bool(fitted.estimate.identifiable[fitted.model.n_geometric:][block].any())
             failed = [text for text, bad in (("fit test", p_fit >= options.alpha),
                                              ("held-out test", p_heldout >= options.alpha),
-                                             ("BIC", delta_bic >= 0), ("no identifiable parameter", not identifiable))
-                      if bad]
+                                             ("BIC", delta_bic >= 0)) if bad]
+            failed += physical_objections(fitted, fitter.base.robot)
             ranked[effect.label] = (rms_mm(fitted.cv), fitted, p_fit, p_heldout, delta_bic,
                                     "passed" if not failed else "rejected: " + ", ".join(failed))
             if not failed:
@@ -49,6 +72,8 @@ def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
         if fits:
             best = min(fits, key=lambda f: f.cv_chi2.sum())
             equivalent = [f for f in fits if f is best or paired_p(f, best) >= EQUIVALENT_P]
+            # The figures need one model: of a group the data cannot tell apart the one
+            # with the lowest BIC, the fewest parameters for the same held-out error.
             chosen = min(equivalent, key=lambda f: f.bic)
             alternatives.append([f.effects[-1].label for f in equivalent if f is not chosen])
         table = []
@@ -56,7 +81,8 @@ def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
             entry = Ranked(effect.label, linear_chi2, math.sqrt(linear_mse) * 1e3)
             if effect.label in ranked:
                 rms, fitted, p_fit, p_heldout, delta_bic, outcome = ranked[effect.label]
-                entry = replace(entry, cv_chi2=float(fitted.cv_chi2.sum() / fitted.n_values), cv_rms_mm=rms,
+                entry = replace(entry, label=fitted.effects[-1].label,
+                                cv_chi2=float(fitted.cv_chi2.sum() / fitted.n_values), cv_rms_mm=rms,
                                 p_fit=p_fit, p_heldout=p_heldout, delta_bic=delta_bic,
                                 outcome="added" if fitted is chosen else outcome)
             table.append(entry)
@@ -68,38 +94,137 @@ def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
     return stages, rounds, alternatives
 
 
+def candidate_fit(fitter: Fitter, current: Fitted, effect: Effect, alpha: float) -> Fitted:
+    """The current model plus the candidate, fitted from the current fit (the
+    candidate's parameters at 0); a screen surface at the degree its held-out error chooses."""
+    if isinstance(effect, Surface):
+        return surface_ladder(fitter, current, effect, alpha)
+    return fitter.fit(current.effects + (effect,),
+                      np.concatenate([current.estimate.values, np.zeros(len(effect.params))]))
+
+
+def surface_ladder(fitter: Fitter, current: Fitted, start: Surface, alpha: float) -> Fitted:
+    """The screen surface of the degree the folds choose: from the library's
+    quadratic (degree 2) up, a degree is taken when its held-out chi^2 (the
+    same folds as every model) is significantly below that of the degree taken
+    so far over the poses (ranked_p < alpha) and lower in total, trying LOOK_AHEAD degrees past the last one taken,
+    up to the degree whose coefficients the data holds VALUES_PER_COEFFICIENT
+    values each for (at most MAX_DEGREE)."""
+
+    def fit(effect: Effect) -> Fitted:
+        return fitter.fit(current.effects + (effect,),
+                          np.concatenate([current.estimate.values, np.zeros(len(effect.params))]))
+
+    best = fit(start)
+    if not isinstance(start, ScreenShape):
+        return best
+    top = 2
+    while top < MAX_DEGREE and (top + 2) * (top + 3) / 2 - 1 <= current.n_values / VALUES_PER_COEFFICIENT:
+        top += 1
+    taken = 2
+    for degree in range(3, top + 1):
+        if degree - taken > LOOK_AHEAD:
+            break
+        fitted = fit(ScreenSurface.make(fitter.base.samples.spots, degree))
+        # Most poses predicted better (the rank test) and the held-out error itself lower: a
+        # degree that wins most poses but fails badly where it extrapolates is not taken.
+        if ranked_p(best, fitted) < alpha and fitted.cv_chi2.sum() < best.cv_chi2.sum():
+            best, taken = fitted, degree
+    return best
+
+
+def ranked_p(lower: Fitted, higher: Fitted) -> float:
+    """One-sided Wilcoxon signed-rank p over the calibration poses that the
+    higher degree's held-out chi^2 is smaller. Not the mean (paired_p): a
+    polynomial's held-out error is dominated by the few poses of a fold beyond
+    the spots the other folds cover, where every degree extrapolates; the degree
+    is the one that predicts most poses better."""
+    difference = lower.cv_chi2 - higher.cv_chi2
+    if np.count_nonzero(difference) < 6:
+        return 1.0
+    return float(stats.wilcoxon(difference, alternative="greater").pvalue)
+
+
+def physical_objections(fitted: Fitted, robot) -> list[str]:
+    """Why the last effect of a fit is not physical: none of its parameters can
+    be reported, or a sensor-side value outside what its sensor can do (effects.bounds)
+    by more than its standard error."""
+    model, est = fitted.model, fitted.estimate
+    effect, block = model.effects[-1], model.blocks[-1]
+    start = model.n_geometric + block.start
+    notes = [note for note, _, _ in (parameter_entry(fitted, start + k) for k in range(len(effect.params)))]
+    if all(note is not None for note in notes):
+        return ["no parameter separable (" + notes[0] + ")"]
+    limit = limit_of(effect, robot)
+    if limit is None:
+        return []
+    values, stds = est.values[start:start + len(effect.params)], est.std[start:start + len(effect.params)]
+    outside = [k for k in range(len(values)) if abs(values[k]) - limit.limit > stds[k]]
+    if not outside:
+        return []
+    k = max(outside, key=lambda k: abs(values[k]) / limit.limit)
+    name = effect.params[k] if len(effect.params) > 1 else ""
+    return [f"{effect.title}{' ' + name if name else ''} {limit.describe(float(values[k]))}"]
+
+
+def parameter_entry(fitted: Fitted, i: int) -> tuple[str | None, float | None, float | None]:
+    """(note, value, std) of parameter i of a fit: no value and a note saying why
+    where it is not identifiable, or not separable from another free parameter
+    (correlation above UNREPORTABLE_CORRELATION, or above SEPARABLE_CORRELATION
+    with a standard error beyond its scale); else the value and its std."""
+    est, model = fitted.estimate, fitted.model
+    if not est.identifiable[i]:
+        return est.identifiability.merged.get(model.names[i], "not identifiable"), None, None
+    cov = est.fit.covariance
+    std = float(est.std[i])
+    others = np.array([j for j in np.flatnonzero(est.identifiable) if j != i], int)
+    if others.size:
+        corr = cov[i, others] / np.sqrt(cov[i, i] * np.diag(cov)[others])
+        worst = int(np.argmax(np.abs(corr)))
+        if abs(corr[worst]) > UNREPORTABLE_CORRELATION or (
+                std > model.scales[i] and abs(corr[worst]) > SEPARABLE_CORRELATION):
+            return (f"not separable from {model.names[others[worst]]} (correlation {corr[worst]:+.4f}, std "
+                    f"{std / model.scales[i]:.3g} x its scale)"), None, None
+    return None, float(est.values[i]), std
+
 
 def parameter_report(fitted: Fitted, alternatives: Sequence[Sequence[str]]) -> tuple[dict, ...]:
     """Per effect: name, where and each parameter's value and std, or, where the
-    data cannot separate it from the geometric errors, no number and why; and
-    the candidates that explained the data as well when it was added."""
-    est, model = fitted.estimate, fitted.model
-    cov = est.fit.covariance
-    n_geo = model.n_geometric
+    data cannot separate it from the other parameters, no number and why; the
+    candidates that explained the data as well when it was added and, with
+    any, ``determined`` false and the group named ("A or B")."""
+    model = fitted.model
     out = []
     for effect, block, others in zip(model.effects, model.blocks, alternatives):
         params = []
         for k, name in enumerate(effect.params):
-            i = n_geo + block.start + k
-            entry = {"name": name, "value": None, "std": None, "unit": effect.units[k]}
-            if not est.identifiable[i]:
-                entry["note"] = est.identifiability.merged.get(model.names[i], "not identifiable")
-            else:
-                std = float(est.std[i])
-                geo = np.flatnonzero(est.identifiable[:n_geo])
-                corr = cov[i, geo] / np.sqrt(cov[i, i] * np.diag(cov)[geo])
-                worst = int(np.argmax(np.abs(corr))) if geo.size else -1
-                if std > model.scales[i] and worst >= 0 and abs(corr[worst]) > SEPARABLE_CORRELATION:
-                    entry["note"] = (f"not separable from {model.names[geo[worst]]} (correlation "
-                                     f"{corr[worst]:+.4f}, std {std / model.scales[i]:.3g} x its scale)")
-                else:
-                    entry["value"], entry["std"] = float(est.values[i]), std
+            note, value, std = parameter_entry(fitted, model.n_geometric + block.start + k)
+            entry = {"name": name, "value": value, "std": std, "unit": effect.units[k]}
+            if note is not None:
+                entry["note"] = note
             params.append(entry)
         item = {"name": effect.kind, "where": effect.where, "title": effect.title, "parameters": params,
-                "indistinguishable_from": list(others)}
+                "indistinguishable_from": list(others), "determined": not others}
+        if others:
+            item["group"] = " or ".join([effect.label] + list(others)) + ": the data cannot tell them apart"
         if hasattr(effect, "covariate"):
             item["covariate"] = effect.covariate
+        if isinstance(effect, ScreenSurface):
+            item["degree"] = effect.degree
         out.append(item)
     return tuple(out)
 
 
+def ambiguous_verdict(verdict: str, evidence: str, parameters: Sequence[dict]) -> tuple[str, str]:
+    """The verdict once the groups the data cannot tell apart are counted: an
+    effect that is one of such a group is not the explanation, so "explained"
+    becomes "undetermined"; the evidence names each group and which model the
+    figures use."""
+    groups = [p for p in parameters if not p["determined"]]
+    if not groups:
+        return verdict, evidence
+    said = " ".join(f"{p['group']} (held-out errors not significantly different); the figures use "
+                    f"{p['name']} ({p['where']}), the lowest BIC." for p in groups)
+    if verdict == EXPLAINED:
+        return UNDETERMINED, (f"{evidence} Undetermined: the residual is explained, but not by one cause: {said}")
+    return verdict, f"{evidence} Not one cause: {said}"

@@ -218,9 +218,10 @@ def sensor_data(robot: Robot, samples: SensorSamples, options: SensorFitOptions)
 def diagnose_options(options: SensorFitOptions, folds: int = 5, seed: int = 0, max_effects: int = 4
                      ) -> DiagnoseOptions:
     """The engine's options from the sensor fit's: method and (given) sigma; the
-    joint-reading noise is estimated."""
+    joint-reading noise is estimated. The engine's nested held-out error is
+    left out: nested_heldout measures it in the calibration's metric."""
     return DiagnoseOptions(method=options.estimate.method, spot_sigma=options.estimate.spot_sigma, folds=folds,
-                           seed=seed, max_effects=max_effects)
+                           seed=seed, max_effects=max_effects, nested=False)
 
 
 def diagnose(robot: Robot, samples: SensorSamples, options: SensorFitOptions,
@@ -279,7 +280,7 @@ def nested_heldout(robot: Robot, samples: SensorSamples, options: SensorFitOptio
     chosen = []
     for f in range(k):
         train, test = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
-        effects = diagnose(robot, samples.subset(train), options, engine).final.effects
+        effects = diagnose(robot, samples.subset(train), options, replace(engine, nested=False)).final.effects
         fit = fit_effects(robot, samples, options, effects, train)
         fit_options, rest = with_effects(options, effects)
         base = make_model(robot, samples.subset(test), fit.rotation_length, fit_options.scale)

@@ -59,9 +59,10 @@ class Effect(ABC):
     # True when the basis depends on the geometric errors (recomputed at each evaluation).
     geometric_basis: ClassVar[bool] = False
 
-    def __init_subclass__(cls, **kwargs):
+    def __init_subclass__(cls, register: bool = True, **kwargs):
+        # register=False: a truth form of the simulator, never a robot file's effect.
         super().__init_subclass__(**kwargs)
-        if "kind" in cls.__dict__:
+        if "kind" in cls.__dict__ and register:
             REGISTRY[cls.kind] = cls
 
     @classmethod

@@ -1,4 +1,5 @@
-"""Spot effects (base.SPOT): the screen is not flat, the camera's residual distortion.
+"""Spot effects (base.SPOT): the screen is not flat (a quadratic, or a smooth
+surface of any degree), the camera's residual distortion.
 
 Both act on the predicted spot s = (y, z) (m) of the flat-screen model, in
 normalised screen coordinates so that every coefficient is a length in metres
@@ -9,24 +10,24 @@ spot (CameraDistortion).
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping
 
 import numpy as np
+from numpy.polynomial import legendre
 
-from laser_calib.effects.base import SpotEffect, positive_number
+from laser_calib.effects.base import SpotEffect, positive_number, yaml_number
+from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
 
 MM = 1e-3
 FIXED_POINT_ITERATIONS = 6  # |grad f . t| ~ 1e-3: six iterations reach 1e-18 m
+MAX_DEGREE = 8  # 44 coefficients: beyond this a screen is not smooth at the scale of the poses
 
 
-@dataclass(frozen=True)
-class ScreenShape(SpotEffect):
-    """The screen surface is x = f(y, z), not x = 0:
-
-        f = c_u u + c_v v + c_uu u^2 + c_uv u v + c_vv v^2,   u = y / half_y, v = z / half_z
-
+class Surface(SpotEffect):
+    """A screen surface x = f(y, z) = phi(y, z) . c, linear in its coefficients c
     (no constant term: a screen offset along x is the same as moving the base,
     which the geometric errors already hold). The beam p + k z meets it where
     p_x + k z_x = f(s): with the flat spot s0 and t = (z_y, z_z) / z_x,
@@ -38,6 +39,38 @@ class ScreenShape(SpotEffect):
     f ~ mm times the beam-direction change), so
     d s / d s0 = (I - t g^T)^-1 = I + t g^T / (1 - g.t) and
     d s / d c = t phi^T / (1 - g.t), g = grad f.
+    """
+
+    order: ClassVar[int] = 0
+
+    @property
+    def where(self) -> str:
+        return "screen"
+
+    @abstractmethod
+    def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """phi (...,k) and d phi / d s (...,k,2) at spots s (...,2) m."""
+
+    def apply(self, spots, beams, values):
+        t = beams[..., 1:] / beams[..., :1]
+        s = spots
+        for _ in range(FIXED_POINT_ITERATIONS):
+            phi, _ = self.terms(s)
+            s = spots + (phi @ values)[..., None] * t
+        phi, dphi = self.terms(s)
+        g = np.einsum("...kd,k->...d", dphi, values)
+        denominator = (1.0 - np.einsum("...d,...d->...", g, t))[..., None, None]
+        d_spots = np.eye(2) + t[..., :, None] * g[..., None, :] / denominator
+        d_values = t[..., :, None] * phi[..., None, :] / denominator
+        return s, d_spots, d_values
+
+
+@dataclass(frozen=True)
+class ScreenShape(Surface):
+    """The screen surface (Surface) is the quadratic
+
+        f = c_u u + c_v v + c_uu u^2 + c_uv u v + c_vv v^2,   u = y / half_y, v = z / half_z.
+
     Coefficients in m (the height at the screen edge); scale 1 mm; typical
     truth 1 mm (linear terms) and 2 mm (quadratic terms).
     """
@@ -49,11 +82,6 @@ class ScreenShape(SpotEffect):
     title: ClassVar[str] = "screen not flat"
     params: ClassVar[tuple[str, ...]] = ("u", "v", "uu", "uv", "vv")
     units: ClassVar[tuple[str, ...]] = ("m",) * 5
-    order: ClassVar[int] = 0
-
-    @property
-    def where(self) -> str:
-        return "screen"
 
     @property
     def tag(self) -> str:
@@ -75,8 +103,7 @@ class ScreenShape(SpotEffect):
         return cls(positive_number(where, entry, "half_y", robot.screen.half_y),
                    positive_number(where, entry, "half_z", robot.screen.half_z))
 
-    def _terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """phi (...,5) and d phi / d s (...,5,2) at spots s (...,2)."""
+    def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u, v = s[..., 0] / self.half_y, s[..., 1] / self.half_z
         zero = np.zeros_like(u)
         phi = np.stack([u, v, u * u, u * v, v * v], axis=-1)
@@ -84,18 +111,96 @@ class ScreenShape(SpotEffect):
         dphi_dv = np.stack([zero, 1 + zero, zero, u, 2 * v], axis=-1) / self.half_z
         return phi, np.stack([dphi_du, dphi_dv], axis=-1)
 
-    def apply(self, spots, beams, values):
-        t = beams[..., 1:] / beams[..., :1]
-        s = spots
-        for _ in range(FIXED_POINT_ITERATIONS):
-            phi, _ = self._terms(s)
-            s = spots + (phi @ values)[..., None] * t
-        phi, dphi = self._terms(s)
-        g = np.einsum("...kd,k->...d", dphi, values)
-        denominator = (1.0 - np.einsum("...d,...d->...", g, t))[..., None, None]
-        d_spots = np.eye(2) + t[..., :, None] * g[..., None, :] / denominator
-        d_values = t[..., :, None] * phi[..., None, :] / denominator
-        return s, d_spots, d_values
+
+def surface_terms(degree: int) -> tuple[tuple[int, int], ...]:
+    """The (i, j) of P_i(u) P_j(v) of total order 1..degree, by order then i descending."""
+    return tuple((n - j, j) for n in range(1, degree + 1) for j in range(n + 1))
+
+
+@dataclass(frozen=True)
+class ScreenSurface(Surface):
+    """A smooth screen surface of any shape (Surface): the 2-D Legendre series
+
+        f = sum over 1 <= i + j <= degree of c_ij (P_i(u) P_j(v) - P_i(0) P_j(0)),
+        u = (y - centre_y) / half_y, v = (z - centre_z) / half_z,
+
+    P_n the Legendre polynomials, over the box the calibration spots cover
+    (``make``: the centre and half sizes of their range), where they are
+    nearly orthogonal, so the coefficients are nearly uncorrelated and each is
+    about the size of its term at the edge of the data (|P_n(1)| = 1); a
+    polynomial over the whole screen would be fitted on part of its domain,
+    and its folds would extrapolate. Each term is 0 at the centre: a constant
+    is a screen offset, held by the geometric errors. The degree is chosen by
+    the held-out error of the folds (diagnosis.selection.surface_ladder).
+    Degree 2 spans what ScreenShape does, which stays the quadratic of the
+    library. Coefficients in m; scale 1 mm; typical truth 1 mm.
+    """
+
+    kind: ClassVar[str] = "screen_surface"
+    title: ClassVar[str] = "screen not flat (smooth surface)"
+
+    centre_y: float
+    centre_z: float
+    half_y: float
+    half_z: float
+    degree: int
+
+    @classmethod
+    def make(cls, spots: np.ndarray, degree: int) -> "ScreenSurface":
+        """The surface of ``degree`` over the range of the measured spots (P,L,2) m (NaN where not seen)."""
+        low, high = np.nanmin(spots, axis=(0, 1)), np.nanmax(spots, axis=(0, 1))
+        centre, half = (low + high) / 2, np.maximum((high - low) / 2, MM)
+        return cls(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), degree)
+
+    @property
+    def params(self) -> tuple[str, ...]:  # type: ignore[override]
+        return tuple(f"c{i}{j}" for i, j in surface_terms(self.degree))
+
+    @property
+    def units(self) -> tuple[str, ...]:  # type: ignore[override]
+        return ("m",) * len(self.params)
+
+    @property
+    def tag(self) -> str:
+        return "surface"
+
+    @property
+    def label(self) -> str:
+        return f"{self.kind} (screen, degree {self.degree})"
+
+    @property
+    def scales(self) -> np.ndarray:
+        return np.full(len(self.params), MM)
+
+    @property
+    def typical(self) -> np.ndarray:
+        return np.full(len(self.params), MM)
+
+    def constants(self) -> dict:
+        return {"centre_y": self.centre_y, "centre_z": self.centre_z, "half_y": self.half_y, "half_z": self.half_z,
+                "degree": self.degree}
+
+    @classmethod
+    def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "ScreenSurface":
+        degree = entry.get("degree")
+        if isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= MAX_DEGREE:
+            raise InputError(f"{where}.degree", f"expected a whole number 1..{MAX_DEGREE}, got {degree!r}")
+        return cls(yaml_number(where, entry, "centre_y", 0.0), yaml_number(where, entry, "centre_z", 0.0),
+                   positive_number(where, entry, "half_y", robot.screen.half_y),
+                   positive_number(where, entry, "half_z", robot.screen.half_z), degree)
+
+    def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u, v = (s[..., 0] - self.centre_y) / self.half_y, (s[..., 1] - self.centre_z) / self.half_z
+        derivative = legendre.legder(np.eye(self.degree + 1))   # (degree, degree + 1): column n is P_n'
+        pu, pv = legendre.legvander(u, self.degree), legendre.legvander(v, self.degree)   # (..., degree + 1)
+        du = legendre.legvander(u, self.degree - 1) @ derivative
+        dv = legendre.legvander(v, self.degree - 1) @ derivative
+        index = surface_terms(self.degree)
+        i, j = np.array([t[0] for t in index]), np.array([t[1] for t in index])
+        at_centre = legendre.legval(0.0, np.eye(self.degree + 1))   # (degree + 1,) P_n(0)
+        phi = pu[..., i] * pv[..., j] - at_centre[i] * at_centre[j]
+        dphi = np.stack([du[..., i] * pv[..., j] / self.half_y, pu[..., i] * dv[..., j] / self.half_z], axis=-1)
+        return phi, dphi
 
 
 @dataclass(frozen=True)

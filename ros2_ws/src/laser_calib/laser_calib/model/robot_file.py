@@ -26,8 +26,9 @@ _KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "conventi
 # A URDF robot: the arm from the URDF text (a file, the text itself, or the node's topic).
 URDF_KEYS = ("name", "urdf", "robot_description", "xacro_args", "base", "tip", "slm", "lasers", "screen",
              "gravity")
-# Keys other modules read: effects/catalog.py, measurement/frames.py, diagnosis/verdict.py (rated noise).
-EXTRA_KEYS = ("effects", "frames", "spot_sigma", "joint_reading_sigma")
+# Keys other modules read: effects/catalog.py, measurement/frames.py, diagnosis/verdict.py (rated noise),
+# effects/bounds.py (what the sensor side can plausibly be off by).
+EXTRA_KEYS = ("effects", "frames", "spot_sigma", "joint_reading_sigma", "sensor_kind", "sensor_limits")
 JOINT_KEYS = ("a", "d", "alpha", "theta0", "min", "max", "type")
 SLM_KEYS = ("a", "d", "alpha", "theta", "beta")
 LASER_KEYS = ("gamma", "beta")

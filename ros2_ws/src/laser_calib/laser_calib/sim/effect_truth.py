@@ -13,7 +13,7 @@ t = z_yz / z_x by ~1e-4 of a mm-sized effect).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, ClassVar, Sequence
 
 import numpy as np
 
@@ -25,6 +25,7 @@ from laser_calib.io.samples import Samples
 from laser_calib.sim.simulation import NoiseSpec, ParamOffsets, SpotTransform, bundled_robot, measure, sample_poses, true_errors
 from laser_calib.effects.base import JOINT, PARAM, SPOT, Effect, sign_choice
 from laser_calib.effects.effect_model import EffectModel
+from laser_calib.effects.screen import Surface
 
 TEMPERATURE = "temperature_c"
 
@@ -67,6 +68,92 @@ class ForeignJointError:
 
     def scaled(self, factor: float) -> "ForeignJointError":
         return ForeignJointError(self.name, self.joint, lambda samples: factor * self.offset(samples))
+
+
+@dataclass(frozen=True)
+class CurvedScreen(Surface, register=False):
+    """A true screen surface outside the library's polynomials, x = amplitude ·
+    g(u, v) (u = y / half_y, v = z / half_z, g of size 1 on the screen), the
+    beam intersection solved exactly as for every Surface. One parameter, the
+    amplitude (m), so the "true model" (the shape known, its size fitted) is an
+    ordinary effect model. Shapes (``shape``, with ``width`` and the direction
+    or centre (a, b) drawn per seed):
+
+    - cylinder: a section of a cylinder of radius ``width`` (in half sizes,
+      > 1) whose axis lies in the screen at angle a, the sag of the arc;
+    - cubic: a cubic sag along direction a, (w u')^3 + b (w u')^2 v', u' the
+      coordinate along a, v' across;
+    - bump: a gaussian bump of standard deviation ``width`` at (a, b).
+    """
+
+    kind: ClassVar[str] = "curved_screen"
+    title: ClassVar[str] = "curved screen (truth)"
+    params: ClassVar[tuple[str, ...]] = ("amplitude",)
+    units: ClassVar[tuple[str, ...]] = ("m",)
+
+    half_y: float
+    half_z: float
+    shape: str
+    width: float
+    a: float
+    b: float
+
+    @property
+    def label(self) -> str:
+        return f"{self.shape} screen (width {self.width:.2f})"
+
+    @property
+    def scales(self) -> np.ndarray:
+        return np.full(1, 1e-3)
+
+    @property
+    def typical(self) -> np.ndarray:
+        return np.full(1, 2e-3)
+
+    @classmethod
+    def from_yaml(cls, robot, entry, where):
+        raise NotImplementedError("a simulator truth, not a robot file's effect")
+
+    def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u, v = s[..., 0] / self.half_y, s[..., 1] / self.half_z
+        if self.shape == "bump":
+            du, dv = u - self.a, v - self.b
+            g = np.exp(-(du ** 2 + dv ** 2) / (2 * self.width ** 2))
+            gu, gv = -du / self.width ** 2 * g, -dv / self.width ** 2 * g
+        else:
+            c, s_ = np.cos(self.a), np.sin(self.a)
+            along, across = c * u + s_ * v, -s_ * u + c * v
+            if self.shape == "cylinder":
+                root = np.sqrt(np.maximum(self.width ** 2 - along ** 2, 1e-12))
+                g, g_along, g_across = self.width - root, along / root, 0.0 * along
+            elif self.shape == "cubic":
+                w = self.width
+                g = (w * along) ** 3 + self.b * (w * along) ** 2 * across
+                g_along = 3 * w ** 3 * along ** 2 + 2 * self.b * w ** 2 * along * across
+                g_across = self.b * (w * along) ** 2
+            else:
+                raise ValueError(f"unknown screen shape {self.shape!r}")
+            gu, gv = c * g_along - s_ * g_across, s_ * g_along + c * g_across
+        gradient = np.stack([gu / self.half_y, gv / self.half_z], axis=-1)
+        return g[..., None], gradient[..., None, :]
+
+
+SCREEN_SHAPES = ("cylinder", "cubic", "bump")
+
+
+def curved_screen(robot: Robot, shape: str, rng: np.random.Generator) -> CurvedScreen:
+    """A curved screen of ``shape`` on the robot's screen, its width, direction
+    or centre drawn: cylinders of radius 1.5 to 3 half sizes (the screen corners, at 1.41, inside) (a strongly to a
+    mildly curved section), cubics over 0.8 to 1.2 of the screen, bumps of
+    width 0.25 to 0.6 anywhere within the middle half."""
+    half_y, half_z = robot.screen.half_y, robot.screen.half_z
+    if shape == "cylinder":
+        return CurvedScreen(half_y, half_z, shape, float(rng.uniform(1.5, 3.0)), float(rng.uniform(0, np.pi)), 0.0)
+    if shape == "cubic":
+        return CurvedScreen(half_y, half_z, shape, float(rng.uniform(0.8, 1.2)), float(rng.uniform(0, 2 * np.pi)),
+                            float(rng.uniform(-1, 1)))
+    return CurvedScreen(half_y, half_z, shape, float(rng.uniform(0.25, 0.6)), float(rng.uniform(-0.5, 0.5)),
+                        float(rng.uniform(-0.5, 0.5)))
 
 
 Foreign = ForeignError | ForeignJointError
