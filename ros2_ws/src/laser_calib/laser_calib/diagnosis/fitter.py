@@ -31,7 +31,7 @@ class Fitter:
     given, with the components not given estimated once from the geometric
     fit (start)."""
 
-    def __init__(self, data: Data, options: DiagnoseOptions):
+    def __init__(self, data: Data, options: DiagnoseOptions, stage: str = "selection"):
         self.base = data.base()
         self.fixed = data.fixed
         self.options = options
@@ -45,7 +45,8 @@ class Fitter:
         self.reference = NoiseModel(options.spot_sigma or 1.0, options.joint_sigma or 0.0)
         self.merged: dict[str, str] = {}
         self.progress = options.progress
-        self.fits = 0  # fits made, for the progress line
+        self.stage = stage  # what the fits are for, on the progress line
+        self.fits = 0
 
     def start(self) -> Fitted:
         """The geometric fit under the reference noise model.
@@ -90,7 +91,7 @@ class Fitter:
             cv_chi2[held], cv[held], _ = self.scored(model.subset(held), train.values)
         self.fits += 1
         if self.progress is not None:
-            self.progress(self.fits, None, " + ".join(["geometric"] + [e.label for e in effects]))
+            self.progress(self.fits, None, f"{self.stage}: " + " + ".join(["geometric"] + [e.label for e in effects]))
         return Fitted(effects, model, est, cv, cv_chi2, cal, float(chi2.sum()), n_values, int(est.identifiable.sum()))
 
     def scored(self, model: EffectModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -100,10 +101,16 @@ class Fitter:
         at once would grow with them)."""
         chi2, dist, n_values = [], [], 0
         for _, block in pose_blocks(model):
-            res = block.residuals(x, True)
-            white = np.einsum("pij,pj->pi", self.reference.whitener(res), res.r.reshape(len(res.r), -1))
-            chi2.append((white ** 2).sum(axis=1))
-            dist.append(np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan))
+            # A fold's fit of a candidate the fold cannot pin down may run off to sizes at
+            # which the model overflows: its prediction is infinitely wrong (paired_p
+            # rejects it), not a warning on the console.
+            with np.errstate(over="ignore", invalid="ignore"):
+                res = block.residuals(x, True)
+                white = np.einsum("pij,pj->pi", self.reference.whitener(res), res.r.reshape(len(res.r), -1))
+                pose_chi2 = (white ** 2).sum(axis=1)
+                pose_dist = np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
+            chi2.append(np.where(np.isfinite(pose_chi2), pose_chi2, np.inf))
+            dist.append(np.where(np.isfinite(pose_dist), pose_dist, np.inf))
             n_values += count_values(res)
         return np.concatenate(chi2), np.concatenate(dist), n_values
 
@@ -204,6 +211,8 @@ def paired_p(current: Fitted, candidate: Fitted) -> float:
     tails short enough for the t test; it tests the mean, which is what the
     held-out error is (a rank test misses improvements concentrated in part
     of the poses)."""
+    if not np.isfinite(candidate.cv_chi2).all():
+        return 1.0  # a fold's fit diverged (Fitter.scored): its held-out error is not smaller
     difference = current.cv_chi2 - candidate.cv_chi2
     if len(difference) < 3 or not np.any(difference):
         return 1.0
