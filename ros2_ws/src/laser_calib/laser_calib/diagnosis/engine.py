@@ -189,6 +189,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
                                                       fitted.estimate.values)
         stages.append(Stage(fitted.label, fitted, test_d))
     final = fits[-1]
+    if options.progress is not None:
+        options.progress(fitter.fits, None, "the verdict's noise and structure tests")
     noise = verdict_noise(final, data.samples, options)
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
