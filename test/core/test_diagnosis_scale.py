@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from laser_calib.diagnosis.data import SpotData
-from laser_calib.diagnosis.engine import DETECTOR_POSES, DETECTOR_RUNS, candidate_pool, detector_rows
+from laser_calib.diagnosis.engine import DETECTOR_POSES, DETECTOR_RUNS, candidate_pool, detector_rows, run
 from laser_calib.diagnosis.fitter import Fitter, paired_p
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.diagnosis.selection import select
@@ -117,3 +117,14 @@ def test_detector_rows_are_runs_of_consecutive_poses_over_the_session():
     # one run in each tenth of the session
     assert np.array_equal(np.unique(rows * DETECTOR_RUNS // n), np.arange(DETECTOR_RUNS))
     np.testing.assert_array_equal(rows, detector_rows(n, 0))
+
+
+def test_progress_counts_the_fits_of_each_model_and_stays_out_of_the_result(backlash):
+    data, options = backlash
+    calls = []
+    options = replace(options, max_effects=1, shortlist=1, progress=lambda *call: calls.append(call))
+    diagnosis = run(data, options)
+    fits = [(done, total) for done, total, note in calls if total is not None]
+    assert fits and all(1 <= done <= total == options.folds + 1 for done, total in fits)
+    assert any(note.startswith("selection: geometric + ") for _, _, note in calls)
+    assert diagnosis.options.progress is None

@@ -23,7 +23,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     test = load_samples(args.test, robot) if args.test else None
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
           file=sys.stderr, flush=True)
-    # one count of fits per selection (the main one, then each nested fold's)
+    # per model fitted: its fit on all poses and one per fold
     with Progress("diagnose", unit="fit") as progress:
         options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                                   folds=args.folds, max_effects=args.max_effects, seed=args.seed,

@@ -190,7 +190,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
         stages.append(Stage(fitted.label, fitted, test_d))
     final = fits[-1]
     if options.progress is not None:
-        options.progress(fitter.fits, None, "the verdict's noise and structure tests")
+        options.progress(0, None, "the verdict's noise and structure tests")
     noise = verdict_noise(final, data.samples, options)
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
@@ -201,7 +201,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     rows = detector_rows(len(samples.q), options.seed)
     seen = final.model if rows is None else final.model.subset(rows)
     if options.progress is not None:
-        options.progress(fitter.fits, None, f"detector on {len(seen.samples.q)} poses")
+        options.progress(0, None, f"detector on {len(seen.samples.q)} poses")
     detection = detect(final.model.names, seen.residuals(final.estimate.values, True), detector_noise,
                        seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
                        fitter.fold if rows is None else fitter.fold[rows], options.seed)

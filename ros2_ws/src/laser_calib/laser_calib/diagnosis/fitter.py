@@ -46,7 +46,6 @@ class Fitter:
         self.merged: dict[str, str] = {}
         self.progress = options.progress
         self.stage = stage  # what the fits are for, on the progress line
-        self.fits = 0
 
     def start(self) -> Fitted:
         """The geometric fit under the reference noise model.
@@ -81,7 +80,9 @@ class Fitter:
         near: LM takes a few steps, not a fit from scratch)."""
         model = EffectModel(self.base, effects)
         options = replace(self.fit_options, restarts=0)
+        label = f"{self.stage}: " + " + ".join(["geometric"] + [e.label for e in effects])
         est = estimate_model(model, options, None, x0)
+        self.report(1, label)
         chi2, cal, n_values = self.scored(model, est.values)
         cv = np.full(cal.shape, np.nan)
         cv_chi2 = np.zeros(len(cv))
@@ -89,10 +90,13 @@ class Fitter:
             held = self.fold == k
             train = estimate_model(model.subset(~held), options, None, est.values)
             cv_chi2[held], cv[held], _ = self.scored(model.subset(held), train.values)
-        self.fits += 1
-        if self.progress is not None:
-            self.progress(self.fits, None, f"{self.stage}: " + " + ".join(["geometric"] + [e.label for e in effects]))
+            self.report(k + 2, label)
         return Fitted(effects, model, est, cv, cv_chi2, cal, float(chi2.sum()), n_values, int(est.identifiable.sum()))
+
+    def report(self, done: int, note: str) -> None:
+        """Progress: ``done`` of the folds + 1 fits of one model."""
+        if self.progress is not None:
+            self.progress(done, self.options.folds + 1, note)
 
     def scored(self, model: EffectModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """Each pose's chi^2 (P,) under the reference noise model and spot distances
