@@ -128,3 +128,15 @@ def test_progress_counts_the_fits_of_each_model_and_stays_out_of_the_result(back
     assert fits and all(1 <= done <= total == options.folds + 1 for done, total in fits)
     assert any(note.startswith("selection: geometric + ") for _, _, note in calls)
     assert diagnosis.options.progress is None
+
+
+def test_scored_distances_are_nan_where_a_spot_is_not_measured(backlash):
+    data, options = backlash
+    samples = data.samples
+    spots = samples.spots.copy()
+    spots[:5, 1] = np.nan  # the second laser's spot not seen on five poses
+    data = SpotData(data.robot, replace(samples, spots=spots))
+    fitter = Fitter(data, options)
+    chi2, distances, n_values = fitter.scored(EffectModel(fitter.base, ()), np.zeros(len(fitter.base.names)))
+    assert np.isnan(distances[:5, 1]).all() and np.isfinite(distances[5:]).all() and np.isfinite(chi2).all()
+    assert n_values == 2 * (distances.size - 5)

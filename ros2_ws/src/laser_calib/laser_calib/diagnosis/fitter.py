@@ -112,9 +112,9 @@ class Fitter:
                 res = block.residuals(x, True)
                 white = np.einsum("pij,pj->pi", self.reference.whitener(res), res.r.reshape(len(res.r), -1))
                 pose_chi2 = (white ** 2).sum(axis=1)
-                pose_dist = np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
+                norm = np.linalg.norm(res.r, axis=-1)
             chi2.append(np.where(np.isfinite(pose_chi2), pose_chi2, np.inf))
-            dist.append(np.where(np.isfinite(pose_dist), pose_dist, np.inf))
+            dist.append(np.where(res.valid, np.where(np.isfinite(norm), norm, np.inf), np.nan))
             n_values += count_values(res)
         return np.concatenate(chi2), np.concatenate(dist), n_values
 
