@@ -122,7 +122,7 @@ def test_detector_rows_are_runs_of_consecutive_poses_over_the_session():
 def test_progress_counts_the_fits_of_each_model_and_stays_out_of_the_result(backlash):
     data, options = backlash
     calls = []
-    options = replace(options, max_effects=1, shortlist=1, progress=lambda *call: calls.append(call))
+    options = replace(options, max_effects=1, shortlist=1, nested=False, progress=lambda *call: calls.append(call))
     diagnosis = run(data, options)
     fits = [(done, total) for done, total, note in calls if total is not None]
     assert fits and all(1 <= done <= total == options.folds + 1 for done, total in fits)
