@@ -14,18 +14,21 @@ from laser_calib.diagnosis.engine import DiagnoseOptions, diagnose, write_output
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.model.robot_file import load_robot
 from laser_calib.io.samples import load_samples
+from laser_calib.report.progress import Progress
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
-    options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
-                              folds=args.folds, max_effects=args.max_effects, seed=args.seed,
-                              compensate=not args.no_compensator, nested=True)
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
           file=sys.stderr, flush=True)
-    diagnosis = diagnose(robot, samples, test, options=options)
+    # per model fitted: its fit on all poses and one per fold
+    with Progress("diagnose", unit="fit") as progress:
+        options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
+                                  folds=args.folds, max_effects=args.max_effects, seed=args.seed,
+                                  compensate=not args.no_compensator, nested=True, progress=progress)
+        diagnosis = diagnose(robot, samples, test, options=options)
     result = write_outputs(diagnosis, args.out, {"robot": str(args.robot), "samples": str(args.samples),
                                                  "test": str(args.test) if args.test else None})
     for stage in result["stages"]:

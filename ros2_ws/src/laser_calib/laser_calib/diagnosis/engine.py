@@ -45,6 +45,10 @@ model cannot carry (screen and lens effects without spots) are dropped. It runs:
    none (and the evidence says so). "explained" when no test is significant
    at alpha, "structure remains" otherwise, with the strongest test as
    evidence.
+   The structure tests see every pose; the detector (and the compensator it
+   may give) sees at most DETECTOR_POSES of them (detector_rows): its cost
+   and memory grow with the poses times its basis (about 1,500 columns per
+   value), and its power at 5,000 poses is plenty for what it looks for.
 """
 
 from __future__ import annotations
@@ -126,7 +130,7 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
                            options.folds)
     if n_poses < needed:
         raise TooFewPoses(n_poses, needed)
-    fitter = Fitter(data, options)
+    fitter = Fitter(data, options, "selection")
     fits, rounds, alternatives = select(fitter, candidate_pool(data, fitter, options, notes), options)
     nested = None
     if options.nested and n_poses - math.ceil(n_poses / options.folds) < needed:
@@ -168,7 +172,7 @@ def nested_heldout(data: Data, options: DiagnoseOptions) -> np.ndarray:
     for k in range(options.folds):
         train, held = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
         inner = data.subset(train)
-        fitter = Fitter(inner, options)
+        fitter = Fitter(inner, options, f"nested fold {k + 1}/{options.folds}")
         chosen = select(fitter, candidate_pool(inner, fitter, options, []), options)[0][-1]
         predicted = distances(EffectModel(whole, chosen.effects).subset(held), chosen.estimate.values)
         out = np.full((n_poses,) + predicted.shape[1:], np.nan) if out is None else out
@@ -185,6 +189,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
                                                       fitted.estimate.values)
         stages.append(Stage(fitted.label, fitted, test_d))
     final = fits[-1]
+    if options.progress is not None:
+        options.progress(0, None, "the verdict's noise and structure tests")
     noise = verdict_noise(final, data.samples, options)
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
@@ -192,18 +198,44 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     # Whitened by the verdict's noise model: every value then has unit variance, which the
     # permutation test needs (the poses' residuals exchangeable under "no structure").
     detector_noise = noise_model
-    detection = detect(final.model.names, final.model.residuals(final.estimate.values, True), detector_noise,
-                       samples.q, samples.stamp, dict(samples.extra), fitter.fold, options.seed)
+    rows = detector_rows(len(samples.q), options.seed)
+    seen = final.model if rows is None else final.model.subset(rows)
+    if options.progress is not None:
+        options.progress(0, None, f"detector on {len(seen.samples.q)} poses")
+    detection = detect(final.model.names, seen.residuals(final.estimate.values, True), detector_noise,
+                       seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
+                       fitter.fold if rows is None else fitter.fold[rows], options.seed)
     verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha)
     parameters = parameter_report(final, alternatives)
     verdict, said = ambiguous_verdict(verdict, said, parameters)
     compensator = compensated = None
     if options.compensate and detection.p <= options.alpha and detection.gain > 0:
-        compensator = backfit(detection, final.model, final.estimate.values, fitter.fit_options, detector_noise)
+        compensator = backfit(detection, seen, final.estimate.values, fitter.fit_options, detector_noise)
         if test is not None:
             compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), compensator.values)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
-                     noise, before, after, verdict, said, parameters, options,
+                     noise, before, after, verdict, said, parameters, replace(options, progress=None),
                      time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested)
 
+
+
+# Poses the detector sees at most, in DETECTOR_RUNS runs of consecutive poses: the
+# detector's move inputs are the sign of the last move in row order, which a run keeps
+# (only its first pose's is taken from the run before), and the runs spread over the
+# whole session, so a slow change with the stamp stays in view.
+DETECTOR_POSES = 5000
+DETECTOR_RUNS = 10
+
+
+def detector_rows(n_poses: int, seed: int) -> np.ndarray | None:
+    """(DETECTOR_POSES,) sorted pose indices the detector sees, None for all when
+    there are no more: one run of consecutive poses at a seeded place in each of
+    DETECTOR_RUNS equal parts of the sequence."""
+    if n_poses <= DETECTOR_POSES:
+        return None
+    rng = np.random.default_rng(seed)
+    edges = np.linspace(0, n_poses, DETECTOR_RUNS + 1).astype(int)
+    length = DETECTOR_POSES // DETECTOR_RUNS
+    starts = [rng.integers(lo, hi - length + 1) for lo, hi in zip(edges[:-1], edges[1:])]
+    return np.concatenate([np.arange(start, start + length) for start in starts])

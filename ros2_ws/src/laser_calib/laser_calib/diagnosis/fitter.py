@@ -17,7 +17,8 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
 from laser_calib.estimation.folds import kfold_labels
-from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.estimation.problem import pose_blocks
+from laser_calib.measurement.base import NoiseModel, count_values, whiten
 
 def distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
     res = model.residuals(x, False)
@@ -30,7 +31,7 @@ class Fitter:
     given, with the components not given estimated once from the geometric
     fit (start)."""
 
-    def __init__(self, data: Data, options: DiagnoseOptions):
+    def __init__(self, data: Data, options: DiagnoseOptions, stage: str = "selection"):
         self.base = data.base()
         self.fixed = data.fixed
         self.options = options
@@ -43,6 +44,8 @@ class Fitter:
         self.fold = kfold_labels(len(data.samples.q), options.folds, options.seed)
         self.reference = NoiseModel(options.spot_sigma or 1.0, options.joint_sigma or 0.0)
         self.merged: dict[str, str] = {}
+        self.progress = options.progress
+        self.stage = stage  # what the fits are for, on the progress line
 
     def start(self) -> Fitted:
         """The geometric fit under the reference noise model.
@@ -72,61 +75,135 @@ class Fitter:
     def fit(self, effects: tuple[Effect, ...], x0: np.ndarray) -> Fitted:
         """Fit and cross-validate the geometric errors plus ``effects`` from the
         warm start x0. No LM restarts: x0 is a converged fit (the first
-        geometric fit had them), and the folds start from the full fit."""
+        geometric fit had them), and each fold starts from the full fit's
+        minimum (a fold leaves out a fifth of the poses, so its minimum is
+        near: LM takes a few steps, not a fit from scratch)."""
         model = EffectModel(self.base, effects)
         options = replace(self.fit_options, restarts=0)
+        label = f"{self.stage}: " + " + ".join(["geometric"] + [e.label for e in effects])
         est = estimate_model(model, options, None, x0)
-        res = model.residuals(est.values, True)
-        cv = np.full(res.valid.shape, np.nan)
+        self.report(1, label)
+        chi2, cal, n_values = self.scored(model, est.values)
+        cv = np.full(cal.shape, np.nan)
         cv_chi2 = np.zeros(len(cv))
         for k in range(self.options.folds):
             held = self.fold == k
             train = estimate_model(model.subset(~held), options, None, est.values)
-            held_res = model.subset(held).residuals(train.values, True)
-            cv[held] = np.where(held_res.valid, np.linalg.norm(held_res.r, axis=-1), np.nan)
-            white = np.einsum("pij,pj->pi", self.reference.whitener(held_res),
-                              held_res.r.reshape(len(held_res.r), -1))
-            cv_chi2[held] = (white ** 2).sum(axis=1)
-        r, _ = whiten(res, self.reference.whitener(res))
-        cal = np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
-        return Fitted(effects, model, est, cv, cv_chi2, cal, float(r @ r), int(res.valid.sum()) * res.r.shape[2],
-                      int(est.identifiable.sum()))
+            cv_chi2[held], cv[held], _ = self.scored(model.subset(held), train.values)
+            self.report(k + 2, label)
+        return Fitted(effects, model, est, cv, cv_chi2, cal, float(chi2.sum()), n_values, int(est.identifiable.sum()))
+
+    def report(self, done: int, note: str) -> None:
+        """Progress: ``done`` of the folds + 1 fits of one model."""
+        if self.progress is not None:
+            self.progress(done, self.options.folds + 1, note)
+
+    def scored(self, model: EffectModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """Each pose's chi^2 (P,) under the reference noise model and spot distances
+        (P,L) in m (NaN where not measured) at x, and the measured values; by
+        blocks of poses (the Jacobian, for the joint-noise weights, of all poses
+        at once would grow with them)."""
+        chi2, dist, n_values = [], [], 0
+        for _, block in pose_blocks(model):
+            # A fold's fit of a candidate the fold cannot pin down may run off to sizes at
+            # which the model overflows: its prediction is infinitely wrong (paired_p
+            # rejects it), not a warning on the console.
+            with np.errstate(over="ignore", invalid="ignore"):
+                res = block.residuals(x, True)
+                white = np.einsum("pij,pj->pi", self.reference.whitener(res), res.r.reshape(len(res.r), -1))
+                pose_chi2 = (white ** 2).sum(axis=1)
+                norm = np.linalg.norm(res.r, axis=-1)
+            chi2.append(np.where(np.isfinite(pose_chi2), pose_chi2, np.inf))
+            dist.append(np.where(res.valid, np.where(np.isfinite(norm), norm, np.inf), np.nan))
+            n_values += count_values(res)
+        return np.concatenate(chi2), np.concatenate(dist), n_values
 
     def screen(self, current: Fitted, pool: Sequence[Effect]) -> list[tuple[Effect, float, float]]:
         """Linearised cross-validation of the current model plus each candidate:
         (effect, held-out chi^2 per measured value, held-out MSE in m^2), best first.
 
-        All candidates are evaluated in one joint model at the current fit with
+        The candidates are evaluated in joint models at the current fit with
         their parameters at 0; per fold, one least-squares solve in the current
         model's free parameters and the candidate's, on the training poses'
-        whitened rows, predicts the held-out poses' rows.
+        whitened rows, predicts the held-out poses' rows. The rows are never
+        stacked: per fold and block of poses they are folded into the
+        triangular factor R of [J | r] (QR), which has J's singular values, so
+        the solve on R's columns is the one on J's; the candidates go in
+        groups whose effect bases (per pose, the joint models hold them) fit
+        in SCREEN_BYTES.
         """
-        model = EffectModel(self.base, current.effects + tuple(pool))
-        x = np.concatenate([current.estimate.values, np.zeros(len(model.names) - len(current.model.names))])
-        res = model.residuals(x, True)
-        r_white, jac_white = whiten(res, self.reference.whitener(res))
-        jac_white = jac_white * model.scales
-        n_poses, dims = res.r.shape[0], res.r.shape[2]
-        raw_jac = res.jac.reshape(n_poses, -1, len(model.names)) * model.scales
-        raw_r = res.r.reshape(n_poses, -1)
-        valid = np.repeat(res.valid, dims, axis=1)
-        pose_of_row = np.repeat(np.arange(n_poses), raw_r.shape[1])
-        n_values = max(int(valid.sum()), 1)
-        # The current model's free parameters come first in the joint model's x, in the same places.
+        n_current = len(current.model.names)
         kept = list(np.flatnonzero(current.estimate.identifiable))
         out = []
-        for effect, block in zip(pool, model.blocks[len(current.effects):]):
-            columns = kept + list(range(model.n_geometric + block.start, model.n_geometric + block.stop))
-            chi2 = squared = 0.0
-            for k in range(self.options.folds):
-                held = self.fold == k
-                held_rows = held[pose_of_row]
-                step = np.linalg.lstsq(jac_white[~held_rows][:, columns], r_white[~held_rows], rcond=None)[0]
-                chi2 += float(((r_white[held_rows] - jac_white[held_rows][:, columns] @ step) ** 2).sum())
-                predicted = raw_r[held] - raw_jac[held][:, :, columns] @ step
-                squared += float((predicted[valid[held]] ** 2).sum())
-            out.append((effect, chi2 / n_values, squared / max(res.valid.sum(), 1)))
+        for group in screen_groups(current, pool):
+            model = EffectModel(self.base, current.effects + tuple(group))
+            x = np.concatenate([current.estimate.values, np.zeros(len(model.names) - n_current)])
+            white, raw, rows, n_values, n_units = self._factors(model, x)
+            # per fold: R of the training rows (all other folds), and the training rows' count
+            train = [(np.linalg.qr(np.vstack(white[:k] + white[k + 1:]), mode="r"),
+                      rows - rows * int((self.fold == k).sum()) // len(self.fold)) for k in range(len(white))]
+            for effect, block in zip(group, model.blocks[len(current.effects):]):
+                columns = kept + list(range(model.n_geometric + block.start, model.n_geometric + block.stop))
+                chi2 = squared = 0.0
+                for k, (factor, train_rows) in enumerate(train):
+                    # rcond as lstsq's default on the stacked training rows
+                    rcond = np.finfo(float).eps * max(train_rows, len(columns))
+                    step = np.linalg.lstsq(factor[:, columns], factor[:, -1], rcond=rcond)[0]
+                    chi2 += held_sum(white[k], columns, step)
+                    squared += held_sum(raw[k], columns, step)
+                out.append((effect, chi2 / max(n_values, 1), squared / max(n_units, 1)))
         return sorted(out, key=lambda item: item[1])
+
+    def _factors(self, model: EffectModel, x: np.ndarray) -> tuple[list, list, int, int, int]:
+        """Per fold, R of the whitened [J | r] and of the raw [J | r] (valid values
+        only), J in scaled parameters; all rows, measured values and measured units."""
+        n = len(model.names)
+        white = [np.zeros((0, n + 1)) for _ in range(self.options.folds)]
+        raw = [np.zeros((0, n + 1)) for _ in range(self.options.folds)]
+        rows = n_values = n_units = 0
+        for index, block in pose_blocks(model, SCREEN_POSES):
+            res = block.residuals(x, True)
+            r_white, jac_white = whiten(res, self.reference.whitener(res))
+            n_poses, per_pose = res.r.shape[0], res.r.shape[1] * res.r.shape[2]
+            valid = np.repeat(res.valid, res.r.shape[2], axis=1).ravel()
+            raw_rows = np.where(valid[:, None], np.hstack([res.jac.reshape(-1, n), res.r.reshape(-1, 1)]), 0.0)
+            white_rows = np.hstack([jac_white, r_white[:, None]])
+            fold = np.repeat(self.fold[index], per_pose)
+            for k in range(self.options.folds):
+                white[k] = np.linalg.qr(np.vstack([white[k], white_rows[fold == k]]), mode="r")
+                raw[k] = np.linalg.qr(np.vstack([raw[k], raw_rows[fold == k]]), mode="r")
+            rows += n_poses * per_pose
+            n_values += int(valid.sum())
+            n_units += int(res.valid.sum())
+        scale = np.append(model.scales, 1.0)
+        return [w * scale for w in white], [r * scale for r in raw], rows, n_values, n_units
+
+
+# Bytes of effect bases a joint model of the screen may hold (EffectModel keeps
+# them per pose for all its parameters): at 10,000 poses of the 7-DOF arm every
+# candidate fits in one model; at 200,000 they go in groups.
+SCREEN_BYTES = 256 * 2 ** 20
+SCREEN_POSES = 4096  # poses per block of the screen's joint models (their Jacobians, ~15 MB)
+
+
+def screen_groups(current: Fitted, pool: Sequence[Effect]) -> list[list[Effect]]:
+    """The pool in groups (in order) whose joint model's bases stay within SCREEN_BYTES."""
+    model = current.model
+    per_parameter = 8 * len(model.samples.q) * (model.samples.q.shape[1] + model.n_geometric)
+    room = max(SCREEN_BYTES // per_parameter - model.n_effect_params, 1)
+    groups, size = [[]], 0
+    for effect in pool:
+        if groups[-1] and size + len(effect.params) > room:
+            groups.append([])
+            size = 0
+        groups[-1].append(effect)
+        size += len(effect.params)
+    return [g for g in groups if g]
+
+
+def held_sum(factor: np.ndarray, columns: list[int], step: np.ndarray) -> float:
+    """||r - J[:, columns] step||^2 of the rows whose factor R of [J | r] is ``factor``."""
+    return float(np.sum((factor[:, -1] - factor[:, columns] @ step) ** 2))
 
 
 def paired_p(current: Fitted, candidate: Fitted) -> float:
@@ -138,6 +215,8 @@ def paired_p(current: Fitted, candidate: Fitted) -> float:
     tails short enough for the t test; it tests the mean, which is what the
     held-out error is (a rank test misses improvements concentrated in part
     of the poses)."""
+    if not np.isfinite(candidate.cv_chi2).all():
+        return 1.0  # a fold's fit diverged (Fitter.scored): its held-out error is not smaller
     difference = current.cv_chi2 - candidate.cv_chi2
     if len(difference) < 3 or not np.any(difference):
         return 1.0

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 from scipy import optimize
+from scipy.spatial import cKDTree
 
 from laser_calib.measurement.base import NoiseModel, Residuals
 from laser_calib.diagnosis.structure import Readings
@@ -22,12 +23,18 @@ REPEAT_TOLERANCE = 1e-4   # rad: readings this close count as the same pose
 
 
 def repeat_groups(q: np.ndarray) -> np.ndarray:
-    """(P,) group of each pose: poses whose readings agree within REPEAT_TOLERANCE."""
+    """(P,) group of each pose: poses whose readings agree within REPEAT_TOLERANCE.
+
+    In row order, a pose not yet grouped starts a group of itself and every
+    ungrouped pose within the tolerance of it; the neighbours come from a k-d
+    tree (max-norm ball), so the cost grows as P log P, not P^2."""
+    neighbours = cKDTree(q).query_ball_point(q, REPEAT_TOLERANCE, p=np.inf)
     group = -np.ones(len(q), int)
     n_groups = 0
     for p in range(len(q)):
         if group[p] < 0:
-            group[(np.abs(q - q[p]).max(axis=1) <= REPEAT_TOLERANCE) & (group < 0)] = n_groups
+            near = np.asarray(neighbours[p], int)
+            group[near[group[near] < 0]] = n_groups
             n_groups += 1
     return group
 

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
 
 EXPLAINED, STRUCTURE, UNDETERMINED = "explained", "structure remains", "undetermined"
 MIN_DETECTOR_POSES = 30   # below this the flexible detector sees only large structure
@@ -25,7 +26,10 @@ class DiagnoseOptions:
     restarts of LM for the geometric fit (estimation.EstimateOptions);
     compensate: keep the learned compensator when it wins held-out; nested:
     the held-out error of the whole procedure, selection inside the folds
-    (folds + 1 selections; the default of the library and the command line)."""
+    (folds + 1 selections; the default of the library and the command line); progress:
+    called as progress(done, total or None, note) after every fit
+    (estimation.lm.ProgressCallback; report.progress.Progress on the console),
+    not part of the diagnosis (not kept in its result)."""
 
     method: str = "lm"
     spot_sigma: float | None = None
@@ -38,6 +42,7 @@ class DiagnoseOptions:
     restarts: int = 6
     compensate: bool = True
     nested: bool = True
+    progress: Callable[[int, int | None, str], None] | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.spot_sigma is not None and not (math.isfinite(self.spot_sigma) and self.spot_sigma > 0):
