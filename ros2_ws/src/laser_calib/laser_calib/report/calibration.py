@@ -67,6 +67,7 @@ class Calibration:
         return {name: {"before": laser_stats(s.distances("nominal")), "after": laser_stats(s.distances("calibrated"))}
                 for name, s in self.sets.items()}
 
+    @cached_property
     def repeatability(self) -> dict:
         """ISO 9283 AP / RP (mm) of each laser's spot over the poses visited more than
         once, per set, the calibrated model's spot standing for the command."""
@@ -108,7 +109,7 @@ class Calibration:
             "chi2": est.fit.chi2,
             "dof": est.fit.dof,
             "spot_error": self.spot_error,
-            "iso9283_spot": self.repeatability(),
+            "iso9283_spot": self.repeatability,
             "iterations": est.fit.iterations,
             "converged": bool(est.fit.converged),
             "restarts": est.restarts,

@@ -27,19 +27,21 @@ def format_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(["set", "pose", "stamp"] + columns)
     for set_name, (pose, stamp, table) in sets.items():
-        for r in range(len(pose)):
-            writer.writerow([set_name, str(int(pose[r])), repr(float(stamp[r]))]
-                            + [_cell(table.get(c), r) for c in columns])
+        # column by column: one type test per column, not one per cell
+        cells = [[str(int(v)) for v in np.asarray(pose).tolist()],
+                 [repr(v) for v in np.asarray(stamp, float).tolist()]]
+        cells += [_cells(table.get(c), len(pose)) for c in columns]
+        writer.writerows([set_name, *row] for row in zip(*cells))
     return out.getvalue()
 
 
-def _cell(values: np.ndarray | None, r: int) -> str:
-    """Integer columns (fold indices) as integers; floats at full precision (repr)."""
+def _cells(values: np.ndarray | None, n_rows: int) -> list[str]:
+    """One column's fields: integer columns (fold indices) as integers, floats at full precision (repr)."""
     if values is None:
-        return ""
+        return [""] * n_rows
     if np.issubdtype(values.dtype, np.integer):
-        return str(int(values[r]))
-    return "" if math.isnan(values[r]) else repr(float(values[r]))
+        return [str(v) for v in values.tolist()]
+    return ["" if math.isnan(v) else repr(v) for v in values.astype(float).tolist()]
 
 
 def save_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]], path: str | Path) -> None:
