@@ -230,13 +230,18 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     rejected: list[tuple[int, int]] = []
     robust = None
     start_x = x0
+    least_squares = None  # a least-squares fit at the trial sigma, when the robust rule ran one
     if options.robust:
         outcome = robust_fit(model, noise, free, prior_sigma, x0, fit, excluded)
         rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
         if rejected:
             excluded = outcome.rejected if excluded is None else excluded | outcome.rejected
-        # The fits below start from x0 as without the robust rule: on clean data the
-        # result is least squares bit for bit, whichever front end ran it.
+        # Its final fit is least squares on the kept spots: the fits below start from its
+        # minimum (the same minimum as from x0, to the solver's tolerance, in a fraction of
+        # the iterations); with LM and no prior it is the sigma trial itself.
+        start_x = outcome.fit.x
+        if options.method == "lm" and prior_sigma is None:
+            least_squares = outcome.fit
         seen = model.residuals(x0, False).valid
         kept = int((seen if excluded is None else seen & ~excluded).sum())
         robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
@@ -253,7 +258,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma_estimated = options.spot_sigma is None
     if sigma_estimated:
-        trial = levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x, options.lm)
+        trial = least_squares or levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x,
+                                                     options.lm)
         sigma = TRIAL_SIGMA * float(np.sqrt(trial.chi2 / trial.dof))
         noise = NoiseModel(max(sigma, 1e-9), options.joint_sigma)
         start_x = trial.x
