@@ -19,6 +19,7 @@ import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
+import numpy as np
 import yaml
 
 from laser_calib.io.errors import InputError
@@ -65,6 +66,44 @@ def parse_number(cell: str, where: str) -> float:
     if abs(value) > MAX_MAGNITUDE:
         raise InputError(where, f"{text} is beyond {MAX_MAGNITUDE:.0e} (not a plausible SI value)")
     return value
+
+
+def number_column(cells: tuple[str, ...], may_be_empty: bool = False) -> np.ndarray | None:
+    """One CSV column (P,) as parse_number reads each field (NaN where empty, if
+    ``may_be_empty``), at C speed; None when any field would not pass, so that the
+    caller reads it field by field for the one line naming the field. float()
+    takes what the plain decimal notation takes, and also underscores and
+    nan / inf, which are refused here."""
+    if "_" in "".join(cells):
+        return None
+    try:
+        values = np.array(list(map(float, cells)))
+    except ValueError:  # an empty field, or no number
+        if not may_be_empty:
+            return None
+        try:
+            values = np.array([float(c) if c.strip() else np.nan for c in cells])
+        except ValueError:
+            return None
+    unfinite = ~np.isfinite(values)
+    if unfinite.any() and not (may_be_empty and all(not cells[i].strip() for i in np.flatnonzero(unfinite))):
+        return None   # nan or inf written out
+    if np.any(np.abs(values) > MAX_MAGNITUDE):
+        return None
+    return values
+
+
+def integer_column(cells: tuple[str, ...]) -> np.ndarray | None:
+    """One CSV column (P,) as parse_int reads each field, or None (number_column)."""
+    if "_" in "".join(cells) or max(map(len, (c.strip() for c in cells))) > 20:
+        return None
+    try:
+        values = list(map(int, cells))
+    except ValueError:
+        return None
+    if max(values) > MAX_ID or min(values) < -MAX_ID:
+        return None
+    return np.array(values, dtype=int)
 
 
 def parse_int(cell: str, where: str) -> int:
