@@ -36,7 +36,8 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
-from scipy.stats import chi2
+# chi^2 quantiles as scipy.stats.chi2 computes them (ppf, isf), without importing scipy.stats (seconds)
+from scipy.special import chdtri, gammaincinv
 
 from laser_calib.estimation.problem import Fit, Problem, pose_blocks
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
@@ -138,7 +139,7 @@ def cauchy_weights(d2: np.ndarray, scale: float, dims: int) -> np.ndarray:
 def mad_scale(d2: np.ndarray, use: np.ndarray, dims: int) -> float:
     """sqrt(median d^2 / median chi^2_D) over the units in ``use`` (P,C), at least MIN_SCALE."""
     values = d2[use]
-    scale = float(np.sqrt(np.median(values) / chi2.median(dims))) if values.size else 1.0
+    scale = float(np.sqrt(np.median(values) / (2 * gammaincinv(dims / 2, 0.5)))) if values.size else 1.0
     return max(scale, MIN_SCALE)
 
 
@@ -166,7 +167,7 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
         new = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
         converged = float(np.abs(new - weights).max(initial=0.0)) < WEIGHT_TOL
         weights = new
-    limit = chi2.isf(FAMILY_FALSE_REJECTION / max(int(use.sum()), 1), dims)
+    limit = chdtri(dims, FAMILY_FALSE_REJECTION / max(int(use.sum()), 1))
     candidates = use & (d2 / scale ** 2 > limit)
     inliers = use & ~candidates
     if inliers.any():  # judged by the inliers' own standard deviation (heavier tails than the MAD assumes)
