@@ -34,9 +34,9 @@ import numpy as np
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
-from laser_calib.estimation.problem import Fit, Problem, whitened_factor
+from laser_calib.estimation.problem import Fit, Problem, residuals_at, whitened_factor
 from laser_calib.estimation.robust import ROBUST_RULE, robust_fit
-from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, count_values
+from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel
 from laser_calib.measurement.frames import FRAMES
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
@@ -141,7 +141,7 @@ def impossible_spots(robot: Robot, samples: Samples, model: SpotModel) -> list[t
     seen = samples.seen
     out = []
     outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
-    nominal = model.residuals(np.zeros(len(model.names)), False)   # valid: the beam meets the screen plane ahead
+    nominal = residuals_at(model, np.zeros(len(model.names)))   # valid: the beam meets the screen plane ahead
     beyond = np.abs(nominal.predicted) - half * (1 + MISS_MARGIN)
     misses = seen & ~outside & ~(nominal.valid & (beyond <= 0).all(axis=2))
     for p, j in zip(*np.nonzero(outside)):
@@ -202,9 +202,11 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma = options.spot_sigma or TRIAL_SIGMA
     noise = NoiseModel(sigma, options.joint_sigma)
+    at_start = residuals_at(model, x0)
+    seen, dims = at_start.valid, at_start.r.shape[2]   # (P,C) the units measured at the start, D values each
     excluded = None
     if impossible:
-        excluded = np.zeros(model.residuals(x0, False).valid.shape, bool)
+        excluded = np.zeros(seen.shape, bool)
         for p, c, _ in impossible:
             excluded[p, c] = True
         warnings.append(f"{len(impossible)} physically impossible measurements refused, not fitted: "
@@ -242,7 +244,6 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         start_x = outcome.fit.x
         if options.method == "lm" and prior_sigma is None:
             least_squares = outcome.fit
-        seen = model.residuals(x0, False).valid
         kept = int((seen if excluded is None else seen & ~excluded).sum())
         robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
                   "weights_converged": outcome.converged, "rejected": len(rejected), "kept": kept}
@@ -288,8 +289,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         warnings.append(f"noise: the residual says {sigma * np.sqrt(result.chi2 / result.dof) * 1e3:.3g} mm per "
                         f"value, far below the given spot sigma {sigma * 1e3:.3g} mm (standard deviations are "
                         "overstated)")
-    start_res = Problem(model, noise, free, excluded=excluded).residuals(x0, False)
-    lost = (count_values(start_res) - result.n_values) // start_res.r.shape[2]
+    lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
     if lost > 0:
         warnings.append(f"the fit lost {lost} measurements: at the fitted errors their beams no longer reach the "
                         "screen, so the cost fell by dropping them; this minimum is not a calibration")

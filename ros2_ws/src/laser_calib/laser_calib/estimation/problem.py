@@ -61,6 +61,16 @@ def pose_blocks(model: MeasurementModel, chunk: int = CHUNK_POSES) -> Iterator[t
         yield index, model.subset(index)
 
 
+def residuals_at(model: MeasurementModel, x: np.ndarray, chunk: int = CHUNK_POSES) -> Residuals:
+    """The residuals of all poses at x without the Jacobians, evaluated block by
+    block (the model's transient arrays stay those of one block)."""
+    parts = [block.residuals(x, False) for _, block in pose_blocks(model, chunk)]
+    if len(parts) == 1:
+        return parts[0]
+    return Residuals(*(None if getattr(parts[0], f) is None else np.concatenate([getattr(r, f) for r in parts])
+                       for f in ("r", "valid", "jac", "jac_q", "predicted")))
+
+
 def whitened_factor(model: MeasurementModel, noise: NoiseModel, x: np.ndarray, excluded: np.ndarray | None = None,
                     chunk: int = CHUNK_POSES) -> tuple[np.ndarray, int]:
     """R (min(M,n),n) with R^T R = J^T J of the whitened Jacobian (M,n) of all
