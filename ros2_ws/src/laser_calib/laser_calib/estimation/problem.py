@@ -24,8 +24,9 @@ import numpy as np
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals, count_values, whiten
 
 # Poses per block: the Jacobians of one block of the 7-DOF arm (33 errors) take
-# ~10 MB, large enough that numpy's per-call overhead vanishes.
-CHUNK_POSES = 8192
+# ~2 MB, so a block's arrays stay in the caches, and numpy's per-call overhead
+# is still small (one evaluation of 20,000 poses: 83 ms at 2048, 116 ms at 8192).
+CHUNK_POSES = 2048
 
 
 @dataclass(frozen=True)
@@ -130,7 +131,9 @@ class Problem:
         the block of poses ``index``. The seam for reweighting (robust IRLS): a
         subclass that scales these rows changes what every solver minimises."""
         r, jac = whiten(res if jacobian else replace(res, jac=None), whitener)
-        return r, None if jac is None else jac[:, self.free] * self.scales
+        if jac is None:
+            return r, None
+        return r, (jac if self.free.all() else jac[:, self.free]) * self.scales
 
     def normal_equations(self, x: np.ndarray, weights: np.ndarray | None = None) -> Normal:
         """The normal equations at x under its own weights; with ``weights``
