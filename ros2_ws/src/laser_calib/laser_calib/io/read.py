@@ -68,6 +68,31 @@ def parse_number(cell: str, where: str) -> float:
     return value
 
 
+# A line whose first field is not a plain integer of at most 20 digits (the pose id).
+_NOT_AN_ID = re.compile(r"^(?![ \t]*[+-]?\d{1,20}[ \t]*,)", re.MULTILINE)
+
+
+def plain_table(text: str) -> tuple[str, np.ndarray] | None:
+    """The header line and every data field as a number (P, C) by numpy's C
+    reader, when the file is plain: no quotes, underscores or '\\r' in the data, every field
+    a finite number of plausible size, the first an integer id; else None (the
+    csv module and the checks per column or per field then read it, and name
+    the first bad field)."""
+    head, _, body = text.partition("\n")
+    body = body.rstrip("\n")
+    if not body or "\r" in head or any(mark in body for mark in '"_\r') or _NOT_AN_ID.search(body):
+        return None
+    try:
+        values = np.loadtxt(io.StringIO(body), delimiter=",", dtype=float, comments=None, ndmin=2)
+    except ValueError:  # an empty field, a word, a changing number of fields
+        return None
+    if (len(values) != body.count("\n") + 1                 # numpy skips blank lines, the csv module does not
+            or not np.isfinite(values).all() or np.any(np.abs(values) > MAX_MAGNITUDE)
+            or np.any(np.abs(values[:, 0]) > MAX_ID)):
+        return None
+    return head, values
+
+
 def number_column(cells: tuple[str, ...], may_be_empty: bool = False) -> np.ndarray | None:
     """One CSV column (P,) as parse_number reads each field (NaN where empty, if
     ``may_be_empty``), at C speed; None when any field would not pass, so that the

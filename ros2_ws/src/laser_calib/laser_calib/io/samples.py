@@ -17,10 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.io.errors import InputError
-from laser_calib.io.read import csv_rows, integer_column, number_column, parse_int, parse_number, read_text
+from laser_calib.io.read import (csv_rows, integer_column, number_column, parse_int, parse_number, plain_table,
+                              read_text)
 from laser_calib.model.robot import Robot
 
 SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
+HEADER = "pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z"
 
 
 @dataclass(frozen=True)
@@ -167,7 +169,10 @@ def check_all_or_none(block: np.ndarray, source: str, where: str, problem: str) 
 
 
 def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> Samples:
-    header, rows, n_q = read_table(text, source, "pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z")
+    plain = plain_table(text)
+    if plain is not None and [cell.strip() for cell in plain[0].split(",")][:2] != ["pose", "stamp"]:
+        plain = None  # the header is wrong: read_table names it as for any file
+    header, rows, n_q = read_table(text if plain is None else plain[0], source, HEADER)
     spot_cols = tuple(header[2 + n_q:6 + n_q])
     if spot_cols != SPOT_COLUMNS:
         missing = [c for c in SPOT_COLUMNS if c not in header]
@@ -178,7 +183,12 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
     if robot is not None and not robot.lasers:
         raise InputError(source, f"spot samples need the robot's lasers, but robot '{robot.name}' has no "
                                  "'lasers:' (add the two lasers' gamma, beta to its file)")
-    pose, values = parse_table(header, rows, source, SPOT_COLUMNS)
+    if plain is not None and plain[1].shape[1] == len(header) and np.all(np.diff(plain[1][:, 1]) > 0):
+        pose, values = plain[1][:, 0].astype(int), plain[1][:, 1:]
+    else:
+        if plain is not None:  # the header line alone was read: the whole file, field by field
+            header, rows, n_q = read_table(text, source, HEADER)
+        pose, values = parse_table(header, rows, source, SPOT_COLUMNS)
     n = len(pose)
     spots = values[:, 1 + n_q:5 + n_q].reshape(n, 2, 2)
     for j in range(2):
