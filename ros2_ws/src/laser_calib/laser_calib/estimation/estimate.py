@@ -10,7 +10,9 @@ estimate(robot, samples, options) runs, in order:
 2. robust (the default, robust.py): IRLS with the Cauchy loss and a MAD scale
    on the same Jacobians, then gross outliers rejected and listed;
 3. if no spot sigma is given, a fit estimates it from the residual
-   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used;
+   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used
+   (with the robust rule, LM and no prior, the rule's final least-squares fit
+   is that trial); the fits after the robust rule start from its minimum;
 4. identifiability again with the noise in use: a direction whose standard
    deviation exceeds STD_FACTOR times its tolerance scale is held too (not
    with the prior, which bounds every direction by its tolerance);
