@@ -11,8 +11,8 @@ estimate(robot, samples, options) runs, in order:
    on the same Jacobians, then gross outliers rejected and listed;
 3. if no spot sigma is given, a fit estimates it from the residual
    (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used
-   (with the robust rule, LM and no prior, the rule's final least-squares fit
-   is that trial); the fits after the robust rule start from its minimum;
+   (when the robust rule rejected spots, the fits after it start from its
+   final least-squares minimum, which with LM and no prior is that trial);
 4. identifiability again with the noise in use: a direction whose standard
    deviation exceeds STD_FACTOR times its tolerance scale is held too (not
    with the prior, which bounds every direction by its tolerance);
@@ -240,12 +240,15 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
         if rejected:
             excluded = outcome.rejected if excluded is None else excluded | outcome.rejected
-        # Its final fit is least squares on the kept spots: the fits below start from its
-        # minimum (the same minimum as from x0, to the solver's tolerance, in a fraction of
-        # the iterations); with LM and no prior it is the sigma trial itself.
-        start_x = outcome.fit.x
-        if options.method == "lm" and prior_sigma is None:
-            least_squares = outcome.fit
+        # Its final fit is least squares on the kept spots. With spots rejected, the fits
+        # below start from its minimum (in a fraction of the iterations from x0), and with
+        # LM and no prior it is the sigma trial itself. Without, they start from x0 as
+        # without the robust rule: on clean data the result is least squares bit for bit
+        # whichever front end ran it, robust or not.
+        if rejected:
+            start_x = outcome.fit.x
+            if options.method == "lm" and prior_sigma is None:
+                least_squares = outcome.fit
         kept = int((seen if excluded is None else seen & ~excluded).sum())
         robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
                   "weights_converged": outcome.converged, "rejected": len(rejected), "kept": kept}
