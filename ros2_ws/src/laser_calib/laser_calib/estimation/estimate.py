@@ -10,7 +10,9 @@ estimate(robot, samples, options) runs, in order:
 2. robust (the default, robust.py): IRLS with the Cauchy loss and a MAD scale
    on the same Jacobians, then gross outliers rejected and listed;
 3. if no spot sigma is given, a fit estimates it from the residual
-   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used;
+   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used
+   (when the robust rule rejected spots, the fits after it start from its
+   final least-squares minimum, which with LM and no prior is that trial);
 4. identifiability again with the noise in use: a direction whose standard
    deviation exceeds STD_FACTOR times its tolerance scale is held too (not
    with the prior, which bounds every direction by its tolerance);
@@ -34,9 +36,9 @@ import numpy as np
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
-from laser_calib.estimation.problem import Fit, Problem, whitened_factor
+from laser_calib.estimation.problem import Fit, Problem, residuals_at, whitened_factor
 from laser_calib.estimation.robust import ROBUST_RULE, robust_fit
-from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, count_values
+from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel
 from laser_calib.measurement.frames import FRAMES
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
@@ -141,7 +143,7 @@ def impossible_spots(robot: Robot, samples: Samples, model: SpotModel) -> list[t
     seen = samples.seen
     out = []
     outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
-    nominal = model.residuals(np.zeros(len(model.names)), False)   # valid: the beam meets the screen plane ahead
+    nominal = residuals_at(model, np.zeros(len(model.names)))   # valid: the beam meets the screen plane ahead
     beyond = np.abs(nominal.predicted) - half * (1 + MISS_MARGIN)
     misses = seen & ~outside & ~(nominal.valid & (beyond <= 0).all(axis=2))
     for p, j in zip(*np.nonzero(outside)):
@@ -202,9 +204,11 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma = options.spot_sigma or TRIAL_SIGMA
     noise = NoiseModel(sigma, options.joint_sigma)
+    at_start = residuals_at(model, x0)
+    seen, dims = at_start.valid, at_start.r.shape[2]   # (P,C) the units measured at the start, D values each
     excluded = None
     if impossible:
-        excluded = np.zeros(model.residuals(x0, False).valid.shape, bool)
+        excluded = np.zeros(seen.shape, bool)
         for p, c, _ in impossible:
             excluded[p, c] = True
         warnings.append(f"{len(impossible)} physically impossible measurements refused, not fitted: "
@@ -230,14 +234,21 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     rejected: list[tuple[int, int]] = []
     robust = None
     start_x = x0
+    least_squares = None  # a least-squares fit at the trial sigma, when the robust rule ran one
     if options.robust:
         outcome = robust_fit(model, noise, free, prior_sigma, x0, fit, excluded)
         rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
         if rejected:
             excluded = outcome.rejected if excluded is None else excluded | outcome.rejected
-        # The fits below start from x0 as without the robust rule: on clean data the
-        # result is least squares bit for bit, whichever front end ran it.
-        seen = model.residuals(x0, False).valid
+        # Its final fit is least squares on the kept spots. With spots rejected, the fits
+        # below start from its minimum (in a fraction of the iterations from x0), and with
+        # LM and no prior it is the sigma trial itself. Without, they start from x0 as
+        # without the robust rule: on clean data the result is least squares bit for bit
+        # whichever front end ran it, robust or not.
+        if rejected:
+            start_x = outcome.fit.x
+            if options.method == "lm" and prior_sigma is None:
+                least_squares = outcome.fit
         kept = int((seen if excluded is None else seen & ~excluded).sum())
         robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
                   "weights_converged": outcome.converged, "rejected": len(rejected), "kept": kept}
@@ -253,7 +264,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma_estimated = options.spot_sigma is None
     if sigma_estimated:
-        trial = levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x, options.lm)
+        trial = least_squares or levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x,
+                                                     options.lm)
         sigma = TRIAL_SIGMA * float(np.sqrt(trial.chi2 / trial.dof))
         noise = NoiseModel(max(sigma, 1e-9), options.joint_sigma)
         start_x = trial.x
@@ -282,8 +294,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         warnings.append(f"noise: the residual says {sigma * np.sqrt(result.chi2 / result.dof) * 1e3:.3g} mm per "
                         f"value, far below the given spot sigma {sigma * 1e3:.3g} mm (standard deviations are "
                         "overstated)")
-    start_res = Problem(model, noise, free, excluded=excluded).residuals(x0, False)
-    lost = (count_values(start_res) - result.n_values) // start_res.r.shape[2]
+    lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
     if lost > 0:
         warnings.append(f"the fit lost {lost} measurements: at the fitted errors their beams no longer reach the "
                         "screen, so the cost fell by dropping them; this minimum is not a calibration")

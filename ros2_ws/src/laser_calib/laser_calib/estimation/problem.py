@@ -24,8 +24,9 @@ import numpy as np
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals, count_values, whiten
 
 # Poses per block: the Jacobians of one block of the 7-DOF arm (33 errors) take
-# ~10 MB, large enough that numpy's per-call overhead vanishes.
-CHUNK_POSES = 8192
+# ~2 MB, so a block's arrays stay in the caches, and numpy's per-call overhead
+# is still small (one evaluation of 20,000 poses: 83 ms at 2048, 116 ms at 8192).
+CHUNK_POSES = 2048
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,16 @@ def pose_blocks(model: MeasurementModel, chunk: int = CHUNK_POSES) -> Iterator[t
     for start in range(0, total, chunk):
         index = slice(start, min(start + chunk, total))
         yield index, model.subset(index)
+
+
+def residuals_at(model: MeasurementModel, x: np.ndarray, chunk: int = CHUNK_POSES) -> Residuals:
+    """The residuals of all poses at x without the Jacobians, evaluated block by
+    block (the model's transient arrays stay those of one block)."""
+    parts = [block.residuals(x, False) for _, block in pose_blocks(model, chunk)]
+    if len(parts) == 1:
+        return parts[0]
+    return Residuals(*(None if getattr(parts[0], f) is None else np.concatenate([getattr(r, f) for r in parts])
+                       for f in ("r", "valid", "jac", "jac_q", "predicted")))
 
 
 def whitened_factor(model: MeasurementModel, noise: NoiseModel, x: np.ndarray, excluded: np.ndarray | None = None,
@@ -120,7 +131,9 @@ class Problem:
         the block of poses ``index``. The seam for reweighting (robust IRLS): a
         subclass that scales these rows changes what every solver minimises."""
         r, jac = whiten(res if jacobian else replace(res, jac=None), whitener)
-        return r, None if jac is None else jac[:, self.free] * self.scales
+        if jac is None:
+            return r, None
+        return r, (jac if self.free.all() else jac[:, self.free]) * self.scales
 
     def normal_equations(self, x: np.ndarray, weights: np.ndarray | None = None) -> Normal:
         """The normal equations at x under its own weights; with ``weights``

@@ -36,9 +36,10 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
-from scipy.stats import chi2
+# chi^2 quantiles as scipy.stats.chi2 computes them (ppf, isf), without importing scipy.stats (seconds)
+from scipy.special import chdtri, gammaincinv
 
-from laser_calib.estimation.problem import Fit, Problem
+from laser_calib.estimation.problem import Fit, Problem, pose_blocks
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
 
 CAUCHY_C = 2.385
@@ -118,6 +119,19 @@ def unit_distances(res: Residuals, noise: NoiseModel) -> np.ndarray:
     return np.where(res.valid, (z ** 2).sum(axis=2), 0.0)
 
 
+def distances_at(model: MeasurementModel, noise: NoiseModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """unit_distances (P,C) at x, the valid units (P,C) and the values per unit D, block by block of poses
+    (problem.pose_blocks): memory does not grow with the poses beyond these (P,C) arrays. Only joint noise
+    needs the Jacobian (its whitener); without it the model runs without."""
+    joint = bool(np.any(np.asarray(noise.joint_sigma) > 0))
+    d2, valid = [], []
+    for index, block in pose_blocks(model):
+        res = block.residuals(x, joint)
+        d2.append(unit_distances(res, noise.for_poses(index)))
+        valid.append(res.valid)
+    return np.concatenate(d2), np.concatenate(valid), res.r.shape[2]
+
+
 def cauchy_weights(d2: np.ndarray, scale: float, dims: int) -> np.ndarray:
     return 1.0 / (1.0 + d2 / (scale ** 2 * dims * CAUCHY_C ** 2))
 
@@ -125,7 +139,7 @@ def cauchy_weights(d2: np.ndarray, scale: float, dims: int) -> np.ndarray:
 def mad_scale(d2: np.ndarray, use: np.ndarray, dims: int) -> float:
     """sqrt(median d^2 / median chi^2_D) over the units in ``use`` (P,C), at least MIN_SCALE."""
     values = d2[use]
-    scale = float(np.sqrt(np.median(values) / chi2.median(dims))) if values.size else 1.0
+    scale = float(np.sqrt(np.median(values) / (2 * gammaincinv(dims / 2, 0.5)))) if values.size else 1.0
     return max(scale, MIN_SCALE)
 
 
@@ -135,11 +149,9 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
     """IRLS (module docstring) with any solver solve(problem, x_start) -> Fit.
     excluded (P,C): units already refused (impossible measurements)."""
     x = np.asarray(x0, float)
-    res = model.residuals(x, True)
-    excluded = np.zeros(res.valid.shape, bool) if excluded is None else excluded
-    use = res.valid & ~excluded
-    dims = res.r.shape[2]
-    d2 = unit_distances(res, noise)
+    d2, valid, dims = distances_at(model, noise, x)
+    excluded = np.zeros(valid.shape, bool) if excluded is None else excluded
+    use = valid & ~excluded
     scale = mad_scale(d2, use, dims)
     weights = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
     converged = False
@@ -150,12 +162,12 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
         weighted = WeightedNoise(noise.sigma, noise.joint_sigma, weights)
         fit = solve(Problem(model, weighted, free, prior_sigma, excluded), x)
         x = fit.x
-        d2 = unit_distances(model.residuals(x, True), noise)
+        d2 = distances_at(model, noise, x)[0]
         scale = mad_scale(d2, use, dims)
         new = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
         converged = float(np.abs(new - weights).max(initial=0.0)) < WEIGHT_TOL
         weights = new
-    limit = chi2.isf(FAMILY_FALSE_REJECTION / max(int(use.sum()), 1), dims)
+    limit = chdtri(dims, FAMILY_FALSE_REJECTION / max(int(use.sum()), 1))
     candidates = use & (d2 / scale ** 2 > limit)
     inliers = use & ~candidates
     if inliers.any():  # judged by the inliers' own standard deviation (heavier tails than the MAD assumes)

@@ -19,6 +19,7 @@ import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
+import numpy as np
 import yaml
 
 from laser_calib.io.errors import InputError
@@ -65,6 +66,69 @@ def parse_number(cell: str, where: str) -> float:
     if abs(value) > MAX_MAGNITUDE:
         raise InputError(where, f"{text} is beyond {MAX_MAGNITUDE:.0e} (not a plausible SI value)")
     return value
+
+
+# A line whose first field is not a plain integer of at most 20 digits (the pose id).
+_NOT_AN_ID = re.compile(r"^(?![ \t]*[+-]?\d{1,20}[ \t]*,)", re.MULTILINE)
+
+
+def plain_table(text: str) -> tuple[str, np.ndarray] | None:
+    """The header line and every data field as a number (P, C) by numpy's C
+    reader, when the file is plain: no quotes, underscores or '\\r' in the data, every field
+    a finite number of plausible size, the first an integer id; else None (the
+    csv module and the checks per column or per field then read it, and name
+    the first bad field)."""
+    head, _, body = text.partition("\n")
+    body = body.rstrip("\n")
+    if not body or "\r" in head or any(mark in body for mark in '"_\r') or _NOT_AN_ID.search(body):
+        return None
+    try:
+        values = np.loadtxt(io.StringIO(body), delimiter=",", dtype=float, comments=None, ndmin=2)
+    except ValueError:  # an empty field, a word, a changing number of fields
+        return None
+    if (len(values) != body.count("\n") + 1                 # numpy skips blank lines, the csv module does not
+            or not np.isfinite(values).all() or np.any(np.abs(values) > MAX_MAGNITUDE)
+            or np.any(np.abs(values[:, 0]) > MAX_ID)):
+        return None
+    return head, values
+
+
+def number_column(cells: tuple[str, ...], may_be_empty: bool = False) -> np.ndarray | None:
+    """One CSV column (P,) as parse_number reads each field (NaN where empty, if
+    ``may_be_empty``), at C speed; None when any field would not pass, so that the
+    caller reads it field by field for the one line naming the field. float()
+    takes what the plain decimal notation takes, and also underscores and
+    nan / inf, which are refused here."""
+    if "_" in "".join(cells):
+        return None
+    try:
+        values = np.array(list(map(float, cells)))
+    except ValueError:  # an empty field, or no number
+        if not may_be_empty:
+            return None
+        try:
+            values = np.array([float(c) if c.strip() else np.nan for c in cells])
+        except ValueError:
+            return None
+    unfinite = ~np.isfinite(values)
+    if unfinite.any() and not (may_be_empty and all(not cells[i].strip() for i in np.flatnonzero(unfinite))):
+        return None   # nan or inf written out
+    if np.any(np.abs(values) > MAX_MAGNITUDE):
+        return None
+    return values
+
+
+def integer_column(cells: tuple[str, ...]) -> np.ndarray | None:
+    """One CSV column (P,) as parse_int reads each field, or None (number_column)."""
+    if "_" in "".join(cells) or max(map(len, (c.strip() for c in cells))) > 20:
+        return None
+    try:
+        values = list(map(int, cells))
+    except ValueError:
+        return None
+    if max(values) > MAX_ID or min(values) < -MAX_ID:
+        return None
+    return np.array(values, dtype=int)
 
 
 def parse_int(cell: str, where: str) -> int:

@@ -17,10 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.io.errors import InputError
-from laser_calib.io.read import csv_rows, parse_int, parse_number, read_text
+from laser_calib.io.read import (csv_rows, integer_column, number_column, parse_int, parse_number, plain_table,
+                              read_text)
 from laser_calib.model.robot import Robot
 
 SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
+HEADER = "pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z"
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,10 @@ def parse_table(header: list[str], rows: list[list[str]], source: str,
     (column 1) must increase."""
     if not rows:
         raise InputError(source, "no sample rows after the header")
+    table = _columns(header, rows, may_be_empty)
+    if table is not None:
+        return table
+    # some field is wrong: field by field, for the one line that names the first
     pose = np.empty(len(rows), dtype=int)
     values = np.full((len(rows), len(header) - 1), np.nan)
     for r, row in enumerate(rows):
@@ -140,6 +146,20 @@ def parse_table(header: list[str], rows: list[list[str]], source: str,
     return pose, values
 
 
+def _columns(header: list[str], rows: list[list[str]],
+             may_be_empty: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+    """parse_table's result column by column at C speed, or None when any check
+    fails (the caller then finds and names the first bad field)."""
+    if any(len(row) != len(header) for row in rows):
+        return None
+    columns = list(zip(*rows))
+    pose = integer_column(columns[0])
+    values = [number_column(cells, name in may_be_empty) for name, cells in zip(header[1:], columns[1:])]
+    if pose is None or any(v is None for v in values) or not np.all(np.diff(values[0]) > 0):
+        return None
+    return pose, np.stack(values, axis=1)
+
+
 def check_all_or_none(block: np.ndarray, source: str, where: str, problem: str) -> None:
     """Each row of block (P,K) is either all measured or all empty; else one line
     '<source>: line L<where>: <problem>'."""
@@ -149,7 +169,10 @@ def check_all_or_none(block: np.ndarray, source: str, where: str, problem: str) 
 
 
 def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> Samples:
-    header, rows, n_q = read_table(text, source, "pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z")
+    plain = plain_table(text)
+    if plain is not None and [cell.strip() for cell in plain[0].split(",")][:2] != ["pose", "stamp"]:
+        plain = None  # the header is wrong: read_table names it as for any file
+    header, rows, n_q = read_table(text if plain is None else plain[0], source, HEADER)
     spot_cols = tuple(header[2 + n_q:6 + n_q])
     if spot_cols != SPOT_COLUMNS:
         missing = [c for c in SPOT_COLUMNS if c not in header]
@@ -160,7 +183,12 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
     if robot is not None and not robot.lasers:
         raise InputError(source, f"spot samples need the robot's lasers, but robot '{robot.name}' has no "
                                  "'lasers:' (add the two lasers' gamma, beta to its file)")
-    pose, values = parse_table(header, rows, source, SPOT_COLUMNS)
+    if plain is not None and plain[1].shape[1] == len(header) and np.all(np.diff(plain[1][:, 1]) > 0):
+        pose, values = plain[1][:, 0].astype(int), plain[1][:, 1:]
+    else:
+        if plain is not None:  # the header line alone was read: the whole file, field by field
+            header, rows, n_q = read_table(text, source, HEADER)
+        pose, values = parse_table(header, rows, source, SPOT_COLUMNS)
     n = len(pose)
     spots = values[:, 1 + n_q:5 + n_q].reshape(n, 2, 2)
     for j in range(2):

@@ -58,6 +58,8 @@ def spot_residuals(samples: Samples, predicted: np.ndarray, k: np.ndarray, jac: 
     r = np.where(valid[..., None], np.nan_to_num(samples.spots - predicted), 0.0)
     jac_q = None
     if jacobian:
-        jac = np.where(valid[..., None, None], np.nan_to_num(jac), 0.0)
+        jac = np.where(valid[..., None, None], jac, 0.0)
+        if not np.isfinite(jac).all():  # rare: scanning once costs less than nan_to_num's passes
+            jac = np.nan_to_num(jac)
         jac_q = joint_jacobian(robot, jac)
     return Residuals(r, valid, jac, jac_q, predicted)

@@ -97,27 +97,36 @@ def chain_ops(robot: Robot, tip: int = 0) -> list[Op]:
     return ops
 
 
-def _rotate(rotation: np.ndarray, axis: int | np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """rotation @ Rot(axis, angle) for stacks: rotation (P,3,3), angle (P,); axis
-    0/1/2 or a unit vector (3,) (Rodrigues)."""
-    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+def _rotate(rotation: np.ndarray, axis: int | np.ndarray, angle: np.ndarray | float) -> np.ndarray:
+    """rotation @ Rot(axis, angle) with the pose axis last: rotation (3,3,P)
+    (rotation[:, i] is column i, (3,P)), angle (P,) or a scalar; axis 0/1/2 or a
+    unit vector (3,) (Rodrigues)."""
+    c, s = np.cos(angle), np.sin(angle)
     if not isinstance(axis, int):
         k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-        turn = np.eye(3) + s[:, :, None] * k + (1 - c)[:, :, None] * (k @ k)
-        return rotation @ turn
-    out = rotation.copy()
+        turn = np.eye(3)[..., None] + np.multiply.outer(k, s) + np.multiply.outer(k @ k, 1 - c)   # (3,3,P)
+        return np.einsum("aip,ijp->ajp", rotation, np.broadcast_to(turn, (3, 3, rotation.shape[2])))
     i, j = {X: (1, 2), Y: (2, 0), Z: (0, 1)}[axis]
-    out[:, :, i] = c * rotation[:, :, i] + s * rotation[:, :, j]
-    out[:, :, j] = -s * rotation[:, :, i] + c * rotation[:, :, j]
+    out = rotation.copy()
+    out[:, i] = c * rotation[:, i] + s * rotation[:, j]
+    out[:, j] = -s * rotation[:, i] + c * rotation[:, j]
+    return out
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b along axis 1 of (K,3,P) stacks (np.cross moves the axis and copies twice)."""
+    out = np.empty_like(a)
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        np.subtract(a[:, j] * b[:, k], a[:, k] * b[:, j], out=out[:, i])
     return out
 
 
 def rot_x(angle: float) -> np.ndarray:
-    return _rotate(np.eye(3)[None], X, np.array([angle]))[0]
+    return _rotate(np.eye(3)[..., None], X, angle)[..., 0]
 
 
 def rot_y(angle: float) -> np.ndarray:
-    return _rotate(np.eye(3)[None], Y, np.array([angle]))[0]
+    return _rotate(np.eye(3)[..., None], Y, angle)[..., 0]
 
 
 @dataclass(frozen=True)
@@ -144,51 +153,65 @@ class ChainState:
 def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twists: bool = False,
             tip: int = 0) -> ChainState:
     """Forward kinematics at joint readings q (P,N) with errors (n,) or (P,n);
-    ``tip``: which tip of a tree of joint placements."""
+    ``tip``: which tip of a tree of joint placements.
+
+    One pass along the chain with the pose axis last (each component a
+    contiguous (P,) row, so an elementary transform is a few vector
+    operations), recording each transform's axis and origin for the twists;
+    the outputs are transposed to the pose-first shapes of ChainState."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     n_poses = q.shape[0]
-    params = np.broadcast_to(robot.vector(), (n_poses, robot.n_params)).copy()
-    if errors is not None:
-        params += errors
+    params = robot.vector() if errors is None else robot.vector() + np.asarray(errors, float)   # (n,) or (P,n)
+    readings = q.T                                                                              # (N,P)
 
-    rotation = np.broadcast_to(np.eye(3), (n_poses, 3, 3)).copy()
-    origin = np.zeros((n_poses, 3))
-    joint_origin = np.full((n_poses, robot.n_joints, 3), np.nan)
-    joint_axis = np.full((n_poses, robot.n_joints, 3), np.nan)
-    before = []  # (kind, axis u (P,3), origin o (P,3), index) for the twists
-    for op in chain_ops(robot, tip):
+    rotation = np.broadcast_to(np.eye(3)[..., None], (3, 3, n_poses))   # (3,3,P)
+    origin = np.zeros((3, n_poses))
+    joint_origin = np.full((robot.n_joints, 3, n_poses), np.nan)
+    joint_axis = np.full((robot.n_joints, 3, n_poses), np.nan)
+    ops = chain_ops(robot, tip)
+    # for the twists: each transform's axis u (3,P), each rotation's origin o before it (views: no array
+    # is changed in place)
+    axes: dict[int, list] = {TRANS: [], ROT: []}
+    bases = []
+    for op in ops:
         if op.kind == FIXED:
-            origin = origin + rotation @ op.fixed[:3, 3]
-            rotation = rotation @ op.fixed[:3, :3]
+            origin = origin + np.einsum("aip,i->ap", rotation, op.fixed[:3, 3])
+            rotation = np.einsum("aip,ij->ajp", rotation, op.fixed[:3, :3])
             continue
-        value = params[:, op.index]
+        value = params[..., op.index]
         if op.reading >= 0:
-            value = value + (op.multiplier * q[:, op.reading] + op.constant)
-        u = rotation[:, :, op.axis].copy() if isinstance(op.axis, int) else rotation @ op.axis
-        before.append((op.kind, u, origin.copy(), op.index))
+            value = value + (op.multiplier * readings[op.reading] + op.constant)
+        u = rotation[:, op.axis] if isinstance(op.axis, int) else np.einsum("aip,i->ap", rotation, op.axis)
+        axes[op.kind].append(u)
+        if op.kind == ROT:
+            bases.append(origin)
         if op.records:
-            joint_origin[:, op.reading] = origin
-            joint_axis[:, op.reading] = u
+            joint_origin[op.reading] = origin
+            joint_axis[op.reading] = u
         if op.kind == TRANS:
-            origin = origin + u * value[:, None]
+            origin = origin + u * value
         else:
             rotation = _rotate(rotation, op.axis, value)
 
     laser_rotations = [rot_x(g) @ rot_y(b) for g, b in robot.laser_angles()]
-    beams = np.stack([rotation @ r[:, 2] for r in laser_rotations] or [np.zeros((n_poses, 0, 3))], axis=1)
+    beams = np.stack([np.einsum("aip,i->pa", rotation, r[:, 2]) for r in laser_rotations]
+                     or [np.zeros((n_poses, 0, 3))], axis=1)
 
     jac1 = None
     if twists:
-        jac1 = np.zeros((n_poses, 6, robot.n_params))
-        trans = [index for kind, _, _, index in before if kind == TRANS]
-        rots = [index for kind, _, _, index in before if kind == ROT]
+        columns = np.zeros((robot.n_params, 6, n_poses))                  # Jac_1 with the pose axis last
+        trans = [op.index for op in ops if op.kind == TRANS]
+        rots = [op.index for op in ops if op.kind == ROT]
         if trans:
-            jac1[:, :3, trans] = np.stack([u for kind, u, _, _ in before if kind == TRANS], axis=-1)
-        u = np.stack([u for kind, u, _, _ in before if kind == ROT], axis=-1)          # (P,3,K)
-        lever = origin[:, :, None] - np.stack([o for kind, _, o, _ in before if kind == ROT], axis=-1)
-        jac1[:, :3, rots] = np.cross(u, lever, axis=1)
-        jac1[:, 3:, rots] = u
-    return ChainState(origin, rotation, beams, joint_origin, joint_axis, jac1)
+            columns[trans, :3] = np.stack(axes[TRANS])
+        u = np.stack(axes[ROT])                                            # (K,3,P)
+        lever = origin - np.stack(bases)                                   # p_laser - o
+        columns[rots, :3] = _cross(u, lever)
+        columns[rots, 3:] = u
+        jac1 = np.ascontiguousarray(columns.transpose(2, 1, 0))
+    return ChainState(origin.T.copy(), np.ascontiguousarray(rotation.transpose(2, 0, 1)), beams,
+                      np.ascontiguousarray(joint_origin.transpose(2, 0, 1)),
+                      np.ascontiguousarray(joint_axis.transpose(2, 0, 1)), jac1)
 
 
 @dataclass(frozen=True)

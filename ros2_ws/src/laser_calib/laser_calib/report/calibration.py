@@ -17,6 +17,7 @@ import numpy as np
 
 from laser_calib import __version__
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
+from laser_calib.estimation.problem import CHUNK_POSES
 from laser_calib.io.samples import Samples
 from laser_calib.model.kinematics import predict
 from laser_calib.model.robot import Robot
@@ -67,6 +68,7 @@ class Calibration:
         return {name: {"before": laser_stats(s.distances("nominal")), "after": laser_stats(s.distances("calibrated"))}
                 for name, s in self.sets.items()}
 
+    @cached_property
     def repeatability(self) -> dict:
         """ISO 9283 AP / RP (mm) of each laser's spot over the poses visited more than
         once, per set, the calibrated model's spot standing for the command."""
@@ -108,7 +110,7 @@ class Calibration:
             "chi2": est.fit.chi2,
             "dof": est.fit.dof,
             "spot_error": self.spot_error,
-            "iso9283_spot": self.repeatability(),
+            "iso9283_spot": self.repeatability,
             "iterations": est.fit.iterations,
             "converged": bool(est.fit.converged),
             "restarts": est.restarts,
@@ -137,8 +139,15 @@ def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None
     """Predict every set once with the nominal and the calibrated model."""
     values = est.values[:robot.n_params]
     sets = {"calibration": samples} | ({"test": test} if test is not None else {})
-    return {name: SetEvaluation(s, predict(robot, s.q).spots, predict(robot, s.q, values).spots)
+    return {name: SetEvaluation(s, predicted_spots(robot, s.q), predicted_spots(robot, s.q, values))
             for name, s in sets.items()}
+
+
+def predicted_spots(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None) -> np.ndarray:
+    """(P,2,2) the spots the model predicts at readings q (P,N), block by block of poses
+    (the chain's transient arrays stay those of one block)."""
+    return np.concatenate([predict(robot, q[start:start + CHUNK_POSES], errors).spots
+                           for start in range(0, max(len(q), 1), CHUNK_POSES)])
 
 
 def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Samples | None = None,

@@ -90,7 +90,7 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     if est.warnings:
         lines += ["**Warnings**", ""] + [f"- {w}" for w in est.warnings] + [""]
     lines += ["## Spot error (distance between measured and predicted spot)", ""] + stats_table(calibration.spot_error)
-    repeated = calibration.repeatability()
+    repeated = calibration.repeatability
     if repeated:
         lines += ["", "ISO 9283 on the spots of poses visited more than once (mm; AP: barycentre to the calibrated "
                   "model's spot, RP: repeatability):", "", "| set | laser | poses | AP mean | AP max | RP mean | RP max |",

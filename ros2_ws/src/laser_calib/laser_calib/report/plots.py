@@ -5,13 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from laser_calib.model.robot import Screen  # noqa: E402
+from laser_calib.model.robot import Screen
 
 # Most poses a scatter plot draws (drawn_poses).
 MAX_DRAWN = 3000
@@ -19,10 +15,18 @@ PANELS = (("link length a", "a"), ("link offset d", "d"), ("link twist alpha", "
           ("joint angle theta", "theta"), ("SLM", "slm"))
 
 
+def pyplot():
+    """matplotlib.pyplot without a display, imported when a plot is drawn (a second or more)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
 def save_figure(fig, path: Path, dpi: int = 90) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    pyplot().close(fig)
 
 
 def display_units(kinds: np.ndarray) -> np.ndarray:
@@ -52,7 +56,7 @@ def plot_convergence(history: np.ndarray, names: tuple[str, ...], kinds: np.ndar
     units = display_units(kinds)
     scaled = history * units
     panels = _panels(names)
-    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.4))
+    fig, axes = pyplot().subplots(1, len(panels), figsize=(4 * len(panels), 3.4))
     for ax, (title, member, unit) in zip(axes, panels):
         idx = [i for i, name in enumerate(names) if member(name)]
         for i in idx:
@@ -84,7 +88,7 @@ def plot_screen(screen: Screen, measured: np.ndarray, before: np.ndarray, after:
     n_poses = len(measured)
     drawn = drawn_poses(n_poses)
     measured, before, after = measured[drawn], before[drawn], after[drawn]
-    fig, ax = plt.subplots(figsize=(6, 6))
+    fig, ax = pyplot().subplots(figsize=(6, 6))
     for j, marker in enumerate(("o", "s")):
         ax.plot(measured[:, j, 0], measured[:, j, 1], marker, mfc="none", color="k", ms=6,
                 label=f"laser {j + 1} measured")
@@ -105,7 +109,7 @@ def plot_screen(screen: Screen, measured: np.ndarray, before: np.ndarray, after:
 
 def plot_histogram(groups: dict[str, np.ndarray], path: Path) -> None:
     """Histogram of spot distances (mm) per group, log-spaced bins."""
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, ax = pyplot().subplots(figsize=(6, 3.5))
     values = [v[np.isfinite(v)] * 1e3 for v in groups.values()]
     positive = np.concatenate([v[v > 0] for v in values]) if values else np.array([1.0])
     bins = np.logspace(np.log10(max(positive.min(), 1e-3)), np.log10(positive.max() * 1.01), 40)

@@ -19,31 +19,44 @@ import numpy as np
 from laser_calib.io.samples import Samples
 
 
+ROWS_AT_ONCE = 10000  # rows formatted at a time: the text of 10^5 poses is never held as Python strings
+
+
 def format_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]) -> str:
     """sets: name -> (pose (P,), stamp (P,), {column: (P,) values}); the header
     holds every set's columns, a set without a column leaves it empty."""
-    columns = list(dict.fromkeys(name for _, _, table in sets.values() for name in table))
     out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["set", "pose", "stamp"] + columns)
-    for set_name, (pose, stamp, table) in sets.items():
-        for r in range(len(pose)):
-            writer.writerow([set_name, str(int(pose[r])), repr(float(stamp[r]))]
-                            + [_cell(table.get(c), r) for c in columns])
+    write_pose_table(sets, out)
     return out.getvalue()
 
 
-def _cell(values: np.ndarray | None, r: int) -> str:
-    """Integer columns (fold indices) as integers; floats at full precision (repr)."""
+def write_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]], out) -> None:
+    """format_pose_table's text written to the text stream ``out``, ROWS_AT_ONCE rows at a time."""
+    columns = list(dict.fromkeys(name for _, _, table in sets.values() for name in table))
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["set", "pose", "stamp"] + columns)
+    for set_name, (pose, stamp, table) in sets.items():
+        for start in range(0, len(pose), ROWS_AT_ONCE):
+            rows = slice(start, start + ROWS_AT_ONCE)
+            # column by column: one type test per column, not one per cell
+            cells = [[str(int(v)) for v in np.asarray(pose[rows]).tolist()],
+                     [repr(v) for v in np.asarray(stamp[rows], float).tolist()]]
+            cells += [_cells(None if table.get(c) is None else table[c][rows], len(cells[0])) for c in columns]
+            writer.writerows([set_name, *row] for row in zip(*cells))
+
+
+def _cells(values: np.ndarray | None, n_rows: int) -> list[str]:
+    """One column's fields: integer columns (fold indices) as integers, floats at full precision (repr)."""
     if values is None:
-        return ""
+        return [""] * n_rows
     if np.issubdtype(values.dtype, np.integer):
-        return str(int(values[r]))
-    return "" if math.isnan(values[r]) else repr(float(values[r]))
+        return [str(v) for v in values.tolist()]
+    return ["" if math.isnan(v) else repr(v) for v in values.astype(float).tolist()]
 
 
 def save_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]], path: str | Path) -> None:
-    Path(path).write_text(format_pose_table(sets))
+    with open(path, "w", newline="") as out:
+        write_pose_table(sets, out)
 
 
 def spot_columns(samples: Samples, calibrated: np.ndarray, nominal: np.ndarray) -> dict[str, np.ndarray]:
