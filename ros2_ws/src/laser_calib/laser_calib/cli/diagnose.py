@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from laser_calib.cli.arguments import non_negative, non_negative_int, positive
-from laser_calib.diagnosis.engine import DiagnoseOptions, diagnose, write_outputs
+from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.model.robot_file import load_robot
 from laser_calib.io.samples import load_samples
@@ -18,6 +18,9 @@ from laser_calib.report.progress import Progress
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
+    # The engine pulls in scikit-learn and scipy.stats (0.8 s): only this command pays for them.
+    from laser_calib.diagnosis.engine import diagnose, write_outputs
+
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None

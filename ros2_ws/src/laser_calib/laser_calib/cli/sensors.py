@@ -29,7 +29,6 @@ from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
 from laser_calib.model.robot_file import load_robot, load_robot_description, save_robot
 from laser_calib.report.urdf_export import save_calibrated_urdf
-from laser_calib.diagnosis.sensor_data import diagnose, diagnose_options, heldout_effects
 from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings
 from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, calibrate, is_frame_param, kfold,
                                                make_model, pose_errors, sensor_of)
@@ -89,6 +88,9 @@ def _diagnosis(robot: Robot, samples: Samples, options: SensorFitOptions, folds:
     """The diagnosis engine on the samples (sensors.analysis.diagnose): its
     selection rounds, verdict and evidence, and per stage the k-fold held-out
     and in-sample mean position error (mm) of the calibration with its effects."""
+    # The engine pulls in scikit-learn and scipy.stats (0.8 s): only --diagnose pays for them.
+    from laser_calib.diagnosis.sensor_data import diagnose, diagnose_options, heldout_effects
+
     diagnosis = diagnose(robot, samples, options, diagnose_options(options, folds, seed))
     full = diagnosis.to_json()
     stages = []
