@@ -182,6 +182,10 @@ def test_command_line_writes_diagnosis_robot_and_report(tmp_path):
     assert result["heldout_nested"]["n"] == result["stages"][-1]["cv"]["n"]
     report = (out / "report.md").read_text()
     assert "![residual](residual.png)" in report and (out / "residual.png").exists()
+    # The chosen form's tests, in the report and the JSON (the 10 strongest, strongest first).
+    assert "## Specification of the chosen form" in report
+    adjusted = [v["p_adjusted"] for v in result["specification"]]
+    assert len(adjusted) == 10 and adjusted == sorted(adjusted)
     # The calibrated robot file predicts the test poses as the final model did.
     robot = load_robot(out / "robot_calibrated.yaml")
     assert robot.extra["effects"][0]["type"] == "backlash"
