@@ -19,6 +19,13 @@ outside the library, a joint error proportional to q^3 and a sudden step of a
 joint offset halfway through the session (expect "structure remains", and no
 added effect that worsens the test error).
 
+The foreign family (issue 13): six kinds outside the library the verdict's
+tests were designed around (FOREIGN) and two kinds added afterwards that were
+not (NEW_KINDS: a third harmonic of a joint's angle, a link offset pulled by a
+hose that winds with another joint), each at joints drawn per seed, reported
+apart. The summary counts the false alarms too: a verdict other than
+"explained" on a library case (the true model chosen) or on effect-free data.
+
     .venv/bin/python bench/effects_bench.py [--seeds 1] [--jobs 2]
 """
 
