@@ -19,13 +19,21 @@ outside the library, a joint error proportional to q^3 and a sudden step of a
 joint offset halfway through the session (expect "structure remains", and no
 added effect that worsens the test error).
 
-    .venv/bin/python bench/effects_bench.py [--seeds 1]
+The foreign family (issue 13): six kinds outside the library the verdict's
+tests were designed around (FOREIGN) and two kinds added afterwards that were
+not (NEW_KINDS: a third harmonic of a joint's angle, a link offset pulled by a
+hose that winds with another joint), each at joints drawn per seed, reported
+apart. The summary counts the false alarms too: "structure remains" on a
+library case or on effect-free data (and "undetermined" there, apart).
+
+    .venv/bin/python bench/effects_bench.py [--seeds 1] [--jobs 2]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import time
 from typing import Callable
 
@@ -175,8 +183,29 @@ def foreign_two_joint(robot: Robot, rng: np.random.Generator) -> ForeignError:
                         lambda r, s: _on(r, 4 * i + 3, np.sin(s.q[:, j]) * np.sin(s.q[:, i] + phase)))
 
 
+def foreign_harmonic(robot: Robot, rng: np.random.Generator) -> ForeignError:
+    """A third harmonic of the joint's own angle (a three-lobed wave generator): the library's periodic
+    effect has the first and second only."""
+    i, phase = int(rng.integers(robot.n_joints)), float(rng.uniform(0, 2 * np.pi))
+    return ForeignError(f"error of joint {i + 1} ~ sin(3 q{i + 1} + {phase:.2f})",
+                        lambda r, s: _on(r, 4 * i + 3, np.sin(3 * s.q[:, i] + phase)))
+
+
+def foreign_hose(robot: Robot, rng: np.random.Generator) -> ForeignError:
+    """A link offset d_i pulled by a hose that winds with another joint: a length varying with a joint angle."""
+    i, j = _two(rng, robot.n_joints)
+    phase = float(rng.uniform(0, 2 * np.pi))
+    return ForeignError(f"d{i + 1} ~ cos(q{j + 1} + {phase:.2f}) (hose pull)",
+                        lambda r, s: _on(r, 4 * i + 1, np.cos(s.q[:, j] + phase)))
+
+
 FOREIGN = {"f_coupling": foreign_coupling, "f_stiffness": foreign_stiffness, "f_polynomial": foreign_polynomial,
-           "f_step": foreign_step, "f_bending": foreign_bending, "f_two_joint": foreign_two_joint}
+           "f_step": foreign_step, "f_bending": foreign_bending, "f_two_joint": foreign_two_joint,
+           "f_harmonic": foreign_harmonic, "f_hose": foreign_hose}
+# Kinds added after the specification test (diagnosis/specification.py) was designed, and not used to
+# design it: its Legendre basis of degree 2 is not made for a third harmonic, nor its columns for a
+# length following a joint; reported apart from the six it was designed around.
+NEW_KINDS = ("f_harmonic", "f_hose")
 COMPENSATED_MARGIN = 1.25
 EXPLAINED_MARGIN = 1.3
 
@@ -290,11 +319,17 @@ def summary(rows: list[dict]) -> dict:
     foreign family (not "explained", never "explained" beyond 1.3x the true
     model's test RMS, compensated within 25 % of it)."""
     library = [r for r in rows if r["effect"] not in FOREIGN]
-    foreign = [r for r in rows if r["effect"] in FOREIGN]
     out = {"library_all_checks": [sum(all(r["checks"].values()) for r in library), len(library)]}
-    if foreign:
-        out.update({key: [sum(r["checks"][key] for r in foreign), len(foreign)]
-                    for key in ("not_explained", "honest", "compensated_within_25pct")})
+    # A false alarm: "structure remains" where the model is the true one; "undetermined" there is
+    # counted apart (the selection's rule: effects the data cannot tell apart, selection.ambiguous_verdict).
+    clean = [r for r in library if r["effect"] in PLACES[r["arm"]] or r["effect"] == "none"]
+    out["false_alarms"] = [sum(r["verdict"] == "structure remains" for r in clean), len(clean)]
+    out["clean_undetermined"] = [sum(r["verdict"] == "undetermined" for r in clean), len(clean)]
+    for prefix, group in (("", [r for r in rows if r["effect"] in FOREIGN and r["effect"] not in NEW_KINDS]),
+                          ("new_kinds_", [r for r in rows if r["effect"] in NEW_KINDS])):
+        if group:
+            out.update({prefix + key: [sum(r["checks"][key] for r in group), len(group)]
+                        for key in ("not_explained", "honest", "compensated_within_25pct")})
     return out
 
 
@@ -331,28 +366,35 @@ def payload(rows: list[dict], start: float) -> dict:
             "wall_time_s": time.perf_counter() - start, "cases": rows}
 
 
+def _case(job: tuple[str, str, str, int]) -> dict:
+    given, case, kind, seed = job
+    return run_case(case, kind, seed, given=given)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3, help="seeds per case (1, 2, ...)")
     parser.add_argument("--given", nargs="+", choices=("both", "spot", "none"), default=["both", "spot"],
                         help="noise given to diagnose: spot and joint sigma, spot sigma only, none")
     parser.add_argument("--kinds", nargs="+", help="only these simulated kinds (default: all)")
+    parser.add_argument("--jobs", type=int, default=1, help="cases run in parallel (processes)")
+    parser.add_argument("--name", default="effects", help="results file name in bench/results (NAME.md, .json)")
     args = parser.parse_args()
     rows = []
     start = time.perf_counter()
     kinds = args.kinds or list(FOREIGN) + ["none"] + list(PLACES["paper-7dof"]) + list(OUTSIDE)
-    for given in args.given:
-        for case in PLACES:
-            for kind in kinds:
-                for seed in range(1, args.seeds + 1):
-                    row = run_case(case, kind, seed, given=given)
-                    print(f"[{given}] {case} {kind} seed {seed}: chose {row['chosen'] or 'nothing'}, "
-                          f"{row['verdict']}, {row['time_s']:.1f} s, {row['checks']}", flush=True)
-                    rows.append(row)
-                    # Written after every case: a long run interrupted keeps what it measured.
-                    (RESULTS / "effects.json").write_text(json.dumps(payload(rows, start), indent=2))
-                    (RESULTS / "effects.md").write_text(table(rows))
-    write_results("effects", payload(rows, start), table(rows))
+    jobs = [(given, case, kind, seed) for given in args.given for case in PLACES for kind in kinds
+            for seed in range(1, args.seeds + 1)]
+    # Each case is seeded on its own, so the rows do not depend on --jobs (their times do: shared cores).
+    with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+        for (given, case, kind, seed), row in zip(jobs, pool.imap(_case, jobs)):
+            print(f"[{given}] {case} {kind} seed {seed}: chose {row['chosen'] or 'nothing'}, "
+                  f"{row['verdict']}, {row['time_s']:.1f} s, {row['checks']}", flush=True)
+            rows.append(row)
+            # Written after every case: a long run interrupted keeps what it measured.
+            (RESULTS / f"{args.name}.json").write_text(json.dumps(payload(rows, start), indent=2))
+            (RESULTS / f"{args.name}.md").write_text(table(rows))
+    write_results(args.name, payload(rows, start), table(rows))
 
 
 if __name__ == "__main__":

@@ -22,7 +22,9 @@ from laser_calib.effects.effect_model import EffectModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic, calibrated_model
 from laser_calib.effects.catalog import camera_distortion, screen_shape
-from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignJointError, draw_truth, effect_session, hooks, sized)
+from laser_calib.effects.joint import gravity_torques
+from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignError, ForeignJointError, draw_truth, effect_session, hooks,
+                                      sized)
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.samples import Samples, load_samples, save_samples
 from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
@@ -180,6 +182,10 @@ def test_command_line_writes_diagnosis_robot_and_report(tmp_path):
     assert result["heldout_nested"]["n"] == result["stages"][-1]["cv"]["n"]
     report = (out / "report.md").read_text()
     assert "![residual](residual.png)" in report and (out / "residual.png").exists()
+    # The chosen form's tests, in the report and the JSON (the 10 strongest, strongest first).
+    assert "## Specification of the chosen form" in report
+    adjusted = [v["p_adjusted"] for v in result["specification"]]
+    assert len(adjusted) == 10 and adjusted == sorted(adjusted)
     # The calibrated robot file predicts the test poses as the final model did.
     robot = load_robot(out / "robot_calibrated.yaml")
     assert robot.extra["effects"][0]["type"] == "backlash"
@@ -287,3 +293,26 @@ def test_untested_level_and_too_few_poses_for_the_detector_is_undetermined():
     diagnosis = diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma)
     assert diagnosis.verdict == UNDETERMINED, diagnosis.evidence
     assert "too few for the detector" in diagnosis.evidence
+
+
+def test_a_library_effect_standing_in_for_a_foreign_one_is_not_explained():
+    """Issue 13: a stiffness that changes with another joint's angle (a counterbalance
+    spring): compliance approximates it, the residual level passes, and the
+    specification test of the chosen form names the parameter that is not constant."""
+    def varying_stiffness(robot, samples):
+        offsets = np.zeros((len(samples.q), robot.n_params))
+        offsets[:, robot.param_names.index("theta4")] = gravity_torques(robot, samples.q)[:, 3] * (
+            1 + 0.8 * np.sin(samples.q[:, 0]))
+        return offsets
+
+    def make(robot, errors, context, rng):
+        return [sized(robot, errors, context, ForeignError("stiffness of joint 4 ~ q1", varying_stiffness),
+                      NOISE, VISIBLE)]
+
+    session = effect_session("paper-4dof", SEED, make, 80, 40, NOISE)
+    diagnosis = run(session)
+    assert diagnosis.verdict == STRUCTURE, diagnosis.evidence
+    top = diagnosis.specification[0]
+    assert top.p_adjusted < diagnosis.options.alpha, diagnosis.evidence
+    assert (top.parameter in ("theta4", "compliance4") and top.covariate == "q1"), top.sentence()
+    assert "varies with q1" in diagnosis.evidence

@@ -42,13 +42,16 @@ model cannot carry (screen and lens effects without spots) are dropped. It runs:
    residual), and a test of the residual level where the noise is known: a
    chi^2 test when spot and joint sigma are both given, else a lack-of-fit F
    test against the scatter of repeated poses when the data has any, else
-   none (and the evidence says so). "explained" when no test is significant
-   at alpha, "structure remains" otherwise, with the strongest test as
-   evidence.
-   The structure tests see every pose; the detector (and the compensator it
-   may give) sees at most DETECTOR_POSES of them (detector_rows): its cost
-   and memory grow with the poses times its basis (about 1,500 columns per
-   value), and its power at 5,000 poses is plenty for what it looks for.
+   none (and the evidence says so); the flexible detector (detector.py) and
+   the specification test of the chosen form (specification.py: does any
+   parameter of the final model vary with a covariate). "explained" when no
+   test is significant at alpha, "structure remains" otherwise, with the
+   strongest test as evidence.
+   The structure and specification tests see every pose; the detector (and
+   the compensator it may give) sees at most DETECTOR_POSES of them
+   (detector_rows): its cost and memory grow with the poses times its basis
+   (about 1,500 columns per value), and its power at 5,000 poses is plenty
+   for what it looks for.
 """
 
 from __future__ import annotations
@@ -66,6 +69,7 @@ from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
+from laser_calib.diagnosis.specification import covariate_table, specification_tests
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
@@ -205,7 +209,12 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     detection = detect(final.model.names, seen.residuals(final.estimate.values, True), detector_noise,
                        seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
                        fitter.fold if rows is None else fitter.fold[rows], options.seed)
-    verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha)
+    varying = specification_tests(final.model.names, final.estimate.identifiable,
+                                  final.model.residuals(final.estimate.values, True), noise_model,
+                                  covariate_table(samples.q, samples.stamp, dict(samples.extra)),
+                                  final.model.n_geometric)
+    verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha,
+                             varying)
     parameters = parameter_report(final, alternatives)
     verdict, said = ambiguous_verdict(verdict, said, parameters)
     compensator = compensated = None
@@ -216,7 +225,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
                      noise, before, after, verdict, said, parameters, replace(options, progress=None),
-                     time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested)
+                     time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested,
+                     tuple(varying))
 
 
 

@@ -140,6 +140,13 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
     for t in diagnosis.after.tests[:8]:
         lines.append(f"| {t.response} | {t.covariate} | {t.f:.3g} | {t.dof[0]}, {t.dof[1]} | {t.p_adjusted:.2g} | "
                      f"{t.eta2:.2f} |")
+    lines += ["", "## Specification of the chosen form", "",
+              "Does a parameter of the final model vary with a covariate (varying-coefficient F test, "
+              "diagnosis/specification.py; p weighted-Bonferroni-adjusted over every parameter and covariate):", "",
+              "| parameter | covariate | F | dof | p (adjusted) | share of the residual |", "|---|---|---|---|---|---|"]
+    for v in diagnosis.specification[:8]:
+        lines.append(f"| {v.parameter} | {v.covariate} | {v.f:.3g} | {v.dof[0]}, {v.dof[1]} | {v.p_adjusted:.2g} | "
+                     f"{100 * v.share:.1f} % |")
     return "\n".join(lines) + "\n"
 
 

@@ -11,6 +11,7 @@ import numpy as np
 from laser_calib.diagnosis.compensator import Compensator
 from laser_calib.diagnosis.detector import Detection
 from laser_calib.diagnosis.options import DiagnoseOptions
+from laser_calib.diagnosis.specification import Varying
 from laser_calib.diagnosis.structure import Readings, Series, Test
 from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_to_yaml
@@ -122,6 +123,7 @@ class Diagnosis:
     compensator: Compensator | None = None
     compensated_test: np.ndarray | None = None  # (P_test, L) m, the final model with the compensator
     nested: np.ndarray | None = None  # (P, L) m held out with the selection inside the folds (engine.nested_heldout)
+    specification: tuple[Varying, ...] = ()  # the chosen form's tests, strongest first (specification.py)
 
     @property
     def final(self) -> Fitted:
@@ -168,6 +170,9 @@ class Diagnosis:
             "detector": None if self.detection is None else {
                 "heldout_gain": self.detection.gain, "p": self.detection.p, "null_99": self.detection.null_99,
                 "importance": [{"input": n, "mse_increase": v, "std": s} for n, v, s in self.detection.importance]},
+            "specification": [{"parameter": v.parameter, "covariate": v.covariate, "F": v.f, "dof": list(v.dof),
+                               "p": v.p, "p_adjusted": v.p_adjusted, "share": v.share}
+                              for v in self.specification[:10]],
             "compensator": None if self.compensator is None else {
                 "heldout_gain": self.compensator.heldout_gain, "file": "compensator.json",
                 "targets": [t for t, u in zip(self.compensator.targets, self.compensator.used) if u],

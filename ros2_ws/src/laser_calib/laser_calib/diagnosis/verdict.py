@@ -14,6 +14,7 @@ from laser_calib.diagnosis.noise import noise_components, pure_error
 from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_REPEAT_DOF, NOISE_EXCESS, STRUCTURE,
                                            UNDETERMINED, DiagnoseOptions)
 from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo
+from laser_calib.diagnosis.specification import Varying
 from laser_calib.diagnosis.structure import Readings, pose_covariates, pose_responses, structure_tests
 from laser_calib.effects.base import positive_number
 from laser_calib.measurement.base import NoiseModel, whiten
@@ -82,8 +83,9 @@ def excess_noise(noise: NoiseInfo, rated: tuple[float | None, float | None]) -> 
 
 
 def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, rated: tuple[float | None, float | None],
-             n_poses: int, alpha: float) -> tuple[str, str]:
-    """The verdict and its evidence (engine docstring, 3.)."""
+             n_poses: int, alpha: float, varying: list[Varying] | tuple[Varying, ...] = ()) -> tuple[str, str]:
+    """The verdict and its evidence (engine docstring, 3.); varying: the
+    specification tests of the chosen form, strongest first (specification.py)."""
     tests = after.tests
     structure = bool(tests) and tests[0].p_adjusted < alpha
     level_fail = noise.level_p is not None and noise.level_p < alpha
@@ -108,10 +110,14 @@ def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, rated: tup
                      f"{'too few' if noise.repeat_dof else 'no'} repeated poses ({sigma_text}).")
     detected = detection.p <= alpha and detection.gain > 0
     parts.append(("Detector: " if detected else "Detector, nothing significant: ") + detection.sentence() + ".")
+    misspecified = bool(varying) and varying[0].p_adjusted < alpha
+    if varying:
+        parts.append(("Form: structure remains: " if misspecified else "Form, no parameter varies significantly; "
+                      "strongest: ") + varying[0].sentence() + f", {len(varying)} tests.")
     excess = excess_noise(noise, rated)
     if excess:
         parts.append(f"Noise: {excess}.")
-    if structure or level_fail or detected or excess:
+    if structure or level_fail or detected or excess or misspecified:
         return STRUCTURE, " ".join(parts)
     if noise.level_test is None and n_poses < MIN_DETECTOR_POSES:
         parts.append(f"Undetermined: the level is not tested and {n_poses} poses are too few for the detector "

@@ -1,0 +1,123 @@
+"""The specification test of the chosen model: does a parameter vary with a covariate?
+
+A library effect that approximates a foreign one (compliance for a stiffness
+that changes with another joint, periodic for a polynomial joint error, drift
+for a step in time) can bring the residual to the noise level, so a test of
+the level alone passes. What it leaves is a parameter of the model that is not
+constant: its effect on the measurements is the model's own Jacobian column
+modulated by a function of what the pose was measured with. The test (a
+varying-coefficient, RESET-like F test) asks that of every column of the final
+model (every identifiable geometric error and effect parameter) and every
+covariate (each joint reading, the stamp, every extra column such as the
+temperature):
+
+    y = W r (whitened residual, M values),  J = W d predicted / d x (M, k free columns)
+    Z = [J_j P1(u_c), J_j P2(u_c)]  (M, 2)  u_c the covariate mapped to [-1, 1] (per pose),
+                                            P1, P2 the Legendre polynomials of degree 1, 2
+    Z, y with the columns of J projected out;  F = (dSS / r) / ((SS - dSS) / (M - k - r))
+
+dSS the sum of squares of y the r independent columns of Z explain. F(r, M-k-r)
+under "the model is right" whatever the noise level (both sums scale alike), so
+it holds when a noise component is estimated. One test per (column, covariate)
+pair rather than one per covariate with every column at once: an error outside
+the library makes one parameter vary with one covariate, and a test with 2
+degrees of freedom sees it with a fraction of the chi^2 excess that one with 2k
+needs. The p-values are Bonferroni-adjusted, weighted: the columns of the
+effects the selection added (the chosen form, the prime suspect) get half of
+the family rate, shared by their pairs, the geometric errors the other half
+(all of it when no effect was added): the family rate of a false "structure
+remains" is at most the engine's alpha (1 %) either way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Mapping
+
+import numpy as np
+from scipy import stats
+
+from laser_calib.measurement.base import NoiseModel, Residuals, whiten
+
+MIN_SPREAD = 1e-9       # a covariate that does not vary is not a covariate
+RANK_TOLERANCE = 1e-4   # a column whose part outside the model's span is below this fraction of its norm adds nothing
+
+
+@dataclass(frozen=True)
+class Varying:
+    """One (column, covariate) test: F on dof, its p and Bonferroni-adjusted p,
+    and the fraction of the residual sum of squares the varying column explains."""
+
+    parameter: str
+    covariate: str
+    f: float
+    dof: tuple[int, int]
+    p: float
+    p_adjusted: float
+    share: float
+
+    def sentence(self) -> str:
+        return (f"{self.parameter} varies with {self.covariate} (varying-coefficient F = {self.f:.3g} on "
+                f"{self.dof[0]}, {self.dof[1]} dof, p = {self.p_adjusted:.2g} Bonferroni-adjusted, "
+                f"{100 * self.share:.1f} % of the residual sum of squares)")
+
+
+def covariate_table(q: np.ndarray, stamp: np.ndarray, extra: Mapping[str, np.ndarray]
+                    ) -> list[tuple[str, np.ndarray]]:
+    """The covariates (name, (P,) values) a parameter may vary with: q_i, stamp, every extra column."""
+    out = [(f"q{i + 1}", q[:, i]) for i in range(q.shape[1])] + [("stamp", np.asarray(stamp, float))]
+    out += [(name, np.asarray(values, float)) for name, values in extra.items()]
+    return [(name, values) for name, values in out if np.all(np.isfinite(values)) and np.ptp(values) > MIN_SPREAD]
+
+
+def legendre(values: np.ndarray) -> np.ndarray:
+    """(P,2) Legendre polynomials of degree 1 and 2 of the values mapped to [-1, 1]."""
+    u = 2.0 * (values - values.min()) / np.ptp(values) - 1.0
+    return np.stack([u, 1.5 * u ** 2 - 0.5], axis=1)
+
+
+def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: Residuals, noise: NoiseModel,
+                        covariates: list[tuple[str, np.ndarray]], n_geometric: int | None = None) -> list[Varying]:
+    """Every (column, covariate) test (module docstring) of a fit's residual res
+    (with jac at the fit), the model's parameter names and identifiable mask (n,),
+    under the noise model; the first n_geometric parameters are the geometric
+    errors, the rest the added effects' (None: all geometric); strongest first."""
+    n_poses = res.r.shape[0]
+    per_pose = res.r.shape[1] * res.r.shape[2]
+    y, jac = whiten(res, noise.whitener(res))
+    rows = np.repeat(res.valid, res.r.shape[2], axis=1).ravel()
+    pose = np.repeat(np.arange(n_poses), per_pose)[rows]
+    y, jac = y[rows], jac[rows][:, identifiable]
+    columns = [names[k] for k in np.flatnonzero(identifiable)]
+    norms = np.linalg.norm(jac, axis=0)
+    used = norms > 0
+    jac, columns = jac[:, used] / norms[used], [c for c, u in zip(columns, used) if u]
+    u, s, _ = np.linalg.svd(jac, full_matrices=False)
+    span = u[:, s > RANK_TOLERANCE * s.max()]                             # (M, k) orthonormal
+    y = y - span @ (span.T @ y)
+    total = float(y @ y)
+    n_values, k = len(y), span.shape[1]
+    found, effect = [], []
+    added = set(names[len(names) if n_geometric is None else n_geometric:])
+    for covariate, values in covariates:
+        modulation = legendre(values)[pose]                               # (M, 2)
+        for j, parameter in enumerate(columns):
+            z = jac[:, j:j + 1] * modulation
+            size = float(np.linalg.norm(z, axis=0).max())
+            z = z - span @ (span.T @ z)
+            basis, singular, _ = np.linalg.svd(z, full_matrices=False)
+            basis = basis[:, singular > RANK_TOLERANCE * size]
+            r = basis.shape[1]
+            dof = n_values - k - r
+            if r == 0 or dof < 1:
+                continue
+            explained = float(np.sum((basis.T @ y) ** 2))
+            f = (explained / r) / max((total - explained) / dof, 1e-300)
+            found.append(Varying(parameter, covariate, f, (r, dof), float(stats.f.sf(f, r, dof)), 1.0,
+                                 explained / max(total, 1e-300)))
+            effect.append(parameter in added)
+    n_effect = sum(effect)
+    families = 2 if 0 < n_effect < len(found) else 1
+    found = [replace(v, p_adjusted=min(1.0, v.p * families * (n_effect if e else len(found) - n_effect)))
+             for v, e in zip(found, effect)]
+    return sorted(found, key=lambda v: (v.p_adjusted, -v.f))
