@@ -145,3 +145,18 @@ def test_progress_restarts_its_rate_when_the_count_falls_back():
     progress._start -= 100.0
     progress(1, None)  # the next fit
     assert " 0 s elapsed" in stream.getvalue().splitlines()[-1]
+
+
+def test_progress_of_many_short_runs_still_prints_every_interval():
+    """The diagnosis restarts the count for every model, each run shorter than
+    the delay: the lines follow the step's clock, not each run's."""
+    stream = io.StringIO()
+    progress = Progress("diagnose", unit="fit", stream=stream, interval=10.0, delay=2.0)
+    for run in range(30):
+        for done in (1, 2, 3):
+            progress(done, 3)
+            progress._first -= 0.5  # half a second per fit: 45 s in all, 1.5 s per run
+            if progress._last_line is not None:
+                progress._last_line -= 0.5
+    lines = stream.getvalue().splitlines()
+    assert 4 <= len(lines) <= 6  # the first after 2 s, then one every 10 s of the 45

@@ -27,8 +27,9 @@ class Progress:
         self.interval, self.delay = interval, delay
         self.terminal = hasattr(self.stream, "isatty") and self.stream.isatty()
         self._bar: tqdm | None = None
-        self._start: float | None = None  # the first call: the rate counts from there
-        self._last_line = 0.0
+        self._first: float | None = None  # the step's first call
+        self._start: float | None = None  # the run's first call: the rate counts from there
+        self._last_line: float | None = None  # when the last plain line was written
         self._done = 0
 
     def __call__(self, done: int, total: int | None = None, note: str = "") -> None:
@@ -47,10 +48,15 @@ class Progress:
             self._bar.update(done - self._bar.n)  # update, not refresh: it keeps tqdm's delay and rate
             return
         now = time.monotonic()
+        if self._first is None:
+            self._first = now
         if self._start is None or restart:
-            self._start = self._last_line = now
-        first = self._last_line == self._start
-        if (first and now - self._start >= self.delay) or now - self._last_line >= self.interval:
+            self._start = now
+        # The clock of the lines is the whole step's, not the run's: a step of many
+        # short runs (the diagnosis's fits, each restarting the count) still gets a
+        # line every interval.
+        if (self._last_line is None and now - self._first >= self.delay) or (
+                self._last_line is not None and now - self._last_line >= self.interval):
             self._last_line = now
             self.stream.write(self.line(done, total, now - self._start, note) + "\n")
             self.stream.flush()
