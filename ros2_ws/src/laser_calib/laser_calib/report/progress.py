@@ -55,8 +55,8 @@ class Progress:
         # The clock of the lines is the whole step's, not the run's: a step of many
         # short runs (the diagnosis's fits, each restarting the count) still gets a
         # line every interval.
-        if (self._last_line is None and now - self._first >= self.delay) or (
-                self._last_line is not None and now - self._last_line >= self.interval):
+        since, wait = (self._first, self.delay) if self._last_line is None else (self._last_line, self.interval)
+        if now - since >= wait:
             self._last_line = now
             self.stream.write(self.line(done, total, now - self._start, note) + "\n")
             self.stream.flush()
