@@ -137,9 +137,10 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
     fitter = Fitter(data, options, "selection")
     fits, rounds, alternatives = select(fitter, candidate_pool(data, fitter, options, notes), options)
     nested = None
-    if options.nested and n_poses - math.ceil(n_poses / options.folds) < needed:
+    training = n_poses - math.ceil(n_poses / options.folds)  # poses of the smallest training part
+    if options.nested and training < needed:
         notes.append(f"no held-out error with the selection inside the folds: a training part of {n_poses} poses "
-                     f"holds {n_poses - math.ceil(n_poses / options.folds)}, the diagnosis needs {needed}")
+                     f"holds {training}, the diagnosis needs {needed}")
     elif options.nested:
         nested = nested_heldout(data, options)
     return finish(data, options, test, fitter, fits, rounds, alternatives, nested, notes, start)
@@ -206,11 +207,11 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     seen = final.model if rows is None else final.model.subset(rows)
     if options.progress is not None:
         options.progress(0, None, f"detector on {len(seen.samples.q)} poses")
-    detection = detect(final.model.names, seen.residuals(final.estimate.values, True), detector_noise,
-                       seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
+    final_res = final.model.residuals(final.estimate.values, True)
+    detection = detect(final.model.names, final_res if rows is None else seen.residuals(final.estimate.values, True),
+                       detector_noise, seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
                        fitter.fold if rows is None else fitter.fold[rows], options.seed)
-    varying = specification_tests(final.model.names, final.estimate.identifiable,
-                                  final.model.residuals(final.estimate.values, True), noise_model,
+    varying = specification_tests(final.model.names, final.estimate.identifiable, final_res, noise_model,
                                   covariate_table(samples.q, samples.stamp, dict(samples.extra)),
                                   final.model.n_geometric)
     verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha,

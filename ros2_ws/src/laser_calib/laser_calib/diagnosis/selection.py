@@ -29,7 +29,7 @@ from laser_calib.diagnosis.result import Fitted, Ranked
 from laser_calib.effects.base import Effect
 from laser_calib.effects.bounds import limit_of
 from laser_calib.effects.catalog import same_place
-from laser_calib.effects.screen import MAX_DEGREE, ScreenShape, ScreenSurface, Surface
+from laser_calib.effects.screen import MAX_DEGREE, ScreenShape, ScreenSurface
 
 # A parameter this correlated with another free one has no value of its own to
 # report, however small its standard error: a slight misfit moves it along the other.
@@ -97,27 +97,25 @@ def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
 def candidate_fit(fitter: Fitter, current: Fitted, effect: Effect, alpha: float) -> Fitted:
     """The current model plus the candidate, fitted from the current fit (the
     candidate's parameters at 0); a screen surface at the degree its held-out error chooses."""
-    if isinstance(effect, Surface):
+    if isinstance(effect, ScreenShape):
         return surface_ladder(fitter, current, effect, alpha)
+    return extended_fit(fitter, current, effect)
+
+
+def extended_fit(fitter: Fitter, current: Fitted, effect: Effect) -> Fitted:
+    """The current model plus ``effect``, fitted from the current fit (its parameters at 0)."""
     return fitter.fit(current.effects + (effect,),
                       np.concatenate([current.estimate.values, np.zeros(len(effect.params))]))
 
 
-def surface_ladder(fitter: Fitter, current: Fitted, start: Surface, alpha: float) -> Fitted:
+def surface_ladder(fitter: Fitter, current: Fitted, start: ScreenShape, alpha: float) -> Fitted:
     """The screen surface of the degree the folds choose: from the library's
     quadratic (degree 2) up, a degree is taken when its held-out chi^2 (the
     same folds as every model) is significantly below that of the degree taken
     so far over the poses (ranked_p < alpha) and lower in total, trying LOOK_AHEAD degrees past the last one taken,
     up to the degree whose coefficients the data holds VALUES_PER_COEFFICIENT
     values each for (at most MAX_DEGREE)."""
-
-    def fit(effect: Effect) -> Fitted:
-        return fitter.fit(current.effects + (effect,),
-                          np.concatenate([current.estimate.values, np.zeros(len(effect.params))]))
-
-    best = fit(start)
-    if not isinstance(start, ScreenShape):
-        return best
+    best = extended_fit(fitter, current, start)
     top = 2
     while top < MAX_DEGREE and (top + 2) * (top + 3) / 2 - 1 <= current.n_values / VALUES_PER_COEFFICIENT:
         top += 1
@@ -125,7 +123,7 @@ def surface_ladder(fitter: Fitter, current: Fitted, start: Surface, alpha: float
     for degree in range(3, top + 1):
         if degree - taken > LOOK_AHEAD:
             break
-        fitted = fit(ScreenSurface.make(fitter.base.samples.spots, degree))
+        fitted = extended_fit(fitter, current, ScreenSurface.make(fitter.base.samples.spots, degree))
         # Most poses predicted better (the rank test) and the held-out error itself lower: a
         # degree that wins most poses but fails badly where it extrapolates is not taken.
         if ranked_p(best, fitted) < alpha and fitted.cv_chi2.sum() < best.cv_chi2.sum():

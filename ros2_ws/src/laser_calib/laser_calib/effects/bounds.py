@@ -19,9 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from laser_calib.effects.base import Effect
+from laser_calib.effects.base import Effect, positive_number
 from laser_calib.io.errors import InputError
-from laser_calib.io.read import known_keys, yaml_number
+from laser_calib.io.read import known_keys
 from laser_calib.model.robot import Robot
 
 # Per kind: limits on |scale| (1), on each residual distortion coefficient (m at the
@@ -81,10 +81,7 @@ def limit_of(effect: Effect, robot: Robot, source: str = "robot") -> Limit | Non
         raise InputError(where, f"expected a mapping, got {type(given).__name__}")
     known_keys(where, given, tuple(KIND_LIMITS["unspecified"]))
     if quantity in given:
-        value = yaml_number(where, given, quantity)
-        if value <= 0:
-            raise InputError(f"{where}.{quantity}", "must be positive")
-        return Limit(value, "the robot file", quantity)
+        return Limit(positive_number(where, given, quantity), "the robot file", quantity)
     limits = {**KIND_LIMITS["unspecified"], **KIND_LIMITS[kind]}
     who = f"the {kind.replace('_', ' ')}" if kind != "unspecified" and quantity in KIND_LIMITS[kind] else \
         "any working sensor"
