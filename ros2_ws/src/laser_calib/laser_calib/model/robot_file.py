@@ -20,7 +20,7 @@ import yaml
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.model.robot import CONVENTIONS, PAPER, Joint, Laser, Robot, Screen, Slm
-from laser_calib.model.urdf import calibrated_urdf, is_urdf, robot_from_urdf, urdf_text
+from laser_calib.model.urdf import calibrated_urdf, is_urdf, load_urdf_robot, robot_from_urdf, urdf_text
 
 _KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "convention")
 # A URDF robot: the arm from the URDF text (a file, the text itself, or the node's topic).
@@ -209,7 +209,7 @@ def load_robot_description(path: str | Path, base: str | None = None, tip: Seque
     if is_urdf(path):
         if not base or not tip:
             raise InputError(str(path), "a URDF robot needs --base LINK and --tip LINK")
-        return robot_from_urdf(urdf_text(path), base, tip, str(path))
+        return load_urdf_robot(path, base, tip)
     if base or tip:
         raise InputError(str(path), "--base / --tip apply to a URDF or xacro robot only (a robot YAML names them "
                                     "with 'base:' and 'tip:')")
@@ -221,9 +221,9 @@ def robot_to_dict(robot: Robot) -> dict[str, Any]:
     if robot.chain is not None:  # its values folded into the joint origins: read back, the same robot
         tips = list(robot.chain.tip_links)
         data.update(base=robot.chain.base, tip=tips[0] if len(tips) == 1 else tips)
-    elif robot.convention != PAPER:
-        data["convention"] = robot.convention
-    if robot.chain is None:
+    else:
+        if robot.convention != PAPER:
+            data["convention"] = robot.convention
         data["joints"] = [
             {"a": j.a, "d": j.d, "alpha": j.alpha, "theta0": j.theta0, "min": j.min, "max": j.max}
             | ({"type": "prismatic"} if j.prismatic else {})

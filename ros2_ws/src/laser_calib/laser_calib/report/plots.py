@@ -12,7 +12,7 @@ from laser_calib.model.robot import Screen
 # Most poses a scatter plot draws (drawn_poses).
 MAX_DRAWN = 3000
 PANELS = (("link length a", "a"), ("link offset d", "d"), ("link twist alpha", "alpha"),
-          ("joint angle theta", "theta"), ("SLM", "slm"))
+          ("joint angle theta", "theta"))
 
 
 def pyplot():
@@ -46,7 +46,7 @@ def _panels(names: tuple[str, ...]) -> list[tuple[str, Callable[[str], bool], st
                   ("placement rx, ry, rz", lambda n: suffix(n) in ("rx", "ry", "rz"), "deg")]
     else:
         groups = [(title, lambda n, p=prefix: n.rstrip("0123456789") == p, "mm" if prefix in ("a", "d") else "deg")
-                  for title, prefix in PANELS if prefix != "slm"]
+                  for title, prefix in PANELS]
     return groups + [("SLM", lambda n: n.startswith("slm"), "mm / deg")]
 
 

@@ -69,9 +69,9 @@ def iso9283(pose: np.ndarray, measured: np.ndarray, predicted: np.ndarray, facto
         return None
     rows, group = rows[repeated], group[repeated]
     order = np.argsort(group, kind="stable")
-    rows, group = rows[order], np.unique(group[order], return_inverse=True)[1]
-    counts = np.bincount(group)                                     # (G,) visits per repeated pose
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rows = rows[order]
+    # relabelled 0..G-1 over the sorted visits: (G,) first visit and visits per repeated pose
+    _, starts, group, counts = np.unique(group[order], return_index=True, return_inverse=True, return_counts=True)
 
     def group_mean(values: np.ndarray) -> np.ndarray:               # (V,K) -> (G,K)
         return np.add.reduceat(values, starts, axis=0) / counts[:, None]
