@@ -30,6 +30,10 @@ PARAMS = ROOT / "config" / "session.yaml"
 CLIENT = Path(__file__).resolve().parent / "ros_client.py"
 NODES = ("arm_driver", "camera_sim", "spot_detector", "sequencer", "estimator", "replay")
 
+# Ctrl-C to exit, s: generous for eight Python processes shutting down at once on two loaded
+# cores; a node that hangs on Ctrl-C still fails
+STOP_TIMEOUT = 30.0
+
 _domains = itertools.count(random.Random(os.getpid()).randrange(0, 40) * 5)
 
 
@@ -71,10 +75,13 @@ class Ros:
         self.tmp = tmp
         self.domain = 10 + next(_domains) % 200
         self.env = workspace_env()
+        # PYTHONFAULTHANDLER: a node that does not exit on Ctrl-C is aborted (SIGABRT) before it is
+        # killed, so its log shows where each of its threads was stuck
         self.env.update(ROS_DOMAIN_ID=str(self.domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                        PYTHONUNBUFFERED="1")
+                        PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1")
         self.procs: dict[str, subprocess.Popen] = {}
         self.logs: dict[str, Path] = {}
+        self.ros2_used = False  # the ros2 command line starts a daemon on this domain, stopped at the end
 
     def start(self, name: str, *ros_args: str, node: str | None = None, params: bool = True) -> subprocess.Popen:
         """Start an executable with --ros-args (the session parameter file first)."""
@@ -85,6 +92,7 @@ class Ros:
     def start_command(self, name: str, args: list[str]) -> subprocess.Popen:
         """Start any command (`ros2 launch ...`) as a terminal starts a job: its own process
         group, which stop() signals as a whole, as Ctrl-C does."""
+        self.ros2_used |= args[0] == "ros2"
         log = self.tmp / f"{name}.log"
         handle = open(log, "ab")
         proc = subprocess.Popen(args, env=self.env, stdout=handle, stderr=subprocess.STDOUT, start_new_session=True)
@@ -100,6 +108,7 @@ class Ros:
             pass
 
     def run(self, args: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
+        self.ros2_used |= args[0] == "ros2"
         return subprocess.run(args, env=self.env, capture_output=True, text=True, timeout=timeout)
 
     def client(self, *args: str, timeout: float = 150) -> dict:
@@ -116,31 +125,42 @@ class Ros:
         except subprocess.TimeoutExpired:
             pytest.fail(f"{name} still running after {timeout} s; its log:\n{self.log(name)[-3000:]}")
 
-    def stop(self, name: str, timeout: float = 10.0) -> int:
-        """SIGINT (Ctrl-C) and the exit code; SIGKILL if it does not exit."""
+    def stop(self, name: str, timeout: float = STOP_TIMEOUT) -> int:
+        """SIGINT (Ctrl-C) and the exit code; aborted, then killed, if it does not exit."""
         proc = self.procs[name]
         if proc.poll() is None:
             self.interrupt(name)
-            try:
-                proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            self._wait_or_abort(name, time.monotonic() + timeout)
         return proc.returncode
 
     def stop_all(self) -> dict[str, int]:
+        """Ctrl-C to every job at once, as a terminal closing a session; the exit codes."""
         for name, proc in self.procs.items():
             if proc.poll() is None:
                 self.interrupt(name)
-        deadline = time.monotonic() + 10
-        codes = {}
-        for name, proc in self.procs.items():
-            try:
-                codes[name] = proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                codes[name] = proc.wait()
+        deadline = time.monotonic() + STOP_TIMEOUT
+        codes = {name: self._wait_or_abort(name, deadline) for name in self.procs}
+        if self.ros2_used:
+            subprocess.run(["ros2", "daemon", "stop"], env=self.env, capture_output=True, timeout=60)
+            self.ros2_used = False
         return codes
+
+    def _wait_or_abort(self, name: str, deadline: float) -> int:
+        """The exit code by the deadline; else SIGABRT to the job's group (the Python fault
+        handler writes every thread's stack to the log), then SIGKILL."""
+        proc = self.procs[name]
+        try:
+            return proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            for sig in (signal.SIGABRT, signal.SIGKILL):
+                try:
+                    os.killpg(proc.pid, sig)
+                    return proc.wait(timeout=5)
+                except ProcessLookupError:
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
+            return proc.wait()
 
 
 def start_sim(ros: Ros, out: Path, speed: float = 4.0) -> None:

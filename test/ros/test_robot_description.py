@@ -35,6 +35,7 @@ def test_estimator_estimates_with_the_robot_of_robot_description(ros, tmp_path):
     if reason:
         pytest.skip(reason)
     from laser_calib.cli.main import main
+    from laser_calib.io.samples import load_samples, save_samples
     from laser_calib.model.robot_file import load_robot, robot_from_dict
 
     sim = tmp_path / "sim"
@@ -45,13 +46,20 @@ def test_estimator_estimates_with_the_robot_of_robot_description(ros, tmp_path):
     ros.start_command("estimator", ["ros2", "run", "laser_calib_nodes", "estimator", "--ros-args",
                                     "--params-file", str(PARAMS), "-p", f"robot:={lasers}",
                                     "-p", "robot_description_topic:=/robot_description"])
-    out = ros.client("estimate-csv", str(sim / "case3_cal.csv"))
+    # one gross outlier (pose 7, laser 1, 50 mm off): the service's default request is the
+    # robust fit of the command line and the sequencer, which rejects and lists it
+    samples = load_samples(sim / "case3_cal.csv")
+    samples.spots[7, 0, 0] += 0.050
+    save_samples(samples, tmp_path / "with_outlier.csv")
+    out = ros.client("estimate-csv", str(tmp_path / "with_outlier.csv"))
     assert out["success"], out["message"]
+    result = json.loads(out["result_json"])
+    assert result["robust"] and {"pose": 7, "laser": 1} in result["rejected_spots"], result["rejected_spots"]
     # the URDF robot's parameters (7 per joint placement, then the SLM's), not the D-H file's
     assert out["names"] == list(urdf_robot.param_names)
     assert out["sample_count"] == 60
     assert all(after < before / 10 for before, after in zip(out["before_mean"], out["after_mean"]))
-    assert "with the URDF of /robot_description" in json.loads(out["result_json"])["inputs"]["robot"]
+    assert "with the URDF of /robot_description" in result["inputs"]["robot"]
     calibrated = robot_from_dict(yaml.safe_load(out["calibrated_robot_yaml"]))
     assert calibrated.chain is not None and calibrated.chain.tip_links == ("link7_theta",)
     log = ros.log("estimator")

@@ -152,7 +152,7 @@ def test_replay_and_bag_estimate_agree_with_live(session):
 
     # laser-calib estimate --bag: the ROS-free bag reader into the command line's pipeline
     robot = load_robot(out / "robot.yaml")
-    outcome = run_calibration(robot, bag.read_samples(out / "bag"), estimate_options("lm", 0.0, False, False), None)
+    outcome = run_calibration(robot, bag.read_samples(out / "bag"), estimate_options("lm", 0.0, False, True), None)
     from_bag = list(outcome.calibration.estimate.errors)
     assert close(from_bag, live_errors)
 
