@@ -9,6 +9,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -25,6 +26,7 @@ from laser_calib.model.robot_file import load_robot
 
 from laser_calib.io import bag
 from laser_calib_nodes import graph
+from laser_calib_nodes.shutdown import ExitWatchdog
 
 # Topic and service names (relative: a namespace or a remap moves them).
 JOINT_STATES = "joint_states"
@@ -254,6 +256,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     traceback); a NodeError's code; 1 unexpected errors.
     """
     graph.die_with_parent()
+    watchdog = ExitWatchdog(Path(sys.argv[0]).name)
     # rclpy's signal handlers call the one installed before rclpy.init: this one notes the
     # signal, so that an error it causes inside rclpy (a KeyboardInterrupt while a large
     # message is converted surfaces as RuntimeError) is taken for the stop it is.
@@ -262,6 +265,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     def on_signal(signum, _frame):
         first = not stopped.is_set()
         stopped.set()
+        watchdog.arm()
         if first and signum == signal.SIGINT:  # a second Ctrl-C must not break the cleanup
             raise KeyboardInterrupt
 
@@ -297,12 +301,14 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         code = 2
     except Exception:
         if rclpy.ok() and not stopped.is_set():
+            code = 1
             raise
         code = 0  # Ctrl-C/SIGTERM under a running callback (a publish, a message being taken)
     finally:
         # A terminal's Ctrl-C reaches a node under `ros2 launch` twice (from the terminal and from
         # launch); once shutting down, a second one must not break the cleanup with a traceback.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        watchdog.cleanup_started()
         if node is not None:
             close = getattr(node, "close", None)
             try:
@@ -310,6 +316,8 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
                     close()
             except Exception as exc:  # cleanup must not hide the exit code
                 print(f"warning: cleanup of {node.get_name()} failed: {exc}", file=sys.stderr, flush=True)
+        watchdog.cleanup_done(code)
+        if node is not None:
             node.destroy_node()
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)

@@ -1,0 +1,55 @@
+"""The bound on the time from Ctrl-C to exit (laser_calib_nodes/shutdown.py), each case in
+its own process: a node stuck before its cleanup ends with its stacks and code 1; a
+middleware teardown that hangs after the cleanup ends with the node's code; a slow cleanup
+(saving what was measured) is never cut."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from ros_harness import ROOT
+
+NODES = ROOT / "ros2_ws" / "src" / "laser_calib_nodes"
+
+PROGRAM = """
+import sys, threading, time
+sys.path.insert(0, {nodes!r})
+from laser_calib_nodes.shutdown import ExitWatchdog
+watchdog = ExitWatchdog("test_node", grace=0.5)
+{body}
+threading.Event().wait()  # hung
+"""
+
+
+def run(body: str) -> subprocess.CompletedProcess:
+    program = PROGRAM.format(nodes=str(NODES), body=textwrap.dedent(body))
+    return subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=30)
+
+
+def test_stuck_before_the_cleanup_prints_the_stacks_and_exits_1():
+    result = run("watchdog.arm()")
+    assert result.returncode == 1
+    assert "error: test_node did not exit within 0.5 s of the stop signal; its threads:" in result.stderr
+    assert "Thread" in result.stderr and "line" in result.stderr, result.stderr  # the fault handler's stacks
+
+
+@pytest.mark.parametrize("code", [0, 2])
+def test_a_teardown_that_hangs_after_the_cleanup_exits_with_the_nodes_code(code):
+    result = run(f"watchdog.arm(); watchdog.cleanup_started(); watchdog.cleanup_done({code})")
+    assert result.returncode == code
+    assert "teardown did not finish within 0.5 s; exiting without it" in result.stderr, result.stderr
+
+
+def test_a_slow_cleanup_is_never_cut():
+    result = run("""
+        watchdog.arm(); watchdog.cleanup_started()
+        time.sleep(2.0)  # four times the grace, saving
+        print("saved", flush=True)
+        watchdog.cleanup_done(0)
+    """)
+    assert result.returncode == 0 and "saved" in result.stdout, result
+    assert "did not exit" not in result.stderr, result.stderr
