@@ -209,6 +209,18 @@ def test_ros2_run_service_param_and_topics(tmp_path):
         assert "0.001" in ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin).stdout
         read_only = ros2(ros, "param", "set", "/estimator", "robot", "x.yaml")
         assert "read-only" in (read_only.stdout + read_only.stderr).lower(), read_only
+        # the detector's threshold is tuned while the camera runs; a bad value changes nothing
+        assert "Set parameter successful" in ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "30").stdout
+        refused = ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "0.0")
+        assert "expected > 0" in refused.stdout + refused.stderr, refused
+        assert "30" in ros2(ros, "param", "get", "/spot_detector", "min_peak_dn", *spin).stdout
+        spots = ["topic", "echo", "--once", "/spots", "laser_calib_interfaces/msg/SpotPair"]
+        seen = ros2(ros, *spots, timeout=60)
+        assert seen.returncode == 0 and seen.stdout.count("seen: true") == 2, seen
+        assert "Set parameter successful" in ros2(ros, "param", "set", "/spot_detector", "min_peak_dn",
+                                                  "1000000.0").stdout
+        unseen = ros2(ros, *spots, timeout=60)  # a frame after the set: no contrast is that high
+        assert unseen.returncode == 0 and unseen.stdout.count("seen: false") == 2, unseen
         # private service names
         reset = ros2(ros, "service", "call", "/estimator/reset", "std_srvs/srv/Trigger")
         assert reset.returncode == 0 and "success=True" in reset.stdout, reset

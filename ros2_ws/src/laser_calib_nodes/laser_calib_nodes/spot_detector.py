@@ -54,7 +54,9 @@ class SpotDetectorNode(Node):
                                     "empty: the exact calibration of the simulated camera.")
         half_y = d("screen.half_y", 1.0, "Measuring area half width, m (robot file 'screen').")
         half_z = d("screen.half_z", 1.0, "Measuring area half height, m (robot file 'screen').")
-        min_peak = d("min_peak_dn", DetectorOptions().min_peak_dn, "Least smoothed colour contrast of a spot, DN.")
+        min_peak = d("min_peak_dn", DetectorOptions().min_peak_dn, "Least smoothed colour contrast of a spot, DN "
+                                                                  "(settable at run time, from the next frame).",
+                     read_only=False)
         pattern = d("bayer_pattern", "RGGB", "Photosite mosaic behind demosaiced (rgb8/bgr8) images; 'none' for a "
                                              "camera measuring every colour per pixel. Raw bayer_* images give it.")
         self.mono_pattern = d("mono_pattern", "", "mono8 images are this raw Bayer mosaic (e.g. RGGB); empty: "
@@ -73,6 +75,7 @@ class SpotDetectorNode(Node):
             self.detectors = {None: SpotDetector(self.calibration, self.options)}
         except ValueError as exc:
             raise common.NodeError(f"parameter bayer_pattern: {exc}", 2) from None
+        common.dynamic(self, {"min_peak_dn": ("min_peak_dn", common.positive)})
         if self.capture_dir:
             Path(self.capture_dir).mkdir(parents=True, exist_ok=True)
         self.captured, self.last_capture = 0, -np.inf
@@ -93,6 +96,16 @@ class SpotDetectorNode(Node):
         self.bad_frames = 0
         self.info_problem: str | None = None
         self.info_checked = False
+
+    @property
+    def min_peak_dn(self) -> float:
+        return self.options.min_peak_dn
+
+    @min_peak_dn.setter
+    def min_peak_dn(self, value: float) -> None:
+        # the executor is single-threaded: no frame is being detected while this runs
+        self.options = dataclasses.replace(self.options, min_peak_dn=value)
+        self.detectors = {None: SpotDetector(self.calibration, self.options)}
 
     def on_info(self, msg: CameraInfo) -> None:
         if self.info_checked:
