@@ -38,7 +38,7 @@ from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, 
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import Fit, Problem, residuals_at, whitened_factor
 from laser_calib.estimation.robust import ROBUST_RULE, robust_fit
-from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel
+from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import FRAMES
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
@@ -136,14 +136,15 @@ def prior_sigmas(model: MeasurementModel, n_geometric: int, options: EstimateOpt
     return sigma
 
 
-def impossible_spots(robot: Robot, samples: Samples, model: SpotModel) -> list[tuple[int, int, str]]:
+def impossible_spots(robot: Robot, samples: Samples, nominal: Residuals) -> list[tuple[int, int, str]]:
     """(pose index, laser index, reason) of every given spot that cannot be:
-    outside the screen, or where the nominal beam misses the screen by far."""
+    outside the screen, or where the nominal beam misses the screen by far;
+    nominal: the spot model's residuals at zero errors (valid: the beam meets
+    the screen plane ahead)."""
     half = np.array([robot.screen.half_y, robot.screen.half_z])
     seen = samples.seen
     out = []
     outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
-    nominal = residuals_at(model, np.zeros(len(model.names)))   # valid: the beam meets the screen plane ahead
     beyond = np.abs(nominal.predicted) - half * (1 + MISS_MARGIN)
     misses = seen & ~outside & ~(nominal.valid & (beyond <= 0).all(axis=2))
     for p, j in zip(*np.nonzero(outside)):
@@ -158,12 +159,14 @@ def impossible_spots(robot: Robot, samples: Samples, model: SpotModel) -> list[t
 def estimate(robot: Robot, samples: Samples, options: EstimateOptions = EstimateOptions()) -> Estimate:
     """Geometric errors (4N+5) of ``robot`` from spot samples."""
     model = SpotModel(robot, samples)
-    impossible = impossible_spots(robot, samples, model)
+    nominal = residuals_at(model, np.zeros(len(model.names)))
+    impossible = impossible_spots(robot, samples, nominal)
     outside = sum(why.startswith("outside") for *_, why in impossible)
     if outside and outside == samples.seen.sum():
         raise ValueError(f"every spot lies outside the screen (half sizes {robot.screen.half_y:g}, "
                          f"{robot.screen.half_z:g} m): spot coordinates are in metres (these look like millimetres)")
-    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), impossible=impossible)
+    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), impossible=impossible,
+                          at_start=nominal)
 
 
 def pose_ids(model: MeasurementModel) -> np.ndarray:
@@ -189,9 +192,11 @@ def _analysis(model: MeasurementModel, noise: NoiseModel, x0: np.ndarray, fixed:
 
 
 def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigma: np.ndarray | None = None,
-                   x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] = ()) -> Estimate:
+                   x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] = (),
+                   at_start: Residuals | None = None) -> Estimate:
     """The same steps on any measurement model (geometric + effects, other sensors).
-    impossible: (pose index, channel, reason) of units refused before the fit."""
+    impossible: (pose index, channel, reason) of units refused before the fit;
+    at_start: the model's residuals at x0 (residuals_at), when the caller has them."""
     start = time.perf_counter()
     names = tuple(model.names)
     n = len(names)
@@ -204,7 +209,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma = options.spot_sigma or TRIAL_SIGMA
     noise = NoiseModel(sigma, options.joint_sigma)
-    at_start = residuals_at(model, x0)
+    at_start = residuals_at(model, x0) if at_start is None else at_start
     seen, dims = at_start.valid, at_start.r.shape[2]   # (P,C) the units measured at the start, D values each
     excluded = None
     if impossible:
@@ -236,7 +241,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     start_x = x0
     least_squares = None  # a least-squares fit at the trial sigma, when the robust rule ran one
     if options.robust:
-        outcome = robust_fit(model, noise, free, prior_sigma, x0, fit, excluded)
+        outcome = robust_fit(model, noise, free, prior_sigma, x0, fit, excluded, at_start, options.lm)
         rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
         if rejected:
             excluded = outcome.rejected if excluded is None else excluded | outcome.rejected
