@@ -29,7 +29,7 @@ the given one are one warning line each (Estimate.warnings).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -239,7 +239,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     rejected: list[tuple[int, int]] = []
     robust = None
     start_x = x0
-    least_squares = None  # a least-squares fit at the trial sigma, when the robust rule ran one
+    least_squares = None  # the robust rule's final least-squares fit, when the fits below can start from it
+    robust_sigma = sigma  # the spot sigma it ran with (the given one or the trial)
     if options.robust:
         outcome = robust_fit(model, noise, free, prior_sigma, x0, fit, excluded, at_start, options.lm)
         rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
@@ -284,7 +285,12 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     start_x = np.where(free, start_x, x0)
 
     problem = Problem(model, noise, free, prior_sigma, excluded)
-    result = fit(problem, start_x)
+    if least_squares is not None and not np.any(np.asarray(noise.joint_sigma) > 0) and np.array_equal(
+            free, least_squares.free):
+        # the same weighted least squares at another sigma: its minimum does not move
+        result = rescaled(least_squares, noise.sigma / robust_sigma)
+    else:
+        result = fit(problem, start_x)
     restarts = 0
     if not sigma_estimated and _suspect(result):
         result, restarts = _restart(problem, result, x0, free, model.scales, options)
@@ -318,6 +324,14 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         "values are not a minimum")
     return Estimate(names, free.copy(), ident, result, sigma, sigma_estimated, tuple(rejected), tuple(warnings),
                     time.perf_counter() - start, restarts, tuple(impossible), robust)
+
+
+def rescaled(fit: Fit, ratio: float) -> Fit:
+    """A least-squares fit without joint noise or prior under a noise sigma
+    ``ratio`` times its own: x stays, chi^2 and the costs scale by 1 / ratio^2,
+    the covariance by ratio^2."""
+    return replace(fit, covariance=fit.covariance * ratio ** 2, cost=fit.cost / ratio ** 2,
+                   chi2=fit.chi2 / ratio ** 2, cost_history=fit.cost_history / ratio ** 2)
 
 
 def _suspect(result: Fit) -> bool:

@@ -81,12 +81,18 @@ class WeightedNoise(NoiseModel):
         if self.weights is None:
             return super().whitener(residuals)
         kept = self.weights > 0
-        base = super().whitener(replace(residuals, valid=residuals.valid & kept))
         dims = residuals.r.shape[2]
         weight = np.repeat(np.where(kept, self.weights, 1.0), dims, axis=1)        # (P, CD)
         left_out = np.repeat(kept, dims, axis=1)[:, None, :]                        # zero columns: no residual
-        if not (np.any(np.asarray(self.joint_sigma) > 0) and residuals.jac_q is not None):
-            return base * np.sqrt(weight)[:, None, :] * left_out
+        if not (_joint_noise(self) and residuals.jac_q is not None):
+            # the base whitener is diagonal: 1 / sigma on the measured values, 1 elsewhere (as its
+            # Cholesky factor and inverse give it, bit for bit)
+            measured = np.repeat(residuals.valid & kept, dims, axis=1)
+            diagonal = np.where(measured, 1.0 / np.sqrt(self.sigma ** 2), 1.0) * np.sqrt(weight) * left_out[:, 0]
+            out = np.zeros(diagonal.shape + diagonal.shape[-1:])
+            np.einsum("pii->pi", out)[...] = diagonal
+            return out
+        base = super().whitener(replace(residuals, valid=residuals.valid & kept))
         factor = np.linalg.inv(base)
         covariance = factor @ factor.transpose(0, 2, 1)                             # (P, CD, CD)
         own = np.kron(np.eye(residuals.r.shape[1]), np.ones((dims, dims)))          # the units' blocks
