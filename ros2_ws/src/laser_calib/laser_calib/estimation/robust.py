@@ -102,13 +102,14 @@ class WeightedNoise(NoiseModel):
 
 @dataclass(frozen=True)
 class RobustFit:
-    """fit: the final least-squares fit without the rejected units; rejected
+    """fit: the final least-squares fit without the rejected units (None when
+    none is rejected: the caller's own fit is that least squares); rejected
     (P,C) bool; weights (P,C) of the last round; scale s (whitened units);
     rounds of reweighting; converged: the weights settled; overflow: the
     number of units beyond the limit when it exceeded MAX_REJECTED (none
     rejected), else 0."""
 
-    fit: Fit
+    fit: Fit | None
     rejected: np.ndarray
     weights: np.ndarray
     scale: float
@@ -194,7 +195,8 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
     overflow = int(rejected.sum()) if rejected.sum() > MAX_REJECTED * use.sum() else 0
     if overflow:
         rejected[:] = False
-    final = solve(Problem(model, noise, free, prior_sigma, excluded | rejected), state.x)
+    # with nothing rejected the caller fits the same units from its own start (robust or not, one result)
+    final = solve(Problem(model, noise, free, prior_sigma, excluded | rejected), state.x) if rejected.any() else None
     return RobustFit(final, rejected, state.weights, scale, state.rounds, state.converged, overflow)
 
 
