@@ -12,7 +12,8 @@ estimate(robot, samples, options) runs, in order:
 3. if no spot sigma is given, a fit estimates it from the residual
    (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used
    (when the robust rule rejected spots, the fits after it start from its
-   final least-squares minimum, which with LM and no prior is that trial);
+   final least-squares minimum (by LM), which without a prior is that trial;
+   with LM and no joint noise it is also the fit, rescaled to the sigma);
 4. identifiability again with the noise in use: a direction whose standard
    deviation exceeds STD_FACTOR times its tolerance scale is held too (not
    with the prior, which bounds every direction by its tolerance);
@@ -242,18 +243,20 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     least_squares = None  # the robust rule's final least-squares fit, when the fits below can start from it
     robust_sigma = sigma  # the spot sigma it ran with (the given one or the trial)
     if options.robust:
-        outcome = robust_fit(model, noise, free, prior_sigma, x0, fit, excluded, at_start, options.lm)
+        outcome = robust_fit(model, noise, free, prior_sigma, x0,
+                             lambda problem, start: levenberg_marquardt(problem, start, options.lm), excluded,
+                             at_start, options.lm)
         rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
         if rejected:
             excluded = outcome.rejected if excluded is None else excluded | outcome.rejected
-        # Its final fit is least squares on the kept spots. With spots rejected, the fits
-        # below start from its minimum (in a fraction of the iterations from x0), and with
-        # LM and no prior it is the sigma trial itself. Without, they start from x0 as
-        # without the robust rule: on clean data the result is least squares bit for bit
-        # whichever front end ran it, robust or not.
+        # Its final fit is least squares on the kept spots, by LM whatever the method (the
+        # EKF's fixed point is the same, in hundreds of iterations). With spots rejected,
+        # the fits below start from its minimum, and without a prior it is the sigma trial
+        # itself. Without, they start from x0 as without the robust rule: on clean data the
+        # result is least squares bit for bit whichever front end ran it, robust or not.
         if rejected:
             start_x = outcome.fit.x
-            if options.method == "lm" and prior_sigma is None:
+            if prior_sigma is None:
                 least_squares = outcome.fit
         kept = int((seen if excluded is None else seen & ~excluded).sum())
         robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
@@ -285,8 +288,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     start_x = np.where(free, start_x, x0)
 
     problem = Problem(model, noise, free, prior_sigma, excluded)
-    if least_squares is not None and not np.any(np.asarray(noise.joint_sigma) > 0) and np.array_equal(
-            free, least_squares.free):
+    if (options.method == "lm" and least_squares is not None and not np.any(np.asarray(noise.joint_sigma) > 0)
+            and np.array_equal(free, least_squares.free)):
         # the same weighted least squares at another sigma: its minimum does not move
         result = rescaled(least_squares, noise.sigma / robust_sigma)
     else:
