@@ -15,6 +15,7 @@ import pytest
 from scipy.stats import chi2
 
 from laser_calib.estimation.estimate import EstimateOptions, estimate
+from laser_calib.estimation import robust
 from laser_calib.estimation.robust import WeightedNoise
 from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, pose_errors
 from laser_calib.cli.arguments import print_warnings
@@ -158,3 +159,51 @@ def test_sixty_identical_poses_are_loud():
     est = estimate(session.nominal, same, EstimateOptions())
     assert any(w.startswith("rank deficient: the data determine 4 of 33") for w in est.warnings)
     assert any(w.startswith(("noise: the residual is", "the fit lost", "implausible")) for w in est.warnings)
+
+
+def _five_percent_uniform(seed):
+    session = paper_session("paper-7dof", seed)
+    rng = np.random.default_rng(seed)
+    seen = np.argwhere(session.samples.seen)
+    picks = seen[rng.choice(len(seen), len(seen) // 20, replace=False)]
+    spots = session.samples.spots.copy()
+    half = np.array([session.nominal.screen.half_y, session.nominal.screen.half_z])
+    spots[picks[:, 0], picks[:, 1]] = rng.uniform(-half, half, (len(picks), 2))
+    return session, replace(session.samples, spots=spots), {(int(p), int(j)) for p, j in picks}
+
+
+def _std_distance(a, b):
+    """Largest difference of two estimates in standard deviations of the first."""
+    free = a.identifiable
+    return float(np.max(np.abs(a.errors - b.errors)[free] / a.std[free]))
+
+
+def test_reweighting_started_on_a_subset_settles_where_all_poses_put_it(monkeypatch):
+    """Above 2 WARM_POSES poses the rounds start where those on a subset settled:
+    the same spots rejected and, the final fit being least squares on the rest,
+    the same minimum within the solver's tolerance (steps below 1e-4 standard
+    deviations; 1e-3 allows for the two starts)."""
+    session, samples, picks = _five_percent_uniform(3)
+    cold = estimate(session.nominal, samples, EstimateOptions())
+    monkeypatch.setattr(robust, "WARM_POSES", 25)   # 60 poses: rounds on 1 in 3 first
+    warm = estimate(session.nominal, samples, EstimateOptions())
+    assert set(cold.rejected) == set(warm.rejected) == picks
+    assert warm.robust["weights_converged"]
+    assert _std_distance(cold, warm) < 1e-3
+
+
+def test_the_fit_at_the_estimated_sigma_is_the_least_squares_fit_there():
+    """With spots rejected, the sigma trial's minimum is the result, rescaled to the
+    estimated sigma: LM at that sigma from it takes no step (below 1e-4 standard
+    deviations) and finds the same chi^2 and covariance (rounding apart)."""
+    session, samples, picks = _five_percent_uniform(4)
+    est = estimate(session.nominal, samples, EstimateOptions())
+    assert set(est.rejected) == picks and est.sigma_estimated
+    excluded = np.zeros(samples.seen.shape, bool)
+    excluded[tuple(np.array(est.rejected).T)] = True
+    problem = Problem(SpotModel(session.nominal, samples), NoiseModel(est.sigma), est.identifiable, excluded=excluded)
+    refit = levenberg_marquardt(problem, est.fit.x)
+    free = est.identifiable
+    assert np.max(np.abs(refit.x - est.fit.x)[free] / est.fit.std[free]) < 1e-4
+    assert refit.chi2 == pytest.approx(est.fit.chi2, rel=1e-9)
+    assert np.allclose(refit.covariance[np.ix_(free, free)], est.fit.covariance[np.ix_(free, free)], rtol=1e-6, atol=0)

@@ -12,7 +12,8 @@ estimate(robot, samples, options) runs, in order:
 3. if no spot sigma is given, a fit estimates it from the residual
    (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used
    (when the robust rule rejected spots, the fits after it start from its
-   final least-squares minimum, which with LM and no prior is that trial);
+   final least-squares minimum (by LM), which without a prior is that trial;
+   with LM and no joint noise it is also the fit, rescaled to the sigma);
 4. identifiability again with the noise in use: a direction whose standard
    deviation exceeds STD_FACTOR times its tolerance scale is held too (not
    with the prior, which bounds every direction by its tolerance);
@@ -29,7 +30,7 @@ the given one are one warning line each (Estimate.warnings).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -38,7 +39,7 @@ from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, 
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import Fit, Problem, residuals_at, whitened_factor
 from laser_calib.estimation.robust import ROBUST_RULE, robust_fit
-from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel
+from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import FRAMES
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
@@ -136,14 +137,15 @@ def prior_sigmas(model: MeasurementModel, n_geometric: int, options: EstimateOpt
     return sigma
 
 
-def impossible_spots(robot: Robot, samples: Samples, model: SpotModel) -> list[tuple[int, int, str]]:
+def impossible_spots(robot: Robot, samples: Samples, nominal: Residuals) -> list[tuple[int, int, str]]:
     """(pose index, laser index, reason) of every given spot that cannot be:
-    outside the screen, or where the nominal beam misses the screen by far."""
+    outside the screen, or where the nominal beam misses the screen by far;
+    nominal: the spot model's residuals at zero errors (valid: the beam meets
+    the screen plane ahead)."""
     half = np.array([robot.screen.half_y, robot.screen.half_z])
     seen = samples.seen
     out = []
     outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
-    nominal = residuals_at(model, np.zeros(len(model.names)))   # valid: the beam meets the screen plane ahead
     beyond = np.abs(nominal.predicted) - half * (1 + MISS_MARGIN)
     misses = seen & ~outside & ~(nominal.valid & (beyond <= 0).all(axis=2))
     for p, j in zip(*np.nonzero(outside)):
@@ -158,12 +160,14 @@ def impossible_spots(robot: Robot, samples: Samples, model: SpotModel) -> list[t
 def estimate(robot: Robot, samples: Samples, options: EstimateOptions = EstimateOptions()) -> Estimate:
     """Geometric errors (4N+5) of ``robot`` from spot samples."""
     model = SpotModel(robot, samples)
-    impossible = impossible_spots(robot, samples, model)
+    nominal = residuals_at(model, np.zeros(len(model.names)))
+    impossible = impossible_spots(robot, samples, nominal)
     outside = sum(why.startswith("outside") for *_, why in impossible)
     if outside and outside == samples.seen.sum():
         raise ValueError(f"every spot lies outside the screen (half sizes {robot.screen.half_y:g}, "
                          f"{robot.screen.half_z:g} m): spot coordinates are in metres (these look like millimetres)")
-    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), impossible=impossible)
+    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), impossible=impossible,
+                          at_start=nominal)
 
 
 def pose_ids(model: MeasurementModel) -> np.ndarray:
@@ -189,9 +193,11 @@ def _analysis(model: MeasurementModel, noise: NoiseModel, x0: np.ndarray, fixed:
 
 
 def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigma: np.ndarray | None = None,
-                   x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] = ()) -> Estimate:
+                   x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] = (),
+                   at_start: Residuals | None = None) -> Estimate:
     """The same steps on any measurement model (geometric + effects, other sensors).
-    impossible: (pose index, channel, reason) of units refused before the fit."""
+    impossible: (pose index, channel, reason) of units refused before the fit;
+    at_start: the model's residuals at x0 (residuals_at), when the caller has them."""
     start = time.perf_counter()
     names = tuple(model.names)
     n = len(names)
@@ -204,7 +210,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma = options.spot_sigma or TRIAL_SIGMA
     noise = NoiseModel(sigma, options.joint_sigma)
-    at_start = residuals_at(model, x0)
+    at_start = residuals_at(model, x0) if at_start is None else at_start
     seen, dims = at_start.valid, at_start.r.shape[2]   # (P,C) the units measured at the start, D values each
     excluded = None
     if impossible:
@@ -234,20 +240,23 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     rejected: list[tuple[int, int]] = []
     robust = None
     start_x = x0
-    least_squares = None  # a least-squares fit at the trial sigma, when the robust rule ran one
+    least_squares = None  # the robust rule's final least-squares fit, when the fits below can start from it
+    robust_sigma = sigma  # the spot sigma it ran with (the given one or the trial)
     if options.robust:
-        outcome = robust_fit(model, noise, free, prior_sigma, x0, fit, excluded)
+        outcome = robust_fit(model, noise, free, prior_sigma, x0,
+                             lambda problem, start: levenberg_marquardt(problem, start, options.lm), excluded,
+                             at_start, options.lm)
         rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
         if rejected:
             excluded = outcome.rejected if excluded is None else excluded | outcome.rejected
-        # Its final fit is least squares on the kept spots. With spots rejected, the fits
-        # below start from its minimum (in a fraction of the iterations from x0), and with
-        # LM and no prior it is the sigma trial itself. Without, they start from x0 as
-        # without the robust rule: on clean data the result is least squares bit for bit
-        # whichever front end ran it, robust or not.
+        # Its final fit is least squares on the kept spots, by LM whatever the method (the
+        # EKF's fixed point is the same, in hundreds of iterations). With spots rejected,
+        # the fits below start from its minimum, and without a prior it is the sigma trial
+        # itself. Without, they start from x0 as without the robust rule: on clean data the
+        # result is least squares bit for bit whichever front end ran it, robust or not.
         if rejected:
             start_x = outcome.fit.x
-            if options.method == "lm" and prior_sigma is None:
+            if prior_sigma is None:
                 least_squares = outcome.fit
         kept = int((seen if excluded is None else seen & ~excluded).sum())
         robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
@@ -279,7 +288,12 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     start_x = np.where(free, start_x, x0)
 
     problem = Problem(model, noise, free, prior_sigma, excluded)
-    result = fit(problem, start_x)
+    if (options.method == "lm" and least_squares is not None and not np.any(np.asarray(noise.joint_sigma) > 0)
+            and np.array_equal(free, least_squares.free)):
+        # the same weighted least squares at another sigma: its minimum does not move
+        result = rescaled(least_squares, noise.sigma / robust_sigma)
+    else:
+        result = fit(problem, start_x)
     restarts = 0
     if not sigma_estimated and _suspect(result):
         result, restarts = _restart(problem, result, x0, free, model.scales, options)
@@ -313,6 +327,14 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         "values are not a minimum")
     return Estimate(names, free.copy(), ident, result, sigma, sigma_estimated, tuple(rejected), tuple(warnings),
                     time.perf_counter() - start, restarts, tuple(impossible), robust)
+
+
+def rescaled(fit: Fit, ratio: float) -> Fit:
+    """A least-squares fit without joint noise or prior under a noise sigma
+    ``ratio`` times its own: x stays, chi^2 and the costs scale by 1 / ratio^2,
+    the covariance by ratio^2."""
+    return replace(fit, covariance=fit.covariance * ratio ** 2, cost=fit.cost / ratio ** 2,
+                   chi2=fit.chi2 / ratio ** 2, cost_history=fit.cost_history / ratio ** 2)
 
 
 def _suspect(result: Fit) -> bool:

@@ -84,7 +84,7 @@ def whitened_factor(model: MeasurementModel, noise: NoiseModel, x: np.ndarray, e
     factor = np.zeros((0, len(model.names)))
     n_values = 0
     for index, block in pose_blocks(model, chunk):
-        res = problem._excluding(block.residuals(x, True), index)
+        res = problem.excluding(block.residuals(x, True), index)
         _, jac = whiten(res, noise.for_poses(index).whitener(res))
         factor = np.linalg.qr(np.vstack([factor, jac]), mode="r")
         n_values += count_values(res)
@@ -115,9 +115,9 @@ class Problem:
 
     def residuals(self, x: np.ndarray, jacobian: bool = True) -> Residuals:
         """All poses at once (small problems, benchmarks); the solvers go by blocks."""
-        return self._excluding(self.model.residuals(x, jacobian), slice(None))
+        return self.excluding(self.model.residuals(x, jacobian), slice(None))
 
-    def _excluding(self, res: Residuals, index: slice) -> Residuals:
+    def excluding(self, res: Residuals, index: slice) -> Residuals:
         if self.excluded is None:
             return res
         keep = res.valid & ~self.excluded[index]
@@ -144,7 +144,7 @@ class Problem:
         n_values = 0
         whitener = None
         for index, block in pose_blocks(self.model, self.chunk):
-            res = self._excluding(block.residuals(x, True), index)
+            res = self.excluding(block.residuals(x, True), index)
             own = self.noise.for_poses(index).whitener(res)
             if whitener is None:
                 total = len(res.r) if index == slice(None) else n_poses(self.model)
@@ -166,11 +166,16 @@ class Problem:
             slope = self.scales[rows] / sigma
             information[rows, rows] += slope ** 2
             gradient[rows] += slope * (-x[prior] / sigma)
-            prior_cost = 0.5 * float(np.sum((x[prior] / sigma) ** 2))
-            cost += prior_cost
-            cost_under += prior_cost
+        prior_cost = self.prior_cost(x)
+        cost += prior_cost
+        cost_under += prior_cost
         return Normal(information, gradient, float(cost), whitener, n_values,
                       float(cost_under) if weights is not None else np.nan)
+
+    def prior_cost(self, x: np.ndarray) -> float:
+        """The prior rows' part of the cost at x (0 without a prior)."""
+        prior = np.isfinite(self.prior_sigma) & self.free
+        return 0.5 * float(np.sum((x[prior] / self.prior_sigma[prior]) ** 2))
 
     def covariance(self, information: np.ndarray) -> np.ndarray:
         """(n,n) in the parameters' units from J^T J in free scaled ones; NaN where not free."""

@@ -1,10 +1,11 @@
 """Robust estimation: a single wrong detection, whatever its size, cannot move the fit.
 
-Iteratively reweighted least squares outside the solvers: each measured unit
-(a spot, a point, a pose: one channel of one pose, D values) gets a weight w,
-applied as sqrt(w) on its columns of the whitener (its covariance inflated by
-1/w, cross-terms included), so LM, the EKF and every model (spots, sensors,
-effects) run unchanged on the reweighted residuals and Jacobian.
+Iteratively reweighted least squares on the normal equations of a Problem:
+each measured unit (a spot, a point, a pose: one channel of one pose, D
+values) gets a weight w, applied as sqrt(w) on its columns of the whitener
+(its covariance inflated by 1/w, cross-terms included), so every model
+(spots, sensors, effects) runs unchanged on the reweighted residuals and
+Jacobian; the final least-squares fit is any solver's (LM, the EKF).
 
 The rule (ROBUST_RULE, stated in result.json):
 - d_u^2 = r_u^T C_u^-1 r_u per unit u (C_u its block of the noise covariance,
@@ -17,8 +18,10 @@ The rule (ROBUST_RULE, stated in result.json):
   c = 2.385 (95 % efficiency at the normal distribution). Its influence
   redescends to zero, so a 1e6 m spot weighs nothing;
 - the first weights are those of the start (the nominal model: its residual
-  is centimetres, a gross outlier metres), then fit and reweight until no
-  weight changes by more than 1e-3 (at most MAX_ROUNDS rounds);
+  is centimetres, a gross outlier metres), then one damped Gauss-Newton step
+  and a reweighting per round until no weight changes by more than 1e-3 (at
+  most MAX_ROUNDS rounds; beyond 2 WARM_POSES poses the rounds start where
+  those on an evenly spread subset of WARM_POSES settled);
 - at the end the units with t_u^2 > chi^2_D(1 - 0.01 / N) (N units) are
   candidates; the scale becomes the larger of s and the RMS of the other
   units' standardised values (real residuals have heavier tails than the
@@ -39,7 +42,8 @@ import numpy as np
 # chi^2 quantiles as scipy.stats.chi2 computes them (ppf, isf), without importing scipy.stats (seconds)
 from scipy.special import chdtri, gammaincinv
 
-from laser_calib.estimation.problem import Fit, Problem, pose_blocks
+from laser_calib.estimation.lm import LmOptions
+from laser_calib.estimation.problem import Fit, Problem, n_poses, pose_blocks
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
 
 CAUCHY_C = 2.385
@@ -49,7 +53,8 @@ WEIGHT_TOL = 1e-3
 # A residual below a thousandth of the noise model's sigma (noise-free data)
 # has no outliers: the scale is not taken below this, in whitened units.
 MIN_SCALE = 1e-3
-MAX_REJECTED = 1 / 3  # beyond this fraction of outliers the residual is a model error
+MAX_REJECTED = 1 / 3
+WARM_POSES = 20000  # above twice this many poses, the reweighting starts on an evenly spread subset of this size  # beyond this fraction of outliers the residual is a model error
 ROBUST_RULE = ("IRLS with the Cauchy loss (c = 2.385) on each spot's (point's, pose's) whitened residual, "
                "scale s^2 = median(d^2) / median(chi^2_D) (the MAD about zero for D = 1), weights from the "
                "nominal model first; at convergence a spot with d^2 / s'^2 > chi^2_D(1 - 0.01 / N) of N spots "
@@ -76,12 +81,18 @@ class WeightedNoise(NoiseModel):
         if self.weights is None:
             return super().whitener(residuals)
         kept = self.weights > 0
-        base = super().whitener(replace(residuals, valid=residuals.valid & kept))
         dims = residuals.r.shape[2]
         weight = np.repeat(np.where(kept, self.weights, 1.0), dims, axis=1)        # (P, CD)
         left_out = np.repeat(kept, dims, axis=1)[:, None, :]                        # zero columns: no residual
-        if not (np.any(np.asarray(self.joint_sigma) > 0) and residuals.jac_q is not None):
-            return base * np.sqrt(weight)[:, None, :] * left_out
+        if not (_joint_noise(self) and residuals.jac_q is not None):
+            # the base whitener is diagonal: 1 / sigma on the measured values, 1 elsewhere (as its
+            # Cholesky factor and inverse give it, bit for bit)
+            measured = np.repeat(residuals.valid & kept, dims, axis=1)
+            diagonal = np.where(measured, 1.0 / np.sqrt(self.sigma ** 2), 1.0) * np.sqrt(weight) * left_out[:, 0]
+            out = np.zeros(diagonal.shape + diagonal.shape[-1:])
+            np.einsum("pii->pi", out)[...] = diagonal
+            return out
+        base = super().whitener(replace(residuals, valid=residuals.valid & kept))
         factor = np.linalg.inv(base)
         covariance = factor @ factor.transpose(0, 2, 1)                             # (P, CD, CD)
         own = np.kron(np.eye(residuals.r.shape[1]), np.ones((dims, dims)))          # the units' blocks
@@ -91,13 +102,14 @@ class WeightedNoise(NoiseModel):
 
 @dataclass(frozen=True)
 class RobustFit:
-    """fit: the final least-squares fit without the rejected units; rejected
+    """fit: the final least-squares fit without the rejected units (None when
+    none is rejected: the caller's own fit is that least squares); rejected
     (P,C) bool; weights (P,C) of the last round; scale s (whitened units);
     rounds of reweighting; converged: the weights settled; overflow: the
     number of units beyond the limit when it exceeded MAX_REJECTED (none
     rejected), else 0."""
 
-    fit: Fit
+    fit: Fit | None
     rejected: np.ndarray
     weights: np.ndarray
     scale: float
@@ -109,6 +121,8 @@ class RobustFit:
 def unit_distances(res: Residuals, noise: NoiseModel) -> np.ndarray:
     """Squared Mahalanobis distance d^2 (P,C) of each unit against its own block of the noise covariance (so one
     outlier does not colour its pose's other unit). Invalid units: 0."""
+    if not _joint_noise(noise) and type(noise) is NoiseModel:  # C_u = sigma^2 I: no factor to form
+        return np.where(res.valid, (res.r ** 2).sum(axis=2) / noise.sigma ** 2, 0.0)
     n_poses, channels, dims = res.r.shape
     inverse_factor = noise.whitener(res)                       # (P, CD, CD), W^T W = C^-1
     covariance = np.linalg.inv(np.einsum("pki,pkj->pij", inverse_factor, inverse_factor))
@@ -123,13 +137,17 @@ def distances_at(model: MeasurementModel, noise: NoiseModel, x: np.ndarray) -> t
     """unit_distances (P,C) at x, the valid units (P,C) and the values per unit D, block by block of poses
     (problem.pose_blocks): memory does not grow with the poses beyond these (P,C) arrays. Only joint noise
     needs the Jacobian (its whitener); without it the model runs without."""
-    joint = bool(np.any(np.asarray(noise.joint_sigma) > 0))
+    joint = _joint_noise(noise)
     d2, valid = [], []
     for index, block in pose_blocks(model):
         res = block.residuals(x, joint)
         d2.append(unit_distances(res, noise.for_poses(index)))
         valid.append(res.valid)
     return np.concatenate(d2), np.concatenate(valid), res.r.shape[2]
+
+
+def _joint_noise(noise: NoiseModel) -> bool:
+    return bool(np.any(np.asarray(noise.joint_sigma) > 0))
 
 
 def cauchy_weights(d2: np.ndarray, scale: float, dims: int) -> np.ndarray:
@@ -144,29 +162,30 @@ def mad_scale(d2: np.ndarray, use: np.ndarray, dims: int) -> float:
 
 
 def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prior_sigma: np.ndarray | None,
-               x0: np.ndarray, solve: Solver,
-               excluded: np.ndarray | None = None) -> RobustFit:
-    """IRLS (module docstring) with any solver solve(problem, x_start) -> Fit.
-    excluded (P,C): units already refused (impossible measurements)."""
+               x0: np.ndarray, solve: Solver, excluded: np.ndarray | None = None, start: Residuals | None = None,
+               options: LmOptions = LmOptions()) -> RobustFit:
+    """IRLS (module docstring), then the final least-squares fit by any solver
+    solve(problem, x_start) -> Fit. excluded (P,C): units already refused
+    (impossible measurements); start: the model's residuals at x0, when the
+    caller has them; options: the damping, step tolerance and progress of the
+    IRLS steps."""
     x = np.asarray(x0, float)
-    d2, valid, dims = distances_at(model, noise, x)
+    if start is not None and not _joint_noise(noise):
+        d2, valid, dims = unit_distances(start, noise), start.valid, start.r.shape[2]
+    else:
+        d2, valid, dims = distances_at(model, noise, x)
     excluded = np.zeros(valid.shape, bool) if excluded is None else excluded
-    use = valid & ~excluded
-    scale = mad_scale(d2, use, dims)
-    weights = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
-    converged = False
-    rounds = 0
-    fit = None
-    while rounds < MAX_ROUNDS and not converged:
-        rounds += 1
-        weighted = WeightedNoise(noise.sigma, noise.joint_sigma, weights)
-        fit = solve(Problem(model, weighted, free, prior_sigma, excluded), x)
-        x = fit.x
+    total = n_poses(model)
+    if total is not None and total > 2 * WARM_POSES:
+        # From nominal the weights settle in a dozen rounds; on an evenly spread
+        # subset they settle where all poses would put them, within its noise, so
+        # the rounds on all poses start there and need only the last few.
+        every = slice(None, None, -(-total // WARM_POSES))
+        x = _irls(model.subset(every), noise, free, prior_sigma, excluded[every], x, d2[every], valid[every], dims,
+                  options, "robust on 1 in {} poses".format(every.step)).x
         d2 = distances_at(model, noise, x)[0]
-        scale = mad_scale(d2, use, dims)
-        new = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
-        converged = float(np.abs(new - weights).max(initial=0.0)) < WEIGHT_TOL
-        weights = new
+    state = _irls(model, noise, free, prior_sigma, excluded, x, d2, valid, dims, options, "robust")
+    use, d2, scale = valid & ~excluded, state.d2, state.scale
     limit = chdtri(dims, FAMILY_FALSE_REJECTION / max(int(use.sum()), 1))
     candidates = use & (d2 / scale ** 2 > limit)
     inliers = use & ~candidates
@@ -176,5 +195,84 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
     overflow = int(rejected.sum()) if rejected.sum() > MAX_REJECTED * use.sum() else 0
     if overflow:
         rejected[:] = False
-    final = solve(Problem(model, noise, free, prior_sigma, excluded | rejected), x)
-    return RobustFit(final, rejected, weights, scale, rounds, converged, overflow)
+    # with nothing rejected the caller fits the same units from its own start (robust or not, one result)
+    final = solve(Problem(model, noise, free, prior_sigma, excluded | rejected), state.x) if rejected.any() else None
+    return RobustFit(final, rejected, state.weights, scale, state.rounds, state.converged, overflow)
+
+
+@dataclass(frozen=True)
+class _Irls:
+    """Where the reweighting stopped: x (n,), d2 (P,C) there, its MAD scale and
+    weights (P,C), the rounds taken and whether the weights settled."""
+
+    x: np.ndarray
+    d2: np.ndarray
+    scale: float
+    weights: np.ndarray
+    rounds: int
+    converged: bool
+
+
+def _irls(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prior_sigma: np.ndarray | None,
+          excluded: np.ndarray, x: np.ndarray, d2: np.ndarray, valid: np.ndarray, dims: int,
+          options: LmOptions, label: str) -> _Irls:
+    """Reweight from x, where the unit distances are d2 (P,C), until no weight
+    changes by more than WEIGHT_TOL (at most MAX_ROUNDS rounds)."""
+    use = valid & ~excluded
+    scale = mad_scale(d2, use, dims)
+    weights = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
+
+    def weighted(w: np.ndarray) -> Problem:
+        return Problem(model, WeightedNoise(noise.sigma, noise.joint_sigma, w), free, prior_sigma, excluded)
+
+    # One damped Gauss-Newton step per reweighting, each from the last (the
+    # classic IRLS iteration, Holland & Welsch 1977), not a full solve per
+    # round: a step is kept when it lowers the cost under the current weights,
+    # which for the Cauchy loss (concave in d^2) also lowers the robust cost.
+    problem = weighted(weights)
+    normal = problem.normal_equations(x)
+    eye = np.eye(len(normal.gradient))
+    damping = options.damping
+    converged = False
+    rounds = 0
+    while rounds < MAX_ROUNDS and not converged:
+        step = np.linalg.solve(normal.information + damping * eye, normal.gradient)
+        if np.sqrt(max(step @ normal.information @ step, 0.0)) < options.step_tol:
+            converged = True  # x stays, so do its weights
+            break
+        trial = x.copy()
+        trial[problem.free] += step * problem.scales
+        cost, trial_d2 = _trial_pass(problem, noise, trial, normal.whitener)
+        if not cost <= normal.cost:  # a rise, or not finite (a step where the model overflows)
+            damping *= 10.0
+            continue
+        rounds += 1
+        x, d2 = trial, trial_d2
+        damping = max(damping / 10.0, 1e-12)
+        scale = mad_scale(d2, use, dims)
+        new = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
+        change = float(np.abs(new - weights).max(initial=0.0))
+        converged = change < WEIGHT_TOL
+        weights = new
+        if options.progress is not None:
+            options.progress(rounds, None, f"{label}: weights change {change:.2g} (settled below {WEIGHT_TOL:g})")
+        if not converged:
+            problem = weighted(weights)
+            normal = problem.normal_equations(x)
+    return _Irls(x, d2, scale, weights, rounds, converged)
+
+
+def _trial_pass(problem: Problem, noise: NoiseModel, x: np.ndarray, whitener: np.ndarray) -> tuple[float, np.ndarray]:
+    """At a trial x, in one pass of the model: its cost under the current
+    point's (weighted) whitener (P,CD,CD), prior included, and the unit
+    distances d^2 (P,C) under its own noise (without the weights). Only joint
+    noise needs the Jacobian."""
+    joint = _joint_noise(noise)
+    cost = problem.prior_cost(x)
+    d2 = []
+    for index, block in pose_blocks(problem.model, problem.chunk):
+        res = block.residuals(x, joint)
+        r, _ = problem.whitened(index, problem.excluding(res, index), whitener[index], jacobian=False)
+        cost += 0.5 * float(r @ r)
+        d2.append(unit_distances(res, noise.for_poses(index)))
+    return cost, np.concatenate(d2)

@@ -17,9 +17,9 @@ import numpy as np
 
 from laser_calib import __version__
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
-from laser_calib.estimation.problem import CHUNK_POSES
+from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.samples import Samples
-from laser_calib.model.kinematics import predict
+from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.report.plots import display_units
 from laser_calib.report.statistics import iso9283, laser_stats
@@ -139,15 +139,14 @@ def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None
     """Predict every set once with the nominal and the calibrated model."""
     values = est.values[:robot.n_params]
     sets = {"calibration": samples} | ({"test": test} if test is not None else {})
-    return {name: SetEvaluation(s, predicted_spots(robot, s.q), predicted_spots(robot, s.q, values))
-            for name, s in sets.items()}
+    return {name: SetEvaluation(s, predicted_spots(robot, s, np.zeros(robot.n_params)),
+                                predicted_spots(robot, s, values)) for name, s in sets.items()}
 
 
-def predicted_spots(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None) -> np.ndarray:
-    """(P,2,2) the spots the model predicts at readings q (P,N), block by block of poses
-    (the chain's transient arrays stay those of one block)."""
-    return np.concatenate([predict(robot, q[start:start + CHUNK_POSES], errors).spots
-                           for start in range(0, max(len(q), 1), CHUNK_POSES)])
+def predicted_spots(robot: Robot, samples: Samples, errors: np.ndarray) -> np.ndarray:
+    """(P,2,2) the spots the model with errors (n,) predicts at the readings of
+    samples (kinematics.predict's, through the spot model block by block of poses)."""
+    return residuals_at(SpotModel(robot, samples), errors).predicted
 
 
 def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Samples | None = None,
