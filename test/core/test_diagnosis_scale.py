@@ -10,6 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from laser_calib.diagnosis import engine
 from laser_calib.diagnosis.data import SpotData
 from laser_calib.diagnosis.engine import DETECTOR_POSES, DETECTOR_RUNS, candidate_pool, detector_rows, run
 from laser_calib.diagnosis.fitter import Fitter, paired_p
@@ -140,3 +141,24 @@ def test_scored_distances_are_nan_where_a_spot_is_not_measured(backlash):
     chi2, distances, n_values = fitter.scored(EffectModel(fitter.base, ()), np.zeros(len(fitter.base.names)))
     assert np.isnan(distances[:5, 1]).all() and np.isfinite(distances[5:]).all() and np.isfinite(chi2).all()
     assert n_values == 2 * (distances.size - 5)
+
+
+def test_selection_on_part_of_the_poses_scores_every_pose(monkeypatch):
+    """Above SELECTION_POSES the rounds see that many poses; the stages (refitted) and
+    the nested held-out error are of every pose, and the effect is still found."""
+    session = library_session("paper-7dof", "backlash", n_cal=160)
+    monkeypatch.setattr(engine, "SELECTION_POSES", 100)
+    options = DiagnoseOptions(spot_sigma=NOISE.spot_sigma, joint_sigma=NOISE.joint_sigma, max_effects=1, shortlist=2)
+    diagnosis = run(SpotData(session.nominal, session.cal), options)
+    assert [s.label for s in diagnosis.stages] == ["geometric", "geometric + backlash (joint 6)"]
+    assert any("selected on 100 of the 160 poses" in note for note in diagnosis.notes)
+    measured = 2 * int(session.cal.seen.sum())
+    for stage in diagnosis.stages:
+        fitted = stage.fitted
+        assert fitted.n_values == fitted.estimate.fit.n_values == measured
+        assert np.isfinite(fitted.cv[session.cal.seen]).all()
+    assert diagnosis.nested.shape == session.cal.spots.shape[:2]
+    assert np.isfinite(diagnosis.nested[session.cal.seen]).all()
+    # the nested figure is a held-out one: not below the final model's in-sample error
+    final = diagnosis.stages[-1].fitted
+    assert np.sqrt(np.nanmean(diagnosis.nested ** 2)) > np.sqrt(np.nanmean(final.cal ** 2))
