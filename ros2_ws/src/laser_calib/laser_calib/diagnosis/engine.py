@@ -57,8 +57,9 @@ model cannot carry (screen and lens effects without spots) are dropped. It runs:
    The structure and specification tests see every pose; the detector (and
    the compensator it may give) sees at most DETECTOR_POSES of them
    (detector_rows): its cost and memory grow with the poses times its basis
-   (about 1,500 columns per value), and its power at 5,000 poses is plenty
-   for what it looks for.
+   (about 1,500 columns per value; at 5,000 poses it took three quarters of the
+   whole diagnosis of 10,000), and its power at 2,000 poses (8,000 spot
+   values for sub-models of at most 13 columns) is plenty for what it looks for.
 """
 
 from __future__ import annotations
@@ -263,7 +264,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
 # detector's move inputs are the sign of the last move in row order, which a run keeps
 # (only its first pose's is taken from the run before), and the runs spread over the
 # whole session, so a slow change with the stamp stays in view.
-DETECTOR_POSES = 5000
+DETECTOR_POSES = 2000
 DETECTOR_RUNS = 10
 # Poses the selection rounds see at most, in SELECTION_RUNS runs (as the detector's: the
 # approach directions of backlash and the stamps of a drift keep their meaning). Its cost
