@@ -83,6 +83,7 @@ from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.folds import kfold_labels
+from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel
@@ -236,7 +237,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     seen = final.model if rows is None else final.model.subset(rows)
     if options.progress is not None:
         options.progress(0, None, f"detector on {len(seen.samples.q)} poses")
-    final_res = final.model.residuals(final.estimate.values, True)
+    final_res = residuals_at(final.model, final.estimate.values, jacobian=True)
     detection = detect(final.model.names, final_res if rows is None else seen.residuals(final.estimate.values, True),
                        detector_noise, seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
                        fitter.fold if rows is None else fitter.fold[rows], options.seed)
