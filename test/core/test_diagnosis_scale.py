@@ -153,10 +153,14 @@ def test_selection_on_part_of_the_poses_scores_every_pose(monkeypatch):
     the nested held-out error are of every pose, and the effect is still found."""
     session = library_session("paper-7dof", "backlash", n_cal=160)
     monkeypatch.setattr(engine, "SELECTION_POSES", 100)
-    options = DiagnoseOptions(spot_sigma=NOISE.spot_sigma, joint_sigma=NOISE.joint_sigma, max_effects=1, shortlist=2)
+    calls = []
+    options = DiagnoseOptions(spot_sigma=NOISE.spot_sigma, joint_sigma=NOISE.joint_sigma, max_effects=1, shortlist=2,
+                              progress=lambda *call: calls.append(call))
     diagnosis = run(SpotData(session.nominal, session.cal), options)
     assert [s.label for s in diagnosis.stages] == ["geometric", "geometric + backlash (joint 6)"]
     assert any("selected on 100 of the 160 poses" in note for note in diagnosis.notes)
+    # each nested fold's chosen model refitted on its 128 training poses, on the progress line
+    assert sum("on all 128 training poses" in note for _, _, note in calls) == options.folds
     measured = 2 * int(session.cal.seen.sum())
     for stage in diagnosis.stages:
         fitted = stage.fitted

@@ -208,6 +208,8 @@ def nested_heldout(data: Data, options: DiagnoseOptions) -> np.ndarray:
         chosen = fits[-1]
         values = chosen.estimate.values
         if on is not inner:  # the chosen model fitted on every training pose
+            if options.progress is not None:
+                options.progress(0, None, f"{stage}: {chosen.label} on all {len(train)} training poses")
             values = fitter.on(inner, stage).estimate(chosen.effects, values)[1].values
         predicted = distances(EffectModel(whole, chosen.effects).subset(held), values)
         out = np.full((n_poses,) + predicted.shape[1:], np.nan) if out is None else out
