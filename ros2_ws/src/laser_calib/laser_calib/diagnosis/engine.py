@@ -243,6 +243,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     detection = detect(final.model.names, final_res if rows is None else seen.residuals(final.estimate.values, True),
                        detector_noise, seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
                        fitter.fold if rows is None else fitter.fold[rows], options.seed)
+    if options.progress is not None:
+        options.progress(0, None, f"specification tests on {len(samples.q)} poses")
     varying = specification_tests(final.model.names, final.estimate.identifiable, final_res, noise_model,
                                   covariate_table(samples.q, samples.stamp, dict(samples.extra)),
                                   final.model.n_geometric)
