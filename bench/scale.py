@@ -15,25 +15,24 @@ so the weights do not depend on x and both minimise one function), at 60 and
 200,000 poses; planning 1,000 poses from 100,000 candidates (a process); the
 online EKF's time per pose at 33 errors.
 
-With --commands (some of the rows), only those rows are measured (with the
-LM against scipy and the online EKF when an estimate row is among them) and
-merged into the existing bench/results/scale.json; the table says which rows
-come from which run.
-
 Usage: python bench/scale.py [--sizes 60 600 6000 60000 200000] [--timeout 300] [--data DIR]
-                             [--commands "estimate (LM)" "estimate (EKF)"]
+                             [--commands diagnose ...]
+With --commands, only those rows are rerun (and their own extras: diagnose the
+10,000-pose row, plan the 1,000 of 100,000, estimate (LM) the scipy comparison
+and the online EKF); the other rows are kept from bench/results/scale.json, and
+the table says which run each row is from.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import signal
 import subprocess
 import sys
 import tempfile
-import json
 import time
 from pathlib import Path
 
@@ -53,6 +52,7 @@ from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample
 
 SIZES = (60, 600, 6000, 60000, 200000)
 COMMANDS = ("estimate (LM)", "estimate (EKF)", "identify", "diagnose", "plan")
+KEYS = dict(zip(("lm", "ekf", "identify", "diagnose", "plan"), COMMANDS))  # --commands names
 PLAN_POSES = 30       # the plan row: 30 poses (the paper's count) from a pool of N candidates
 BLOCK = 10000         # poses simulated at a time (bounded memory while writing the data)
 
@@ -171,21 +171,20 @@ def _cell(r: dict) -> str:
 
 
 def table(rows: dict, sizes: list[int], exponents: dict, scipy_rows: list[dict], big_plan: dict,
-          diagnose_10k: dict, online: dict, runs: dict[str, str] | None = None) -> str:
+          diagnose_10k: dict, online: dict, runs: dict) -> str:
     lines = ["# Cost against the number of poses (paper 7-DOF, simulated)", "",
              "Each command as a user runs it (its own process, default options), one run each: wall time / "
              "CPU time (user + system) / peak resident memory, from /usr/bin/time -v. The machine is shared "
              "(2 cores, other work running), so the CPU time is the steadier figure. Exponent: slope of log "
              "CPU time against log N over the three largest N that finished (below them the interpreter's "
              "start and the imports dominate).", "",
-             "| command | " + " | ".join(f"N = {n:,}" for n in sizes) + " | exponent |",
-             "|---|" + "---|" * (len(sizes) + 1)]
+             "| command | " + " | ".join(f"N = {n:,}" for n in sizes) + " | exponent | run |",
+             "|---|" + "---|" * (len(sizes) + 2)]
     for name in COMMANDS:
-        cells = [_cell(rows[name][str(n)]) for n in sizes]
+        cells = [_cell(rows[name][str(n)]) if str(n) in rows[name] else "not run" for n in sizes]
         e = exponents[name]
-        lines.append(f"| {name} | " + " | ".join(cells) + (f" | {e:.2f} |" if e is not None else " | - |"))
-    if runs:
-        lines += ["", "Rows from different runs: " + "; ".join(f"{name}: {run}" for name, run in runs.items()) + "."]
+        lines.append(f"| {name} | " + " | ".join(cells) + (f" | {e:.2f}" if e is not None else " | -")
+                     + f" | {runs.get(name, '-')} |")
     lines += ["", f"plan {big_plan['n']:,} poses from {big_plan['candidates']:,} candidates: {_cell(big_plan)} "
               "(target under 60 s).", "", f"diagnose at 10,000 poses: {_cell(diagnose_10k)} (target under 60 s, 2 GB).",
               "",
@@ -203,54 +202,56 @@ def table(rows: dict, sizes: list[int], exponents: dict, scipy_rows: list[dict],
     return "\n".join(lines)
 
 
+def run_label() -> str:
+    """When and at which commit this run is: the table's 'run' column."""
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
+    return f"{time.strftime('%Y-%m-%d %H:%M')} at {commit.stdout.strip() or 'unknown'}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
     parser.add_argument("--timeout", type=float, default=300.0, help="seconds before a command is killed")
     parser.add_argument("--data", type=Path, default=Path(tempfile.gettempdir()) / "laser_calib_scale",
                         help="folder of the simulated data sets (kept between runs)")
-    parser.add_argument("--commands", nargs="+", choices=COMMANDS, default=list(COMMANDS),
-                        help="the rows to measure; the others are kept from bench/results/scale.json")
-    parser.add_argument("--run", default=time.strftime("run of %Y-%m-%d %H:%M"),
-                        help="how the table names this run, for the rows it measured")
+    parser.add_argument("--commands", nargs="+", choices=list(KEYS), default=list(KEYS),
+                        help="rows to rerun (the others are kept from bench/results/scale.json)")
     args = parser.parse_args()
-    every = set(args.commands) == set(COMMANDS)
-    data = {} if every else json.loads((RESULTS / "scale.json").read_text())
-    if not every and data["sizes"] != args.sizes:
-        parser.error(f"merging rows needs the sizes of the kept ones: {data['sizes']}")
-    rows: dict = {name: {} for name in COMMANDS} | data.get("commands", {})
-    runs = {} if every else data.get("runs", {name: "the earlier run" for name in COMMANDS}) | {
-        name: args.run for name in args.commands}
+    chosen = [KEYS[key] for key in args.commands]
+    kept = json.loads((RESULTS / "scale.json").read_text()) if len(chosen) < len(COMMANDS) else {}
+    sizes = kept.get("sizes", args.sizes)
+    rows: dict = {name: dict(kept["commands"][name]) if name not in chosen else {} for name in COMMANDS}
+    runs = {name: kept.get("runs", {}).get(name, "before the run column") for name in COMMANDS if name not in chosen}
+    runs |= {name: run_label() for name in chosen}
     with tempfile.TemporaryDirectory() as scratch:
         for n in args.sizes:
             folder = simulate(n, args.data / str(n))
-            for name in args.commands:
+            for name in chosen:
                 rows[name][str(n)] = timed(command_line(name, folder, Path(scratch) / str(n)), args.timeout)
                 print(f"N = {n}: {name}: {rows[name][str(n)]}", flush=True)
-        big_plan, diagnose_10k = data.get("plan_1000_of_100000"), data.get("diagnose_10000")
-        if "plan" in args.commands:
+        big_plan = kept.get("plan_1000_of_100000")
+        if "plan" in chosen:
             robot_file = args.data / str(args.sizes[0]) / "robot.yaml"
             big_plan = timed(["plan", "--robot", str(robot_file), "--n", "1000", "--candidates", "100000",
                               "--out", str(Path(scratch) / "plan1000.csv")], args.timeout)
             big_plan |= {"n": 1000, "candidates": 100000}
             print(f"plan 1000 of 100000: {big_plan}", flush=True)
-        if "diagnose" in args.commands:
+        diagnose_10k = kept.get("diagnose_10000")
+        if "diagnose" in chosen:
             diagnose_10k = timed(command_line("diagnose", simulate(10000, args.data / "10000"),
                                               Path(scratch) / "10000"), args.timeout)
             print(f"diagnose at 10000: {diagnose_10k}", flush=True)
-    exponents = {name: exponent(args.sizes, [rows[name][str(n)]["cpu_s"] for n in args.sizes])
+    sizes = sorted(set(sizes) | set(args.sizes))
+    exponents = {name: exponent([n for n in sizes if str(n) in rows[name]],
+                                [rows[name][str(n)]["cpu_s"] for n in sizes if str(n) in rows[name]])
                  for name in COMMANDS}
-    scipy_rows, online = data.get("lm_against_scipy"), data.get("online_ekf")
-    if any(name.startswith("estimate") for name in args.commands):
+    scipy_rows, online = kept.get("lm_against_scipy"), kept.get("online_ekf")
+    if "estimate (LM)" in chosen:
         scipy_rows = [against_scipy(simulate(n, args.data / str(n))) for n in (min(args.sizes), max(args.sizes))]
         online = online_time(simulate(max(args.sizes), args.data / str(max(args.sizes))))
-        if runs:
-            runs["LM against scipy, online EKF"] = args.run
-    data = {"sizes": args.sizes, "commands": rows, "exponents": exponents, "plan_1000_of_100000": big_plan,
-            "diagnose_10000": diagnose_10k, "lm_against_scipy": scipy_rows, "online_ekf": online} | (
-        {"runs": runs} if runs else {})
-    write_results("scale", data, table(rows, args.sizes, exponents, scipy_rows, big_plan, diagnose_10k, online,
-                                       runs))
+    data = {"sizes": sizes, "commands": rows, "exponents": exponents, "plan_1000_of_100000": big_plan,
+            "diagnose_10000": diagnose_10k, "lm_against_scipy": scipy_rows, "online_ekf": online, "runs": runs}
+    write_results("scale", data, table(rows, sizes, exponents, scipy_rows, big_plan, diagnose_10k, online, runs))
 
 
 if __name__ == "__main__":

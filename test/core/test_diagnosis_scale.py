@@ -1,8 +1,10 @@
 """The diagnosis at scale keeps its answers: the screen by per-fold QR factors
 equals least squares on the stacked rows, warm-started folds give the cold
 folds' choice and held-out figures, a candidate whose fold fit diverges is
-rejected without a RuntimeWarning, and the detector's poses are runs of
-consecutive poses over the whole session."""
+rejected without a RuntimeWarning, the detector's poses are runs of
+consecutive poses over the whole session, above SELECTION_POSES the selection
+runs on part of the poses and every figure is of all of them, and residuals
+by blocks equal the whole evaluation."""
 
 import warnings
 from dataclasses import replace
@@ -10,14 +12,18 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from laser_calib.diagnosis import engine
 from laser_calib.diagnosis.data import SpotData
+from laser_calib.diagnosis.detector import Basis, OffsetRegression, submodels
 from laser_calib.diagnosis.engine import DETECTOR_POSES, DETECTOR_RUNS, candidate_pool, detector_rows, run
 from laser_calib.diagnosis.fitter import Fitter, paired_p
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.diagnosis.selection import select
 from laser_calib.effects.catalog import screen_shape
 from laser_calib.effects.effect_model import EffectModel
+from laser_calib.effects.screen import ScreenShape
 from laser_calib.estimation.estimate import estimate_model
+from laser_calib.estimation.problem import residuals_at
 from laser_calib.measurement.base import whiten
 from test_diagnosis import NOISE, library_session
 
@@ -140,3 +146,52 @@ def test_scored_distances_are_nan_where_a_spot_is_not_measured(backlash):
     chi2, distances, n_values = fitter.scored(EffectModel(fitter.base, ()), np.zeros(len(fitter.base.names)))
     assert np.isnan(distances[:5, 1]).all() and np.isfinite(distances[5:]).all() and np.isfinite(chi2).all()
     assert n_values == 2 * (distances.size - 5)
+
+
+def test_selection_on_part_of_the_poses_scores_every_pose(monkeypatch):
+    """Above SELECTION_POSES the rounds see that many poses; the stages (refitted) and
+    the nested held-out error are of every pose, and the effect is still found."""
+    session = library_session("paper-7dof", "backlash", n_cal=160)
+    monkeypatch.setattr(engine, "SELECTION_POSES", 100)
+    calls = []
+    options = DiagnoseOptions(spot_sigma=NOISE.spot_sigma, joint_sigma=NOISE.joint_sigma, max_effects=1, shortlist=2,
+                              progress=lambda *call: calls.append(call))
+    diagnosis = run(SpotData(session.nominal, session.cal), options)
+    assert [s.label for s in diagnosis.stages] == ["geometric", "geometric + backlash (joint 6)"]
+    assert any("selected on 100 of the 160 poses" in note for note in diagnosis.notes)
+    # each nested fold's chosen model refitted on its 128 training poses, on the progress line
+    assert sum("on all 128 training poses" in note for _, _, note in calls) == options.folds
+    measured = 2 * int(session.cal.seen.sum())
+    for stage in diagnosis.stages:
+        fitted = stage.fitted
+        assert fitted.n_values == fitted.estimate.fit.n_values == measured
+        assert np.isfinite(fitted.cv[session.cal.seen]).all()
+    assert diagnosis.nested.shape == session.cal.spots.shape[:2]
+    assert np.isfinite(diagnosis.nested[session.cal.seen]).all()
+    # the nested figure is a held-out one: not below the final model's in-sample error
+    final = diagnosis.stages[-1].fitted
+    assert np.sqrt(np.nanmean(diagnosis.nested ** 2)) > np.sqrt(np.nanmean(final.cal ** 2))
+
+
+def test_residuals_by_blocks_with_jacobians_equal_the_whole_evaluation(backlash):
+    """The verdict's and the detector's residuals are evaluated by blocks of poses
+    (bounded transients at 200,000 poses): the same values bit for bit."""
+    data, _ = backlash
+    pool = data.candidates()
+    model = EffectModel(data.base(), (pool[0], next(e for e in pool if isinstance(e, ScreenShape))))
+    x = np.random.default_rng(0).normal(size=len(model.names)) * model.scales * 0.1
+    whole, blocks = model.residuals(x, True), residuals_at(model, x, chunk=16, jacobian=True)
+    for name in ("r", "valid", "jac", "jac_q", "predicted"):
+        np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))
+
+
+def test_a_sub_models_features_are_its_columns_of_all_features():
+    """The detector forms only a sub-model's columns (permutation importance predicts
+    146 times): the same values as those columns of every feature."""
+    rng = np.random.default_rng(0)
+    z, g = rng.normal(size=(50, 5)), rng.normal(size=(50, 3))
+    basis = Basis.of(z, 3, 1.7)
+    X = np.hstack([z, g])
+    for columns in submodels(basis, 5, 3)[::7]:
+        regression = OffsetRegression(basis, 5, 1.0, columns)
+        np.testing.assert_array_equal(regression.features(X), regression.all_features(X)[:, columns])

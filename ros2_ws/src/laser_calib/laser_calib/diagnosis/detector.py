@@ -118,9 +118,13 @@ class OffsetRegression(BaseEstimator, RegressorMixin):
         return (g[:, :, None] * self.basis(z)[:, None, :]).reshape(len(X), -1) / self.basis.size
 
     def features(self, X: np.ndarray) -> np.ndarray:
-        """The ``columns`` of all_features (all when None)."""
-        features = self.all_features(X)
-        return features if self.columns is None else features[:, self.columns]
+        """The ``columns`` of all_features (all when None), only those formed (permutation
+        importance predicts 146 times; all of them are ~20x the chosen sub-model's)."""
+        if self.columns is None:
+            return self.all_features(X)
+        basis = self.basis(X[:, :self.n_inputs])
+        width = basis.shape[1]
+        return X[:, self.n_inputs + self.columns // width] * basis[:, self.columns % width] / self.basis.size
 
     def fit(self, X: np.ndarray, y: np.ndarray) -> "OffsetRegression":
         self.ridge_ = Ridge(alpha=self.alpha, fit_intercept=False).fit(self.features(X), y)

@@ -47,11 +47,19 @@ model cannot carry (screen and lens effects without spots) are dropped. It runs:
    parameter of the final model vary with a covariate). "explained" when no
    test is significant at alpha, "structure remains" otherwise, with the
    strongest test as evidence.
+   With more than SELECTION_POSES poses the rounds run on that many (runs of
+   consecutive poses spread over the session, selection_rows) and each stage
+   is then refitted and cross-validated on all poses, warm from its fit there:
+   the rounds' fits and folds cost a bounded time, while every figure and
+   test of the stages is of all poses (the nested held-out error likewise:
+   per outer fold the selection on at most SELECTION_POSES training poses,
+   the chosen model refitted on all of them, every held-out pose scored).
    The structure and specification tests see every pose; the detector (and
    the compensator it may give) sees at most DETECTOR_POSES of them
    (detector_rows): its cost and memory grow with the poses times its basis
-   (about 1,500 columns per value), and its power at 5,000 poses is plenty
-   for what it looks for.
+   (about 1,500 columns per value; at 5,000 poses it took three quarters of the
+   whole diagnosis of 10,000), and its power at 2,000 poses (8,000 spot
+   values for sub-models of at most 13 columns) is plenty for what it looks for.
 """
 
 from __future__ import annotations
@@ -75,6 +83,7 @@ from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.folds import kfold_labels
+from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel
@@ -134,8 +143,14 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
                            options.folds)
     if n_poses < needed:
         raise TooFewPoses(n_poses, needed)
-    fitter = Fitter(data, options, "selection")
-    fits, rounds, alternatives = select(fitter, candidate_pool(data, fitter, options, notes), options)
+    fitter, on, fits, rounds, alternatives = selected(data, options, notes, "selection")
+    if on is not data:
+        notes.append(f"effects selected on {len(on.samples.q)} of the {n_poses} poses ({SELECTION_RUNS} runs of "
+                     "consecutive poses spread over the session); each stage refitted and cross-validated on all poses, "
+                     "which every figure and test is of (the selection rounds' figures are of the poses selected on)")
+        scorer = fitter.on(data, "all poses")
+        fits = [scorer.fit(f.effects, f.estimate.values) for f in fits]
+        fitter = scorer
     nested = None
     training = n_poses - math.ceil(n_poses / options.folds)  # poses of the smallest training part
     if options.nested and training < needed:
@@ -144,6 +159,17 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
     elif options.nested:
         nested = nested_heldout(data, options)
     return finish(data, options, test, fitter, fits, rounds, alternatives, nested, notes, start)
+
+
+def selected(data: Data, options: DiagnoseOptions, notes: list[str], stage: str):
+    """select() on at most SELECTION_POSES of the poses (selection_rows): its Fitter, the
+    data it selected on (``data`` itself when it has no more), the stages' fits there, the
+    rounds and the alternatives."""
+    rows = selection_rows(len(data.samples.q), options.seed)
+    on = data if rows is None else data.subset(rows)
+    fitter = Fitter(on, options, stage)
+    fits, rounds, alternatives = select(fitter, candidate_pool(on, fitter, options, notes), options)
+    return fitter, on, fits, rounds, alternatives
 
 
 def candidate_pool(data: Data, fitter: Fitter, options: DiagnoseOptions, notes: list[str]) -> list[Effect]:
@@ -177,9 +203,15 @@ def nested_heldout(data: Data, options: DiagnoseOptions) -> np.ndarray:
     for k in range(options.folds):
         train, held = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
         inner = data.subset(train)
-        fitter = Fitter(inner, options, f"nested fold {k + 1}/{options.folds}")
-        chosen = select(fitter, candidate_pool(inner, fitter, options, []), options)[0][-1]
-        predicted = distances(EffectModel(whole, chosen.effects).subset(held), chosen.estimate.values)
+        stage = f"nested fold {k + 1}/{options.folds}"
+        fitter, on, fits, _, _ = selected(inner, options, [], stage)
+        chosen = fits[-1]
+        values = chosen.estimate.values
+        if on is not inner:  # the chosen model fitted on every training pose
+            if options.progress is not None:
+                options.progress(0, None, f"{stage}: {chosen.label} on all {len(train)} training poses")
+            values = fitter.on(inner, stage).estimate(chosen.effects, values)[1].values
+        predicted = distances(EffectModel(whole, chosen.effects).subset(held), values)
         out = np.full((n_poses,) + predicted.shape[1:], np.nan) if out is None else out
         out[held] = predicted
     return out
@@ -207,10 +239,12 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     seen = final.model if rows is None else final.model.subset(rows)
     if options.progress is not None:
         options.progress(0, None, f"detector on {len(seen.samples.q)} poses")
-    final_res = final.model.residuals(final.estimate.values, True)
+    final_res = residuals_at(final.model, final.estimate.values, jacobian=True)
     detection = detect(final.model.names, final_res if rows is None else seen.residuals(final.estimate.values, True),
                        detector_noise, seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
                        fitter.fold if rows is None else fitter.fold[rows], options.seed)
+    if options.progress is not None:
+        options.progress(0, None, f"specification tests on {len(samples.q)} poses")
     varying = specification_tests(final.model.names, final.estimate.identifiable, final_res, noise_model,
                                   covariate_table(samples.q, samples.stamp, dict(samples.extra)),
                                   final.model.n_geometric)
@@ -235,18 +269,35 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
 # detector's move inputs are the sign of the last move in row order, which a run keeps
 # (only its first pose's is taken from the run before), and the runs spread over the
 # whole session, so a slow change with the stamp stays in view.
-DETECTOR_POSES = 5000
+DETECTOR_POSES = 2000
 DETECTOR_RUNS = 10
+# Poses the selection rounds see at most, in SELECTION_RUNS runs (as the detector's: the
+# approach directions of backlash and the stamps of a drift keep their meaning). Its cost
+# is the rounds' fits times the folds, per pose, and the nested held-out error repeats it
+# per outer fold; 2,000 poses (8,000 spot values for ~40 parameters) resolve a library
+# effect far below the noise, and every stage is then refitted and scored on all poses.
+SELECTION_POSES = 2000
+SELECTION_RUNS = 10
+
+
+def session_runs(n_poses: int, limit: int, runs: int, seed: int) -> np.ndarray | None:
+    """(limit,) sorted pose indices, None for all when there are no more than ``limit``:
+    one run of consecutive poses at a seeded place in each of ``runs`` equal parts of the
+    sequence."""
+    if n_poses <= limit:
+        return None
+    rng = np.random.default_rng(seed)
+    edges = np.linspace(0, n_poses, runs + 1).astype(int)
+    length = limit // runs
+    starts = [rng.integers(lo, hi - length + 1) for lo, hi in zip(edges[:-1], edges[1:])]
+    return np.concatenate([np.arange(start, start + length) for start in starts])
 
 
 def detector_rows(n_poses: int, seed: int) -> np.ndarray | None:
-    """(DETECTOR_POSES,) sorted pose indices the detector sees, None for all when
-    there are no more: one run of consecutive poses at a seeded place in each of
-    DETECTOR_RUNS equal parts of the sequence."""
-    if n_poses <= DETECTOR_POSES:
-        return None
-    rng = np.random.default_rng(seed)
-    edges = np.linspace(0, n_poses, DETECTOR_RUNS + 1).astype(int)
-    length = DETECTOR_POSES // DETECTOR_RUNS
-    starts = [rng.integers(lo, hi - length + 1) for lo, hi in zip(edges[:-1], edges[1:])]
-    return np.concatenate([np.arange(start, start + length) for start in starts])
+    """The DETECTOR_POSES poses the detector sees (session_runs), None for all."""
+    return session_runs(n_poses, DETECTOR_POSES, DETECTOR_RUNS, seed)
+
+
+def selection_rows(n_poses: int, seed: int) -> np.ndarray | None:
+    """The SELECTION_POSES poses the selection rounds see (session_runs), None for all."""
+    return session_runs(n_poses, SELECTION_POSES, SELECTION_RUNS, seed)

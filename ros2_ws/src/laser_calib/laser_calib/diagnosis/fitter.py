@@ -15,7 +15,7 @@ from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.diagnosis.result import Fitted
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
-from laser_calib.estimation.estimate import EstimateOptions, estimate_model
+from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.problem import pose_blocks
 from laser_calib.measurement.base import NoiseModel, count_values, whiten
@@ -72,16 +72,27 @@ class Fitter:
         self.reference = NoiseModel(spot, joint)
         return self.fit((), first.values)
 
+    def on(self, data: Data, stage: str) -> "Fitter":
+        """A Fitter on other poses of the same session (all of them, after a selection on
+        part of them) with this one's reference noise model and fixed parameters: no new start."""
+        other = Fitter(data, self.options, stage)
+        other.fit_options, other.reference, other.merged = self.fit_options, self.reference, dict(self.merged)
+        return other
+
+    def estimate(self, effects: tuple[Effect, ...], x0: np.ndarray) -> tuple[EffectModel, Estimate]:
+        """The geometric errors plus ``effects`` fitted on all poses from the warm start x0,
+        without LM restarts (x0 is a converged fit: the first geometric fit had them)."""
+        model = EffectModel(self.base, effects)
+        return model, estimate_model(model, replace(self.fit_options, restarts=0), None, x0)
+
     def fit(self, effects: tuple[Effect, ...], x0: np.ndarray) -> Fitted:
         """Fit and cross-validate the geometric errors plus ``effects`` from the
-        warm start x0. No LM restarts: x0 is a converged fit (the first
-        geometric fit had them), and each fold starts from the full fit's
+        warm start x0 (estimate). Each fold starts from the full fit's
         minimum (a fold leaves out a fifth of the poses, so its minimum is
         near: LM takes a few steps, not a fit from scratch)."""
-        model = EffectModel(self.base, effects)
+        model, est = self.estimate(effects, x0)
         options = replace(self.fit_options, restarts=0)
         label = f"{self.stage}: " + " + ".join(["geometric"] + [e.label for e in effects])
-        est = estimate_model(model, options, None, x0)
         self.report(1, label)
         chi2, cal, n_values = self.scored(model, est.values)
         cv = np.full(cal.shape, np.nan)

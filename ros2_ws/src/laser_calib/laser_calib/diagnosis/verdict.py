@@ -17,6 +17,7 @@ from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo
 from laser_calib.diagnosis.specification import Varying
 from laser_calib.diagnosis.structure import Readings, pose_covariates, pose_responses, structure_tests
 from laser_calib.effects.base import positive_number
+from laser_calib.estimation.problem import residuals_at
 from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.model.robot import Robot
 
@@ -31,7 +32,7 @@ def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions) ->
     any; otherwise it is not tested.
     """
     est = final.estimate
-    res = final.model.residuals(est.values, True)
+    res = residuals_at(final.model, est.values, jacobian=True)  # by blocks: bounded transients
     m = int(res.valid.sum()) * res.r.shape[2]
     dof = max(m - int(est.identifiable.sum()), 1)
     spot, joint = noise_components(res, math.sqrt(m / dof), options.spot_sigma, options.joint_sigma)
@@ -57,7 +58,7 @@ def analysis(data: Data, fitted: Fitted, noise: NoiseModel) -> Analysis:
     """Structure tests of a fit's residual: the pose-level responses and
     covariates of every measurement model, and the data's measurement-level ones."""
     model, x = fitted.model, fitted.estimate.values
-    res = model.residuals(x, True)
+    res = residuals_at(model, x, jacobian=True)
     level_resp, level_cov = data.series(model, x, res, noise)
     resp = pose_responses(model.robot, res, noise) + level_resp
     cov = pose_covariates(model.robot, data.samples) + level_cov

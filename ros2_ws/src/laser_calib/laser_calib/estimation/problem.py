@@ -62,10 +62,11 @@ def pose_blocks(model: MeasurementModel, chunk: int = CHUNK_POSES) -> Iterator[t
         yield index, model.subset(index)
 
 
-def residuals_at(model: MeasurementModel, x: np.ndarray, chunk: int = CHUNK_POSES) -> Residuals:
-    """The residuals of all poses at x without the Jacobians, evaluated block by
-    block (the model's transient arrays stay those of one block)."""
-    parts = [block.residuals(x, False) for _, block in pose_blocks(model, chunk)]
+def residuals_at(model: MeasurementModel, x: np.ndarray, chunk: int = CHUNK_POSES,
+                 jacobian: bool = False) -> Residuals:
+    """The residuals of all poses at x (with the Jacobians when asked), evaluated
+    block by block (the model's transient arrays stay those of one block)."""
+    parts = [block.residuals(x, jacobian) for _, block in pose_blocks(model, chunk)]
     if len(parts) == 1:
         return parts[0]
     return Residuals(*(None if getattr(parts[0], f) is None else np.concatenate([getattr(r, f) for r in parts])
