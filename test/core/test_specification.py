@@ -82,3 +82,18 @@ def test_the_added_effects_share_half_of_the_family_rate():
         share = n_effect if v.parameter == NAMES[-1] else len(found) - n_effect
         assert v.p_adjusted == min(1.0, 2 * share * v.p)
     assert (found[0].parameter, found[0].covariate) == (NAMES[-1], "q1")
+
+
+def test_a_parameter_following_a_gravity_torque_is_named():
+    # x2 varying with the load of joint 3 (a link bending under it): the torques are covariates too.
+    res, _ = linear_case(9)
+    rng = np.random.default_rng(9)
+    q = rng.uniform(-2, 2, size=(N_POSES, N_JOINTS))
+    torques = np.cos(q) + rng.normal(scale=0.1, size=q.shape)
+    res = Residuals(res.r + 1.0 * SIGMA * res.jac[..., 1] * legendre(torques[:, 2])[:, 0, None, None], res.valid,
+                    res.jac, res.jac_q, res.r)
+    covariates = covariate_table(q, 10.0 * np.arange(N_POSES), {}, torques)
+    assert [name for name, _ in covariates][-N_JOINTS:] == ["torque1", "torque2", "torque3"]
+    found = run(res, covariates)
+    assert found[0].p_adjusted < 0.01
+    assert (found[0].parameter, found[0].covariate) == ("x2", "torque3")

@@ -9,7 +9,10 @@ modulated by a function of what the pose was measured with. The test (a
 varying-coefficient, RESET-like F test) asks that of every column of the final
 model (every identifiable geometric error and effect parameter) and every
 covariate (each joint reading, the stamp, every extra column such as the
-temperature):
+temperature, and the gravity torque of each joint: a link that bends or a
+bearing that tilts under the load makes a length or twist follow a torque,
+which no joint reading alone carries, and the library's compliance covers only
+a joint's own angle following its own torque):
 
     y = W r (whitened residual, M values),  J = W d predicted / d x (M, k free columns)
     Z = [J_j P1(u_c), J_j P2(u_c)]  (M, 2)  u_c the covariate mapped to [-1, 1] (per pose),
@@ -62,11 +65,13 @@ class Varying:
                 f"{100 * self.share:.1f} % of the residual sum of squares)")
 
 
-def covariate_table(q: np.ndarray, stamp: np.ndarray, extra: Mapping[str, np.ndarray]
-                    ) -> list[tuple[str, np.ndarray]]:
-    """The covariates (name, (P,) values) a parameter may vary with: q_i, stamp, every extra column."""
+def covariate_table(q: np.ndarray, stamp: np.ndarray, extra: Mapping[str, np.ndarray],
+                    torques: np.ndarray | None = None) -> list[tuple[str, np.ndarray]]:
+    """The covariates (name, (P,) values) a parameter may vary with: q_i, stamp, every extra column,
+    and the gravity torque of each joint (P,N; effects.joint.gravity_torques) when given."""
     out = [(f"q{i + 1}", q[:, i]) for i in range(q.shape[1])] + [("stamp", np.asarray(stamp, float))]
     out += [(name, np.asarray(values, float)) for name, values in extra.items()]
+    out += [] if torques is None else [(f"torque{i + 1}", torques[:, i]) for i in range(torques.shape[1])]
     return [(name, values) for name, values in out if np.all(np.isfinite(values)) and np.ptp(values) > MIN_SPREAD]
 
 
