@@ -74,6 +74,7 @@ from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdi
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
+from laser_calib.effects.joint import gravity_torques
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
@@ -196,7 +197,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     final = fits[-1]
     if options.progress is not None:
         options.progress(0, None, "the verdict's noise and structure tests")
-    noise = verdict_noise(final, data.samples, options)
+    noise = verdict_noise(final, data.samples, options, rated_noise(data.robot))
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
     samples = data.samples
@@ -212,10 +213,10 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
                        detector_noise, seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
                        fitter.fold if rows is None else fitter.fold[rows], options.seed)
     varying = specification_tests(final.model.names, final.estimate.identifiable, final_res, noise_model,
-                                  covariate_table(samples.q, samples.stamp, dict(samples.extra)),
+                                  covariate_table(samples.q, samples.stamp, dict(samples.extra),
+                                                  gravity_torques(data.robot, samples.q)),
                                   final.model.n_geometric)
-    verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha,
-                             varying)
+    verdict, said = evidence(after, noise, detection, len(samples.q), options.alpha, varying)
     parameters = parameter_report(final, alternatives)
     verdict, said = ambiguous_verdict(verdict, said, parameters)
     compensator = compensated = None
