@@ -11,8 +11,9 @@ regression goes through the kinematics: a pose's residual is modelled as
 a smooth joint-angle error f_j and a smooth link-twist error (link bending,
 a tilted bearing) of each joint, as functions of the inputs z. Each f_j is a
 penalised regression on a basis of z (scikit-learn SplineTransformer: cubic
-B-splines of every input, additive; plus the products of pairs of joint
-readings, for errors that depend on two joints; scikit-learn Ridge), the
+B-splines of every input, additive; plus, per pair of joint readings, their
+product and the products of their first harmonics, for errors that depend on
+two joints; scikit-learn Ridge), the
 penalty the one of the best held-out gain over a grid (leave-one-value-out
 GCV would leak between the values of one pose and choose too little). Why this family and not trees or a
 GP on z alone: the residual's dependence on z is the product of the
