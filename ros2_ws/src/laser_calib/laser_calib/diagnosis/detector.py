@@ -11,9 +11,8 @@ regression goes through the kinematics: a pose's residual is modelled as
 a smooth joint-angle error f_j and a smooth link-twist error (link bending,
 a tilted bearing) of each joint, as functions of the inputs z. Each f_j is a
 penalised regression on a basis of z (scikit-learn SplineTransformer: cubic
-B-splines of every input, additive; plus, per pair of joint readings, their
-product and the products of their first harmonics, for errors that depend on
-two joints; scikit-learn Ridge), the
+B-splines of every input, additive; plus the products of pairs of joint
+readings, for errors that depend on two joints; scikit-learn Ridge), the
 penalty the one of the best held-out gain over a grid (leave-one-value-out
 GCV would leak between the values of one pose and choose too little). Why this family and not trees or a
 GP on z alone: the residual's dependence on z is the product of the
@@ -55,7 +54,6 @@ PERMUTATIONS = 99
 ALPHAS = np.logspace(-2, 5, 8)
 N_KNOTS, DEGREE = 4, 3
 MIN_SPREAD = 1e-9  # an input that does not vary is left out
-PAIR_TERMS = 5  # per pair of joint readings: the product of the standardised readings, 4 trig products
 
 
 def input_table(q: np.ndarray, stamp: np.ndarray, extra: dict[str, np.ndarray]) -> tuple[list[str], np.ndarray]:
@@ -93,19 +91,11 @@ class Basis:
         return cls(mean, std, knots, pairs, size)
 
     def __call__(self, z: np.ndarray) -> np.ndarray:
-        """(P,b) basis values at inputs z (P,d): the splines of every input, then
-        per pair of joint readings their product and the trig products of
-        their first harmonics (pair-major)."""
+        """(P,b) basis values at inputs z (P,d)."""
         zs = (z - self.mean) / self.std
         spline = SplineTransformer(knots=self.knots, degree=DEGREE, extrapolation="constant").fit(self.knots)
-        first, second = z[:, self.pairs[:, 0]], z[:, self.pairs[:, 1]]
-        # An error depending on two revolute joints is a Fourier series in both angles; its first
-        # harmonics' products (sin q_i sin q_k, ...) are what additive splines and one bilinear
-        # term miss over wide ranges. (A prismatic reading in metres makes them near-bilinear.)
-        trig = [np.sin(first) * np.sin(second), np.sin(first) * np.cos(second), np.cos(first) * np.sin(second),
-                np.cos(first) * np.cos(second)]
-        products = np.stack([zs[:, self.pairs[:, 0]] * zs[:, self.pairs[:, 1]]] + trig, axis=-1)
-        return np.hstack([spline.transform(zs), products.reshape(len(z), -1)])
+        products = zs[:, self.pairs[:, 0]] * zs[:, self.pairs[:, 1]]
+        return np.hstack([spline.transform(zs), products])
 
 
 class OffsetRegression(BaseEstimator, RegressorMixin):
@@ -189,10 +179,9 @@ def submodels(basis: Basis, n_inputs: int, n_directions: int) -> list[np.ndarray
     one or two inputs is found with few terms; all inputs at once on 80 poses
     overfit so much that they miss it (held-out gain -0.07 where one input gave 0.24)."""
     n_splines = N_KNOTS + DEGREE - 1
-    width = n_inputs * n_splines + PAIR_TERMS * len(basis.pairs)
+    width = n_inputs * n_splines + len(basis.pairs)
     spline = [np.arange(k * n_splines, (k + 1) * n_splines) for k in range(n_inputs)]
-    local = spline + [np.concatenate([spline[i], spline[k], n_inputs * n_splines + PAIR_TERMS * p
-                                      + np.arange(PAIR_TERMS)])
+    local = spline + [np.concatenate([spline[i], spline[k], [n_inputs * n_splines + p]])
                       for p, (i, k) in enumerate(basis.pairs)]
     return [j * width + cols for j in range(n_directions) for cols in local]
 
