@@ -27,6 +27,12 @@ apart. The summary counts the false alarms too: "structure remains" on a
 library case or on effect-free data (and "undetermined" there, apart).
 
     .venv/bin/python bench/effects_bench.py [--seeds 1 2 3] [--jobs 2]
+
+Seeds 1-3 are the ones the verdict's tests were changed while looking at; a
+change is judged again on seeds never looked at (results/effects_heldout.*):
+
+    .venv/bin/python bench/effects_bench.py --seeds 6 7 --name effects_heldout \
+        --kinds f_coupling f_stiffness f_polynomial f_step f_bending f_two_joint f_harmonic f_hose none
 """
 
 from __future__ import annotations
