@@ -279,13 +279,20 @@ def test_learned_compensator_is_saved_loaded_and_predicts_as_in_the_diagnosis(tm
 
 def test_estimated_noise_far_above_the_rated_noise_is_structure():
     """The robot file says its encoders read to 0.002 deg; the data scatter as
-    0.02 deg joint noise would, which the maximum-likelihood estimate finds."""
+    0.02 deg joint noise would, which the maximum-likelihood estimate finds.
+    Rated at what the simulated encoders do, the one-sided likelihood-ratio test passes."""
     session = effect_session("paper-4dof", SEED, lambda r, e, c, rng: [], 80, 40, NOISE)
-    robot = replace(session.nominal, extra={**session.nominal.extra, "joint_reading_sigma": float(np.deg2rad(0.002))})
-    diagnosis = diagnose(robot, session.cal, session.test, spot_sigma=NOISE.spot_sigma)
+
+    def rated(sigma):
+        return replace(session.nominal, extra={**session.nominal.extra, "joint_reading_sigma": sigma})
+
+    diagnosis = diagnose(rated(float(np.deg2rad(0.002))), session.cal, session.test, spot_sigma=NOISE.spot_sigma)
     assert diagnosis.verdict == STRUCTURE
     assert "robot file says the hardware can do" in diagnosis.evidence
-    assert diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma).verdict == EXPLAINED
+    honest = diagnose(rated(NOISE.joint_sigma), session.cal, session.test, spot_sigma=NOISE.spot_sigma)
+    assert honest.verdict == EXPLAINED, honest.evidence
+    (component, _, limit, p), = honest.noise.excess
+    assert component == "joint-reading" and limit == NOISE.joint_sigma and p >= honest.options.alpha
 
 
 def test_untested_level_and_too_few_poses_for_the_detector_is_undetermined():
@@ -316,3 +323,4 @@ def test_a_library_effect_standing_in_for_a_foreign_one_is_not_explained():
     assert top.p_adjusted < diagnosis.options.alpha, diagnosis.evidence
     assert (top.parameter in ("theta4", "compliance4") and top.covariate == "q1"), top.sentence()
     assert "varies with q1" in diagnosis.evidence
+

@@ -5,7 +5,7 @@ covariate when one varies, and it does not depend on the noise level."""
 import numpy as np
 from scipy import stats
 
-from laser_calib.diagnosis.specification import covariate_table, legendre, specification_tests
+from laser_calib.diagnosis.specification import covariate_table, legendre, load_table, specification_tests
 from laser_calib.measurement.base import NoiseModel, Residuals
 
 N_POSES, VALUES, N_PARAMS, N_JOINTS = 80, 4, 6, 3
@@ -82,3 +82,22 @@ def test_the_added_effects_share_half_of_the_family_rate():
         share = n_effect if v.parameter == NAMES[-1] else len(found) - n_effect
         assert v.p_adjusted == min(1.0, 2 * share * v.p)
     assert (found[0].parameter, found[0].covariate) == (NAMES[-1], "q1")
+
+
+def test_a_parameter_following_a_gravity_torque_is_named():
+    # x2 varying with the load of joint 3 (a link bending under it): the torques are covariates too.
+    res, _ = linear_case(9)
+    rng = np.random.default_rng(9)
+    q = rng.uniform(-2, 2, size=(N_POSES, N_JOINTS))
+    torques = np.cos(q) + rng.normal(scale=0.1, size=q.shape)
+    res = Residuals(res.r + 1.0 * SIGMA * res.jac[..., 1] * legendre(torques[:, 2])[:, 0, None, None], res.valid,
+                    res.jac, res.jac_q, res.r)
+    loads = load_table(torques)
+    assert [name for name, _ in loads] == ["torque1", "torque2", "torque3"]
+    found = specification_tests(NAMES, np.ones(N_PARAMS, bool), res, NoiseModel(SIGMA, 0.0),
+                                covariate_table(q, 10.0 * np.arange(N_POSES), {}), N_PARAMS - 1, loads)
+    assert found[0].p_adjusted < 0.01
+    assert (found[0].parameter, found[0].covariate) == ("x2", "torque3")
+    # The added effect's column (the last) is not tested against the loads.
+    assert not any(v.parameter == NAMES[-1] and v.covariate.startswith("torque") for v in found)
+    assert any(v.parameter == NAMES[-1] and v.covariate == "q1" for v in found)

@@ -77,11 +77,12 @@ from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
-from laser_calib.diagnosis.specification import covariate_table, specification_tests
+from laser_calib.diagnosis.specification import covariate_table, load_table, specification_tests
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
+from laser_calib.effects.joint import gravity_torques
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.errors import InputError
@@ -228,7 +229,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     final = fits[-1]
     if options.progress is not None:
         options.progress(0, None, "the verdict's noise and structure tests")
-    noise = verdict_noise(final, data.samples, options)
+    noise = verdict_noise(final, data.samples, options, rated_noise(data.robot))
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
     samples = data.samples
@@ -247,9 +248,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
         options.progress(0, None, f"specification tests on {len(samples.q)} poses")
     varying = specification_tests(final.model.names, final.estimate.identifiable, final_res, noise_model,
                                   covariate_table(samples.q, samples.stamp, dict(samples.extra)),
-                                  final.model.n_geometric)
-    verdict, said = evidence(after, noise, detection, rated_noise(data.robot), len(samples.q), options.alpha,
-                             varying)
+                                  final.model.n_geometric, load_table(gravity_torques(data.robot, samples.q)))
+    verdict, said = evidence(after, noise, detection, len(samples.q), options.alpha, varying)
     parameters = parameter_report(final, alternatives)
     verdict, said = ambiguous_verdict(verdict, said, parameters)
     compensator = compensated = None

@@ -11,6 +11,7 @@ give the noise without any model (pure error).
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 from scipy import optimize
@@ -63,11 +64,11 @@ def pure_error(samples: Readings, res: Residuals, noise: NoiseModel) -> tuple[fl
     return squares, dof, math.sqrt(raw_squares / dof) if dof else 0.0
 
 
-def noise_components(res: Residuals, scale: float, spot: float | None, joint: float | None) -> tuple[float, float]:
-    """Maximum-likelihood spot (m) and joint-reading (rad) noise of a fit's
-    residuals: the pose covariance spot^2 I + joint^2 G G^T (G = jac_q, as in
-    measurement.NoiseModel); the given ones are held, the None ones estimated.
-    Residuals are scaled by ``scale`` (sqrt(M/dof): the fit took dof away)."""
+def deviance(res: Residuals, scale: float) -> Callable[[float, float], float]:
+    """-2 log-likelihood (up to a constant) of a fit's residuals, scaled by
+    ``scale`` (sqrt(M/dof): the fit took dof away), as a function of the spot
+    (m) and joint-reading (rad) sigma: the pose covariance spot^2 I + joint^2
+    G G^T (G = jac_q, as in measurement.NoiseModel)."""
     n_poses = res.r.shape[0]
     m = res.r.shape[1] * res.r.shape[2]
     r = res.r.reshape(n_poses, m) * scale
@@ -75,14 +76,8 @@ def noise_components(res: Residuals, scale: float, spot: float | None, joint: fl
     g = res.jac_q.reshape(n_poses, m, -1) * mask[..., None]
     outer = np.einsum("pin,pjn->pij", g, g)
     idx = np.nonzero(~mask)
-    free = [spot is None, joint is None]
 
-    def unpack(theta: np.ndarray) -> tuple[float, float]:
-        values = iter(np.exp(theta))
-        return (next(values) if free[0] else spot), (next(values) if free[1] else joint)
-
-    def negative_log_likelihood(theta: np.ndarray) -> float:
-        s, j = unpack(np.atleast_1d(theta))
+    def value(s: float, j: float) -> float:
         cov = s ** 2 * np.eye(m) + j ** 2 * outer
         cov[~mask] = 0.0
         cov.transpose(0, 2, 1)[~mask] = 0.0
@@ -90,7 +85,25 @@ def noise_components(res: Residuals, scale: float, spot: float | None, joint: fl
         _, logdet = np.linalg.slogdet(cov)
         return float(logdet.sum() + np.einsum("pi,pi->", r, np.linalg.solve(cov, r[..., None])[..., 0]))
 
-    rms = float(np.sqrt(np.mean(r[mask] ** 2))) if mask.any() else 1e-3
+    return value
+
+
+def noise_components(res: Residuals, scale: float, spot: float | None, joint: float | None) -> tuple[float, float]:
+    """Maximum-likelihood spot (m) and joint-reading (rad) noise of a fit's
+    residuals (deviance); the given ones are held, the None ones estimated.
+    Residuals are scaled by ``scale`` (sqrt(M/dof): the fit took dof away)."""
+    free = [spot is None, joint is None]
+    value = deviance(res, scale)
+
+    def unpack(theta: np.ndarray) -> tuple[float, float]:
+        values = iter(np.exp(theta))
+        return (next(values) if free[0] else spot), (next(values) if free[1] else joint)
+
+    def negative_log_likelihood(theta: np.ndarray) -> float:
+        return value(*unpack(np.atleast_1d(theta)))
+
+    mask = np.repeat(res.valid, res.r.shape[2], axis=1)
+    rms = float(np.sqrt(np.mean((res.r.reshape(len(mask), -1) * scale)[mask] ** 2))) if mask.any() else 1e-3
     if free == [False, False]:
         return spot, joint
     if sum(free) == 1:

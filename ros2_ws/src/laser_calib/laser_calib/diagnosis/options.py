@@ -8,9 +8,6 @@ from typing import Callable
 
 EXPLAINED, STRUCTURE, UNDETERMINED = "explained", "structure remains", "undetermined"
 MIN_DETECTOR_POSES = 30   # below this the flexible detector sees only large structure
-# An estimated noise sigma this many times its rated value (robot file) is structure:
-# the maximum-likelihood sigma from 100+ values has a relative error under 10 %.
-NOISE_EXCESS = 2.0
 MIN_REPEAT_DOF = 8        # repeated-pose scatter with fewer degrees of freedom is not used
 EQUIVALENT_P = 0.05       # held-out errors this close are "not significantly different"
 SEPARABLE_CORRELATION = 0.99

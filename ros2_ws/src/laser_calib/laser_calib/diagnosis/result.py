@@ -80,8 +80,9 @@ class Stage:
 class NoiseInfo:
     """The noise the verdict uses (spot sigma m, joint sigma rad, each "given" or
     "estimated"), the degrees of freedom and pooled RMS per coordinate (m) of
-    the scatter of repeated poses, and the test of the residual level when there
-    is one: its name, statistic, dof and p."""
+    the scatter of repeated poses, the test of the residual level when there
+    is one: its name, statistic, dof and p, and the tests of estimated
+    components against their rated values."""
 
     spot_sigma: float
     spot_source: str
@@ -93,6 +94,7 @@ class NoiseInfo:
     level_statistic: float | None = None
     level_dof: tuple[int, ...] | None = None
     level_p: float | None = None
+    excess: tuple[tuple[str, float, float, float], ...] = ()  # (component, estimate, rated, p): verdict.excess_tests
 
 
 @dataclass(frozen=True)
@@ -160,7 +162,9 @@ class Diagnosis:
                       "repeated_pose_rms_m": self.noise.repeat_rms, "level_test": self.noise.level_test,
                       "level_statistic": self.noise.level_statistic,
                       "level_dof": None if self.noise.level_dof is None else list(self.noise.level_dof),
-                      "level_p": self.noise.level_p},
+                      "level_p": self.noise.level_p,
+                      "above_rated": [{"component": c, "estimate": e, "rated": r, "p": p}
+                                      for c, e, r, p in self.noise.excess]},
             "structure": {"before": [_test_json(t) for t in self.before.tests[:10]],
                           "after": [_test_json(t) for t in self.after.tests[:10]]},
             "selection": [[{k: v for k, v in r.__dict__.items()} for r in ranking] for ranking in self.rounds],

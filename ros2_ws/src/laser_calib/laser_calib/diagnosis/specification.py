@@ -9,7 +9,11 @@ modulated by a function of what the pose was measured with. The test (a
 varying-coefficient, RESET-like F test) asks that of every column of the final
 model (every identifiable geometric error and effect parameter) and every
 covariate (each joint reading, the stamp, every extra column such as the
-temperature):
+temperature; for the geometric columns also the gravity torque of each joint:
+a link that bends or a bearing that tilts under the load makes a length or
+twist follow a torque, which no joint reading alone carries, and the library's
+compliance covers only a joint's own angle following its own torque; the
+added effects' columns keep their own share of alpha undiluted by the loads):
 
     y = W r (whitened residual, M values),  J = W d predicted / d x (M, k free columns)
     Z = [J_j P1(u_c), J_j P2(u_c)]  (M, 2)  u_c the covariate mapped to [-1, 1] (per pose),
@@ -62,12 +66,21 @@ class Varying:
                 f"{100 * self.share:.1f} % of the residual sum of squares)")
 
 
+def varying(out: list[tuple[str, np.ndarray]]) -> list[tuple[str, np.ndarray]]:
+    return [(name, values) for name, values in out if np.all(np.isfinite(values)) and np.ptp(values) > MIN_SPREAD]
+
+
 def covariate_table(q: np.ndarray, stamp: np.ndarray, extra: Mapping[str, np.ndarray]
                     ) -> list[tuple[str, np.ndarray]]:
     """The covariates (name, (P,) values) a parameter may vary with: q_i, stamp, every extra column."""
     out = [(f"q{i + 1}", q[:, i]) for i in range(q.shape[1])] + [("stamp", np.asarray(stamp, float))]
-    out += [(name, np.asarray(values, float)) for name, values in extra.items()]
-    return [(name, values) for name, values in out if np.all(np.isfinite(values)) and np.ptp(values) > MIN_SPREAD]
+    return varying(out + [(name, np.asarray(values, float)) for name, values in extra.items()])
+
+
+def load_table(torques: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """The loads a geometric error may vary with: the gravity torque of each joint, torque_i
+    (torques (P,N), effects.joint.gravity_torques)."""
+    return varying([(f"torque{i + 1}", torques[:, i]) for i in range(torques.shape[1])])
 
 
 def legendre(values: np.ndarray) -> np.ndarray:
@@ -77,11 +90,13 @@ def legendre(values: np.ndarray) -> np.ndarray:
 
 
 def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: Residuals, noise: NoiseModel,
-                        covariates: list[tuple[str, np.ndarray]], n_geometric: int | None = None) -> list[Varying]:
+                        covariates: list[tuple[str, np.ndarray]], n_geometric: int | None = None,
+                        loads: list[tuple[str, np.ndarray]] = ()) -> list[Varying]:
     """Every (column, covariate) test (module docstring) of a fit's residual res
     (with jac at the fit), the model's parameter names and identifiable mask (n,),
     under the noise model; the first n_geometric parameters are the geometric
-    errors, the rest the added effects' (None: all geometric); strongest first."""
+    errors, the rest the added effects' (None: all geometric); loads (load_table)
+    are tested against the geometric columns only; strongest first."""
     n_poses = res.r.shape[0]
     per_pose = res.r.shape[1] * res.r.shape[2]
     y, jac = whiten(res, noise.whitener(res))
@@ -99,9 +114,11 @@ def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: R
     n_values, k = len(y), span.shape[1]
     found, effect = [], []
     added = set(names[len(names) if n_geometric is None else n_geometric:])
-    for covariate, values in covariates:
+    for covariate, values, geometric_only in [(*c, False) for c in covariates] + [(*c, True) for c in loads]:
         modulation = legendre(values)[pose]                               # (M, 2)
         for j, parameter in enumerate(columns):
+            if geometric_only and parameter in added:
+                continue
             z = jac[:, j:j + 1] * modulation
             size = float(np.linalg.norm(z, axis=0).max())
             z = z - span @ (span.T @ z)

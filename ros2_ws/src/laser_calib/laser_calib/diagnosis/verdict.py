@@ -10,18 +10,19 @@ from scipy import stats
 
 from laser_calib.diagnosis.data import Data
 from laser_calib.diagnosis.detector import Detection
-from laser_calib.diagnosis.noise import noise_components, pure_error
-from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_REPEAT_DOF, NOISE_EXCESS, STRUCTURE,
+from laser_calib.diagnosis.noise import deviance, noise_components, pure_error
+from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_REPEAT_DOF, STRUCTURE,
                                            UNDETERMINED, DiagnoseOptions)
 from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo
 from laser_calib.diagnosis.specification import Varying
 from laser_calib.diagnosis.structure import Readings, pose_covariates, pose_responses, structure_tests
 from laser_calib.effects.base import positive_number
 from laser_calib.estimation.problem import residuals_at
-from laser_calib.measurement.base import NoiseModel, whiten
+from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 from laser_calib.model.robot import Robot
 
-def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions) -> NoiseInfo:
+def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions,
+                  rated: tuple[float | None, float | None] = (None, None)) -> NoiseInfo:
     """The noise model of the verdict and the test of the residual level.
 
     Components not given are estimated by maximum likelihood from the final
@@ -29,29 +30,55 @@ def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions) ->
     its real noise. The level can then be tested only against what was given
     or measured: a chi^2 test when both components are given, a lack-of-fit F
     test against the scatter of repeated poses (pure error) when there are
-    any; otherwise it is not tested.
+    any; otherwise it is not tested. An estimated component with a rated value
+    (rated_noise: what the robot file says the hardware can do) is tested
+    against it (excess_tests).
     """
     est = final.estimate
     res = residuals_at(final.model, est.values, jacobian=True)  # by blocks: bounded transients
     m = int(res.valid.sum()) * res.r.shape[2]
     dof = max(m - int(est.identifiable.sum()), 1)
-    spot, joint = noise_components(res, math.sqrt(m / dof), options.spot_sigma, options.joint_sigma)
+    scale = math.sqrt(m / dof)
+    spot, joint = noise_components(res, scale, options.spot_sigma, options.joint_sigma)
     sources = ("given" if options.spot_sigma is not None else "estimated",
                "given" if options.joint_sigma is not None else "estimated")
     noise = NoiseModel(spot, joint)
     pure, repeat_dof, repeat_rms = pure_error(samples, res, noise)
+    excess = excess_tests(res, scale, (spot, joint), (options.spot_sigma, options.joint_sigma), rated)
+    common = (spot, sources[0], joint, sources[1], repeat_dof, repeat_rms)
     if options.spot_sigma is not None and options.joint_sigma is not None:
         r, _ = whiten(res, noise.whitener(res))
         chi2 = float(r @ r)
-        return NoiseInfo(spot, sources[0], joint, sources[1], repeat_dof, repeat_rms, "chi^2", chi2, (dof,),
-                         float(stats.chi2.sf(chi2, dof)))
+        return NoiseInfo(*common, "chi^2", chi2, (dof,), float(stats.chi2.sf(chi2, dof)), excess)
     if repeat_dof >= MIN_REPEAT_DOF and dof > repeat_dof:
         # Lack of fit: the whitened residual beyond the pure error of repeated poses.
         r, _ = whiten(res, noise.whitener(res))
         f = ((float(r @ r) - pure) / (dof - repeat_dof)) / (pure / repeat_dof)
-        return NoiseInfo(spot, sources[0], joint, sources[1], repeat_dof, repeat_rms, "lack-of-fit F", f,
-                         (dof - repeat_dof, repeat_dof), float(stats.f.sf(f, dof - repeat_dof, repeat_dof)))
-    return NoiseInfo(spot, sources[0], joint, sources[1], repeat_dof, repeat_rms)
+        return NoiseInfo(*common, "lack-of-fit F", f, (dof - repeat_dof, repeat_dof),
+                         float(stats.f.sf(f, dof - repeat_dof, repeat_dof)), excess)
+    return NoiseInfo(*common, excess=excess)
+
+
+def excess_tests(res: Residuals, scale: float, estimate: tuple[float, float], given: tuple[float | None, float | None],
+                 rated: tuple[float | None, float | None]) -> tuple[tuple[str, float, float, float], ...]:
+    """(component, estimate, rated, p) for each component estimated (not given)
+    that has a rated value: the one-sided likelihood-ratio test of "its sigma
+    is at most the rated one". Deviance at the maximum-likelihood estimate
+    against the profile with the component held at its rated value (the other,
+    when not given, re-estimated): chi^2(1) asymptotically, halved for the
+    one-sided alternative (the null on the boundary). A sigma above what the
+    hardware can do is structure the noise estimate took in (a joint error that
+    follows the pose looks like joint-reading noise to a fit that has no term for it)."""
+    value = deviance(res, scale)
+    at_estimate = value(*estimate)
+    out = []
+    for index, name in enumerate(("spot", "joint-reading")):
+        if given[index] is not None or rated[index] is None:
+            continue
+        held = tuple(rated[i] if i == index else given[i] for i in range(2))
+        ratio = value(*noise_components(res, scale, *held)) - at_estimate if estimate[index] > rated[index] else 0.0
+        out.append((name, estimate[index], rated[index], 0.5 * float(stats.chi2.sf(ratio, 1)) if ratio > 0 else 1.0))
+    return tuple(out)
 
 
 def analysis(data: Data, fitted: Fitted, noise: NoiseModel) -> Analysis:
@@ -72,19 +99,19 @@ def rated_noise(robot: Robot) -> tuple[float | None, float | None]:
                  for key in ("spot_sigma", "joint_reading_sigma"))
 
 
-def excess_noise(noise: NoiseInfo, rated: tuple[float | None, float | None]) -> str | None:
-    """The sentence saying an estimated noise component is far above its rated value, or None."""
-    for name, value, source, limit, unit, factor in (
-            ("spot", noise.spot_sigma, noise.spot_source, rated[0], "mm", 1e3),
-            ("joint-reading", noise.joint_sigma, noise.joint_source, rated[1], "deg", float(np.degrees(1.0)))):
-        if source == "estimated" and limit is not None and value > NOISE_EXCESS * limit:
-            return (f"the estimated {name} sigma, {value * factor:.3g} {unit}, is {value / limit:.1f} times what the "
-                    f"robot file says the hardware can do ({limit * factor:.3g} {unit}): structure taken as noise")
+def excess_noise(noise: NoiseInfo, alpha: float) -> str | None:
+    """The sentence saying an estimated noise component is significantly above its rated value, or None."""
+    for name, value, limit, p in noise.excess:
+        if p < alpha:
+            unit, factor = ("mm", 1e3) if name == "spot" else ("deg", float(np.degrees(1.0)))
+            return (f"the estimated {name} sigma, {value * factor:.3g} {unit}, is {value / limit:.2f} times what the "
+                    f"robot file says the hardware can do ({limit * factor:.3g} {unit}; likelihood-ratio p = {p:.2g}): "
+                    "structure taken as noise")
     return None
 
 
-def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, rated: tuple[float | None, float | None],
-             n_poses: int, alpha: float, varying: list[Varying] | tuple[Varying, ...] = ()) -> tuple[str, str]:
+def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, n_poses: int, alpha: float,
+             varying: list[Varying] | tuple[Varying, ...] = ()) -> tuple[str, str]:
     """The verdict and its evidence (engine docstring, 3.); varying: the
     specification tests of the chosen form, strongest first (specification.py)."""
     tests = after.tests
@@ -115,7 +142,7 @@ def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, rated: tup
     if varying:
         parts.append(("Form: structure remains: " if misspecified else "Form, no parameter varies significantly; "
                       "strongest: ") + varying[0].sentence() + f", {len(varying)} tests.")
-    excess = excess_noise(noise, rated)
+    excess = excess_noise(noise, alpha)
     if excess:
         parts.append(f"Noise: {excess}.")
     if structure or level_fail or detected or excess or misspecified:
