@@ -53,8 +53,8 @@ WEIGHT_TOL = 1e-3
 # A residual below a thousandth of the noise model's sigma (noise-free data)
 # has no outliers: the scale is not taken below this, in whitened units.
 MIN_SCALE = 1e-3
-MAX_REJECTED = 1 / 3
-WARM_POSES = 20000  # above twice this many poses, the reweighting starts on an evenly spread subset of this size  # beyond this fraction of outliers the residual is a model error
+MAX_REJECTED = 1 / 3  # beyond this fraction of outliers the residual is a model error
+WARM_POSES = 20000  # above twice this many poses, the reweighting starts on an evenly spread subset of this size
 ROBUST_RULE = ("IRLS with the Cauchy loss (c = 2.385) on each spot's (point's, pose's) whitened residual, "
                "scale s^2 = median(d^2) / median(chi^2_D) (the MAD about zero for D = 1), weights from the "
                "nominal model first; at convergence a spot with d^2 / s'^2 > chi^2_D(1 - 0.01 / N) of N spots "
