@@ -36,5 +36,10 @@ if [ -x "$_lc_root/.venv/bin/python" ]; then
 fi
 [ -n "$_lc_nounset" ] && set -u
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+# Fast DDS's profile for 4 MB camera frames (config/fastdds_large_frames.xml: why), for every
+# process started from this shell, a camera driver of your own included, unless one is set.
+if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}" ] && [ "${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}" = rmw_fastrtps_cpp ]; then
+  export FASTRTPS_DEFAULT_PROFILES_FILE="$_lc_root/config/fastdds_large_frames.xml"
+fi
 export LASER_CALIB_NODES="$_lc_root/ros2_ws/install/laser_calib_nodes/lib/laser_calib_nodes"
 unset _lc_root _lc_nounset

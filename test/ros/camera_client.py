@@ -1,10 +1,11 @@
 """A camera driver as most publish (sensor-data QoS: best effort) for spot_detector, run as a
 subprocess in the workspace environment. Prints one JSON document.
 
-    camera_client.py ENCODING [INFO_WIDTH [SECONDS [QOS]]]   rendered frames of known spots in
-        ENCODING with CameraInfo (its width INFO_WIDTH, 0: the camera's), for at most SECONDS (60),
-        published with QoS 'sensor_data' (best effort, default) or 'reliable'; the spots
-        spot_detector published back and their stamps
+    camera_client.py ENCODING [INFO_WIDTH [SECONDS [QOS [FRAMES]]]]   rendered frames of known
+        spots in ENCODING with CameraInfo (its width INFO_WIDTH, 0: the camera's), published with
+        QoS 'sensor_data' (best effort, default) or 'reliable' until 3 spot pairs came back or
+        SECONDS (60) passed; with FRAMES, exactly FRAMES frames, one per PERIOD s. Prints the
+        spots spot_detector published back, their stamps and the frames published.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from laser_calib.vision import RenderOptions, default_camera, render_frame
 from laser_calib_interfaces.msg import SpotPair
 
 TRUE = np.array([[-0.3, 0.25], [0.4, -0.15]])
+PERIOD = 0.3  # s between frames; the detector needs ~2 ms a frame
 
 
 def encode(bgr: np.ndarray, encoding: str) -> tuple[bytes, int]:
@@ -42,6 +44,7 @@ def main() -> None:
     camera = default_camera()
     info_width = int(sys.argv[2]) if len(sys.argv) > 2 and int(sys.argv[2]) else camera.width
     qos = 10 if len(sys.argv) > 4 and sys.argv[4] == "reliable" else qos_profile_sensor_data
+    frames = int(sys.argv[5]) if len(sys.argv) > 5 else 0
     rclpy.init()
     node = rclpy.create_node("test_camera")
     got = []
@@ -51,7 +54,10 @@ def main() -> None:
     frame = render_frame(camera, TRUE, np.ones(2, bool), np.random.default_rng(5), RenderOptions())
     data, step = encode(frame, encoding)
     deadline = time.monotonic() + (float(sys.argv[3]) if len(sys.argv) > 3 else 60.0)
-    while len(got) < 3 and time.monotonic() < deadline:
+    while image_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    published = 0
+    while (published < frames if frames else len(got) < 3) and time.monotonic() < deadline:
         stamp = node.get_clock().now().to_msg()
         info = CameraInfo(width=info_width, height=camera.height, distortion_model="plumb_bob",
                           k=[float(v) for v in camera.K.ravel()])
@@ -60,12 +66,17 @@ def main() -> None:
         image = Image(height=camera.height, width=camera.width, encoding=encoding, step=step, data=data)
         image.header.stamp = stamp
         image_pub.publish(image)
-        end = time.monotonic() + 0.3
+        published += 1
+        end = time.monotonic() + PERIOD
         while time.monotonic() < end:
             rclpy.spin_once(node, timeout_sec=0.05)
+    end = time.monotonic() + 2.0  # the last frames' spots
+    while frames and len(got) < published and time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=0.05)
     spots = [[[s.y, s.z, s.seen] for s in pair.spots] for pair in got]
     stamps = [(pair.header.stamp.sec, pair.header.stamp.nanosec) for pair in got]
-    print(json.dumps({"frames": len(got), "spots": spots, "true": TRUE.tolist(), "stamps": stamps}))
+    print(json.dumps({"frames": len(got), "published": published, "spots": spots, "true": TRUE.tolist(),
+                      "stamps": stamps}))
 
 
 if __name__ == "__main__":

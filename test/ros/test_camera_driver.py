@@ -34,6 +34,17 @@ def test_best_effort_camera_in_its_encoding(ros, tmp_path):
     assert sorted(p.name for p in (tmp_path / "captured").iterdir()) == ["frame_0000.png", "frame_0001.png"]
 
 
+def test_best_effort_frames_of_4_mb_arrive(ros):
+    """A driver's best-effort 1280x1024 rgb8 frames (3.9 MB) reach the detector: with Fast DDS's
+    default 512 KB shared-memory segment about 3 of 4 were lost whole (the publisher's segment
+    counts; config/fastdds_large_frames.xml, which scripts/env.sh gives every process)."""
+    ros.start("spot_detector")
+    got = run_camera(ros, "rgb8", "0", "60", "sensor_data", "12")
+    assert got["published"] == 12
+    # a frame may still be lost when the machine stalls for a whole period; 3 of 4 is the old loss
+    assert got["frames"] >= 9, got["frames"]
+
+
 def test_camera_info_of_another_size_refuses_frames_in_one_line(ros):
     ros.start("spot_detector")
     got = run_camera(ros, "bgr8", "640", "8")

@@ -42,6 +42,16 @@ def share(*parts: str) -> str:
     return os.path.join(get_package_share_directory(PACKAGE), *parts)
 
 
+def middleware_env() -> dict:
+    """The environment the nodes add: Fast DDS's participant profile for camera frames
+    (config/fastdds_large_frames.xml: with the default 512 KB shared-memory segment most
+    best-effort 4 MB frames are lost), unless a profile is already set or another RMW runs."""
+    if os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE") or \
+            os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp":
+        return {}
+    return {"FASTRTPS_DEFAULT_PROFILES_FILE": share("config", "fastdds_large_frames.xml")}
+
+
 DESCRIPTION_TOPIC_HELP = ("Take the arm's URDF from this topic (e.g. /robot_description of robot_state_publisher); "
                           "robot is then the file of base, tip and lasers (docs/urdf.md). Empty: robot alone.")
 # name: (default, description); default None: required. The launch file's arguments.
@@ -172,9 +182,11 @@ def launch_actions(specs: list[NodeSpec]) -> list:
         return [EmitEvent(event=Shutdown(reason="session finished" if last else f"{executable} exited"))]
 
     actions = []
+    env = middleware_env()
     for spec in specs:
         node = Node(package=PACKAGE, executable=spec.executable, name=spec.executable, output="screen",
-                    parameters=[*spec.param_files, spec.params], remappings=list(spec.remaps))
+                    parameters=[*spec.param_files, spec.params], remappings=list(spec.remaps),
+                    additional_env=env)
         actions += [node, RegisterEventHandler(OnProcessExit(
             target_action=node, on_exit=lambda event, context, name=spec.executable, last=spec is specs[-1]:
             ended(event, context, name, last)))]
@@ -236,12 +248,13 @@ def run_session(values: dict, extra: list[str]) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stopping.set())
     procs: dict[str, subprocess.Popen] = {}
+    env = {**os.environ, **middleware_env()}
     for spec in specs[:-1]:
         with open(logs / f"{spec.executable}.log", "ab") as log:
             procs[spec.executable] = subprocess.Popen(spec.command(), stdout=log, stderr=subprocess.STDOUT,
-                                                      preexec_fn=die_with_parent)
+                                                      preexec_fn=die_with_parent, env=env)
     sequencer = subprocess.Popen(specs[-1].command() + extra, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                 preexec_fn=die_with_parent)
+                                 preexec_fn=die_with_parent, env=env)
     tee = threading.Thread(target=copy_lines, args=(sequencer.stdout, logs / "sequencer.log"), daemon=True)
     tee.start()
     failed = None
