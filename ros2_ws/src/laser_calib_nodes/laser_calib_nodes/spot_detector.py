@@ -85,7 +85,8 @@ class SpotDetectorNode(Node):
                            for topic in common.LASER_SPOT]
         self.pair_pub = self.create_publisher(SpotPair, common.SPOTS, common.STREAM_QOS)
         # Each camera topic twice: best effort (the sensor-data QoS camera drivers publish with) and
-        # reliable (camera_sim: its 4 MB frames are lost best effort under load). A publisher meets the
+        # reliable (camera_sim and drivers that publish reliable; a best-effort 4 MB frame also needs the
+        # driver's Fast DDS profile, config/fastdds_large_frames.xml). A publisher meets the
         # subscriptions it is compatible with, whenever it starts; a frame both deliver is used once.
         quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)  # one of the two never matches
         reliable = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
