@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 import re
+import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
@@ -236,7 +237,9 @@ def calibrated_origins(robot: Robot) -> dict[str, np.ndarray]:
 
 def origin_attributes(transform: np.ndarray) -> dict[str, str]:
     """URDF xyz and rpy (R = Rz(yaw) Ry(pitch) Rx(roll)) at full precision."""
-    rpy = Rotation.from_matrix(transform[:3, :3]).as_euler("xyz")
+    with warnings.catch_warnings():  # at pitch +-pi/2 scipy sets yaw to 0 and roll to what composes the matrix
+        warnings.filterwarnings("ignore", "Gimbal lock detected", UserWarning)
+        rpy = Rotation.from_matrix(transform[:3, :3]).as_euler("xyz")
     return {"xyz": " ".join(repr(float(v)) for v in transform[:3, 3]),
             "rpy": " ".join(repr(float(v)) for v in rpy)}
 
