@@ -68,7 +68,7 @@ def run() -> dict:
 def table(r: dict) -> str:
     lines = ["# UR10e, motion capture (23 real poses), calibrated from its URDF", "",
              f"`laser-calib calibrate-poses --robot data/real/ur10e_mocap/ur10_robot.urdf --base {BASE} "
-             f"--tip {TIP}`: exit {r['cli_exit']}, wrote {', '.join(r['cli_files'])} in {r['cli_s']:.1f} s "
+             f"--tip {TIP} --samples data/real/ur10e_mocap/calibration.csv` (FIGAROH's file as it is): exit {r['cli_exit']}, wrote {', '.join(r['cli_files'])} in {r['cli_s']:.1f} s "
              f"({r['parameters']} joint-placement parameters, sensor and target frames).", "",
              "Leave-one-out held-out errors (each pose predicted by the calibration on the other 22):", "",
              "| model | position mean (mm) | RMS (mm) | max (mm) | rotation mean (deg) | RMS (deg) | max (deg) |",
