@@ -282,3 +282,16 @@ def test_the_samples_file_names_the_joints_it_expects(tmp_path, capsys):
     assert code == 2
     assert "2 joint columns but robot 'panda' has 7 joints: q1..q7 are panda_joint1, panda_joint2" in \
         capsys.readouterr().err
+
+
+def test_a_laser_robot_whose_beams_miss_the_screen_is_one_line(tmp_path, capsys):
+    """simulate --robot with the Panda carrying the paper's laser module: its base
+    (the screen's frame) puts the screen through the arm, so no pose has both beams on it."""
+    (tmp_path / "panda.urdf").write_text((PUBLIC / "panda.urdf").read_text())
+    (tmp_path / "arm.yaml").write_text("urdf: panda.urdf\nbase: panda_link0\ntip: panda_hand_tcp\n"
+                                       "slm: {a: 0.05, d: 0.0, alpha: 0.0, theta: 0.0}\n"
+                                       "lasers: [{gamma: -0.5236, beta: 0.0}, {gamma: 0.5236, beta: 0.0}]\n")
+    code = main(["simulate", "--robot", str(tmp_path / "arm.yaml"), "--seed", "1", "--out", str(tmp_path / "sim")])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "poses with both beams on the screen" in err and "the screen is the plane x = 0" in err

@@ -7,7 +7,8 @@ calibrate(robot, samples, options) runs, on estimation.estimate_model:
    the frame; the D-H error is held at nominal and listed in ``absorbed``;
 2. the nominal fit: frames only, everything else held (the reference
    "nominal D-H" figure: the frames fitted, the arm as designed);
-3. the full fit from there, with the user's masks (``fixed``) and priors;
+3. step 1 again at the fitted frames, and the full fit from there, with the
+   user's masks (``fixed``) and priors;
 4. for pose samples, the weight of rotation against translation
    (rotation_length, m/rad) from the residuals of the fit: the ratio of the RMS
    translation to the RMS rotation residual (a variance-component step,
