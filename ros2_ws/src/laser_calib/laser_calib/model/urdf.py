@@ -92,7 +92,8 @@ def _chain_joint(joint, source: str, rpy: float = 0.0) -> ChainJoint:
     """``rpy``: the largest |roll|, |pitch|, |yaw| as written in the joint's origin (units check)."""
     where = f"{source}: joint '{joint.name}'"
     if joint.type not in _KINDS:
-        raise InputError(where, f"type '{joint.type}' cannot be calibrated (revolute, continuous, prismatic, fixed)")
+        raise InputError(where, f"type '{joint.type}' cannot be calibrated (revolute, continuous, prismatic, "
+                                "fixed): choose base and tip links with no such joint between them")
     origin = np.eye(4) if joint.origin is None else np.asarray(joint.origin, float)
     axis = np.asarray(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), float)
     norm = np.linalg.norm(axis)
@@ -165,8 +166,8 @@ def chain_from_urdf(urdf, text: str, base: str, tips: Sequence[str], source: str
             raise InputError(f"{source}: joint '{name}': mimic", f"'{mimic.joint}' is not a driven joint")
     # A source off the way (a gripper's other finger, a torso joint above the base) is read
     # for its mimic joint only: it has a reading and limits, no placement in this chain.
-    sources = tuple(_chain_joint(by_name[n], source, rpy.get(n, 0.0)) for n in dict.fromkeys(m.joint for m in mimics.values())
-                    if n not in readings)
+    off_way = [n for n in dict.fromkeys(m.joint for m in mimics.values()) if n not in readings]
+    sources = tuple(_chain_joint(by_name[n], source, rpy.get(n, 0.0)) for n in off_way)
     readings += [joint.name for joint in sources]
     sources = tuple(replace(joint, reading=readings.index(joint.name)) for joint in sources)
     joints = []
