@@ -1,13 +1,13 @@
 """Real data: a UR10e measured by motion capture (23 6-DOF poses), calibrated
 straight from its own URDF (data/real/ur10e_mocap, README.md there).
 
-1. The source's CSV (poses as x, y, z and roll-pitch-yaw R = Rz Ry Rx, joints
-   named as in the URDF) to our pose-sample CSV (samples.csv beside it).
-2. `laser-calib calibrate-poses --robot ur10_robot.urdf --base base_link --tip
-   wrist_3_link`: the joint-placement model (7 values per joint), the unknown
+1. `laser-calib calibrate-poses --robot ur10_robot.urdf --base base_link --tip
+   wrist_3_link --samples calibration.csv`: the source's CSV as it is (FIGAROH's
+   format: poses as x, y, z and roll-pitch-yaw, joints named as in the URDF;
+   io/figaroh.py), the joint-placement model (7 values per joint), the unknown
    measurement frame (sensor) and the measured frame on wrist_3_link (target)
    estimated together; it writes robot_calibrated.urdf.
-3. Leave-one-out held-out position and rotation errors (23 folds: each pose
+2. Leave-one-out held-out position and rotation errors (23 folds: each pose
    predicted by the calibration on the other 22), nominal (frames fitted, the
    URDF as designed) and calibrated: mean, RMS and max.
 
@@ -16,7 +16,6 @@ Usage: python bench/ur10e.py
 
 from __future__ import annotations
 
-import csv
 import math
 import tempfile
 import time
@@ -25,27 +24,14 @@ from pathlib import Path
 from _common import ROOT, write_results  # first: sets up the import path and BLAS threads
 
 import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
 from laser_calib.cli.main import main  # noqa: E402
 from laser_calib.estimation.sensor_fit import SensorFitOptions, kfold  # noqa: E402
-from laser_calib.io.sensor_samples import SensorSamples, load_sensor_samples, save_sensor_samples  # noqa: E402
+from laser_calib.io.sensor_samples import load_sensor_samples  # noqa: E402
 from laser_calib.model.urdf import load_urdf_robot  # noqa: E402
 
 DATA = ROOT / "data" / "real" / "ur10e_mocap"
 URDF, BASE, TIP = DATA / "ur10_robot.urdf", "base_link", "wrist_3_link"
-
-
-def convert(source: Path, robot) -> SensorSamples:
-    """The source's rows as pose samples; quaternion of R = Rz(phiz) Ry(phiy) Rx(phix)."""
-    with source.open() as f:
-        rows = list(csv.DictReader(f))
-    q = np.array([[float(row[name]) for name in robot.chain.readings] for row in rows])
-    position = np.array([[float(row[k]) for k in ("x1", "y1", "z1")] for row in rows])
-    rpy = np.array([[float(row[k]) for k in ("phix1", "phiy1", "phiz1")] for row in rows])
-    quaternion = Rotation.from_euler("xyz", rpy).as_quat(scalar_first=True)
-    n = len(rows)
-    return SensorSamples(np.arange(n), np.arange(n, dtype=float), q, position=position, quaternion=quaternion)
 
 
 def stats(values: np.ndarray, factor: float) -> dict:
@@ -55,8 +41,7 @@ def stats(values: np.ndarray, factor: float) -> dict:
 
 def run() -> dict:
     robot = load_urdf_robot(URDF, BASE, TIP)
-    samples_path = DATA / "samples.csv"
-    save_sensor_samples(convert(DATA / "calibration.csv", robot), samples_path)
+    samples_path = DATA / "calibration.csv"
     samples = load_sensor_samples(samples_path, robot)
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()
@@ -83,7 +68,7 @@ def run() -> dict:
 def table(r: dict) -> str:
     lines = ["# UR10e, motion capture (23 real poses), calibrated from its URDF", "",
              f"`laser-calib calibrate-poses --robot data/real/ur10e_mocap/ur10_robot.urdf --base {BASE} "
-             f"--tip {TIP}`: exit {r['cli_exit']}, wrote {', '.join(r['cli_files'])} in {r['cli_s']:.1f} s "
+             f"--tip {TIP} --samples data/real/ur10e_mocap/calibration.csv` (FIGAROH's file as it is): exit {r['cli_exit']}, wrote {', '.join(r['cli_files'])} in {r['cli_s']:.1f} s "
              f"({r['parameters']} joint-placement parameters, sensor and target frames).", "",
              "Leave-one-out held-out errors (each pose predicted by the calibration on the other 22):", "",
              "| model | position mean (mm) | RMS (mm) | max (mm) | rotation mean (deg) | RMS (deg) | max (deg) |",

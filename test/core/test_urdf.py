@@ -214,7 +214,7 @@ def test_calibrate_poses_from_the_ur10e_urdf_writes_a_calibrated_urdf(tmp_path, 
         pytest.skip(f"{path} not available")
     out = tmp_path / "out"
     code = main(["calibrate-poses", "--robot", str(path), "--base", base, "--tip", tip,
-                 "--samples", str(UR10E / "samples.csv"), "--out", str(out), "--folds", "0"])
+                 "--samples", str(UR10E / "calibration.csv"), "--out", str(out), "--folds", "0"])  # FIGAROH's file
     assert code == 0
     result = json.loads((out / "result.json").read_text())
     corrections = json.loads((out / "urdf_corrections.json").read_text())

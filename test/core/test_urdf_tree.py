@@ -19,7 +19,7 @@ from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, make_model
 from laser_calib.io.sensor_samples import SensorSamples
 from laser_calib.measurement.sensor import PointModel
-from laser_calib.io.errors import InputError
+from laser_calib.model.kinematics import forward
 from laser_calib.model.urdf import load_urdf_robot, robot_from_urdf
 
 DATA = Path(__file__).parent / "data"
@@ -89,7 +89,14 @@ def test_a_tree_needs_the_tip_column():
         PointModel(robot, _samples(robot, q, np.array([0, 1, 2])))
 
 
-def test_a_mimic_source_off_the_way_is_refused():
-    """From torso_2 down, torso_pitch_2 is on the way but its source torso_pitch_1 is above it."""
-    with pytest.raises(InputError, match="joint 'torso_pitch_1'.*drives a mimic joint but is not between"):
-        robot_from_urdf(TORSO.read_text(), "torso_2", "left_tool")
+def test_a_mimic_source_off_the_way_is_read_for_its_mimic_joint():
+    """From torso_2 down, torso_pitch_2 is on the way but its source torso_pitch_1
+    is above the base: its reading is the last column of q, with no parameters."""
+    robot = robot_from_urdf(TORSO.read_text(), "torso_2", "left_tool")
+    assert robot.joint_names[-1] == "torso_pitch_1"
+    assert not any(name.startswith("torso_pitch_1.") for name in robot.param_names)
+    q = np.zeros((2, robot.n_joints))
+    q[1, -1] = 0.2
+    rotation = forward(robot, q).rotation
+    angle = np.degrees(np.arccos((np.trace(rotation[1] @ rotation[0].T) - 1) / 2))
+    assert angle == pytest.approx(np.degrees(0.8 * 0.2))  # torso_pitch_2 = -0.8 q_torso_pitch_1 + 0.1

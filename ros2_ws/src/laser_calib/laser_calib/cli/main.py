@@ -49,8 +49,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         robot = load_robot(args.robot)
         if not robot.lasers:
             raise InputError(args.robot, "has no lasers ('slm:' and 'lasers:'): spots cannot be simulated")
-        session = robot_session(robot, args.seed, args.poses_per_span or CASE_POSES["paper-7dof"], noise,
-                                random_errors=args.random_errors)
+        try:
+            session = robot_session(robot, args.seed, args.poses_per_span or CASE_POSES["paper-7dof"], noise,
+                                    random_errors=args.random_errors)
+        except RuntimeError as exc:  # the paper's pose spans keep no beam on this robot's screen
+            raise InputError(args.robot, f"{exc}: the screen is the plane x = 0 of the robot's frame {{0}} (its "
+                                         "base), 'screen:' its half sizes; the beams must reach it") from None
     else:
         session = paper_session(args.case, args.seed, args.poses_per_span, noise, random_errors=args.random_errors)
     with staged_folder(args.out) as out:

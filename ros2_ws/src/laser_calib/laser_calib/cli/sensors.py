@@ -67,8 +67,9 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
         entry = {"name": name, "unit": units.get(name) or _unit(name),
                  "value": float(est.errors[i]) if math.isfinite(est.errors[i]) else None,
                  "std": float(est.std[i]) if math.isfinite(est.std[i]) else None}
-        if name in fit.absorbed:
-            entry["note"] = "carried by the frames: " + fit.absorbed[name]
+        if name in fit.absorbed:  # held before the fit: said to be the frames' only where a frame carries it
+            frames = any(is_frame_param(word.strip(",;")) for word in fit.absorbed[name].split())
+            entry["note"] = ("carried by the frames: " if frames else "") + fit.absorbed[name]
         elif not est.identifiable[i]:
             entry["note"] = est.identifiability.merged.get(name, "held")
         out.append(entry)
@@ -193,7 +194,7 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
         outside = outside_range(samples.q, held.fold, range(args.folds))
         result["heldout"] = {"folds": args.folds, "seed": args.seed, **_summaries(table, "kfold_"),
                              "outside_joint_range": outside.tolist()}
-        result["warnings"] += range_warnings(outside, f"{args.folds}-fold held-out")
+        result["warnings"] += range_warnings(outside, f"{args.folds}-fold held-out", robot.joint_names)
         lines.append(_line(f"{args.folds}-fold held-out", result["heldout"], _design(robot)))
     if args.chronological:
         train = chronological_labels(len(samples), args.chronological) == 0
@@ -202,7 +203,7 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
         result["chronological"] = {"calibration_fraction": args.chronological,
                                    "calibration_poses": int(train.sum()), "test_poses": int((~train).sum()),
                                    **_summaries(table, "chronological_"), "outside_joint_range": outside.tolist()}
-        result["warnings"] += range_warnings(outside, "chronological test")
+        result["warnings"] += range_warnings(outside, "chronological test", robot.joint_names)
         lines.append(_line(f"chronological held-out (first {train.sum()} poses -> last {(~train).sum()})",
                            result["chronological"], _design(robot)))
 
@@ -219,7 +220,7 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Sample
     accuracy = _accuracy(test, model, fit)
     if accuracy:
         result["test"]["iso9283"] = accuracy
-    result["warnings"] += range_warnings(outside, f"test {args.test}")
+    result["warnings"] += range_warnings(outside, f"test {args.test}", robot.joint_names)
     lines.append(_line(f"test ({len(test)} poses of {args.test})", result["test"], _design(robot)))
     return test.pose, test.stamp, columns
 

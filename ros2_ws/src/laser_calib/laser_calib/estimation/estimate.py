@@ -40,7 +40,7 @@ from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import Fit, Problem, residuals_at, whitened_factor
 from laser_calib.estimation.robust import ROBUST_RULE, robust_fit
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
-from laser_calib.measurement.frames import FRAMES
+from laser_calib.measurement.frames import is_frame_param
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
@@ -316,7 +316,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
-    own = free & np.array([name.split("_", 1)[0] not in FRAMES for name in names])
+    own = free & np.array([not is_frame_param(name) for name in names])
     size = np.abs(result.x) / model.scales
     if np.any(own & (size > FAR_SCALES)):
         worst = int(np.argmax(np.where(own, size, 0.0)))

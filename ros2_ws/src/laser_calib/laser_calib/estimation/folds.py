@@ -49,8 +49,8 @@ def outside_range(q: np.ndarray, labels: np.ndarray, tested, slack: float = RANG
     return np.concatenate(outside).mean(axis=0)
 
 
-def range_warnings(fraction: np.ndarray, what: str) -> list[str]:
-    """One warning per joint with test poses outside the calibration's range."""
-    return [f"{what}: {share:.0%} of the test poses have q{i + 1} outside the range the calibration covered "
+def range_warnings(fraction: np.ndarray, what: str, joints: tuple[str, ...]) -> list[str]:
+    """One warning per joint (named by ``joints``, (N,)) with test poses outside the calibration's range."""
+    return [f"{what}: {share:.0%} of the test poses have {joint} outside the range the calibration covered "
             "(held-out errors there are an extrapolation)"
-            for i, share in enumerate(fraction) if share > 0]
+            for joint, share in zip(joints, fraction) if share > 0]

@@ -7,7 +7,8 @@ calibrate(robot, samples, options) runs, on estimation.estimate_model:
    the frame; the D-H error is held at nominal and listed in ``absorbed``;
 2. the nominal fit: frames only, everything else held (the reference
    "nominal D-H" figure: the frames fitted, the arm as designed);
-3. the full fit from there, with the user's masks (``fixed``) and priors;
+3. step 1 again at the fitted frames, and the full fit from there, with the
+   user's masks (``fixed``) and priors;
 4. for pose samples, the weight of rotation against translation
    (rotation_length, m/rad) from the residuals of the fit: the ratio of the RMS
    translation to the RMS rotation residual (a variance-component step,
@@ -21,7 +22,6 @@ kfold() repeats the calibration on k-1 folds and predicts the held-out fold.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -32,7 +32,7 @@ from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_
 from laser_calib.estimation.identifiability import analyse
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, whiten
 from laser_calib.model.robot import Robot
-from laser_calib.measurement.frames import FRAME_PARAMS, frame_list, robot_frames, with_frames
+from laser_calib.measurement.frames import FRAME_PARAMS, frame_list, is_frame_param, robot_frames, with_frames
 from laser_calib.measurement.sensor import PointModel, PoseModel
 from laser_calib.io.sensor_samples import SensorSamples
 
@@ -54,14 +54,6 @@ class SensorFitOptions:
     frame_prior_angle: float | None = None
     rotation_length: float | None = None
     scale: bool = False
-
-
-_FRAME_NAME = re.compile(r"(sensor|base|target\d*)_(" + "|".join(FRAME_PARAMS) + ")")
-
-
-def is_frame_param(name: str) -> bool:
-    """Whole names (sensor_x, target2_rz): a URDF joint may be called base_joint."""
-    return _FRAME_NAME.fullmatch(name) is not None
 
 
 @dataclass(frozen=True)
@@ -92,9 +84,11 @@ def make_model(robot: Robot, samples: SensorSamples, rotation_length: float = 1.
     return PointModel(robot, samples, scale)
 
 
-def frames_first(model: MeasurementModel, noise: NoiseModel, fixed: np.ndarray) -> dict[str, str]:
-    """Parameters the frames carry: identifiability with the frame columns first."""
-    res = model.residuals(np.zeros(len(model.names)), True)
+def frames_first(model: MeasurementModel, noise: NoiseModel, fixed: np.ndarray,
+                 x: np.ndarray | None = None) -> dict[str, str]:
+    """Parameters the frames carry: identifiability with the frame columns first,
+    linearised at ``x`` (default zero: the frame guesses)."""
+    res = model.residuals(np.zeros(len(model.names)) if x is None else x, True)
     _, jac = whiten(res, noise.whitener(res))
     frame = np.array([is_frame_param(n) for n in model.names])
     order = np.r_[np.flatnonzero(frame), np.flatnonzero(~frame)]
@@ -149,15 +143,19 @@ def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = 
         raise ValueError(f"cannot fix unknown parameter {unknown[0]!r}; parameters are {', '.join(model.names)}")
     sigma = options.estimate.spot_sigma or 1e-3
     held = np.array([name in user for name in model.names])
-    absorbed = frames_first(model, NoiseModel(sigma, options.estimate.joint_sigma), held)
-    fixed = tuple(user) + tuple(absorbed)
+    noise = NoiseModel(sigma, options.estimate.joint_sigma)
     not_frames = tuple(n for n in model.names if not is_frame_param(n))
 
     def fit(m: MeasurementModel, names: tuple[str, ...], x0: np.ndarray | None) -> Estimate:
         est_options = replace(options.estimate, fixed=tuple(dict.fromkeys(names)))
         return estimate_model(m, est_options, _prior(m, options), x0)
 
-    nominal = fit(model, fixed + not_frames, None)
+    nominal = fit(model, tuple(user) + tuple(frames_first(model, noise, held)) + not_frames, None)
+    # What the frames carry, again at the fitted frames: at the guesses a marker
+    # guessed at the tip's origin sits on the last axis, where a joint's offset
+    # and the next placement move it alike; at the fitted marker they do not.
+    absorbed = frames_first(model, noise, held, nominal.values)
+    fixed = tuple(user) + tuple(absorbed)
     full = fit(model, fixed, nominal.values)
     if samples.kind == "pose" and options.rotation_length is None:
         for _ in range(VARIANCE_STEPS):

@@ -23,6 +23,7 @@ from laser_calib.model.robot import Robot
 
 SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
 HEADER = "pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z"
+MAX_DISTANCE = 100.0  # m: a median target distance beyond it is a file in millimetres (a single outlier is not)
 
 
 @dataclass(frozen=True)
@@ -178,8 +179,7 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
         missing = [c for c in SPOT_COLUMNS if c not in header]
         what = f"missing column {missing[0]}" if missing else f"expected {','.join(SPOT_COLUMNS)} after q{n_q}"
         raise _header_error(source, what)
-    if robot is not None and n_q != robot.n_joints:
-        raise _header_error(source, f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints} joints")
+    check_joint_count(n_q, robot, source)
     if robot is not None and not robot.lasers:
         raise InputError(source, f"spot samples need the robot's lasers, but robot '{robot.name}' has no "
                                  "'lasers:' (add the two lasers' gamma, beta to its file)")
@@ -201,6 +201,22 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
     return Samples(pose, values[:, 0], q, spots, extra)
 
 
+def check_distance_units(position: np.ndarray, where: str) -> None:
+    """One line when positions (P,3) are in millimetres: their median distance from the sensor."""
+    distance = np.linalg.norm(position, axis=1)
+    if np.isfinite(distance).any() and np.nanmedian(distance) > MAX_DISTANCE:
+        raise InputError(where, f"median distance {np.nanmedian(distance):.4g} m from the sensor: positions are in "
+                                "metres (these look like millimetres)")
+
+
+def check_joint_count(n_q: int, robot: Robot | None, source: str) -> None:
+    """One line when the file's q1..qN do not match the robot's readings (named for a URDF robot)."""
+    if robot is not None and n_q != robot.n_joints:
+        names = f": q1..q{robot.n_joints} are {', '.join(robot.joint_names)}" if robot.chain is not None else ""
+        raise _header_error(source, f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints} joints"
+                                    + names)
+
+
 def check_joint_range(q: np.ndarray, robot: Robot, source: str, pose: np.ndarray | None = None,
                       slack: float = 1e-9) -> None:
     """One line for the first joint reading outside [min, max] of its joint."""
@@ -209,7 +225,8 @@ def check_joint_range(q: np.ndarray, robot: Robot, source: str, pose: np.ndarray
         r, i = np.argwhere(outside)[0]
         label = f"pose {pose[r]}" if pose is not None else f"row {r}"
         hint = " (readings are in radians; this looks like degrees)" if abs(q[r, i]) > 2 * math.pi + 0.5 else ""
-        raise InputError(f"{source}: {label}, field q{i + 1}",
+        joint = f" ({robot.joint_names[i]})" if robot.chain is not None else ""
+        raise InputError(f"{source}: {label}, field q{i + 1}{joint}",
                          f"{q[r, i]:.6g} rad outside the joint range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]"
                          + hint)
 

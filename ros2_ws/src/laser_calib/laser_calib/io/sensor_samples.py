@@ -19,13 +19,14 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.figaroh import is_figaroh, parse_figaroh
 from laser_calib.io.read import read_text
 from laser_calib.model.robot import Robot
-from laser_calib.io.samples import Samples, check_all_or_none, check_joint_range, parse_table, read_table
+from laser_calib.io.samples import (Samples, check_all_or_none, check_distance_units, check_joint_count,
+                                    check_joint_range, parse_table, read_table)
 
 POINT_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
-MAX_DISTANCE = 100.0  # m: a median target distance beyond it is a file in millimetres (a single outlier is not)
 QUATERNION_TOLERANCE = 1e-3  # |norm - 1| accepted (rounding in files); normalised on use
 
 
@@ -48,8 +49,7 @@ def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | No
         what = f"missing column {missing[0]}" if missing else f"expected {','.join(QUATERNION_COLUMNS)} after z"
         raise InputError(f"{source}: header", f"{what} (an orientation needs all of qw,qx,qy,qz)")
     measured = _columns(kind)
-    if robot is not None and n_q != robot.n_joints:
-        raise InputError(f"{source}: header", f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints}")
+    check_joint_count(n_q, robot, source)
     pose, values = parse_table(header, rows, source, measured)
     block = values[:, 1 + n_q:1 + n_q + len(measured)]
     check_all_or_none(block, source, "", f"only some of {','.join(measured)} are given")
@@ -63,10 +63,7 @@ def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | No
     if robot is not None:
         check_joint_range(q, robot, source, pose)
     position = values[:, 1 + n_q:4 + n_q]
-    distance = np.linalg.norm(position, axis=1)
-    if np.isfinite(distance).any() and np.nanmedian(distance) > MAX_DISTANCE:
-        raise InputError(f"{source}: fields x,y,z", f"median distance {np.nanmedian(distance):.4g} m from the sensor: "
-                                                   "positions are in metres (these look like millimetres)")
+    check_distance_units(position, f"{source}: fields x,y,z")
     quaternion = values[:, 4 + n_q:8 + n_q] if kind == "pose" else None
     extra = {name: values[:, 1 + n_q + len(measured) + i]
              for i, name in enumerate(header[2 + n_q + len(measured):])}
@@ -74,7 +71,11 @@ def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | No
 
 
 def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> Samples:
-    return parse_sensor_samples(read_text(path), str(Path(path)), robot)
+    """Our samples CSV, or FIGAROH's calibration CSV (header x1,y1,z1,...: io/figaroh.py)."""
+    text, source = read_text(path), str(Path(path))
+    if is_figaroh(text):
+        return parse_figaroh(text, source, robot)
+    return parse_sensor_samples(text, source, robot)
 
 
 def format_sensor_samples(samples: Samples) -> str:

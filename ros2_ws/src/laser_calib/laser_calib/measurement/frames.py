@@ -19,6 +19,7 @@ transform, so its twist is exact at any size (the guess may be rough).
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, replace
 from typing import Any, Mapping
 
@@ -31,6 +32,12 @@ from laser_calib.measurement.rotations import matrix_to_quaternion, quaternion_t
 FRAMES = ("sensor", "base", "target")
 FRAME_PARAMS = ("x", "y", "z", "rx", "ry", "rz")
 POSE_KEYS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+_FRAME_NAME = re.compile(r"(sensor|base|target\d*)_(" + "|".join(FRAME_PARAMS) + ")")
+
+
+def is_frame_param(name: str) -> bool:
+    """Whole names (sensor_x, target2_rz): a URDF joint may be called base_joint."""
+    return _FRAME_NAME.fullmatch(name) is not None
 
 
 @dataclass(frozen=True)

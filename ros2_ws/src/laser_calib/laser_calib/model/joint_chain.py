@@ -58,7 +58,9 @@ class JointChain:
     order; tips: per tip link, the joint indices from the base to it; readings:
     names of the joints whose readings q holds, in q's column order; values (7M,)
     the placement errors and offsets of the M movable joints; urdf: the source
-    URDF text (the exporter writes it back with corrected origins)."""
+    URDF text (the exporter writes it back with corrected origins); sources:
+    read joints off the way that drive a mimic joint on it (reading and limits
+    only, no parameters)."""
 
     joints: tuple[ChainJoint, ...]
     base: str
@@ -67,6 +69,7 @@ class JointChain:
     readings: tuple[str, ...]
     values: np.ndarray = field(default=None)
     urdf: str = ""
+    sources: tuple[ChainJoint, ...] = ()
 
     def __post_init__(self):
         if self.values is None:
@@ -99,7 +102,7 @@ class JointChain:
 
     def limits(self) -> tuple[np.ndarray, np.ndarray]:
         """(N,) lower and upper limits of the read joints."""
-        by_name = {j.name: j for j in self.joints}
+        by_name = {j.name: j for j in self.joints + self.sources}
         return (np.array([by_name[n].lower for n in self.readings]),
                 np.array([by_name[n].upper for n in self.readings]))
 

@@ -279,17 +279,20 @@ def predict(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, jacob
 
 def joint_columns(robot: Robot) -> np.ndarray:
     """Indices of the theta errors (the offsets of a chain's read joints): the
-    measurement Jacobian's columns for dq_i too, when no joint is coupled."""
+    measurement Jacobian's columns for dq_i too, when no joint is coupled; -1
+    for a chain's reading that only drives a mimic joint (no offset of its own)."""
     if robot.chain is None:
         return np.array([4 * i + (1 if j.prismatic else 3) for i, j in enumerate(robot.joints)], dtype=int)
     by_name = {j.name: i for i, j in enumerate(robot.chain.joints)}
-    return np.array([robot.chain.block(by_name[name]) + OFFSET for name in robot.chain.readings], dtype=int)
+    return np.array([robot.chain.block(by_name[name]) + OFFSET if name in by_name else -1
+                     for name in robot.chain.readings], dtype=int)
 
 
 def joint_jacobian(robot: Robot, jac: np.ndarray) -> np.ndarray:
     """d predicted / d q (..., N) from the parameter Jacobian (..., n): a reading
     moves its joint's offset, and each joint coupled to it by its multiplier."""
-    out = jac[..., joint_columns(robot)]
+    columns = joint_columns(robot)
+    out = np.where(columns >= 0, jac[..., columns], 0.0)
     if robot.chain is not None:
         for j in robot.chain.movable:
             joint = robot.chain.joints[j]

@@ -26,6 +26,12 @@ PAPER = "paper"        # T_i = Trans(x,a) Trans(z,d) Rot(x,alpha) Rot(z,theta)
 STANDARD = "standard"  # T_i = Trans(z,d) Rot(z,theta) Trans(x,a) Rot(x,alpha)
 CONVENTIONS = (PAPER, STANDARD)
 
+# Units check: no arm has a link over 100 m, no fixed angle over 4 pi rad; such a
+# value is a length in mm or an angle in degrees.
+MAX_LENGTH = 100.0
+MAX_ANGLE = 4 * np.pi
+LIMIT_ANGLE = 100.0  # joint limits: several turns are possible, 100 rad (5730 deg) is degrees
+
 LINK_PARAMS = ("a", "d", "alpha", "theta")
 SLM_PARAMS = ("slm_x", "slm_z", "slm_rx", "slm_ry", "slm_rz")
 
@@ -84,6 +90,11 @@ class Robot:
     def n_joints(self) -> int:
         """Number of joint readings (columns of q)."""
         return len(self.joints) if self.chain is None else len(self.chain.readings)
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Names of the readings, q's columns: a URDF's joint names, else q1..qN."""
+        return tuple(f"q{i + 1}" for i in range(self.n_joints)) if self.chain is None else self.chain.readings
 
     @property
     def n_link_params(self) -> int:

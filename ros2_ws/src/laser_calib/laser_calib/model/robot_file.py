@@ -19,7 +19,8 @@ import yaml
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
-from laser_calib.model.robot import CONVENTIONS, PAPER, Joint, Laser, Robot, Screen, Slm
+from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, PAPER, Joint, Laser, Robot,
+                                     Screen, Slm)
 from laser_calib.model.urdf import calibrated_urdf, is_urdf, load_urdf_robot, robot_from_urdf, urdf_text
 
 _KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "convention")
@@ -33,11 +34,6 @@ JOINT_KEYS = ("a", "d", "alpha", "theta0", "min", "max", "type")
 SLM_KEYS = ("a", "d", "alpha", "theta", "beta")
 LASER_KEYS = ("gamma", "beta")
 SCREEN_KEYS = ("half_y", "half_z")
-# Units check: no arm has a link over 100 m, no fixed angle over 4 pi rad; such a
-# value is a length in mm or an angle in degrees.
-MAX_LENGTH = 100.0
-MAX_ANGLE = 4 * math.pi
-LIMIT_ANGLE = 100.0  # joint limits: several turns are possible, 100 rad (5730 deg) is degrees
 
 
 def _mapping(where: str, value: Any, known: tuple[str, ...]) -> Mapping[str, Any]:

@@ -11,13 +11,15 @@ the list of corrections). The ROS nodes get the text from the
 the URDF with ``urdf:`` and adds the lasers (robot_file.py, docs/urdf.md).
 
 Joint readings q are the read (non-mimic) movable joints, in the order they are
-met walking from the base to each tip in turn; a mimic joint's source that is
-not itself on the way is read too.
+met walking from the base to each tip in turn; then each mimic joint's source
+that is not itself on the way (its reading drives the mimic joint).
 """
 
 from __future__ import annotations
 
 import io
+import re
+import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
@@ -25,15 +27,17 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from laser_calib.io.ament import package_index
 from laser_calib.io.errors import InputError
 from laser_calib.measurement.frames import Pose
 from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
                                            ChainJoint, JointChain)
-from laser_calib.model.robot import Laser, Robot, Screen, Slm
+from laser_calib.model.robot import LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, Laser, Robot, Screen, Slm
 
 URDF_SUFFIXES = (".urdf", ".xacro")
 _KINDS = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC, "fixed": FIXED_JOINT}
 UNLIMITED = 1e3  # rad or m: the range of a continuous joint (no limit in the file)
+_MISSING_PACKAGE = re.compile(r"package '([^']+)' not found")  # ament_index_python's PackageNotFoundError
 
 
 def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None) -> str:
@@ -44,12 +48,18 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None) -> str
         if path.suffix == ".xacro":
             import xacro  # only for xacro input
 
-            return xacro.process_file(str(path), mappings=dict(xacro_args or {})).toxml()
+            with package_index():  # $(find pkg): installed packages, then ROS_PACKAGE_PATH's
+                return xacro.process_file(str(path), mappings=dict(xacro_args or {})).toxml()
         return path.read_text()
     except OSError as exc:
         raise InputError(str(path), f"cannot read ({exc.strerror})") from None
     except Exception as exc:  # xacro raises its own XacroException and XML errors
-        raise InputError(str(path), f"xacro failed ({exc})") from None
+        missing = _MISSING_PACKAGE.search(str(getattr(exc, "exc", None) or exc))
+        if missing:
+            raise InputError(str(path), f"xacro: package '{missing[1]}' ($(find {missing[1]})) is not in "
+                                        "AMENT_PREFIX_PATH or ROS_PACKAGE_PATH: source the workspace that installs "
+                                        "it, or add its source folder to ROS_PACKAGE_PATH") from None
+        raise InputError(str(path), f"xacro failed ({' '.join(str(exc).split())})") from None
 
 
 def _parse(text: str, source: str):
@@ -78,10 +88,12 @@ def _path(joints_by_child: dict, base: str, tip: str, source: str) -> list:
     return path[::-1]
 
 
-def _chain_joint(joint, source: str) -> ChainJoint:
+def _chain_joint(joint, source: str, rpy: float = 0.0) -> ChainJoint:
+    """``rpy``: the largest |roll|, |pitch|, |yaw| as written in the joint's origin (units check)."""
     where = f"{source}: joint '{joint.name}'"
     if joint.type not in _KINDS:
-        raise InputError(where, f"type '{joint.type}' cannot be calibrated (revolute, continuous, prismatic, fixed)")
+        raise InputError(where, f"type '{joint.type}' cannot be calibrated (revolute, continuous, prismatic, "
+                                "fixed): choose base and tip links with no such joint between them")
     origin = np.eye(4) if joint.origin is None else np.asarray(joint.origin, float)
     axis = np.asarray(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), float)
     norm = np.linalg.norm(axis)
@@ -92,8 +104,39 @@ def _chain_joint(joint, source: str) -> ChainJoint:
     lower, upper = (float(limit.lower), float(limit.upper)) if limited else (-UNLIMITED, UNLIMITED)
     if lower >= upper and _KINDS[joint.type] != FIXED_JOINT:
         raise InputError(f"{where}: limit", f"lower {lower} is not below upper {upper}")
+    _check_units(where, joint, origin, rpy, (lower, upper) if limited else ())
     return ChainJoint(joint.name, _KINDS[joint.type], origin, axis / (norm if norm > 0 else 1.0),
                       lower=lower, upper=upper)
+
+
+def _check_units(where: str, joint, origin: np.ndarray, rpy: float, limits: tuple[float, ...]) -> None:
+    """One line for a length in mm or an angle in degrees (URDF is in metres and radians)."""
+    if np.abs(origin[:3, 3]).max() > MAX_LENGTH:
+        raise InputError(f"{where}: origin xyz", f"{np.abs(origin[:3, 3]).max():g} m is not a plausible length: "
+                                                 "URDF lengths are in metres (this looks like millimetres)")
+    if rpy > MAX_ANGLE:
+        raise InputError(f"{where}: origin rpy", f"{rpy:g} rad is not a plausible angle: URDF angles are in "
+                                                 "radians (this looks like degrees)")
+    bound, unit, what = (MAX_LENGTH, "m", "millimetres") if joint.type == "prismatic" else (LIMIT_ANGLE, "rad",
+                                                                                            "degrees")
+    if limits and max(map(abs, limits)) > bound:
+        raise InputError(f"{where}: limit", f"{max(map(abs, limits)):g} {unit} is not a plausible joint limit "
+                                            f"(this looks like {what})")
+
+
+def _written_rpy(text: str) -> dict[str, float]:
+    """Joint name -> the largest |roll|, |pitch|, |yaw| of its origin as written
+    (yourdfpy keeps the matrix only, in which 90 read as radians is a rotation too)."""
+    from lxml import etree
+
+    out = {}
+    for element in etree.fromstring(text.encode()).iter("joint"):
+        origin = element.find("origin")
+        try:
+            out[element.get("name")] = max(abs(float(v)) for v in origin.get("rpy", "0").split())
+        except (AttributeError, ValueError):  # no origin (a transmission's joint), or yourdfpy's to judge
+            continue
+    return out
 
 
 def chain_from_urdf(urdf, text: str, base: str, tips: Sequence[str], source: str) -> JointChain:
@@ -113,17 +156,23 @@ def chain_from_urdf(urdf, text: str, base: str, tips: Sequence[str], source: str
             if joint.name not in order:
                 order.append(joint.name)
         tip_paths.append(tuple(order.index(j.name) for j in path))
+    rpy = _written_rpy(text)
     mimics = {name: by_name[name].mimic for name in order if by_name[name].mimic is not None}
     readings = [n for n in order if _KINDS.get(by_name[n].type) not in (None, FIXED_JOINT) and n not in mimics]
     for name, mimic in mimics.items():
-        if mimic.joint not in by_name or by_name[mimic.joint].mimic is not None:
+        source_joint = by_name.get(mimic.joint)
+        if source_joint is None or source_joint.mimic is not None or _KINDS.get(source_joint.type) in (None,
+                                                                                                   FIXED_JOINT):
             raise InputError(f"{source}: joint '{name}': mimic", f"'{mimic.joint}' is not a driven joint")
-        # The source must itself be on the way: its limits and placement come from there.
-        if mimic.joint not in readings:
-            raise InputError(f"{source}: joint '{mimic.joint}'", "drives a mimic joint but is not between base and tip")
+    # A source off the way (a gripper's other finger, a torso joint above the base) is read
+    # for its mimic joint only: it has a reading and limits, no placement in this chain.
+    off_way = [n for n in dict.fromkeys(m.joint for m in mimics.values()) if n not in readings]
+    sources = tuple(_chain_joint(by_name[n], source, rpy.get(n, 0.0)) for n in off_way)
+    readings += [joint.name for joint in sources]
+    sources = tuple(replace(joint, reading=readings.index(joint.name)) for joint in sources)
     joints = []
     for name in order:
-        joint = _chain_joint(by_name[name], source)
+        joint = _chain_joint(by_name[name], source, rpy.get(name, 0.0))
         if name in mimics:
             m = mimics[name]
             joint = replace(joint, reading=readings.index(m.joint), coupled=True,
@@ -134,7 +183,8 @@ def chain_from_urdf(urdf, text: str, base: str, tips: Sequence[str], source: str
         joints.append(joint)
     if not readings:
         raise InputError(source, f"no movable joint between '{base}' and {', '.join(tips)}")
-    return JointChain(tuple(joints), base, tuple(tips), tuple(tip_paths), tuple(readings), urdf=text)
+    return JointChain(tuple(joints), base, tuple(tips), tuple(tip_paths), tuple(readings), urdf=text,
+                      sources=sources)
 
 
 def robot_from_urdf(text: str, base: str, tip: str | Sequence[str], source: str = "<robot_description>",
@@ -188,7 +238,9 @@ def calibrated_origins(robot: Robot) -> dict[str, np.ndarray]:
 
 def origin_attributes(transform: np.ndarray) -> dict[str, str]:
     """URDF xyz and rpy (R = Rz(yaw) Ry(pitch) Rx(roll)) at full precision."""
-    rpy = Rotation.from_matrix(transform[:3, :3]).as_euler("xyz")
+    with warnings.catch_warnings():  # at pitch +-pi/2 scipy sets yaw to 0 and roll to what composes the matrix
+        warnings.filterwarnings("ignore", "Gimbal lock detected", UserWarning)
+        rpy = Rotation.from_matrix(transform[:3, :3]).as_euler("xyz")
     return {"xyz": " ".join(repr(float(v)) for v in transform[:3, 3]),
             "rpy": " ".join(repr(float(v)) for v in rpy)}
 

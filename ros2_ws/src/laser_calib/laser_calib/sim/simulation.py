@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from laser_calib.model.kinematics import joint_columns, predict
+from laser_calib.model.kinematics import predict
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import load_robot
 from laser_calib.io.samples import Samples
@@ -117,10 +117,8 @@ def measure(true_robot: Robot, q: np.ndarray, rng: np.random.Generator, noise: N
                       dict(extra or {}))
     offsets = np.zeros((n, true_robot.n_params)) if param_offsets is None else param_offsets(true_robot, context)
     disturbance = noise.draw(rng, noise.joint, q.shape)
-    # The arm sits at q + disturbance; the disturbance enters as a theta error (d for a prismatic joint).
-    moved = offsets.copy()
-    moved[:, joint_columns(true_robot)] += disturbance
-    actual = predict(true_robot, q, moved)
+    # The arm sits at q + disturbance (a mimic joint follows its source's).
+    actual = predict(true_robot, q + disturbance, offsets)
     truth = predict(true_robot, q, offsets)
     actual_spots, truth_spots = actual.spots, truth.spots
     if spot_transform is not None:

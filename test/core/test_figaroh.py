@@ -1,0 +1,78 @@
+"""FIGAROH's calibration CSV read as it is (io/figaroh.py): the real UR10e file
+(data/real/ur10e_mocap) gives what the converter of bench/ur10e.py used to
+write, markers become tips, joint columns are found by their URDF names, and a
+bad file is one line."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from laser_calib.cli.main import main
+from laser_calib.io.errors import InputError
+from laser_calib.io.figaroh import is_figaroh, parse_figaroh
+from laser_calib.io.sensor_samples import load_sensor_samples
+from laser_calib.model.robot_file import load_robot
+from laser_calib.model.urdf import load_urdf_robot
+
+UR10E = Path(__file__).resolve().parents[2] / "data" / "real" / "ur10e_mocap"
+PR2 = Path(__file__).parent / "data" / "public" / "pr2.urdf"
+
+
+def test_the_real_ur10e_file_reads_as_the_converted_samples():
+    robot = load_urdf_robot(UR10E / "ur10_robot.urdf", "base_link", "wrist_3_link")
+    direct = load_sensor_samples(UR10E / "calibration.csv", robot)
+    converted = load_sensor_samples(UR10E / "samples.csv", robot)
+    assert direct.kind == "pose" and len(direct) == 23
+    assert np.array_equal(direct.q, converted.q) and np.array_equal(direct.position, converted.position)
+    assert np.abs(direct.quaternion - converted.quaternion).max() < 1e-15
+
+
+def _tree_file(rows: int, rng) -> tuple[str, object]:
+    robot = load_urdf_robot(PR2, "base_link", ["l_gripper_tool_frame", "r_gripper_tool_frame"])
+    q = rng.uniform(np.maximum(robot.q_min, -1), np.minimum(robot.q_max, 1), (rows, robot.n_joints))
+    markers = rng.uniform(0.5, 1.5, (rows, 6))
+    names = list(robot.joint_names)
+    order = rng.permutation(len(names))  # any column order; a joint the robot does not read is ignored
+    header = ["x1", "y1", "z1", "x2", "y2", "z2"] + [names[i] for i in order] + ["head_pan_joint"]
+    lines = [",".join(header)] + [",".join(repr(float(v)) for v in [*markers[r], *q[r, order], 0.1])
+                                  for r in range(rows)]
+    return "\n".join(lines) + "\n", (robot, q, markers)
+
+
+def test_two_markers_are_two_tips_and_joints_are_found_by_name():
+    text, (robot, q, markers) = _tree_file(4, np.random.default_rng(0))
+    samples = parse_figaroh(text, "cal.csv", robot)
+    assert is_figaroh(text) and samples.kind == "point" and len(samples) == 8
+    assert list(samples.extra["tip"]) == [0, 1] * 4 and list(samples.pose) == list(range(8))
+    assert np.array_equal(samples.q[::2], q) and np.array_equal(samples.q[1::2], q)
+    assert np.array_equal(samples.position[1::2], markers[:, 3:])
+
+
+BAD = {  # change of the two-marker file -> the one line
+    "no joint column": (lambda t: t.replace("l_elbow_flex_joint", "elbow"), "no column for joint 'l_elbow_flex_joint'"),
+    "millimetres": (lambda t: "\n".join([t.split("\n")[0]] + [",".join(str(float(v) * 1000) if i < 6 else v
+                    for i, v in enumerate(line.split(","))) for line in t.split("\n")[1:] if line]),
+                    "positions are in metres (these look like millimetres)"),
+    "half a marker": (lambda t: t.replace("x2,y2,z2", "x2,y2,w2"), "missing column z2 (marker 2)"),
+    "a bad field": (lambda t: t.replace("\n", "\nbad", 2).replace("\nbad", "\n", 1), "line 3, field x1: not a number"),
+}
+
+
+@pytest.mark.parametrize("case", BAD)
+def test_a_bad_figaroh_file_is_one_line(case):
+    text, (robot, *_) = _tree_file(4, np.random.default_rng(1))
+    change, message = BAD[case]
+    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        parse_figaroh(change(text), "cal.csv", robot)
+
+
+def test_markers_and_tips_must_agree_and_a_dh_robot_has_no_joint_names(tmp_path, capsys):
+    text, _ = _tree_file(3, np.random.default_rng(2))
+    (tmp_path / "cal.csv").write_text(text)
+    code = main(["calibrate-poses", "--robot", str(PR2), "--base", "base_link", "--tip", "l_gripper_tool_frame",
+                 "--samples", str(tmp_path / "cal.csv"), "--out", str(tmp_path / "out")])
+    assert code == 2 and "2 markers (x1..x2) but 1 tip link(s) (l_gripper_tool_frame)" in capsys.readouterr().err
+    dh = load_robot(Path(__file__).resolve().parents[2] / "config" / "robots" / "manipulator_4dof.yaml")
+    with pytest.raises(InputError, match="names its joints as the URDF does"):
+        parse_figaroh(text, "cal.csv", dh)
