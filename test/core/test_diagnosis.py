@@ -22,7 +22,7 @@ from laser_calib.diagnosis.writer import robot_header
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic, calibrated_model
-from laser_calib.effects.catalog import camera_distortion, screen_shape
+from laser_calib.effects.catalog import camera_distortion, effects_to_yaml, screen_shape
 from laser_calib.effects.joint import gravity_torques
 from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignError, ForeignJointError, draw_truth, effect_session, hooks,
                                       sized)
@@ -281,6 +281,43 @@ def test_learned_compensator_is_saved_loaded_and_predicts_as_in_the_diagnosis(tm
     assert np.allclose(d[session.test.seen], diagnosis.compensated_test[session.test.seen], atol=1e-12)
     # It never stands in for a physical effect: the calibrated robot file is the physical model alone.
     assert "compensator" not in load_robot(tmp_path / "robot_calibrated.yaml").extra
+    # `estimate` applies it: on the nominal robot with the diagnosis's effects (the model it was made
+    # for, docs/effects.md) and the parameters the diagnosis held, it refits the errors with the
+    # compensation and predicts the test poses as the diagnosis did.
+    effects = effects_to_yaml(diagnosis.final.effects, diagnosis.final.model.split(diagnosis.final.estimate.values)[1])
+    save_robot(replace(session.nominal, extra={**session.nominal.extra, "effects": effects}), tmp_path / "robot.yaml")
+    save_samples(session.cal, tmp_path / "cal.csv")
+    save_samples(session.test, tmp_path / "test.csv")
+    args = ["estimate", "--samples", str(tmp_path / "cal.csv"), "--test", str(tmp_path / "test.csv"),
+            "--spot-sigma", str(NOISE.spot_sigma), "--joint-sigma", str(NOISE.joint_sigma), "--no-robust",
+            "--compensator", str(tmp_path / "compensator.json"), "--fix", *diagnosis.merged]
+    assert cli_main(args + ["--robot", str(tmp_path / "robot.yaml"), "--out", str(tmp_path / "e")]) == 0
+    estimated = json.loads((tmp_path / "e" / "result.json").read_text())
+    assert estimated["compensator"]["targets"] == result["compensator"]["targets"]
+    assert estimated["spot_error"]["test"]["after"]["all"]["mean_mm"] == pytest.approx(
+        np.nanmean(diagnosis.compensated_test) * 1e3, rel=1e-6)
+    # Made for that model: a robot file with another effect is not it (one line, exit 2).
+    other = effects + [{"type": "backlash", "joint": 1, "b": 0.0}]
+    save_robot(replace(session.nominal, extra={**session.nominal.extra, "effects": other}), tmp_path / "other.yaml")
+    assert cli_main(args + ["--robot", str(tmp_path / "other.yaml"), "--out", str(tmp_path / "n")]) == 2
+
+
+def test_estimate_fits_the_effects_of_the_robot_file(tmp_path):
+    """A robot file with an ``effects:`` key is the model with those effects: `estimate` fits
+    their parameters with the geometric errors (from the file's values) and writes them back."""
+    session = library_session("paper-4dof", "backlash")
+    truth = session.truth[0]
+    start = truth.effect.to_yaml(np.zeros(len(truth.values)))
+    save_robot(replace(session.nominal, extra={**session.nominal.extra, "effects": [start]}), tmp_path / "robot.yaml")
+    save_samples(session.cal, tmp_path / "cal.csv")
+    assert cli_main(["estimate", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"),
+                     "--spot-sigma", str(NOISE.spot_sigma), "--joint-sigma", str(NOISE.joint_sigma),
+                     "--out", str(tmp_path / "e")]) == 0
+    entry = json.loads((tmp_path / "e" / "result.json").read_text())["errors"][-1]
+    assert entry["name"] == truth.effect.names[0] and entry["unit"] == "rad"
+    assert abs(entry["value"] - truth.values[0]) < 4 * entry["std"]
+    written = load_robot(tmp_path / "e" / "robot_calibrated.yaml").extra["effects"]
+    assert written == [truth.effect.to_yaml(np.array([entry["value"]]))]
 
 
 def test_estimated_noise_far_above_the_rated_noise_is_structure():
