@@ -40,9 +40,9 @@ starts) and at more than one place, so every column is also tested against a
 free function of the drift's covariate: the column times cubic B-splines of
 it (the detector's knots), whose span holds a step as well as a curve:
 
-    Z = J_j B(c)   (M, 6)   B the cubic B-splines on N_KNOTS knots over the range of the
-                            covariate c; they sum to 1, so J_j itself (in the model) is one
-                            of their combinations and the test has 5 dof
+    Z = J_j B(c)   (M, N_KNOTS + 2)   B the cubic B-splines on N_KNOTS knots over the range of the
+                                      covariate c; they sum to 1, so J_j itself (in the model)
+                                      is one of their combinations: N_KNOTS + 1 dof
 
 The shares are equal among the families that have pairs: the family rate of
 a false "structure remains" is at most the engine's alpha (1 %) in every case.
@@ -80,7 +80,7 @@ class Varying:
     p: float
     p_adjusted: float
     share: float
-    shape: str = "smooth"
+    shape: str = SMOOTH
 
     def sentence(self) -> str:
         shape = " beyond a linear drift (a free shape)" if self.shape == FREE else ""
@@ -153,11 +153,12 @@ def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: R
     plan = ([(c, legendre(v), SMOOTH, True) for c, v in covariates] + [(c, legendre(v), SMOOTH, False) for c, v in loads]
             + [(c, free_shape(table[c]), FREE, True) for c in drifts if c in table])
     found, family = [], []
-    for covariate, modulation, shape, with_added in plan:
+    for covariate, shapes, shape, with_added in plan:
+        modulation = shapes[pose]                                         # (M, r)
         for j, parameter in enumerate(columns):
             if not with_added and parameter in added:
                 continue
-            z = jac[:, j:j + 1] * modulation[pose]
+            z = jac[:, j:j + 1] * modulation
             size = float(np.linalg.norm(z, axis=0).max())
             z = z - span @ (span.T @ z)
             basis, singular, _ = np.linalg.svd(z, full_matrices=False)
