@@ -18,10 +18,11 @@ from laser_calib.cli.main import main as cli_main
 from laser_calib.diagnosis.engine import diagnose, write_outputs
 from laser_calib.diagnosis.compensator import load_compensator
 from laser_calib.diagnosis.options import EXPLAINED, STRUCTURE, UNDETERMINED, DiagnoseOptions
+from laser_calib.diagnosis.writer import robot_header
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.effects import Backlash, Compliance, Drift, JointScale, Periodic, calibrated_model
-from laser_calib.effects.catalog import camera_distortion, screen_shape
+from laser_calib.effects.catalog import camera_distortion, effects_to_yaml, screen_shape
 from laser_calib.effects.joint import gravity_torques
 from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignError, ForeignJointError, draw_truth, effect_session, hooks,
                                       sized)
@@ -94,6 +95,11 @@ def test_library_effect_is_found_and_its_size_recovered(arm, kind):
         assert abs(p["value"] - truth.values[k]) < 4 * p["std"], (p, truth.values[k])
     for p in report["parameters"]:
         assert (p["value"] is None) == ("note" in p)
+    # An effect the data cannot tell from another is never the explanation, and the robot file says
+    # which member it holds (the 4-DOF compliance of joint 2 and a periodic error of it, at this seed).
+    header = robot_header(diagnosis, diagnosis.to_json())
+    for group in (p for p in diagnosis.parameters if not p["determined"]):
+        assert diagnosis.verdict != EXPLAINED and f"Not one cause: {group['group']}" in header
     # Held-out error goes down on the calibration poses (cross-validated) and on the test poses.
     cv = [stage.fitted.cv for stage in diagnosis.stages]
     assert np.nanmean(cv[-1] ** 2) < np.nanmean(cv[0] ** 2)
@@ -275,6 +281,43 @@ def test_learned_compensator_is_saved_loaded_and_predicts_as_in_the_diagnosis(tm
     assert np.allclose(d[session.test.seen], diagnosis.compensated_test[session.test.seen], atol=1e-12)
     # It never stands in for a physical effect: the calibrated robot file is the physical model alone.
     assert "compensator" not in load_robot(tmp_path / "robot_calibrated.yaml").extra
+    # `estimate` applies it: on the nominal robot with the diagnosis's effects (the model it was made
+    # for, docs/effects.md) and the parameters the diagnosis held, it refits the errors with the
+    # compensation and predicts the test poses as the diagnosis did.
+    effects = effects_to_yaml(diagnosis.final.effects, diagnosis.final.model.split(diagnosis.final.estimate.values)[1])
+    save_robot(replace(session.nominal, extra={**session.nominal.extra, "effects": effects}), tmp_path / "robot.yaml")
+    save_samples(session.cal, tmp_path / "cal.csv")
+    save_samples(session.test, tmp_path / "test.csv")
+    args = ["estimate", "--samples", str(tmp_path / "cal.csv"), "--test", str(tmp_path / "test.csv"),
+            "--spot-sigma", str(NOISE.spot_sigma), "--joint-sigma", str(NOISE.joint_sigma), "--no-robust",
+            "--compensator", str(tmp_path / "compensator.json"), "--fix", *diagnosis.merged]
+    assert cli_main(args + ["--robot", str(tmp_path / "robot.yaml"), "--out", str(tmp_path / "e")]) == 0
+    estimated = json.loads((tmp_path / "e" / "result.json").read_text())
+    assert estimated["compensator"]["targets"] == result["compensator"]["targets"]
+    assert estimated["spot_error"]["test"]["after"]["all"]["mean_mm"] == pytest.approx(
+        np.nanmean(diagnosis.compensated_test) * 1e3, rel=1e-6)
+    # Made for that model: a robot file with another effect is not it (one line, exit 2).
+    other = effects + [{"type": "backlash", "joint": 1, "b": 0.0}]
+    save_robot(replace(session.nominal, extra={**session.nominal.extra, "effects": other}), tmp_path / "other.yaml")
+    assert cli_main(args + ["--robot", str(tmp_path / "other.yaml"), "--out", str(tmp_path / "n")]) == 2
+
+
+def test_estimate_fits_the_effects_of_the_robot_file(tmp_path):
+    """A robot file with an ``effects:`` key is the model with those effects: `estimate` fits
+    their parameters with the geometric errors (from the file's values) and writes them back."""
+    session = library_session("paper-4dof", "backlash")
+    truth = session.truth[0]
+    start = truth.effect.to_yaml(np.zeros(len(truth.values)))
+    save_robot(replace(session.nominal, extra={**session.nominal.extra, "effects": [start]}), tmp_path / "robot.yaml")
+    save_samples(session.cal, tmp_path / "cal.csv")
+    assert cli_main(["estimate", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"),
+                     "--spot-sigma", str(NOISE.spot_sigma), "--joint-sigma", str(NOISE.joint_sigma),
+                     "--out", str(tmp_path / "e")]) == 0
+    entry = json.loads((tmp_path / "e" / "result.json").read_text())["errors"][-1]
+    assert entry["name"] == truth.effect.names[0] and entry["unit"] == "rad"
+    assert abs(entry["value"] - truth.values[0]) < 4 * entry["std"]
+    written = load_robot(tmp_path / "e" / "robot_calibrated.yaml").extra["effects"]
+    assert written == [truth.effect.to_yaml(np.array([entry["value"]]))]
 
 
 def test_estimated_noise_far_above_the_rated_noise_is_structure():

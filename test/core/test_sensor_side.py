@@ -147,3 +147,24 @@ def test_a_sensor_scale_no_laser_tracker_has_is_rejected_with_the_reason():
     assert "sensor scale" not in [e.label for e in judged.final.effects]
     outcome = next(r.outcome for r in judged.rounds[0] if r.label == "sensor scale")
     assert "% is outside the laser tracker's +-0.002 %" in outcome
+
+
+def test_a_candidate_none_of_whose_parameters_can_be_reported_is_rejected():
+    """A joint that never moves: its gear-ratio error is a constant offset, the joint's own
+    Δtheta; the candidate fits as well as the model without it and is rejected, with why."""
+    from laser_calib.diagnosis.data import SpotData
+    from laser_calib.diagnosis.fitter import Fitter
+    from laser_calib.diagnosis.selection import extended_fit, physical_objections
+    from laser_calib.effects import JointScale
+    from laser_calib.sim.simulation import measure, sample_poses, true_errors
+
+    rng = np.random.default_rng(3)
+    nominal = bundled_robot("paper-4dof")
+    true = nominal.with_errors(true_errors(nominal, rng))
+    q = sample_poses([nominal, true], 40, rng)
+    q[:, 3] = 0.3
+    samples, _ = measure(true, q, rng, NOISE)
+    fitter = Fitter(SpotData(nominal, samples), DiagnoseOptions(spot_sigma=NOISE.spot_sigma,
+                                                                joint_sigma=NOISE.joint_sigma))
+    objections = physical_objections(extended_fit(fitter, fitter.start(), JointScale(joint=3)), nominal)
+    assert len(objections) == 1 and objections[0].startswith("no parameter separable (")

@@ -5,7 +5,8 @@ covariate when one varies, and it does not depend on the noise level."""
 import numpy as np
 from scipy import stats
 
-from laser_calib.diagnosis.specification import covariate_table, legendre, load_table, specification_tests
+from laser_calib.diagnosis.specification import (FREE, SMOOTH, covariate_table, legendre, load_table,
+                                                   specification_tests)
 from laser_calib.measurement.base import NoiseModel, Residuals
 
 N_POSES, VALUES, N_PARAMS, N_JOINTS = 80, 4, 6, 3
@@ -101,3 +102,32 @@ def test_a_parameter_following_a_gravity_torque_is_named():
     # The added effect's column (the last) is not tested against the loads.
     assert not any(v.parameter == NAMES[-1] and v.covariate.startswith("torque") for v in found)
     assert any(v.parameter == NAMES[-1] and v.covariate == "q1" for v in found)
+
+
+def test_every_column_is_tested_against_a_free_shape_of_a_drifts_covariate():
+    # x2 steps by 1.5 sigma-per-unit-column three quarters through the session, while the model's
+    # drift (the last column) follows the stamp: the step is found as x2 varying with the stamp in a
+    # shape of its own, where the smooth (degree 1, 2) test of the same pair sees less of it.
+    res, covariates = linear_case(11)
+    stamp = dict(covariates)["stamp"]
+    step = np.where(stamp > 0.75 * stamp.max(), 1.0, 0.0)
+    res = Residuals(res.r + 1.5 * SIGMA * res.jac[..., 1] * (step - step.mean())[:, None, None], res.valid,
+                    res.jac, res.jac_q, res.r)
+    found = specification_tests(NAMES, np.ones(N_PARAMS, bool), res, NoiseModel(SIGMA, 0.0), covariates,
+                                N_PARAMS - 1, drifts=("stamp",))
+    assert (found[0].parameter, found[0].covariate, found[0].shape) == ("x2", "stamp", FREE)
+    assert found[0].p_adjusted < 0.01 and "beyond a linear drift" in found[0].sentence()
+    smooth = next(v for v in found if (v.parameter, v.covariate, v.shape) == ("x2", "stamp", SMOOTH))
+    assert smooth.p > found[0].p
+    # Three families, an equal share each: the free shapes (every column), the added effect's, the geometric.
+    sizes = {"free": N_PARAMS, "effect": len(covariates), "geometric": len(found) - N_PARAMS - len(covariates)}
+    for v in found:
+        kind = "free" if v.shape == FREE else "effect" if v.parameter == NAMES[-1] else "geometric"
+        assert v.p_adjusted == min(1.0, 3 * sizes[kind] * v.p)
+
+
+def test_family_rate_with_a_drift_is_at_most_alpha():
+    alarms = sum(specification_tests(NAMES, np.ones(N_PARAMS, bool), res, NoiseModel(SIGMA, 0.0), covariates,
+                                     N_PARAMS - 1, drifts=("stamp",))[0].p_adjusted < 0.01
+                 for res, covariates in (linear_case(seed) for seed in range(200)))
+    assert alarms <= stats.binom.ppf(0.999, 200, 0.01)

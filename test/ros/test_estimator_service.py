@@ -41,3 +41,37 @@ def test_bad_requests_and_concurrent_clients(ros):
     assert reset["success"]
     assert ros.stop("estimator") == 0  # Ctrl-C: exit 0
     assert "Traceback" not in ros.log("estimator")
+
+
+def test_the_estimate_applies_the_learned_compensator(ros, tmp_path):
+    """The node's 'compensator' parameter (a diagnosis's compensator.json): every estimate request
+    fits and predicts with its offsets, as `laser-calib estimate --compensator` does (one code path)."""
+    import numpy as np
+    from laser_calib.cli.main import main
+    from laser_calib.diagnosis.compensator import Compensator, load_compensator
+    from laser_calib.diagnosis.detector import Basis
+    from laser_calib.estimation.estimate import EstimateOptions
+    from laser_calib.io.samples import load_samples
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.report.calibration import calibrate
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-7dof", "--seed", "0", "--out", str(sim)]) == 0
+    robot, samples = load_robot(sim / "robot_nominal.yaml"), load_samples(sim / "case3_cal.csv")
+    # A joint-2 offset following q1 (2 mrad peak): a regression of the detector's family.
+    basis = Basis.of(samples.q[:, :1], 1)
+    coef = 2e-3 * np.sin(np.arange(basis(samples.q[:1, :1]).shape[1]))[None, :]
+    path = tmp_path / "compensator.json"
+    Compensator(("q1",), ("theta2",), np.array([True]), basis, coef, 0.2, tuple(robot.param_names),
+                np.zeros(robot.n_params)).save(path)
+    ros.start("estimator", "-p", f"robot:={sim / 'robot_nominal.yaml'}", "-p", f"compensator:={path}")
+    out = ros.client("estimate-csv", str(sim / "case3_cal.csv"))
+    assert out["success"], out["message"]
+    result = json.loads(out["result_json"])
+    assert result["compensator"] == {"targets": ["theta2"], "heldout_gain": 0.2, "file": str(path)}
+    used = result["options"]
+    options = EstimateOptions(spot_sigma=used["spot_sigma"], joint_sigma=used["joint_sigma"], robust=used["robust"])
+    core = calibrate(robot, samples, options, compensator=load_compensator(path)).to_json()
+    without = calibrate(robot, samples, options).to_json()
+    assert result["spot_error"] == core["spot_error"] != without["spot_error"]
+    assert ros.stop("estimator") == 0

@@ -34,6 +34,8 @@ def test_bad_parameters_and_files_give_one_line(ros, tmp_path):
     ros.start("arm_dxl", "-p", f"robot:={ROBOT}", "-p", "backend:=dynamixel", "-p", "dynamixel.ids:=[1, 2]",
               node="arm_driver")
     ros.start("est_norobot", node="estimator", params=False)
+    ros.start("est_compensator", "-p", f"robot:={ROBOT}", "-p", f"compensator:={tmp_path / 'none.json'}",
+              node="estimator")
     for name in ros.procs:
         assert ros.wait_exit(name, 60) == 2, (name, ros.log(name))
     assert last_line(ros, "seq_poses") == f"error: {bad_poses}: line 3, field q3: not a number: 'x'"
@@ -42,6 +44,7 @@ def test_bad_parameters_and_files_give_one_line(ros, tmp_path):
     assert "backend" in last_line(ros, "arm_backend")
     assert "dynamixel.ticks_per_rad" in last_line(ros, "arm_dxl") or "2 entries" in last_line(ros, "arm_dxl")
     assert "robot" in last_line(ros, "est_norobot")
+    assert last_line(ros, "est_compensator").startswith(f"error: {tmp_path / 'none.json'}: not a compensator file")
 
 
 def test_synchronizer_pairs_nearest_within_tolerance():

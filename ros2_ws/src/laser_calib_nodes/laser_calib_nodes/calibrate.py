@@ -48,7 +48,9 @@ class CalibrateServer:
                                            request.robust)
                 stage("estimate", 0.0)
                 outcome = run_calibration(node.robot, samples, options, request.output_dir or None,
-                                          sources={"robot": node.robot_path, "samples": source})
+                                          sources={"robot": node.robot_path, "samples": source,
+                                                   "compensator": node.compensator_path},
+                                          compensator=node.compensator)
                 if request.diagnose and goal.is_cancel_requested:
                     goal.canceled()
                     result.message = f"canceled before the diagnosis; the estimate: {outcome.message}"

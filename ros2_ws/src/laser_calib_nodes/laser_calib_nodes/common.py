@@ -184,6 +184,18 @@ def robot_param(node: Node) -> tuple[Robot, str]:
     return robot_source(node).load(node)
 
 
+def compensator_param(node: Node) -> tuple[Any, str | None]:
+    """The 'compensator' parameter: a diagnosis's compensator.json, which the batch estimate
+    applies (laser_calib.report.calibration), loaded, and its path; (None, None) for ''.
+    A bad file: InputError (exit 2)."""
+    path = declare(node, "compensator", "", "A diagnosis's compensator.json, applied by every batch estimate "
+                                            "(made for the robot file's model, its effects); '' for none.")
+    if not path:
+        return None, None
+    from laser_calib.diagnosis.compensator import load_compensator  # scikit-learn: only when asked for
+    return load_compensator(path), path
+
+
 def wait_for_description(node: Node, topic: str, timeout: float) -> tuple[str, str]:
     """The first URDF text on topic (its latched one) and the topic's resolved name;
     NodeError (exit 2) after timeout s. Spins only this subscription's node, before

@@ -7,11 +7,11 @@ stamp) counted once) or 'stream' (joint_states + spots paired by stamp within
 sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed).
 Each measurement updates the online EKF, then dh_parameters and
 calibration_markers (markers.py) are published. ~/estimate runs
-laser_calib.session.estimate.run_calibration (the command line's code path), one
-request at a time while measurements flow in, a bad request answered with
-success = false and one line; ~/reset forgets the samples; ~/calibrate is the
-action (calibrate.py). spot_sigma, stream.max_joint_speed and markers can be
-set at run time (validated); the rest are read-only.
+laser_calib.session.estimate.run_calibration (the command line's code path: the
+robot file's effects, the 'compensator' file when set), one request at a time
+while measurements flow in, a bad request answered with success = false and one
+line; ~/reset forgets the samples; ~/calibrate is the action (calibrate.py).
+spot_sigma, stream.max_joint_speed and markers can be set at run time; the rest are read-only.
 """
 
 from __future__ import annotations
@@ -28,10 +28,9 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from laser_calib.io import bag
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
-
-from laser_calib.io import bag
 
 from laser_calib_nodes import common
 from laser_calib_nodes.calibrate import CalibrateServer
@@ -46,6 +45,7 @@ class Estimator(Node):
         super().__init__("estimator")
         d = lambda *a, **k: common.declare(self, *a, **k)  # noqa: E731
         self.robot, self.robot_path = common.robot_param(self)
+        self.compensator, self.compensator_path = common.compensator_param(self)
         self.input = d("input", "samples", "'samples' (synchronized Sample messages) or 'stream' (joint_states "
                                            "and spots paired by stamp).")
         self.sync_tol = d("sync_tolerance", 0.02, "'stream': max stamp difference of a pair, s (at least half "
@@ -175,7 +175,8 @@ class Estimator(Node):
             options = estimate_options(request.method, request.spot_sigma or self.spot_sigma, request.prior,
                                        request.robust)
             outcome = run_calibration(self.robot, samples, options, request.output_dir or None, request.diagnose,
-                                      sources={"robot": self.robot_path, "samples": source})
+                                      {"robot": self.robot_path, "samples": source,
+                                       "compensator": self.compensator_path}, self.compensator)
         except InputError as exc:
             response.success = False
             response.message = str(exc)
@@ -218,7 +219,7 @@ class Estimator(Node):
         params.robot_name = self.robot.name
         params.method = calibration.options.method
         params.names = list(est.names)
-        params.values = [float(v) for v in calibration.calibrated.vector()]
+        params.values = [float(v) for v in np.r_[calibration.calibrated.vector(), est.values[self.robot.n_params:]]]
         params.errors = [float(v) for v in est.errors]
         params.std = [float(v) for v in est.std]
         params.identifiable = [bool(v) for v in est.identifiable]

@@ -110,10 +110,16 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
     if test is not None and not test.seen.any():
         raise InputError(str(args.test), "no spot is measured in the test set (every spot field empty)")
+    compensator = None
+    if args.compensator:
+        from laser_calib.diagnosis.compensator import load_compensator  # scikit-learn: only when asked for
+        compensator = load_compensator(args.compensator)
     with staged_folder(args.out) as out, Progress(args.method, unit="iteration") as progress:
         calibration = run_estimate(robot, samples, _options(args, progress), out, test,
                                    sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
-                                            "test": str(args.test) if args.test else None})
+                                            "test": str(args.test) if args.test else None,
+                                            "compensator": args.compensator},
+                                   compensator=compensator)
     _summary(calibration)
     urdf = ", robot_calibrated.urdf, urdf_corrections.json" if robot.chain is not None else ""
     print(f"wrote {args.out}/robot_calibrated.yaml{urdf}, result.json, report.md, residuals.csv")
@@ -196,6 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
                    help="robust fit: outlier spots rejected and listed (default; the rule is in result.json)")
     p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")
+    p.add_argument("--compensator", help="a diagnosis's compensator.json, applied to every pose (made for the "
+                                         "robot file's model: its robot_calibrated.yaml's effects)")
     p.add_argument("--out", required=True, type=out_folder)
     p.set_defaults(func=cmd_estimate)
 

@@ -77,7 +77,7 @@ from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
-from laser_calib.diagnosis.specification import covariate_table, load_table, specification_tests
+from laser_calib.diagnosis.specification import covariate_table, drift_covariates, load_table, specification_tests
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
@@ -248,7 +248,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
         options.progress(0, None, f"specification tests on {len(samples.q)} poses")
     varying = specification_tests(final.model.names, final.estimate.identifiable, final_res, noise_model,
                                   covariate_table(samples.q, samples.stamp, dict(samples.extra)),
-                                  final.model.n_geometric, load_table(gravity_torques(data.robot, samples.q)))
+                                  final.model.n_geometric, load_table(gravity_torques(data.robot, samples.q)),
+                                  drift_covariates(final.effects))
     verdict, said = evidence(after, noise, detection, len(samples.q), options.alpha, varying)
     parameters = parameter_report(final, alternatives)
     verdict, said = ambiguous_verdict(verdict, said, parameters)

@@ -175,7 +175,7 @@ class Diagnosis:
                 "heldout_gain": self.detection.gain, "p": self.detection.p, "null_99": self.detection.null_99,
                 "importance": [{"input": n, "mse_increase": v, "std": s} for n, v, s in self.detection.importance]},
             "specification": [{"parameter": v.parameter, "covariate": v.covariate, "F": v.f, "dof": list(v.dof),
-                               "p": v.p, "p_adjusted": v.p_adjusted, "share": v.share}
+                               "p": v.p, "p_adjusted": v.p_adjusted, "share": v.share, "shape": v.shape}
                               for v in self.specification[:10]],
             "compensator": None if self.compensator is None else {
                 "heldout_gain": self.compensator.heldout_gain, "file": "compensator.json",

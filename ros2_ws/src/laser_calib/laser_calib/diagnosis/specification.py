@@ -27,10 +27,25 @@ pair rather than one per covariate with every column at once: an error outside
 the library makes one parameter vary with one covariate, and a test with 2
 degrees of freedom sees it with a fraction of the chi^2 excess that one with 2k
 needs. The p-values are Bonferroni-adjusted, weighted: the columns of the
-effects the selection added (the chosen form, the prime suspect) get half of
-the family rate, shared by their pairs, the geometric errors the other half
-(all of it when no effect was added): the family rate of a false "structure
-remains" is at most the engine's alpha (1 %) either way.
+effects the selection added (the chosen form, the prime suspect) get one share
+of the family rate, shared by their pairs, the geometric errors another (all
+of it when no effect was added).
+
+The shape of a drift (effects.drift: a length linear in the stamp or an
+extra column such as the temperature) is tested apart, as a third share: a
+drift says the arm changes with that covariate, and the library's form is
+the simplest one, one length changing linearly. Time and heat change an arm
+in ways that are not smooth (a coupling slips, the arm is re-homed, a fan
+starts) and at more than one place, so every column is also tested against a
+free function of the drift's covariate: the column times cubic B-splines of
+it (the detector's knots), whose span holds a step as well as a curve:
+
+    Z = J_j B(c)   (M, N_KNOTS + 2)   B the cubic B-splines on N_KNOTS knots over the range of the
+                                      covariate c; they sum to 1, so J_j itself (in the model)
+                                      is one of their combinations: N_KNOTS + 1 dof
+
+The shares are equal among the families that have pairs: the family rate of
+a false "structure remains" is at most the engine's alpha (1 %) in every case.
 """
 
 from __future__ import annotations
@@ -40,17 +55,23 @@ from typing import Mapping
 
 import numpy as np
 from scipy import stats
+from sklearn.preprocessing import SplineTransformer
 
+from laser_calib.diagnosis.detector import DEGREE, N_KNOTS
+from laser_calib.effects.base import Effect
+from laser_calib.effects.drift import Drift
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 
 MIN_SPREAD = 1e-9       # a covariate that does not vary is not a covariate
+SMOOTH, FREE = "smooth", "free"  # the shapes a parameter is tested to vary in
 RANK_TOLERANCE = 1e-4   # a column whose part outside the model's span is below this fraction of its norm adds nothing
 
 
 @dataclass(frozen=True)
 class Varying:
     """One (column, covariate) test: F on dof, its p and Bonferroni-adjusted p,
-    and the fraction of the residual sum of squares the varying column explains."""
+    the fraction of the residual sum of squares the varying column explains and
+    the shape tested: SMOOTH (Legendre degree 1, 2) or FREE (B-splines, a drift's shape)."""
 
     parameter: str
     covariate: str
@@ -59,9 +80,11 @@ class Varying:
     p: float
     p_adjusted: float
     share: float
+    shape: str = SMOOTH
 
     def sentence(self) -> str:
-        return (f"{self.parameter} varies with {self.covariate} (varying-coefficient F = {self.f:.3g} on "
+        shape = " beyond a linear drift (a free shape)" if self.shape == FREE else ""
+        return (f"{self.parameter} varies with {self.covariate}{shape} (varying-coefficient F = {self.f:.3g} on "
                 f"{self.dof[0]}, {self.dof[1]} dof, p = {self.p_adjusted:.2g} Bonferroni-adjusted, "
                 f"{100 * self.share:.1f} % of the residual sum of squares)")
 
@@ -89,14 +112,25 @@ def legendre(values: np.ndarray) -> np.ndarray:
     return np.stack([u, 1.5 * u ** 2 - 0.5], axis=1)
 
 
+def free_shape(values: np.ndarray) -> np.ndarray:
+    """(P,N_KNOTS+2) cubic B-splines of the values on N_KNOTS evenly spaced knots over their range."""
+    return SplineTransformer(n_knots=N_KNOTS, degree=DEGREE).fit_transform(np.asarray(values, float)[:, None])
+
+
+def drift_covariates(effects: tuple[Effect, ...] | list[Effect]) -> tuple[str, ...]:
+    """The covariates the added drifts follow (stamp, temperature, ...), each once."""
+    return tuple(dict.fromkeys(e.covariate for e in effects if isinstance(e, Drift)))
+
+
 def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: Residuals, noise: NoiseModel,
                         covariates: list[tuple[str, np.ndarray]], n_geometric: int | None = None,
-                        loads: list[tuple[str, np.ndarray]] = ()) -> list[Varying]:
+                        loads: list[tuple[str, np.ndarray]] = (), drifts: tuple[str, ...] = ()) -> list[Varying]:
     """Every (column, covariate) test (module docstring) of a fit's residual res
     (with jac at the fit), the model's parameter names and identifiable mask (n,),
     under the noise model; the first n_geometric parameters are the geometric
     errors, the rest the added effects' (None: all geometric); loads (load_table)
-    are tested against the geometric columns only; strongest first."""
+    are tested against the geometric columns only; every column against a free
+    shape of the covariates named in drifts (drift_covariates); strongest first."""
     n_poses = res.r.shape[0]
     per_pose = res.r.shape[1] * res.r.shape[2]
     y, jac = whiten(res, noise.whitener(res))
@@ -112,12 +146,17 @@ def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: R
     y = y - span @ (span.T @ y)
     total = float(y @ y)
     n_values, k = len(y), span.shape[1]
-    found, effect = [], []
     added = set(names[len(names) if n_geometric is None else n_geometric:])
-    for covariate, values, geometric_only in [(*c, False) for c in covariates] + [(*c, True) for c in loads]:
-        modulation = legendre(values)[pose]                               # (M, 2)
+    # (covariate, modulation (P,r), shape, which columns): smooth against every covariate, loads
+    # against the geometric columns, a free shape of each drift's covariate against every column.
+    table = dict(covariates)
+    plan = ([(c, legendre(v), SMOOTH, True) for c, v in covariates] + [(c, legendre(v), SMOOTH, False) for c, v in loads]
+            + [(c, free_shape(table[c]), FREE, True) for c in drifts if c in table])
+    found, family = [], []
+    for covariate, shapes, shape, with_added in plan:
+        modulation = shapes[pose]                                         # (M, r)
         for j, parameter in enumerate(columns):
-            if geometric_only and parameter in added:
+            if not with_added and parameter in added:
                 continue
             z = jac[:, j:j + 1] * modulation
             size = float(np.linalg.norm(z, axis=0).max())
@@ -131,10 +170,9 @@ def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: R
             explained = float(np.sum((basis.T @ y) ** 2))
             f = (explained / r) / max((total - explained) / dof, 1e-300)
             found.append(Varying(parameter, covariate, f, (r, dof), float(stats.f.sf(f, r, dof)), 1.0,
-                                 explained / max(total, 1e-300)))
-            effect.append(parameter in added)
-    n_effect = sum(effect)
-    families = 2 if 0 < n_effect < len(found) else 1
-    found = [replace(v, p_adjusted=min(1.0, v.p * families * (n_effect if e else len(found) - n_effect)))
-             for v, e in zip(found, effect)]
+                                 explained / max(total, 1e-300), shape))
+            family.append(FREE if shape == FREE else "effect" if parameter in added else "geometric")
+    # Weighted Bonferroni: an equal share of alpha per family that has pairs, shared by its pairs.
+    sizes = {name: family.count(name) for name in set(family)}
+    found = [replace(v, p_adjusted=min(1.0, v.p * len(sizes) * sizes[f])) for v, f in zip(found, family)]
     return sorted(found, key=lambda v: (v.p_adjusted, -v.f))

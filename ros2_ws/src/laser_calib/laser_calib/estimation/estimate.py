@@ -157,16 +157,20 @@ def impossible_spots(robot: Robot, samples: Samples, nominal: Residuals) -> list
     return sorted(out)
 
 
-def estimate(robot: Robot, samples: Samples, options: EstimateOptions = EstimateOptions()) -> Estimate:
-    """Geometric errors (4N+5) of ``robot`` from spot samples."""
-    model = SpotModel(robot, samples)
-    nominal = residuals_at(model, np.zeros(len(model.names)))
+def estimate(robot: Robot, samples: Samples, options: EstimateOptions = EstimateOptions(),
+             model: MeasurementModel | None = None, x0: np.ndarray | None = None) -> Estimate:
+    """Geometric errors (4N+5) of ``robot`` from spot samples; with ``model`` (the spot
+    model of these samples with effects, report.calibration.spot_model) its parameters
+    too, from x0 (default 0)."""
+    model = SpotModel(robot, samples) if model is None else model
+    x0 = np.zeros(len(model.names)) if x0 is None else np.asarray(x0, float)
+    nominal = residuals_at(model, x0)
     impossible = impossible_spots(robot, samples, nominal)
     outside = sum(why.startswith("outside") for *_, why in impossible)
     if outside and outside == samples.seen.sum():
         raise ValueError(f"every spot lies outside the screen (half sizes {robot.screen.half_y:g}, "
                          f"{robot.screen.half_z:g} m): spot coordinates are in metres (these look like millimetres)")
-    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), impossible=impossible,
+    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), x0, impossible=impossible,
                           at_start=nominal)
 
 

@@ -5,20 +5,33 @@ the calibrated model predict on each set (calibration, test). The distances,
 the tables, result.json, the plots and the Estimate service's response are all
 derived from this one object; writing files is a separate step
 (report.files.write_outputs).
+
+A robot file with an ``effects:`` key (a diagnosis's robot_calibrated.yaml,
+docs/effects.md) is the model with those effects: their parameters are
+estimated with the geometric errors, from the file's values, and written back.
+A learned compensator (diagnosis.compensator, the file a diagnosis keeps) adds
+its offsets, fixed, to every pose of every set; it must be the one made for
+this model (the same parameter names).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
 
 from laser_calib import __version__
+from laser_calib.diagnosis.compensator import Compensator
+from laser_calib.effects.base import Effect
+from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
+from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.problem import residuals_at
+from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
+from laser_calib.measurement.base import RobotModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.report.plots import display_units
@@ -46,13 +59,17 @@ class SetEvaluation:
 @dataclass(frozen=True)
 class Calibration:
     """robot: the nominal model; sets: 'calibration' and optionally 'test';
-    sources: where the inputs came from (file names), for result.json."""
+    sources: where the inputs came from (file names), for result.json; effects:
+    those of the robot file (estimated after the geometric errors), compensator:
+    the learned compensator applied, if any."""
 
     robot: Robot
     options: EstimateOptions
     estimate: Estimate
     sets: dict[str, SetEvaluation]
     sources: dict = field(default_factory=dict)
+    effects: tuple[Effect, ...] = ()
+    compensator: Compensator | None = None
 
     @property
     def samples(self) -> Samples:
@@ -60,7 +77,20 @@ class Calibration:
 
     @property
     def calibrated(self) -> Robot:
-        return self.estimate.corrected(self.robot)
+        """The robot file's model with the estimate: D-H values corrected, effect values refitted."""
+        corrected = self.estimate.corrected(self.robot)
+        if not self.effects:
+            return corrected
+        values = np.split(self.estimate.values[self.robot.n_params:],
+                          np.cumsum([len(e.params) for e in self.effects])[:-1])
+        return replace(corrected, extra={**corrected.extra, "effects": effects_to_yaml(self.effects, values)})
+
+    def units(self) -> list[tuple[float, str]]:
+        """(factor from SI, unit shown) of every estimated parameter: mm or deg for the
+        geometric errors, each effect parameter in its own unit."""
+        factors = display_units(self.robot.param_kinds())
+        out = [(float(f), "mm" if f == 1e3 else "deg") for f in factors]
+        return out + [(1.0, unit) for e in self.effects for unit in e.units]
 
     @cached_property
     def spot_error(self) -> dict:
@@ -83,11 +113,12 @@ class Calibration:
     def to_json(self) -> dict:
         """The content of result.json."""
         est, options = self.estimate, self.options
-        units = display_units(self.robot.param_kinds())
+        units = self.units()
         errors = []
         for i, name in enumerate(est.names):
+            unit = {"mm": "m", "deg": "rad"}.get(units[i][1], units[i][1])
             entry = {"name": name, "value": finite_or_none(est.errors[i]), "std": finite_or_none(est.std[i]),
-                     "identifiable": bool(est.identifiable[i]), "unit": "m" if units[i] == 1e3 else "rad"}
+                     "identifiable": bool(est.identifiable[i]), "unit": unit}
             if name in est.identifiability.merged:
                 entry["note"] = est.identifiability.merged[name]
             errors.append(entry)
@@ -121,6 +152,10 @@ class Calibration:
             "robust": est.robust,
             "warnings": list(est.warnings),
             "inputs": self.sources,
+            "effects": [e.label for e in self.effects],
+            "compensator": None if self.compensator is None else {
+                "targets": [t for t, u in zip(self.compensator.targets, self.compensator.used) if u],
+                "heldout_gain": self.compensator.heldout_gain, "file": self.sources.get("compensator")},
         }
 
     def summary(self) -> str:
@@ -135,12 +170,26 @@ class Calibration:
                 + ("; " + "; ".join(self.estimate.warnings) if self.estimate.warnings else ""))
 
 
-def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None = None) -> dict[str, SetEvaluation]:
-    """Predict every set once with the nominal and the calibrated model."""
-    values = est.values[:robot.n_params]
+def spot_model(robot: Robot, samples: Samples, effects: tuple[Effect, ...] = (),
+               compensator: Compensator | None = None) -> RobotModel:
+    """The model a calibration fits and predicts with: the spot model, with the robot
+    file's effects and the compensator's fixed offsets when there are any."""
+    if not effects and compensator is None:
+        return SpotModel(robot, samples)
+    model = EffectModel(SpotModel(robot, samples), effects)
+    return model if compensator is None else compensator.apply(model)
+
+
+def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None = None, effects: tuple = (),
+             compensator: Compensator | None = None, start: np.ndarray | None = None) -> dict[str, SetEvaluation]:
+    """Predict every set once with the nominal (the robot file's model as given, start) and the calibrated model."""
+    start = np.zeros(len(est.values)) if start is None else start
     sets = {"calibration": samples} | ({"test": test} if test is not None else {})
-    return {name: SetEvaluation(s, predicted_spots(robot, s, np.zeros(robot.n_params)),
-                                predicted_spots(robot, s, values)) for name, s in sets.items()}
+    out = {}
+    for name, s in sets.items():
+        model = spot_model(robot, s, effects, compensator)
+        out[name] = SetEvaluation(s, residuals_at(model, start).predicted, residuals_at(model, est.values).predicted)
+    return out
 
 
 def predicted_spots(robot: Robot, samples: Samples, errors: np.ndarray) -> np.ndarray:
@@ -150,7 +199,18 @@ def predicted_spots(robot: Robot, samples: Samples, errors: np.ndarray) -> np.nd
 
 
 def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Samples | None = None,
-              sources: dict | None = None) -> Calibration:
-    """Estimate the errors from samples and evaluate the result (no files written)."""
-    est = estimate(robot, samples, options)
-    return Calibration(robot, options, est, evaluate(robot, samples, est, test), dict(sources or {}))
+              sources: dict | None = None, compensator: Compensator | None = None) -> Calibration:
+    """Estimate the errors from samples and evaluate the result (no files written): the
+    geometric errors, and the robot file's effects and compensator when it has any (module docstring)."""
+    sources = dict(sources or {})
+    effects, values = effects_from_robot(robot, str(sources.get("robot", "robot")))
+    effects = tuple(effects)
+    model = spot_model(robot, samples, effects, compensator)
+    start = np.concatenate([np.zeros(robot.n_params), *values])
+    if compensator is not None and tuple(compensator.names) != tuple(model.names):
+        raise InputError(str(sources.get("compensator", "compensator")),
+                         f"made for the model {', '.join(compensator.names[robot.n_params:]) or 'without effects'}, "
+                         f"not {', '.join(model.names[robot.n_params:]) or 'this one without effects'} of the robot file")
+    est = estimate(robot, samples, options, model, start)
+    return Calibration(robot, options, est, evaluate(robot, samples, est, test, effects, compensator, start), sources,
+                       effects, compensator)

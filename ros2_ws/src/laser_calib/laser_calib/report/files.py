@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib import __version__
+from laser_calib.diagnosis.compensator import Compensator
 from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot import Robot
@@ -21,14 +22,14 @@ from laser_calib.model.robot_file import dump_robot
 from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.pose_table import save_pose_table, spot_columns
 from laser_calib.report.urdf_export import save_calibrated_urdf
-from laser_calib.report.plots import display_units, plot_convergence, plot_histogram, plot_screen, stats_table
+from laser_calib.report.plots import plot_convergence, plot_histogram, plot_screen, stats_table
 
 
 def run_estimate(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path,
                  test: Samples | None = None, truth: np.ndarray | None = None,
-                 sources: dict[str, str] | None = None) -> Calibration:
+                 sources: dict[str, str] | None = None, compensator: Compensator | None = None) -> Calibration:
     """calibrate(), then write_outputs() into out_dir: what `laser-calib estimate` does."""
-    calibration = calibrate(robot, samples, options, test, sources)
+    calibration = calibrate(robot, samples, options, test, sources, compensator)
     write_outputs(calibration, out_dir, truth)
     return calibration
 
@@ -37,10 +38,16 @@ def calibrated_robot_yaml(calibration: Calibration) -> str:
     """robot_calibrated.yaml: the nominal model with the identifiable errors applied."""
     est = calibration.estimate
     merged = "; ".join(f"{k}: {v}" for k, v in est.identifiability.merged.items())
+    kept = calibration.compensator is not None
     return dump_robot(calibration.calibrated,
                       header=f"Calibrated by laser_calib {__version__} ({calibration.options.method}) from "
-                             f"{len(calibration.samples)} poses."
-                             + (f"\nNot identifiable, held at nominal: {merged}" if merged else ""))
+                             f"{len(calibration.samples)} poses"
+                             + (f" with the effects {', '.join(e.label for e in calibration.effects)}"
+                                if calibration.effects else "") + "."
+                             + (f"\nNot identifiable, held at nominal: {merged}" if merged else "")
+                             + ("\nFitted with the learned compensator "
+                                f"{calibration.sources.get('compensator', '')} (not in this file): predict with it "
+                                "(diagnosis.compensator.load_compensator)" if kept else ""))
 
 
 def result_json(calibration: Calibration) -> str:
@@ -67,7 +74,9 @@ def write_outputs(calibration: Calibration, out_dir: str | Path, truth: np.ndarr
 
 def write_plots(calibration: Calibration, out: Path, truth: np.ndarray | None) -> None:
     est, robot = calibration.estimate, calibration.robot
-    plot_convergence(est.fit.history, est.names, robot.param_kinds(), out / "convergence.png", truth)
+    n = robot.n_params  # the geometric errors (the effects' parameters are in the report's table)
+    plot_convergence(est.fit.history[:, :n], est.names[:n], robot.param_kinds(), out / "convergence.png",
+                     None if truth is None else truth[:n])
     calibration_set = calibration.sets["calibration"]
     plot_screen(robot.screen, calibration_set.samples.spots, calibration_set.nominal, calibration_set.calibrated,
                 out / "screen.png")
@@ -80,7 +89,7 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     """report.md; its plots are the PNGs write_plots puts beside it."""
     est, robot, samples = calibration.estimate, calibration.robot, calibration.samples
     test = calibration.sets["test"].samples if "test" in calibration.sets else None
-    units = display_units(robot.param_kinds())
+    units = calibration.units()
     lines = [f"# Kinematic calibration of {robot.name}", "",
              f"Method: **{calibration.options.method}**, {len(samples)} calibration poses"
              + (f", {len(test)} test poses" if test is not None else "") + ". "
@@ -108,11 +117,20 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
         lines += [f"- {k}: {v}" for k, v in ident.merged.items()]
     lines += ["", "## Estimated errors", "", "| # | error | value | std | unit |", "|---|---|---|---|---|"]
     for i, name in enumerate(est.names):
-        unit = "mm" if units[i] == 1e3 else "deg"
+        factor, unit = units[i]
+        digits = ".4f" if unit in ("mm", "deg") else ".4g"  # an effect's parameter in its own unit
         if est.identifiable[i]:
-            lines.append(f"| {i + 1} | {name} | {est.errors[i] * units[i]:+.4f} | {est.std[i] * units[i]:.4f} | {unit} |")
+            lines.append(f"| {i + 1} | {name} | {est.errors[i] * factor:+{digits}} | {est.std[i] * factor:{digits}} | "
+                         f"{unit} |")
         else:
             lines.append(f"| {i + 1} | {name} | not identifiable | - | {unit} |")
+    if calibration.effects or calibration.compensator is not None:
+        lines += ["", "Effects of the robot file, estimated with the geometric errors: "
+                  + (", ".join(e.label for e in calibration.effects) or "none") + "."]
+    if calibration.compensator is not None:
+        lines += ["", f"Learned compensator applied to every pose ({calibration.sources.get('compensator', '')}; "
+                  f"its diagnosis's held-out gain {100 * calibration.compensator.heldout_gain:.1f} %): a regression, "
+                  "not a physical effect."]
     if est.rejected:
         lines += ["", "Rejected spots (robust rule): "
                   + ", ".join(f"pose {samples.pose[p]} laser {j + 1}" for p, j in est.rejected)]

@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from laser_calib.diagnosis.compensator import Compensator
 from laser_calib.diagnosis.engine import DiagnoseOptions, TooFewPoses, diagnose, write_outputs as write_diagnosis
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.io.errors import InputError
@@ -52,11 +53,13 @@ class Outcome:
 
 
 def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
-                    diagnose: bool = False, sources: dict | None = None) -> Outcome:
-    """calibrate() (what `laser-calib estimate` runs), its files into out_dir when given;
-    ValueError from the estimate (too few spots, ...) becomes an InputError."""
+                    diagnose: bool = False, sources: dict | None = None, compensator: Compensator | None = None
+                    ) -> Outcome:
+    """calibrate() (what `laser-calib estimate` runs: the robot file's effects, and the
+    learned compensator when given), its files into out_dir when given; ValueError
+    from the estimate (too few spots, ...) becomes an InputError."""
     try:
-        calibration = calibrate(robot, samples, options, sources=sources)
+        calibration = calibrate(robot, samples, options, sources=sources, compensator=compensator)
     except ValueError as exc:
         if isinstance(exc, InputError):
             raise
