@@ -136,11 +136,19 @@ class Calibration:
 
 
 def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None = None) -> dict[str, SetEvaluation]:
-    """Predict every set once with the nominal and the calibrated model."""
+    """Predict every set once with the nominal and the calibrated model (on the
+    calibration set the estimate's own predictions at its start and its result)."""
     values = est.values[:robot.n_params]
-    sets = {"calibration": samples} | ({"test": test} if test is not None else {})
-    return {name: SetEvaluation(s, predicted_spots(robot, s, np.zeros(robot.n_params)),
-                                predicted_spots(robot, s, values)) for name, s in sets.items()}
+    nominal = np.zeros_like(values)
+    out = {"calibration": SetEvaluation(samples, _or_predicted(est.predicted_at_start, robot, samples, nominal),
+                                        _or_predicted(est.fit.predicted, robot, samples, values))}
+    if test is not None:
+        out["test"] = SetEvaluation(test, predicted_spots(robot, test, nominal), predicted_spots(robot, test, values))
+    return out
+
+
+def _or_predicted(known: np.ndarray | None, robot: Robot, samples: Samples, errors: np.ndarray) -> np.ndarray:
+    return known if known is not None else predicted_spots(robot, samples, errors)
 
 
 def predicted_spots(robot: Robot, samples: Samples, errors: np.ndarray) -> np.ndarray:
