@@ -17,7 +17,7 @@ normal equations built from them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -69,10 +69,15 @@ def pose_blocks(model: MeasurementModel, chunk: int = CHUNK_POSES) -> Iterator[t
 
 
 def residuals_at(model: MeasurementModel, x: np.ndarray, chunk: int = CHUNK_POSES,
-                 jacobian: bool = False) -> Residuals:
+                 jacobian: bool = False, parameters: bool = True) -> Residuals:
     """The residuals of all poses at x (with the Jacobians when asked), evaluated
-    block by block (the model's transient arrays stay those of one block)."""
-    return _joined([block.residuals(x, jacobian) for _, block in pose_blocks(model, chunk)])
+    block by block (the model's transient arrays stay those of one block).
+    parameters=False keeps of the Jacobians only the joints' jac_q: the
+    parameters' jac (P,C,D,n) is the largest array of all, and a noise
+    estimate needs only jac_q."""
+    blocks = ((index, block.residuals(x, jacobian)) for index, block in pose_blocks(model, chunk))
+    return _joined(blocks if parameters else ((index, replace(res, jac=None)) for index, res in blocks),
+                   n_poses(model))
 
 
 def whitened_factor(model: MeasurementModel, noise: NoiseModel, x: np.ndarray, excluded: np.ndarray | None = None,
@@ -99,19 +104,31 @@ def factor_and_residuals(model: MeasurementModel, noise: NoiseModel, x: np.ndarr
     for index, block in pose_blocks(model, chunk):
         res = block.residuals(x, True)
         if keep:
-            parts.append(replace(res, jac=None, jac_q=None))
+            parts.append((index, replace(res, jac=None, jac_q=None)))
         res = problem.excluding(res, index)
         _, jac = whiten(res, noise.for_poses(index).whitener(res))
         factor = np.linalg.qr(np.vstack([factor, jac]), mode="r")
         n_values += count_values(res)
-    return factor, n_values, _joined(parts) if keep else None
+    return factor, n_values, _joined(parts, n_poses(model)) if keep else None
 
 
-def _joined(parts: list[Residuals]) -> Residuals:
-    if len(parts) == 1:
-        return parts[0]
-    return Residuals(*(None if getattr(parts[0], f) is None else np.concatenate([getattr(r, f) for r in parts])
-                       for f in ("r", "valid", "jac", "jac_q", "predicted")))
+_FIELDS = ("r", "valid", "jac", "jac_q", "predicted")
+
+
+def _joined(parts: Iterable[tuple[slice, Residuals]], total: int | None) -> Residuals:
+    """The residuals of all ``total`` poses from those of their blocks (index,
+    Residuals), each copied into place as it comes (no second copy of the whole)."""
+    out: dict[str, np.ndarray | None] = {}
+    for index, res in parts:
+        if index == slice(None):
+            return res
+        for f in _FIELDS:
+            value = getattr(res, f)
+            if f not in out:
+                out[f] = None if value is None else np.empty((total,) + value.shape[1:], value.dtype)
+            if value is not None:
+                out[f][index] = value
+    return Residuals(*(out[f] for f in _FIELDS))
 
 
 # Rows leave a factor through R^-1 (downdated): as exact as a new QR where R is

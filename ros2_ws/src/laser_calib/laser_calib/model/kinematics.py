@@ -168,10 +168,11 @@ class _Walk:
     bases: list[np.ndarray]
 
 
-def _walk(robot: Robot, q: np.ndarray, errors: np.ndarray | None, tip: int) -> _Walk:
+def _walk(robot: Robot, q: np.ndarray, errors: np.ndarray | None, tip: int, record: bool = True) -> _Walk:
     """Forward kinematics with the pose axis last (each component a contiguous
     (P,) row, so an elementary transform is a few vector operations), recording
-    each transform's axis and origin (views: no array is changed in place)."""
+    (``record``: for the Jacobians) each transform's axis and origin (views: no
+    array is changed in place, so each keeps its rotation alive)."""
     n_poses = q.shape[0]
     params = robot.vector() if errors is None else robot.vector() + np.asarray(errors, float)   # (n,) or (P,n)
     readings = q.T                                                                              # (N,P)
@@ -194,13 +195,15 @@ def _walk(robot: Robot, q: np.ndarray, errors: np.ndarray | None, tip: int) -> _
             joint_origin[op.reading] = origin
             joint_axis[op.reading] = u
         if op.kind == TRANS:
-            walk.trans.append(op.index)
-            walk.trans_axes.append(u)
+            if record:
+                walk.trans.append(op.index)
+                walk.trans_axes.append(u)
             origin = origin + u * value
         else:
-            walk.rots.append(op.index)
-            walk.rot_axes.append(u)
-            walk.bases.append(origin)
+            if record:
+                walk.rots.append(op.index)
+                walk.rot_axes.append(u)
+                walk.bases.append(origin)
             rotation = _rotate(rotation, op.axis, value)
     return replace(walk, origin=origin, rotation=rotation)
 
@@ -219,7 +222,7 @@ def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twist
     ``tip``: which tip of a tree of joint placements. The outputs are the
     pose-first shapes of ChainState."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
-    walk = _walk(robot, q, errors, tip)
+    walk = _walk(robot, q, errors, tip, twists)
     jac1 = None
     if twists:
         columns = np.zeros((robot.n_params, 6, q.shape[0]))                 # Jac_1 with the pose axis last
@@ -292,7 +295,7 @@ class Prediction:
 
 def predict(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, jacobian: bool = False) -> Prediction:
     q = np.atleast_2d(np.asarray(q, dtype=float))
-    walk = _walk(robot, q, errors, 0)
+    walk = _walk(robot, q, errors, 0, jacobian)
     beams = _beams(robot, walk.rotation)                                   # (L,3,P)
     state = ChainState(walk.origin.T.copy(), np.ascontiguousarray(walk.rotation.transpose(2, 0, 1)),
                        np.ascontiguousarray(beams.transpose(2, 0, 1)),
