@@ -101,3 +101,15 @@ def test_a_parameter_following_a_gravity_torque_is_named():
     # The added effect's column (the last) is not tested against the loads.
     assert not any(v.parameter == NAMES[-1] and v.covariate.startswith("torque") for v in found)
     assert any(v.parameter == NAMES[-1] and v.covariate == "q1" for v in found)
+
+
+def test_blocks_of_poses_give_the_test_on_all_of_them():
+    # The test keeps only sums over the values: fed block by block of poses it finds the same F values.
+    res, covariates = linear_case(4, (1, 0, 0.7))
+    whole = run(res, covariates)
+    edges = [0, 7, 30, 31, N_POSES]
+    blocks = [(slice(a, b), Residuals(res.r[a:b], res.valid[a:b], res.jac[a:b], res.jac_q[a:b], res.predicted[a:b]))
+              for a, b in zip(edges[:-1], edges[1:])]
+    parts = specification_tests(NAMES, np.ones(N_PARAMS, bool), iter(blocks), NoiseModel(SIGMA, 0.0), covariates)
+    assert [(v.parameter, v.covariate, v.dof) for v in whole] == [(v.parameter, v.covariate, v.dof) for v in parts]
+    np.testing.assert_allclose([v.f for v in parts], [v.f for v in whole], rtol=1e-9)
