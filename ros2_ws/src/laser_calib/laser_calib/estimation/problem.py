@@ -186,7 +186,7 @@ class Problem:
         return self.excluding(self.model.residuals(x, jacobian), slice(None))
 
     def excluding(self, res: Residuals, index: slice) -> Residuals:
-        if self.excluded is None:
+        if self.excluded is None or not self.excluded[index].any():  # invalid values are zero already
             return res
         keep = res.valid & ~self.excluded[index]
         r = np.where(keep[..., None], res.r, 0.0)

@@ -196,7 +196,7 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
             rung = model.subset(every)
             x = _irls(rung, noise, free, prior_sigma, excluded[every], x,
                       distances_at(rung, noise, x)[0] if near else d2[every], valid[every], dims, options,
-                      f"robust on 1 in {every.step} poses", near).x
+                      f"robust on 1 in {every.step} poses", near, final=False).x
             near = True
         d2 = distances_at(model, noise, x)[0]
     state = _irls(model, noise, free, prior_sigma, excluded, x, d2, valid, dims, options, "robust", near)
@@ -267,11 +267,12 @@ class _Irls:
 
 def _irls(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prior_sigma: np.ndarray | None,
           excluded: np.ndarray, x: np.ndarray, d2: np.ndarray, valid: np.ndarray, dims: int,
-          options: LmOptions, label: str, near: bool = False) -> _Irls:
+          options: LmOptions, label: str, near: bool = False, final: bool = True) -> _Irls:
     """Reweight from x, where the unit distances are d2 (P,C), until no weight
     changes by more than WEIGHT_TOL (at most MAX_ROUNDS rounds). Without joint
     noise (independent units) the rounds are Newton steps once near the minimum:
-    ``near`` from the start, else once a round changed no weight by more than NEWTON_BELOW."""
+    ``near`` from the start, else once a round changed no weight by more than
+    NEWTON_BELOW. final: the least squares follow (not a subset's rounds)."""
     independent = not _joint_noise(noise)
     newton = near and independent
     use = valid & ~excluded
@@ -287,8 +288,8 @@ def _irls(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prior_si
     def normal_at(x: np.ndarray, d2: np.ndarray) -> Normal:
         """The weighted normal equations at x; a Newton round's pass sums the least squares too."""
         nonlocal least_squares
-        if not newton:
-            return problem.normal_equations(x)
+        if not (newton and final):
+            return problem.normal_equations(x, unit_outer=newton)
         normal = problem.normal_equations(x, unit_outer=True, also=plain)
         least_squares = (x, d2, normal.also)
         return normal

@@ -107,9 +107,12 @@ def _rotate(rotation: np.ndarray, axis: int | np.ndarray, angle: np.ndarray | fl
         turn = np.eye(3)[..., None] + np.multiply.outer(k, s) + np.multiply.outer(k @ k, 1 - c)   # (3,3,P)
         return np.einsum("aip,ijp->ajp", rotation, np.broadcast_to(turn, (3, 3, rotation.shape[2])))
     i, j = {X: (1, 2), Y: (2, 0), Z: (0, 1)}[axis]
-    out = rotation.copy()
-    out[:, i] = c * rotation[:, i] + s * rotation[:, j]
-    out[:, j] = -s * rotation[:, i] + c * rotation[:, j]
+    out = np.empty(rotation.shape)
+    out[:, axis] = rotation[:, axis]
+    np.multiply(c, rotation[:, i], out=out[:, i])
+    out[:, i] += s * rotation[:, j]
+    np.multiply(c, rotation[:, j], out=out[:, j])
+    out[:, j] -= s * rotation[:, i]
     return out
 
 
@@ -297,10 +300,10 @@ def predict(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, jacob
     q = np.atleast_2d(np.asarray(q, dtype=float))
     walk = _walk(robot, q, errors, 0, jacobian)
     beams = _beams(robot, walk.rotation)                                   # (L,3,P)
-    state = ChainState(walk.origin.T.copy(), np.ascontiguousarray(walk.rotation.transpose(2, 0, 1)),
-                       np.ascontiguousarray(beams.transpose(2, 0, 1)),
-                       np.ascontiguousarray(walk.joint_origin.transpose(2, 0, 1)),
-                       np.ascontiguousarray(walk.joint_axis.transpose(2, 0, 1)), None)
+    # what the spots need pose-first; the rest as views (its callers rarely look)
+    state = ChainState(walk.origin.T.copy(), walk.rotation.transpose(2, 0, 1),
+                       np.ascontiguousarray(beams.transpose(2, 0, 1)), walk.joint_origin.transpose(2, 0, 1),
+                       walk.joint_axis.transpose(2, 0, 1), None)
     spots = intersect(robot, state)
     jac = _spot_jacobian(robot, walk, beams, spots.k.T) if jacobian else None
     return Prediction(spots.yz, spots.hit, spots.k, jac, state)
