@@ -20,8 +20,12 @@ The rule (ROBUST_RULE, stated in result.json):
 - the first weights are those of the start (the nominal model: its residual
   is centimetres, a gross outlier metres), then one damped Gauss-Newton step
   and a reweighting per round until no weight changes by more than 1e-3 (at
-  most MAX_ROUNDS rounds; beyond 2 WARM_POSES poses the rounds start where
-  those on an evenly spread subset of WARM_POSES settled);
+  most MAX_ROUNDS rounds); near the minimum (no weight changed by more than
+  NEWTON_BELOW) a round's step is a damped Newton step on the Cauchy
+  objective instead, without joint noise (independent units). Beyond 2
+  WARM_POSES poses the rounds start where those on an evenly spread subset
+  of WARM_POSES settled (itself started on one a tenth its size, down to
+  SMALLEST_RUNG poses), and are Newton's from the first;
 - at the end the units with t_u^2 > chi^2_D(1 - 0.01 / N) (N units) are
   candidates; the scale becomes the larger of s and the RMS of the other
   units' standardised values (real residuals have heavier tails than the
