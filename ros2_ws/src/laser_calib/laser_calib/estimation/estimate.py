@@ -6,7 +6,9 @@ estimate(robot, samples, options) runs, in order:
    where the nominal beam misses the screen by far, is flagged per pose and
    left out (a warning line lists them);
 1. identifiability at the nominal model: parameters the spots cannot separate
-   are fixed at nominal and reported as merged (never as numbers);
+   are fixed at nominal and reported as merged (never as numbers); one pass
+   of the model gives the residuals at the start (step 0 finds the impossible
+   spots in them) and the whitened factor of every spot measured there;
 2. robust (the default, robust.py): IRLS with the Cauchy loss and a MAD scale
    on the same Jacobians, then gross outliers rejected and listed;
 3. if no spot sigma is given, a fit estimates it from the residual
@@ -16,7 +18,9 @@ estimate(robot, samples, options) runs, in order:
    with LM and no joint noise it is also the fit, rescaled to the sigma);
 4. identifiability again with the noise in use: a direction whose standard
    deviation exceeds STD_FACTOR times its tolerance scale is held too (not
-   with the prior, which bounds every direction by its tolerance);
+   with the prior, which bounds every direction by its tolerance); without
+   joint noise from step 1's factor, rescaled to the noise and without the
+   rejected spots (a downdate: the model evaluated on their poses only);
 5. the fit (LM or the paper's EKF), with the optional prior (a manufacturing
    tolerance per parameter type, mean zero);
 6. with a known sigma, a chi^2 test: if chi^2 exceeds dof by more than
@@ -202,7 +206,7 @@ def _factor_without(model: MeasurementModel, factor: np.ndarray, then: NoiseMode
     units' rows leave by a downdate (the model evaluated on their poses only);
     else, or where the downdate would not be exact, a new pass."""
     nothing_removed = removed is None or not removed.any()
-    if nothing_removed and then == noise:
+    if nothing_removed and then is noise:
         return factor
     joint = np.any(np.asarray(then.joint_sigma) > 0) or np.any(np.asarray(noise.joint_sigma) > 0)
     if not joint and n_poses(model) is not None:
@@ -214,11 +218,6 @@ def _factor_without(model: MeasurementModel, factor: np.ndarray, then: NoiseMode
         if factor is not None:
             return factor
     return whitened_factor(model, noise, x0, excluded)[0]
-
-
-def _analysis(model: MeasurementModel, factor: np.ndarray, fixed: np.ndarray,
-              std_factor: float | None) -> Identifiability:
-    return analyse(factor, model.scales, tuple(model.names), fixed, std_factor=std_factor)
 
 
 def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigma: np.ndarray | None = None,
@@ -261,7 +260,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         raise ValueError("no measured spot to fit (every spot missing, refused, or its beam misses the screen)")
     start_factor = _factor_without(model, start_factor, noise, noise, x0, excluded, excluded)
     start_noise = noise
-    ident = _analysis(model, start_factor, user_fixed, given_factor)
+    ident = analyse(start_factor, model.scales, names, user_fixed, std_factor=given_factor)
     free = ident.free
     # as many values as parameters fit exactly: nothing tests the fit or estimates the noise
     if n_values <= free.sum() and prior_sigma is None:
@@ -317,8 +316,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         noise = NoiseModel(max(sigma, 1e-9), options.joint_sigma)
         start_x = trial.x
     if sigma_estimated or rejected:
-        ident = _analysis(model, _factor_without(model, start_factor, start_noise, noise, x0, excluded, removed),
-                          user_fixed, factor)
+        ident = analyse(_factor_without(model, start_factor, start_noise, noise, x0, excluded, removed),
+                        model.scales, names, user_fixed, std_factor=factor)
         free = ident.free
     held = [name for name, keep, user in zip(names, free, user_fixed) if not keep and not user]
     if held:
