@@ -203,9 +203,10 @@ def table(rows: dict, sizes: list[int], exponents: dict, scipy_rows: list[dict],
 
 
 def run_label() -> str:
-    """When and at which commit this run is: the table's 'run' column."""
+    """When and at which commit this run is, and the machine's load then: the table's 'run' column."""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
-    return f"{time.strftime('%Y-%m-%d %H:%M')} at {commit.stdout.strip() or 'unknown'}"
+    return (f"{time.strftime('%Y-%m-%d %H:%M')} at {commit.stdout.strip() or 'unknown'}, load average "
+            f"{os.getloadavg()[0]:.1f} at its start")
 
 
 def main() -> None:

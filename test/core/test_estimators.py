@@ -194,3 +194,19 @@ def test_information_update_is_the_kalman_update():
     updated, posterior = information_update(x, covariance, h.T @ h, h.T @ residual)
     assert np.allclose(updated, reference.x, rtol=1e-10, atol=1e-12)
     assert np.allclose(posterior, reference.P, rtol=1e-10, atol=1e-12)
+
+
+def test_the_report_takes_the_estimates_own_predictions():
+    """What the model predicts at the start and at the result comes from the passes
+    the estimate made (computed once): the same numbers as predicting anew, and the
+    start pass's residuals are residuals_at's."""
+    from laser_calib.estimation.problem import factor_and_residuals, residuals_at
+    session = paper_session("paper-7dof", 4)
+    model = SpotModel(session.nominal, session.samples)
+    for method in ("lm", "ekf"):
+        est = estimate(session.nominal, session.samples, EstimateOptions(method=method))
+        assert np.array_equal(est.fit.predicted, residuals_at(model, est.values).predicted, equal_nan=True)
+        assert np.array_equal(est.predicted_at_start, residuals_at(model, np.zeros(33)).predicted, equal_nan=True)
+    _, _, start = factor_and_residuals(model, NoiseModel(0.001), np.zeros(33), chunk=7)
+    nominal = residuals_at(model, np.zeros(33))
+    assert np.array_equal(start.r, nominal.r) and np.array_equal(start.valid, nominal.valid)

@@ -78,3 +78,32 @@ def test_the_papers_arms_keep_every_direction_at_their_noise():
     est = estimate(session.nominal, session.samples,
                    EstimateOptions(spot_sigma=session.noise.spot_sigma, joint_sigma=session.noise.joint_sigma))
     assert est.identifiable.all()
+
+
+def test_a_downdated_factor_is_the_factor_of_the_rows_kept():
+    """Rows leave the whitened factor by a downdate (estimate.py, after the robust
+    rule rejected spots): the same Gram matrix as a new QR of the rows kept, to
+    rounding, and so the same analysis. Where R is singular (the 4-DOF arm's sum-only
+    pairs) the downdate declines and the caller factors anew."""
+    from laser_calib.estimation.problem import downdated, whitened_factor
+    for case, declines in (("paper-7dof", False), ("paper-4dof", True)):
+        session = paper_session(case, 2)
+        model = SpotModel(session.nominal, session.samples)
+        noise = NoiseModel(0.001)
+        x = np.zeros(session.nominal.n_params)
+        removed = np.zeros(session.samples.spots.shape[:2], bool)
+        removed[[3, 11, 40], [0, 1, 0]] = True
+        everything, _ = whitened_factor(model, noise, x)
+        rows, _ = whitened_factor(model.subset(np.flatnonzero(removed.any(axis=1))), noise, x,
+                                  ~removed[removed.any(axis=1)])
+        down = downdated(everything, rows)
+        if declines:
+            assert down is None
+            continue
+        kept, _ = whitened_factor(model, noise, x, removed)
+        gram = kept.T @ kept
+        assert np.allclose(down.T @ down, gram, rtol=0, atol=1e-11 * np.abs(gram).max())
+        a = analyse(down, model.scales, model.names, std_factor=STD_FACTOR)
+        b = analyse(kept, model.scales, model.names, std_factor=STD_FACTOR)
+        assert a.rank == b.rank and np.array_equal(a.free, b.free)
+        assert np.allclose(a.singular_values, b.singular_values, rtol=1e-10)

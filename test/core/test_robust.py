@@ -207,3 +207,27 @@ def test_the_fit_at_the_estimated_sigma_is_the_least_squares_fit_there():
     assert np.max(np.abs(refit.x - est.fit.x)[free] / est.fit.std[free]) < 1e-4
     assert refit.chi2 == pytest.approx(est.fit.chi2, rel=1e-9)
     assert np.allclose(refit.covariance[np.ix_(free, free)], est.fit.covariance[np.ix_(free, free)], rtol=1e-6, atol=0)
+
+
+def test_the_final_fit_starts_from_the_newton_rounds_own_sums():
+    """The last Newton round's pass summed the least squares of the units in use;
+    without the rejected ones (their rows taken out, the cost summed anew) they are
+    the normal equations a pass over the kept units gives, to rounding."""
+    session, samples, picks = _five_percent_uniform(5)
+    model = SpotModel(session.nominal, samples)
+    noise = NoiseModel(0.001)
+    free = np.ones(len(model.names), bool)
+    rejected = np.zeros(samples.spots.shape[:2], bool)
+    rejected[tuple(np.array(sorted(picks)).T)] = True
+    x = session.errors * 0.9
+    normal = Problem(model, noise, free).normal_equations(x)
+    d2 = robust.distances_at(model, noise, x)[0]
+    problem = Problem(model, noise, free, excluded=rejected)
+    start = robust._without(problem, normal, x, d2, rejected)
+    fresh = problem.normal_equations(x)
+    scale = np.abs(fresh.information).max()
+    assert np.allclose(start.information, fresh.information, rtol=0, atol=1e-12 * scale)
+    assert np.allclose(start.gradient, fresh.gradient, rtol=0, atol=1e-9 * np.abs(fresh.gradient).max())
+    assert start.cost == pytest.approx(fresh.cost, rel=1e-12)
+    assert start.n_values == fresh.n_values
+    assert np.array_equal(start.whitener, fresh.whitener)

@@ -131,3 +131,20 @@ def test_family_rate_with_a_drift_is_at_most_alpha():
                                      N_PARAMS - 1, drifts=("stamp",))[0].p_adjusted < 0.01
                  for res, covariates in (linear_case(seed) for seed in range(200)))
     assert alarms <= stats.binom.ppf(0.999, 200, 0.01)
+
+
+def test_blocks_of_poses_give_the_test_on_all_of_them():
+    # The test keeps only sums over the values: fed block by block of poses it finds the same F values.
+    # (the smooth shapes, and the free shape of a drift's covariate)
+    res, covariates = linear_case(4, (1, 0, 0.7))
+    whole = specification_tests(NAMES, np.ones(N_PARAMS, bool), res, NoiseModel(SIGMA, 0.0), covariates,
+                                N_PARAMS - 1, drifts=("stamp",))
+    edges = [0, 7, 30, 31, N_POSES]
+    blocks = [(slice(a, b), Residuals(res.r[a:b], res.valid[a:b], res.jac[a:b], res.jac_q[a:b], res.predicted[a:b]))
+              for a, b in zip(edges[:-1], edges[1:])]
+    parts = specification_tests(NAMES, np.ones(N_PARAMS, bool), iter(blocks), NoiseModel(SIGMA, 0.0), covariates,
+                                N_PARAMS - 1, drifts=("stamp",))
+    assert any(v.shape == FREE for v in parts)
+    assert ([(v.parameter, v.covariate, v.shape, v.dof) for v in whole]
+            == [(v.parameter, v.covariate, v.shape, v.dof) for v in parts])
+    np.testing.assert_allclose([v.f for v in parts], [v.f for v in whole], rtol=1e-9)

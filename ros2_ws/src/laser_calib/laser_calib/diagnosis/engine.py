@@ -84,7 +84,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.joint import gravity_torques
 from laser_calib.estimation.folds import kfold_labels
-from laser_calib.estimation.problem import residuals_at
+from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel
@@ -240,13 +240,15 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     seen = final.model if rows is None else final.model.subset(rows)
     if options.progress is not None:
         options.progress(0, None, f"detector on {len(seen.samples.q)} poses")
-    final_res = residuals_at(final.model, final.estimate.values, jacobian=True)
-    detection = detect(final.model.names, final_res if rows is None else seen.residuals(final.estimate.values, True),
-                       detector_noise, seen.samples.q, seen.samples.stamp, dict(seen.samples.extra),
-                       fitter.fold if rows is None else fitter.fold[rows], options.seed)
+    values = final.estimate.values
+    detection = detect(final.model.names, residuals_at(seen, values, jacobian=True), detector_noise, seen.samples.q,
+                       seen.samples.stamp, dict(seen.samples.extra), fitter.fold if rows is None else fitter.fold[rows],
+                       options.seed)
     if options.progress is not None:
         options.progress(0, None, f"specification tests on {len(samples.q)} poses")
-    varying = specification_tests(final.model.names, final.estimate.identifiable, final_res, noise_model,
+    # the final model's residuals and Jacobians block by block of poses: the test keeps only sums
+    blocks = ((index, block.residuals(values, True)) for index, block in pose_blocks(final.model))
+    varying = specification_tests(final.model.names, final.estimate.identifiable, blocks, noise_model,
                                   covariate_table(samples.q, samples.stamp, dict(samples.extra)),
                                   final.model.n_geometric, load_table(gravity_torques(data.robot, samples.q)),
                                   drift_covariates(final.effects))

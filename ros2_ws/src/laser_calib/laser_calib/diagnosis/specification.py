@@ -22,11 +22,22 @@ added effects' columns keep their own share of alpha undiluted by the loads):
 
 dSS the sum of squares of y the r independent columns of Z explain. F(r, M-k-r)
 under "the model is right" whatever the noise level (both sums scale alike), so
-it holds when a noise component is estimated. One test per (column, covariate)
-pair rather than one per covariate with every column at once: an error outside
-the library makes one parameter vary with one covariate, and a test with 2
-degrees of freedom sees it with a fraction of the chi^2 excess that one with 2k
-needs. The p-values are Bonferroni-adjusted, weighted: the columns of the
+it holds when a noise component is estimated.
+
+Every quantity is a sum over the values, so the poses are read block by block
+and nothing of size M is kept: the QR factor R of J (stacked blocks, as
+estimation.problem.whitened_factor) gives J's span, B = J V S^-1 (the right
+singular vectors V and values S of R, columns of J at unit norm); per
+covariate c and degree a the sums J^T diag(P_a) J (k,k), J^T diag(P_a) y and
+the columns' sums of J_j^2 P_a P_b give, for every column j at once,
+B^T Z = S^-1 V^T J^T Z, Z^T Z and Z^T y, hence the projected
+Z'^T Z' = Z^T Z - (B^T Z)^T B^T Z and Z'^T y' = Z^T y - (B^T Z)^T B^T y, whose
+eigen-decomposition (r,r) is the SVD of Z' the test needs.
+
+One test per (column, covariate) pair rather than one per covariate with every
+column at once: an error outside the library makes one parameter vary with one
+covariate, and a test with 2 degrees of freedom sees it with a fraction of the
+chi^2 excess that one with 2k needs. The p-values are Bonferroni-adjusted, weighted: the columns of the
 effects the selection added (the chosen form, the prime suspect) get one share
 of the family rate, shared by their pairs, the geometric errors another (all
 of it when no effect was added).
@@ -51,7 +62,7 @@ a false "structure remains" is at most the engine's alpha (1 %) in every case.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 from scipy import stats
@@ -122,52 +133,59 @@ def drift_covariates(effects: tuple[Effect, ...] | list[Effect]) -> tuple[str, .
     return tuple(dict.fromkeys(e.covariate for e in effects if isinstance(e, Drift)))
 
 
-def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: Residuals, noise: NoiseModel,
+def specification_tests(names: tuple[str, ...], identifiable: np.ndarray,
+                        res: Residuals | Iterable[tuple[slice, Residuals]], noise: NoiseModel,
                         covariates: list[tuple[str, np.ndarray]], n_geometric: int | None = None,
                         loads: list[tuple[str, np.ndarray]] = (), drifts: tuple[str, ...] = ()) -> list[Varying]:
-    """Every (column, covariate) test (module docstring) of a fit's residual res
-    (with jac at the fit), the model's parameter names and identifiable mask (n,),
-    under the noise model; the first n_geometric parameters are the geometric
-    errors, the rest the added effects' (None: all geometric); loads (load_table)
-    are tested against the geometric columns only; every column against a free
-    shape of the covariates named in drifts (drift_covariates); strongest first."""
-    n_poses = res.r.shape[0]
-    per_pose = res.r.shape[1] * res.r.shape[2]
-    y, jac = whiten(res, noise.whitener(res))
-    rows = np.repeat(res.valid, res.r.shape[2], axis=1).ravel()
-    pose = np.repeat(np.arange(n_poses), per_pose)[rows]
-    y, jac = y[rows], jac[rows][:, identifiable]
-    columns = [names[k] for k in np.flatnonzero(identifiable)]
-    norms = np.linalg.norm(jac, axis=0)
-    used = norms > 0
-    jac, columns = jac[:, used] / norms[used], [c for c, u in zip(columns, used) if u]
-    u, s, _ = np.linalg.svd(jac, full_matrices=False)
-    span = u[:, s > RANK_TOLERANCE * s.max()]                             # (M, k) orthonormal
-    y = y - span @ (span.T @ y)
-    total = float(y @ y)
-    n_values, k = len(y), span.shape[1]
-    added = set(names[len(names) if n_geometric is None else n_geometric:])
+    """Every (column, covariate) test (module docstring) of a fit's residual
+    (with jac at the fit): res, or its blocks of poses (index, Residuals) in
+    order (estimation.problem.pose_blocks); the model's parameter names and
+    identifiable mask (n,), under the noise model; the first n_geometric
+    parameters are the geometric errors, the rest the added effects' (None: all
+    geometric); loads (load_table) are tested against the geometric columns
+    only; every column against a free shape of the covariates named in drifts
+    (drift_covariates); strongest first."""
     # (covariate, modulation (P,r), shape, which columns): smooth against every covariate, loads
     # against the geometric columns, a free shape of each drift's covariate against every column.
     table = dict(covariates)
     plan = ([(c, legendre(v), SMOOTH, True) for c, v in covariates] + [(c, legendre(v), SMOOTH, False) for c, v in loads]
             + [(c, free_shape(table[c]), FREE, True) for c in drifts if c in table])
+    sums = _Sums([modulation for _, modulation, _, _ in plan])
+    for index, block in [(slice(None), res)] if isinstance(res, Residuals) else res:
+        y, jac = whiten(block, noise.for_poses(index).whitener(block))
+        rows = np.repeat(block.valid, block.r.shape[2], axis=1).ravel()
+        sums.add(index, np.where(rows, y, 0.0), np.where(rows[:, None], jac[:, identifiable], 0.0), int(rows.sum()))
+    norms = np.linalg.norm(sums.factor, axis=0)                        # J's column norms (R's)
+    used = norms > 0
+    columns = [names[k] for k, u in zip(np.flatnonzero(identifiable), used) if u]
+    # J at unit column norms, J' = J D: its span's orthonormal basis B = J' V S^-1 over the
+    # singular values kept (R' = R D = U S V^T), so B^T = to_span J^T
+    _, s, vt = np.linalg.svd(sums.factor[:, used] / norms[used], full_matrices=False)
+    kept = s > RANK_TOLERANCE * s.max()
+    to_span = vt[kept] / s[kept, None] / norms[used]                   # (k, used)
+    span_y = to_span @ sums.jy[used]                                   # B^T y
+    total = sums.yy - float(span_y @ span_y)                           # ||y'||^2, y' = y - B B^T y
+    n_values, k = sums.n_values, int(kept.sum())
     found, family = [], []
-    for covariate, shapes, shape, with_added in plan:
-        modulation = shapes[pose]                                         # (M, r)
+    added = set(names[len(names) if n_geometric is None else n_geometric:])
+    for (covariate, _, shape, with_added), weighted, zy, zz in zip(plan, sums.weighted, sums.zy, sums.zz):
+        # per column j, Z_j = J'_j P(u): B^T Z_j (k,r), Z_j^T Z_j (r,r), Z_j^T y (r,)
+        span_z = np.einsum("sk,akj->jsa", to_span, weighted[:, used][:, :, used]) / norms[used, None, None]
+        z_z = zz[:, :, used] / norms[used] ** 2
+        z_y = zy[:, used] / norms[used]
         for j, parameter in enumerate(columns):
             if not with_added and parameter in added:
                 continue
-            z = jac[:, j:j + 1] * modulation
-            size = float(np.linalg.norm(z, axis=0).max())
-            z = z - span @ (span.T @ z)
-            basis, singular, _ = np.linalg.svd(z, full_matrices=False)
-            basis = basis[:, singular > RANK_TOLERANCE * size]
-            r = basis.shape[1]
+            size = float(np.sqrt(np.diag(z_z[:, :, j]).max()))          # Z's largest column norm
+            gram = z_z[:, :, j] - span_z[j].T @ span_z[j]              # Z'^T Z', Z' = Z - B B^T Z
+            value, vector = np.linalg.eigh(gram)                       # Z' = U sqrt(value) vector^T
+            independent = np.sqrt(np.maximum(value, 0.0)) > RANK_TOLERANCE * size
+            r = int(independent.sum())
             dof = n_values - k - r
             if r == 0 or dof < 1:
                 continue
-            explained = float(np.sum((basis.T @ y) ** 2))
+            projected = vector[:, independent].T @ (z_y[:, j] - span_z[j].T @ span_y)   # sqrt(value) U^T y'
+            explained = float(np.sum(projected ** 2 / value[independent]))
             f = (explained / r) / max((total - explained) / dof, 1e-300)
             found.append(Varying(parameter, covariate, f, (r, dof), float(stats.f.sf(f, r, dof)), 1.0,
                                  explained / max(total, 1e-300), shape))
@@ -176,3 +194,32 @@ def specification_tests(names: tuple[str, ...], identifiable: np.ndarray, res: R
     sizes = {name: family.count(name) for name in set(family)}
     found = [replace(v, p_adjusted=min(1.0, v.p * len(sizes) * sizes[f])) for v, f in zip(found, family)]
     return sorted(found, key=lambda v: (v.p_adjusted, -v.f))
+
+
+class _Sums:
+    """The test's sums over the values, block by block of poses: the QR factor R
+    of J (each block stacked under it), J^T y, y^T y and the values measured, and
+    per modulation P (P poses, r functions) J^T diag(P_a) J (r,k,k),
+    sum_m P_a y J (r,k) and sum_m P_a P_b J^2 (r,r,k) (m over the values)."""
+
+    def __init__(self, modulations: list[np.ndarray]):
+        self.modulations = modulations
+        self.factor = None
+        self.jy, self.yy, self.n_values = 0.0, 0.0, 0
+        self.weighted, self.zy, self.zz = ([0.0] * len(modulations) for _ in range(3))
+
+    def add(self, index: slice, y: np.ndarray, jac: np.ndarray, n_values: int) -> None:
+        """The block of poses ``index``: whitened y (m,) and jac (m,k), zero where not measured."""
+        self.factor = np.linalg.qr(jac if self.factor is None else np.vstack([self.factor, jac]), mode="r")
+        self.jy = self.jy + jac.T @ y
+        self.yy += float(y @ y)
+        self.n_values += n_values
+        m, k = jac.shape
+        square = jac * jac
+        for c, modulation in enumerate(self.modulations):
+            p = np.repeat(modulation[index], m // len(modulation[index]), axis=0)        # (m,r) per value
+            r = p.shape[1]
+            modulated = (p[:, :, None] * jac[:, None, :]).reshape(m, r * k)              # [P_1 J, ..., P_r J]
+            self.weighted[c] = self.weighted[c] + (modulated.T @ jac).reshape(r, k, k)
+            self.zy[c] = self.zy[c] + (p * y[:, None]).T @ jac
+            self.zz[c] = self.zz[c] + ((p[:, :, None] * p[:, None, :]).reshape(m, r * r).T @ square).reshape(r, r, k)

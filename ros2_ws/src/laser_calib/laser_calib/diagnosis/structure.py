@@ -81,6 +81,15 @@ class Series:
     own_joint_only: bool = False
 
 
+def joined(parts: list[list[Series]]) -> list[Series]:
+    """The series of all poses from those of consecutive blocks of poses (the same series in each)."""
+    if len(parts) == 1:
+        return parts[0]
+    return [replace(first, values=np.concatenate([p[i].values for p in parts]),
+                    weights=None if first.weights is None else np.concatenate([p[i].weights for p in parts]))
+            for i, first in enumerate(parts[0])]
+
+
 @dataclass(frozen=True)
 class Test:
     """One response against one covariate: the F test and the binned means

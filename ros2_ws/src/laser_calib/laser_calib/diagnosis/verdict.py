@@ -15,9 +15,9 @@ from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_RE
                                            UNDETERMINED, DiagnoseOptions)
 from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo
 from laser_calib.diagnosis.specification import Varying
-from laser_calib.diagnosis.structure import Readings, pose_covariates, pose_responses, structure_tests
+from laser_calib.diagnosis.structure import Readings, joined, pose_covariates, pose_responses, structure_tests
 from laser_calib.effects.base import positive_number
-from laser_calib.estimation.problem import residuals_at
+from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 from laser_calib.model.robot import Robot
 
@@ -35,7 +35,7 @@ def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions,
     against it (excess_tests).
     """
     est = final.estimate
-    res = residuals_at(final.model, est.values, jacobian=True)  # by blocks: bounded transients
+    res = residuals_at(final.model, est.values, jacobian=True, parameters=False)  # by blocks: bounded transients
     m = int(res.valid.sum()) * res.r.shape[2]
     dof = max(m - int(est.identifiable.sum()), 1)
     scale = math.sqrt(m / dof)
@@ -83,12 +83,19 @@ def excess_tests(res: Residuals, scale: float, estimate: tuple[float, float], gi
 
 def analysis(data: Data, fitted: Fitted, noise: NoiseModel) -> Analysis:
     """Structure tests of a fit's residual: the pose-level responses and
-    covariates of every measurement model, and the data's measurement-level ones."""
+    covariates of every measurement model, and the data's measurement-level ones.
+    Each is of its own pose, so they are formed block by block of poses (the
+    Jacobians of one block at a time) and joined."""
     model, x = fitted.model, fitted.estimate.values
-    res = residuals_at(model, x, jacobian=True)
-    level_resp, level_cov = data.series(model, x, res, noise)
-    resp = pose_responses(model.robot, res, noise) + level_resp
-    cov = pose_covariates(model.robot, data.samples) + level_cov
+    resp, level_cov = [], []
+    for index, block in pose_blocks(model):
+        part = data if index == slice(None) else data.subset(np.arange(index.start, index.stop))
+        res = block.residuals(x, True)
+        block_resp, block_cov = part.series(block, x, res, noise)
+        resp.append(pose_responses(model.robot, res, noise) + block_resp)
+        level_cov.append(block_cov)
+    cov = pose_covariates(model.robot, data.samples) + joined(level_cov)
+    resp = joined(resp)
     return Analysis(structure_tests(resp, cov), resp, cov)
 
 

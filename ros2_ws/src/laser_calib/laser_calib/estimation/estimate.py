@@ -6,7 +6,9 @@ estimate(robot, samples, options) runs, in order:
    where the nominal beam misses the screen by far, is flagged per pose and
    left out (a warning line lists them);
 1. identifiability at the nominal model: parameters the spots cannot separate
-   are fixed at nominal and reported as merged (never as numbers);
+   are fixed at nominal and reported as merged (never as numbers); one pass
+   of the model gives the residuals at the start (step 0 finds the impossible
+   spots in them) and the whitened factor of every spot measured there;
 2. robust (the default, robust.py): IRLS with the Cauchy loss and a MAD scale
    on the same Jacobians, then gross outliers rejected and listed;
 3. if no spot sigma is given, a fit estimates it from the residual
@@ -16,7 +18,9 @@ estimate(robot, samples, options) runs, in order:
    with LM and no joint noise it is also the fit, rescaled to the sigma);
 4. identifiability again with the noise in use: a direction whose standard
    deviation exceeds STD_FACTOR times its tolerance scale is held too (not
-   with the prior, which bounds every direction by its tolerance);
+   with the prior, which bounds every direction by its tolerance); without
+   joint noise from step 1's factor, rescaled to the noise and without the
+   rejected spots (a downdate: the model evaluated on their poses only);
 5. the fit (LM or the paper's EKF), with the optional prior (a manufacturing
    tolerance per parameter type, mean zero);
 6. with a known sigma, a chi^2 test: if chi^2 exceeds dof by more than
@@ -30,14 +34,16 @@ the given one are one warning line each (Estimate.warnings).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
-from laser_calib.estimation.problem import Fit, Problem, residuals_at, whitened_factor
+from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses,
+                                            whitened_factor)
 from laser_calib.estimation.robust import ROBUST_RULE, robust_fit
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import is_frame_param
@@ -45,6 +51,8 @@ from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
 
+# Finds the units to refuse, (pose index, channel, reason), in a model's residuals at the start.
+Refusal = Callable[[Residuals], list[tuple[int, int, str]]]
 METHODS = ("lm", "ekf")
 TRIAL_SIGMA = 0.001
 # A spot given where the nominal beam lands beyond the screen edge by more than
@@ -94,7 +102,8 @@ class Estimate:
     sigma used (estimated when sigma_estimated); rejected: (pose index, channel)
     of the spots the robust rule dropped; impossible: (pose index, channel,
     reason) of the spots refused before the fit; robust: the rule and its
-    figures, None when off."""
+    figures, None when off; predicted_at_start (P,C,D): what the model predicts
+    at the start x0 (the nominal model), as fit.predicted at the result."""
 
     names: tuple[str, ...]
     identifiable: np.ndarray
@@ -108,6 +117,7 @@ class Estimate:
     restarts: int = 0
     impossible: tuple[tuple[int, int, str], ...] = ()
     robust: dict | None = None
+    predicted_at_start: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def values(self) -> np.ndarray:
@@ -163,15 +173,17 @@ def estimate(robot: Robot, samples: Samples, options: EstimateOptions = Estimate
     model of these samples with effects, report.calibration.spot_model) its parameters
     too, from x0 (default 0)."""
     model = SpotModel(robot, samples) if model is None else model
-    x0 = np.zeros(len(model.names)) if x0 is None else np.asarray(x0, float)
-    nominal = residuals_at(model, x0)
-    impossible = impossible_spots(robot, samples, nominal)
-    outside = sum(why.startswith("outside") for *_, why in impossible)
-    if outside and outside == samples.seen.sum():
-        raise ValueError(f"every spot lies outside the screen (half sizes {robot.screen.half_y:g}, "
-                         f"{robot.screen.half_z:g} m): spot coordinates are in metres (these look like millimetres)")
-    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), x0, impossible=impossible,
-                          at_start=nominal)
+
+    def refused(nominal: Residuals) -> list[tuple[int, int, str]]:
+        impossible = impossible_spots(robot, samples, nominal)
+        outside = sum(why.startswith("outside") for *_, why in impossible)
+        if outside and outside == samples.seen.sum():
+            raise ValueError(f"every spot lies outside the screen (half sizes {robot.screen.half_y:g}, "
+                             f"{robot.screen.half_z:g} m): spot coordinates are in metres (these look like "
+                             "millimetres)")
+        return impossible
+
+    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), x0, impossible=refused)
 
 
 def pose_ids(model: MeasurementModel) -> np.ndarray:
@@ -188,20 +200,34 @@ def listing(model: MeasurementModel, units: list[tuple[int, int]]) -> str:
     return ", ".join(names) + (f" and {len(units) - LISTED} more" if len(units) > LISTED else "")
 
 
-def _analysis(model: MeasurementModel, noise: NoiseModel, x0: np.ndarray, fixed: np.ndarray,
-              excluded: np.ndarray | None, std_factor: float | None) -> tuple[Identifiability, int]:
-    factor, n_values = whitened_factor(model, noise, x0, excluded)
-    if n_values == 0:
-        raise ValueError("no measured spot to fit (every spot missing, refused, or its beam misses the screen)")
-    return analyse(factor, model.scales, tuple(model.names), fixed, std_factor=std_factor), n_values
+def _factor_without(model: MeasurementModel, factor: np.ndarray, then: NoiseModel, noise: NoiseModel,
+                    x0: np.ndarray, excluded: np.ndarray | None, removed: np.ndarray | None) -> np.ndarray:
+    """The whitened factor at x0 (whitened_factor) under ``noise`` without the units
+    ``excluded`` (P,C), from ``factor`` whitened under the noise ``then`` and
+    without all of them but ``removed`` (P,C). Without joint noise the whitened
+    Jacobian only scales with sigma and a unit's rows are its own, so the removed
+    units' rows leave by a downdate (the model evaluated on their poses only);
+    else, or where the downdate would not be exact, a new pass."""
+    nothing_removed = removed is None or not removed.any()
+    if nothing_removed and then is noise:
+        return factor
+    joint = np.any(np.asarray(then.joint_sigma) > 0) or np.any(np.asarray(noise.joint_sigma) > 0)
+    if not joint and n_poses(model) is not None:
+        factor = factor * (then.sigma / noise.sigma)
+        if not nothing_removed:
+            poses = np.flatnonzero(removed.any(axis=1))
+            rows, _ = whitened_factor(model.subset(poses), noise, x0, ~removed[poses])
+            factor = downdated(factor, rows)
+        if factor is not None:
+            return factor
+    return whitened_factor(model, noise, x0, excluded)[0]
 
 
 def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigma: np.ndarray | None = None,
-                   x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] = (),
-                   at_start: Residuals | None = None) -> Estimate:
+                   x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] | Refusal = ()) -> Estimate:
     """The same steps on any measurement model (geometric + effects, other sensors).
-    impossible: (pose index, channel, reason) of units refused before the fit;
-    at_start: the model's residuals at x0 (residuals_at), when the caller has them."""
+    impossible: (pose index, channel, reason) of units refused before the fit,
+    or the function that finds them in the model's residuals at x0."""
     start = time.perf_counter()
     names = tuple(model.names)
     n = len(names)
@@ -214,8 +240,11 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma = options.spot_sigma or TRIAL_SIGMA
     noise = NoiseModel(sigma, options.joint_sigma)
-    at_start = residuals_at(model, x0) if at_start is None else at_start
+    # one pass at the start: its residuals and the whitened factor of every unit measured there
+    start_factor, _, at_start = factor_and_residuals(model, noise, x0)
     seen, dims = at_start.valid, at_start.r.shape[2]   # (P,C) the units measured at the start, D values each
+    if callable(impossible):
+        impossible = impossible(at_start)
     excluded = None
     if impossible:
         excluded = np.zeros(seen.shape, bool)
@@ -229,7 +258,12 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     # the threshold, decides what the data add.
     factor = options.std_factor if prior_sigma is None else None
     given_factor = None if options.spot_sigma is None else factor
-    ident, n_values = _analysis(model, noise, x0, user_fixed, excluded, given_factor)
+    n_values = int((seen if excluded is None else seen & ~excluded).sum()) * dims
+    if n_values == 0:
+        raise ValueError("no measured spot to fit (every spot missing, refused, or its beam misses the screen)")
+    start_factor = _factor_without(model, start_factor, noise, noise, x0, excluded, excluded)
+    start_noise = noise
+    ident = analyse(start_factor, model.scales, names, user_fixed, std_factor=given_factor)
     free = ident.free
     # as many values as parameters fit exactly: nothing tests the fit or estimates the noise
     if n_values <= free.sum() and prior_sigma is None:
@@ -242,17 +276,19 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         return extended_kalman(problem, start_x, options.ekf)
 
     rejected: list[tuple[int, int]] = []
+    removed = None  # (P,C) the units the robust rule rejected
     robust = None
     start_x = x0
     least_squares = None  # the robust rule's final least-squares fit, when the fits below can start from it
     robust_sigma = sigma  # the spot sigma it ran with (the given one or the trial)
     if options.robust:
         outcome = robust_fit(model, noise, free, prior_sigma, x0,
-                             lambda problem, start: levenberg_marquardt(problem, start, options.lm), excluded,
+                             lambda problem, x, start: levenberg_marquardt(problem, x, options.lm, start), excluded,
                              at_start, options.lm)
         rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
         if rejected:
-            excluded = outcome.rejected if excluded is None else excluded | outcome.rejected
+            removed = outcome.rejected
+            excluded = removed if excluded is None else excluded | removed
         # Its final fit is least squares on the kept spots, by LM whatever the method (the
         # EKF's fixed point is the same, in hundreds of iterations). With spots rejected,
         # the fits below start from its minimum, and without a prior it is the sigma trial
@@ -283,7 +319,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         noise = NoiseModel(max(sigma, 1e-9), options.joint_sigma)
         start_x = trial.x
     if sigma_estimated or rejected:
-        ident, _ = _analysis(model, noise, x0, user_fixed, excluded, factor)
+        ident = analyse(_factor_without(model, start_factor, start_noise, noise, x0, excluded, removed),
+                        model.scales, names, user_fixed, std_factor=factor)
         free = ident.free
     held = [name for name, keep, user in zip(names, free, user_fixed) if not keep and not user]
     if held:
@@ -330,7 +367,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         warnings.append(f"{NOT_CONVERGED}: {options.method} stopped after {result.iterations} iterations; the "
                         "values are not a minimum")
     return Estimate(names, free.copy(), ident, result, sigma, sigma_estimated, tuple(rejected), tuple(warnings),
-                    time.perf_counter() - start, restarts, tuple(impossible), robust)
+                    time.perf_counter() - start, restarts, tuple(impossible), robust, at_start.predicted)
 
 
 def rescaled(fit: Fit, ratio: float) -> Fit:

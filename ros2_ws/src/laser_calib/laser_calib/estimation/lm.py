@@ -33,9 +33,11 @@ class LmOptions:
     progress: ProgressCallback | None = field(default=None, compare=False, repr=False)
 
 
-def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = LmOptions()) -> Fit:
+def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = LmOptions(),
+                        start: Normal | None = None) -> Fit:
+    """start: the problem's normal equations at x0, when the caller has them."""
     x = np.array(x0, dtype=float)
-    normal = problem.normal_equations(x)
+    normal = problem.normal_equations(x) if start is None else start
     history, costs = [x.copy()], [normal.cost]
     damping = options.damping
     converged = False

@@ -20,8 +20,12 @@ The rule (ROBUST_RULE, stated in result.json):
 - the first weights are those of the start (the nominal model: its residual
   is centimetres, a gross outlier metres), then one damped Gauss-Newton step
   and a reweighting per round until no weight changes by more than 1e-3 (at
-  most MAX_ROUNDS rounds; beyond 2 WARM_POSES poses the rounds start where
-  those on an evenly spread subset of WARM_POSES settled);
+  most MAX_ROUNDS rounds); near the minimum (no weight changed by more than
+  NEWTON_BELOW) a round's step is a damped Newton step on the Cauchy
+  objective instead, without joint noise (independent units). Beyond 2
+  WARM_POSES poses the rounds start where those on an evenly spread subset
+  of WARM_POSES settled (itself started on one a tenth its size, down to
+  SMALLEST_RUNG poses), and are Newton's from the first;
 - at the end the units with t_u^2 > chi^2_D(1 - 0.01 / N) (N units) are
   candidates; the scale becomes the larger of s and the RMS of the other
   units' standardised values (real residuals have heavier tails than the
@@ -43,7 +47,7 @@ import numpy as np
 from scipy.special import chdtri, gammaincinv
 
 from laser_calib.estimation.lm import LmOptions
-from laser_calib.estimation.problem import Fit, Problem, n_poses, pose_blocks
+from laser_calib.estimation.problem import Fit, Normal, Problem, n_poses, pose_blocks
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
 
 CAUCHY_C = 2.385
@@ -55,13 +59,16 @@ WEIGHT_TOL = 1e-3
 MIN_SCALE = 1e-3
 MAX_REJECTED = 1 / 3  # beyond this fraction of outliers the residual is a model error
 WARM_POSES = 20000  # above twice this many poses, the reweighting starts on an evenly spread subset of this size
+SMALLEST_RUNG = 2000  # ... and that subset starts on one a tenth its size, down to this many poses
+NEWTON_BELOW = 0.05  # after a round that changed no weight by more than this, Newton steps (near the minimum)
 ROBUST_RULE = ("IRLS with the Cauchy loss (c = 2.385) on each spot's (point's, pose's) whitened residual, "
                "scale s^2 = median(d^2) / median(chi^2_D) (the MAD about zero for D = 1), weights from the "
                "nominal model first; at convergence a spot with d^2 / s'^2 > chi^2_D(1 - 0.01 / N) of N spots "
                "is rejected (s' the larger of s and the RMS scale of the spots within the limit), and the final "
                "fit is least squares on the rest")
 
-Solver = Callable[[Problem, np.ndarray], Fit]  # (problem, start x) -> fit: LM, the EKF, ...
+# (problem, start x, its normal equations there or None) -> fit: LM, the EKF, ...
+Solver = Callable[[Problem, np.ndarray, Normal | None], Fit]
 
 
 @dataclass(frozen=True)
@@ -84,15 +91,10 @@ class WeightedNoise(NoiseModel):
         dims = residuals.r.shape[2]
         weight = np.repeat(np.where(kept, self.weights, 1.0), dims, axis=1)        # (P, CD)
         left_out = np.repeat(kept, dims, axis=1)[:, None, :]                        # zero columns: no residual
-        if not (_joint_noise(self) and residuals.jac_q is not None):
-            # the base whitener is diagonal: 1 / sigma on the measured values, 1 elsewhere (as its
-            # Cholesky factor and inverse give it, bit for bit)
-            measured = np.repeat(residuals.valid & kept, dims, axis=1)
-            diagonal = np.where(measured, 1.0 / np.sqrt(self.sigma ** 2), 1.0) * np.sqrt(weight) * left_out[:, 0]
-            out = np.zeros(diagonal.shape + diagonal.shape[-1:])
-            np.einsum("pii->pi", out)[...] = diagonal
-            return out
         base = super().whitener(replace(residuals, valid=residuals.valid & kept))
+        if not (_joint_noise(self) and residuals.jac_q is not None):  # the base whitener is diagonal
+            np.einsum("pii->pi", base)[...] *= np.sqrt(weight) * left_out[:, 0]
+            return base
         factor = np.linalg.inv(base)
         covariance = factor @ factor.transpose(0, 2, 1)                             # (P, CD, CD)
         own = np.kron(np.eye(residuals.r.shape[1]), np.ones((dims, dims)))          # the units' blocks
@@ -150,8 +152,19 @@ def _joint_noise(noise: NoiseModel) -> bool:
     return bool(np.any(np.asarray(noise.joint_sigma) > 0))
 
 
+def _cauchy_a(scale: float, dims: int) -> float:
+    """a = s^2 D c^2: the Cauchy weight is 1 / (1 + d^2 / a)."""
+    return scale ** 2 * dims * CAUCHY_C ** 2
+
+
 def cauchy_weights(d2: np.ndarray, scale: float, dims: int) -> np.ndarray:
-    return 1.0 / (1.0 + d2 / (scale ** 2 * dims * CAUCHY_C ** 2))
+    return 1.0 / (1.0 + d2 / _cauchy_a(scale, dims))
+
+
+def cauchy_cost(d2: np.ndarray, use: np.ndarray, scale: float, dims: int) -> float:
+    """The Cauchy objective sum_u (a/2) log(1 + d_u^2 / a) over the units in use (P,C)."""
+    a = _cauchy_a(scale, dims)
+    return float(0.5 * a * np.log1p(d2[use] / a).sum())
 
 
 def mad_scale(d2: np.ndarray, use: np.ndarray, dims: int) -> float:
@@ -165,7 +178,7 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
                x0: np.ndarray, solve: Solver, excluded: np.ndarray | None = None, start: Residuals | None = None,
                options: LmOptions = LmOptions()) -> RobustFit:
     """IRLS (module docstring), then the final least-squares fit by any solver
-    solve(problem, x_start) -> Fit. excluded (P,C): units already refused
+    solve(problem, x_start, normal equations there or None) -> Fit. excluded (P,C): units already refused
     (impossible measurements); start: the model's residuals at x0, when the
     caller has them; options: the damping, step tolerance and progress of the
     IRLS steps."""
@@ -176,15 +189,21 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
         d2, valid, dims = distances_at(model, noise, x)
     excluded = np.zeros(valid.shape, bool) if excluded is None else excluded
     total = n_poses(model)
+    near = False  # x is a minimum of the rounds on a subset: Newton's from the first
     if total is not None and total > 2 * WARM_POSES:
         # From nominal the weights settle in a dozen rounds; on an evenly spread
         # subset they settle where all poses would put them, within its noise, so
-        # the rounds on all poses start there and need only the last few.
-        every = slice(None, None, -(-total // WARM_POSES))
-        x = _irls(model.subset(every), noise, free, prior_sigma, excluded[every], x, d2[every], valid[every], dims,
-                  options, "robust on 1 in {} poses".format(every.step)).x
+        # the rounds on all poses start there and need only the last few. The
+        # subset itself starts where one a tenth its size settled.
+        for size in _rungs():
+            every = slice(None, None, -(-total // size))
+            rung = model.subset(every)
+            x = _irls(rung, noise, free, prior_sigma, excluded[every], x,
+                      distances_at(rung, noise, x)[0] if near else d2[every], valid[every], dims, options,
+                      f"robust on 1 in {every.step} poses", near, final=False).x
+            near = True
         d2 = distances_at(model, noise, x)[0]
-    state = _irls(model, noise, free, prior_sigma, excluded, x, d2, valid, dims, options, "robust")
+    state = _irls(model, noise, free, prior_sigma, excluded, x, d2, valid, dims, options, "robust", near)
     use, d2, scale = valid & ~excluded, state.d2, state.scale
     limit = chdtri(dims, FAMILY_FALSE_REJECTION / max(int(use.sum()), 1))
     candidates = use & (d2 / scale ** 2 > limit)
@@ -196,14 +215,50 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
     if overflow:
         rejected[:] = False
     # with nothing rejected the caller fits the same units from its own start (robust or not, one result)
-    final = solve(Problem(model, noise, free, prior_sigma, excluded | rejected), state.x) if rejected.any() else None
+    final = None
+    if rejected.any():
+        problem = Problem(model, noise, free, prior_sigma, excluded | rejected)
+        start_x, start = state.x, None
+        if state.least_squares is not None and total is not None:
+            # the last Newton round's pass also summed the least squares: it starts there
+            start_x, d2_there, normal = state.least_squares
+            start = _without(problem, normal, start_x, d2_there, rejected)
+        final = solve(problem, start_x, start)
     return RobustFit(final, rejected, state.weights, scale, state.rounds, state.converged, overflow)
+
+
+def _without(problem: Problem, normal: Normal, x: np.ndarray, d2: np.ndarray, rejected: np.ndarray) -> Normal:
+    """problem's normal equations at x from ``normal``, those of the same least
+    squares with the units ``rejected`` (P,C) still in: their rows leave the sums
+    (the model evaluated on their poses only), and the cost is summed anew from
+    the unit distances d2 (P,C) at x (a gross outlier's square would swamp the
+    difference). Independent units only (no joint noise)."""
+    poses = np.flatnonzero(rejected.any(axis=1))
+    theirs = Problem(problem.model.subset(poses), problem.noise, problem.free,
+                     excluded=~rejected[poses]).normal_equations(x)
+    whitener = normal.whitener.copy()
+    dims = whitener.shape[1] // rejected.shape[1]
+    np.einsum("pii->pi", whitener)[np.repeat(rejected, dims, axis=1)] = 1.0   # left out: unit variance
+    return replace(normal, information=normal.information - theirs.information,
+                   gradient=normal.gradient - theirs.gradient,
+                   cost=problem.prior_cost(x) + 0.5 * float(d2[~problem.excluded].sum()), whitener=whitener,
+                   n_values=normal.n_values - theirs.n_values, also=None)
+
+
+def _rungs() -> list[int]:
+    """The subsets' sizes, smallest first: WARM_POSES and a tenth of each down to SMALLEST_RUNG."""
+    sizes = [WARM_POSES]
+    while sizes[0] // 10 >= SMALLEST_RUNG:
+        sizes.insert(0, sizes[0] // 10)
+    return sizes
 
 
 @dataclass(frozen=True)
 class _Irls:
     """Where the reweighting stopped: x (n,), d2 (P,C) there, its MAD scale and
-    weights (P,C), the rounds taken and whether the weights settled."""
+    weights (P,C), the rounds taken and whether the weights settled;
+    least_squares: (x, d2 there, the least-squares normal equations there) of
+    the last Newton round's pass, None without one."""
 
     x: np.ndarray
     d2: np.ndarray
@@ -211,13 +266,19 @@ class _Irls:
     weights: np.ndarray
     rounds: int
     converged: bool
+    least_squares: tuple[np.ndarray, np.ndarray, Normal] | None = None
 
 
 def _irls(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prior_sigma: np.ndarray | None,
           excluded: np.ndarray, x: np.ndarray, d2: np.ndarray, valid: np.ndarray, dims: int,
-          options: LmOptions, label: str) -> _Irls:
+          options: LmOptions, label: str, near: bool = False, final: bool = True) -> _Irls:
     """Reweight from x, where the unit distances are d2 (P,C), until no weight
-    changes by more than WEIGHT_TOL (at most MAX_ROUNDS rounds)."""
+    changes by more than WEIGHT_TOL (at most MAX_ROUNDS rounds). Without joint
+    noise (independent units) the rounds are Newton steps once near the minimum:
+    ``near`` from the start, else once a round changed no weight by more than
+    NEWTON_BELOW. final: the least squares follow (not a subset's rounds)."""
+    independent = not _joint_noise(noise)
+    newton = near and independent
     use = valid & ~excluded
     scale = mad_scale(d2, use, dims)
     weights = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
@@ -225,25 +286,49 @@ def _irls(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prior_si
     def weighted(w: np.ndarray) -> Problem:
         return Problem(model, WeightedNoise(noise.sigma, noise.joint_sigma, w), free, prior_sigma, excluded)
 
+    plain = Problem(model, noise, free, prior_sigma, excluded)
+    least_squares = None
+
+    def normal_at(x: np.ndarray, d2: np.ndarray) -> Normal:
+        """The weighted normal equations at x; a Newton round's pass sums the least squares too."""
+        nonlocal least_squares
+        if not (newton and final):
+            return problem.normal_equations(x, unit_outer=newton)
+        normal = problem.normal_equations(x, unit_outer=True, also=plain)
+        least_squares = (x, d2, normal.also)
+        return normal
+
     # One damped Gauss-Newton step per reweighting, each from the last (the
     # classic IRLS iteration, Holland & Welsch 1977), not a full solve per
     # round: a step is kept when it lowers the cost under the current weights,
     # which for the Cauchy loss (concave in d^2) also lowers the robust cost.
+    # Its convergence is linear (the weights' change shrinks ~3x a round); near
+    # the minimum a Newton step converges quadratically: it adds the loss's
+    # curvature to the weighted J^T J. With rho(d2) = (a/2) log(1 + d2/a),
+    # a = s^2 D c^2, the Hessian (Gauss-Newton in the residuals) is
+    # sum_u w_u J_u^T J_u - (2/a) w_u^2 g_u g_u^T, g_u = J_u^T r_u, and the step
+    # is kept when it lowers the Cauchy objective at this scale.
     problem = weighted(weights)
-    normal = problem.normal_equations(x)
+    normal = normal_at(x, d2)
     eye = np.eye(len(normal.gradient))
     damping = options.damping
     converged = False
     rounds = 0
     while rounds < MAX_ROUNDS and not converged:
-        step = np.linalg.solve(normal.information + damping * eye, normal.gradient)
+        curvature = normal.information
+        if newton:
+            curvature = curvature - 2.0 / _cauchy_a(scale, dims) * normal.unit_outer   # w^2 g g^T: weighted rows
+        step = np.linalg.solve(curvature + damping * eye, normal.gradient)
         if np.sqrt(max(step @ normal.information @ step, 0.0)) < options.step_tol:
             converged = True  # x stays, so do its weights
             break
         trial = x.copy()
         trial[problem.free] += step * problem.scales
         cost, trial_d2 = _trial_pass(problem, noise, trial, normal.whitener)
-        if not cost <= normal.cost:  # a rise, or not finite (a step where the model overflows)
+        rise = (not cost <= normal.cost if not newton else
+                not (cauchy_cost(trial_d2, use, scale, dims) + problem.prior_cost(trial)
+                     <= cauchy_cost(d2, use, scale, dims) + problem.prior_cost(x)))
+        if rise:  # a rise, or not finite (a step where the model overflows)
             damping *= 10.0
             continue
         rounds += 1
@@ -253,13 +338,14 @@ def _irls(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prior_si
         new = np.where(use, cauchy_weights(d2, scale, dims), 0.0)
         change = float(np.abs(new - weights).max(initial=0.0))
         converged = change < WEIGHT_TOL
+        newton = newton or (independent and change < NEWTON_BELOW)
         weights = new
         if options.progress is not None:
             options.progress(rounds, None, f"{label}: weights change {change:.2g} (settled below {WEIGHT_TOL:g})")
         if not converged:
             problem = weighted(weights)
-            normal = problem.normal_equations(x)
-    return _Irls(x, d2, scale, weights, rounds, converged)
+            normal = normal_at(x, d2)
+    return _Irls(x, d2, scale, weights, rounds, converged, least_squares)
 
 
 def _trial_pass(problem: Problem, noise: NoiseModel, x: np.ndarray, whitener: np.ndarray) -> tuple[float, np.ndarray]:

@@ -68,8 +68,8 @@ def parse_number(cell: str, where: str) -> float:
     return value
 
 
-# A line whose first field is not a plain integer of at most 20 digits (the pose id).
-_NOT_AN_ID = re.compile(r"^(?![ \t]*[+-]?\d{1,20}[ \t]*,)", re.MULTILINE)
+# The first fields of the lines, one per line: each a plain integer of at most 20 digits (the pose id).
+_IDS = re.compile(r"(?:[ \t]*[+-]?\d{1,20}[ \t]*\n)*[ \t]*[+-]?\d{1,20}[ \t]*")
 
 
 def plain_table(text: str) -> tuple[str, np.ndarray] | None:
@@ -80,13 +80,17 @@ def plain_table(text: str) -> tuple[str, np.ndarray] | None:
     the first bad field)."""
     head, _, body = text.partition("\n")
     body = body.rstrip("\n")
-    if not body or "\r" in head or any(mark in body for mark in '"_\r') or _NOT_AN_ID.search(body):
+    if not body or "\r" in head or any(mark in body for mark in '"_\r'):
+        return None
+    lines = body.split("\n")
+    first = [line.partition(",") for line in lines]
+    if not all(comma for _, comma, _ in first) or not _IDS.fullmatch("\n".join(field for field, _, _ in first)):
         return None
     try:
-        values = np.loadtxt(io.StringIO(body), delimiter=",", dtype=float, comments=None, ndmin=2)
+        values = np.loadtxt(lines, delimiter=",", dtype=float, comments=None, ndmin=2)
     except ValueError:  # an empty field, a word, a changing number of fields
         return None
-    if (len(values) != body.count("\n") + 1                 # numpy skips blank lines, the csv module does not
+    if (len(values) != len(lines)                            # numpy skips blank lines, the csv module does not
             or not np.isfinite(values).all() or np.any(np.abs(values) > MAX_MAGNITUDE)
             or np.any(np.abs(values[:, 0]) > MAX_ID)):
         return None

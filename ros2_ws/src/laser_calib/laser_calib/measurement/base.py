@@ -96,11 +96,16 @@ class NoiseModel:
         n_poses, channels, dims = r.shape
         m = channels * dims
         mask = np.repeat(residuals.valid, dims, axis=1)  # (P, CD)
+        if not (np.any(np.asarray(self.joint_sigma) > 0) and residuals.jac_q is not None):
+            # diagonal: 1 / sigma on the measured values, 1 elsewhere (as the Cholesky
+            # factor of the covariance below and its inverse give it, bit for bit)
+            out = np.zeros((n_poses, m, m))
+            np.einsum("pii->pi", out)[...] = np.where(mask, 1.0 / np.sqrt(self.sigma ** 2), 1.0)
+            return out
         cov = np.broadcast_to(np.eye(m) * self.sigma ** 2, (n_poses, m, m)).copy()
-        if np.any(np.asarray(self.joint_sigma) > 0) and residuals.jac_q is not None:
-            jq = residuals.jac_q.reshape(n_poses, m, -1) * mask[..., None]
-            joint_sigma = np.broadcast_to(np.asarray(self.joint_sigma, dtype=float), (jq.shape[-1],))
-            cov += np.einsum("pin,n,pjn->pij", jq, joint_sigma ** 2, jq)
+        jq = residuals.jac_q.reshape(n_poses, m, -1) * mask[..., None]
+        joint_sigma = np.broadcast_to(np.asarray(self.joint_sigma, dtype=float), (jq.shape[-1],))
+        cov += np.einsum("pin,n,pjn->pij", jq, joint_sigma ** 2, jq)
         cov[~mask] = 0.0
         cov.transpose(0, 2, 1)[~mask] = 0.0
         idx = np.nonzero(~mask)
@@ -112,6 +117,15 @@ class NoiseModel:
 def whiten(residuals: Residuals, whitener: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """Stacked whitened residuals (M,) and Jacobian (M,n), M = P*C*D."""
     n_poses = residuals.r.shape[0]
+    diagonal = np.einsum("pii->pi", whitener)                                # (P,CD)
+    if np.count_nonzero(whitener) == np.count_nonzero(diagonal):
+        # values not correlated (no joint noise): a scale per row, the same numbers as the product
+        r = (diagonal * residuals.r.reshape(n_poses, -1)).ravel()
+        jac = None
+        if residuals.jac is not None:
+            flat = residuals.jac.reshape(n_poses, -1, residuals.jac.shape[-1])
+            jac = (flat * diagonal[..., None]).reshape(-1, flat.shape[-1])
+        return r, jac
     r = (whitener @ residuals.r.reshape(n_poses, -1, 1)).ravel()
     jac = None
     if residuals.jac is not None:

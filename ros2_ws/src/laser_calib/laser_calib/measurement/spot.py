@@ -53,13 +53,14 @@ class SpotModel:
 def spot_residuals(samples: Samples, predicted: np.ndarray, k: np.ndarray, jac: np.ndarray | None,
                    robot: Robot, jacobian: bool) -> Residuals:
     """Residuals of measured spots; a spot counts where it was seen and the
-    predicted beam meets the screen plane in front of the laser (k > 0)."""
+    predicted beam meets the screen plane in front of the laser (k > 0).
+    jac (P,2,2,n), predict's own array, is zeroed in place where a spot does not count."""
     valid = samples.seen & np.isfinite(predicted).all(axis=-1) & (k > 0)
     r = np.where(valid[..., None], np.nan_to_num(samples.spots - predicted), 0.0)
     jac_q = None
     if jacobian:
-        jac = np.where(valid[..., None, None], jac, 0.0)
-        if not np.isfinite(jac).all():  # rare: scanning once costs less than nan_to_num's passes
+        jac[~valid] = 0.0  # predict's own array: only the invalid rows are written
+        if not np.isfinite(jac.sum()):  # rare: one sum (a NaN or inf anywhere makes it so) for nan_to_num's passes
             jac = np.nan_to_num(jac)
         jac_q = joint_jacobian(robot, jac)
     return Residuals(r, valid, jac, jac_q, predicted)

@@ -19,7 +19,7 @@ reading (mimic). A robot without lasers ends at its last link (no SLM).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -107,9 +107,12 @@ def _rotate(rotation: np.ndarray, axis: int | np.ndarray, angle: np.ndarray | fl
         turn = np.eye(3)[..., None] + np.multiply.outer(k, s) + np.multiply.outer(k @ k, 1 - c)   # (3,3,P)
         return np.einsum("aip,ijp->ajp", rotation, np.broadcast_to(turn, (3, 3, rotation.shape[2])))
     i, j = {X: (1, 2), Y: (2, 0), Z: (0, 1)}[axis]
-    out = rotation.copy()
-    out[:, i] = c * rotation[:, i] + s * rotation[:, j]
-    out[:, j] = -s * rotation[:, i] + c * rotation[:, j]
+    out = np.empty(rotation.shape)
+    out[:, axis] = rotation[:, axis]
+    np.multiply(c, rotation[:, i], out=out[:, i])
+    out[:, i] += s * rotation[:, j]
+    np.multiply(c, rotation[:, j], out=out[:, j])
+    out[:, j] -= s * rotation[:, i]
     return out
 
 
@@ -150,16 +153,29 @@ class ChainState:
     twists: np.ndarray | None
 
 
-def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twists: bool = False,
-            tip: int = 0) -> ChainState:
-    """Forward kinematics at joint readings q (P,N) with errors (n,) or (P,n);
-    ``tip``: which tip of a tree of joint placements.
+@dataclass(frozen=True)
+class _Walk:
+    """One pass along the chain, pose axis last: origin (3,P), rotation (3,3,P),
+    joint_origin, joint_axis (N,3,P); per elementary transform its axis u (3,P)
+    and, for a rotation, the origin o (3,P) before it (what eq. 5 needs), with
+    the parameter index of each: trans (Kt,), rots (Kr,)."""
 
-    One pass along the chain with the pose axis last (each component a
-    contiguous (P,) row, so an elementary transform is a few vector
-    operations), recording each transform's axis and origin for the twists;
-    the outputs are transposed to the pose-first shapes of ChainState."""
-    q = np.atleast_2d(np.asarray(q, dtype=float))
+    origin: np.ndarray
+    rotation: np.ndarray
+    joint_origin: np.ndarray
+    joint_axis: np.ndarray
+    trans: list[int]
+    trans_axes: list[np.ndarray]
+    rots: list[int]
+    rot_axes: list[np.ndarray]
+    bases: list[np.ndarray]
+
+
+def _walk(robot: Robot, q: np.ndarray, errors: np.ndarray | None, tip: int, record: bool = True) -> _Walk:
+    """Forward kinematics with the pose axis last (each component a contiguous
+    (P,) row, so an elementary transform is a few vector operations), recording
+    (``record``: for the Jacobians) each transform's axis and origin (views: no
+    array is changed in place, so each keeps its rotation alive)."""
     n_poses = q.shape[0]
     params = robot.vector() if errors is None else robot.vector() + np.asarray(errors, float)   # (n,) or (P,n)
     readings = q.T                                                                              # (N,P)
@@ -168,12 +184,8 @@ def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twist
     origin = np.zeros((3, n_poses))
     joint_origin = np.full((robot.n_joints, 3, n_poses), np.nan)
     joint_axis = np.full((robot.n_joints, 3, n_poses), np.nan)
-    ops = chain_ops(robot, tip)
-    # for the twists: each transform's axis u (3,P), each rotation's origin o before it (views: no array
-    # is changed in place)
-    axes: dict[int, list] = {TRANS: [], ROT: []}
-    bases = []
-    for op in ops:
+    walk = _Walk(origin, rotation, joint_origin, joint_axis, [], [], [], [], [])
+    for op in chain_ops(robot, tip):
         if op.kind == FIXED:
             origin = origin + np.einsum("aip,i->ap", rotation, op.fixed[:3, 3])
             rotation = np.einsum("aip,ij->ajp", rotation, op.fixed[:3, :3])
@@ -182,36 +194,52 @@ def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twist
         if op.reading >= 0:
             value = value + (op.multiplier * readings[op.reading] + op.constant)
         u = rotation[:, op.axis] if isinstance(op.axis, int) else np.einsum("aip,i->ap", rotation, op.axis)
-        axes[op.kind].append(u)
-        if op.kind == ROT:
-            bases.append(origin)
         if op.records:
             joint_origin[op.reading] = origin
             joint_axis[op.reading] = u
         if op.kind == TRANS:
+            if record:
+                walk.trans.append(op.index)
+                walk.trans_axes.append(u)
             origin = origin + u * value
         else:
+            if record:
+                walk.rots.append(op.index)
+                walk.rot_axes.append(u)
+                walk.bases.append(origin)
             rotation = _rotate(rotation, op.axis, value)
+    return replace(walk, origin=origin, rotation=rotation)
 
+
+def _beams(robot: Robot, rotation: np.ndarray) -> np.ndarray:
+    """(L,3,P) unit beam directions in {0} from the SLM rotation (3,3,P)."""
     laser_rotations = [rot_x(g) @ rot_y(b) for g, b in robot.laser_angles()]
-    beams = np.stack([np.einsum("aip,i->pa", rotation, r[:, 2]) for r in laser_rotations]
-                     or [np.zeros((n_poses, 0, 3))], axis=1)
+    if not laser_rotations:
+        return np.zeros((0, 3, rotation.shape[2]))
+    return np.stack([np.einsum("aip,i->ap", rotation, r[:, 2]) for r in laser_rotations])
 
+
+def forward(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, twists: bool = False,
+            tip: int = 0) -> ChainState:
+    """Forward kinematics at joint readings q (P,N) with errors (n,) or (P,n);
+    ``tip``: which tip of a tree of joint placements. The outputs are the
+    pose-first shapes of ChainState."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    walk = _walk(robot, q, errors, tip, twists)
     jac1 = None
     if twists:
-        columns = np.zeros((robot.n_params, 6, n_poses))                  # Jac_1 with the pose axis last
-        trans = [op.index for op in ops if op.kind == TRANS]
-        rots = [op.index for op in ops if op.kind == ROT]
-        if trans:
-            columns[trans, :3] = np.stack(axes[TRANS])
-        u = np.stack(axes[ROT])                                            # (K,3,P)
-        lever = origin - np.stack(bases)                                   # p_laser - o
-        columns[rots, :3] = _cross(u, lever)
-        columns[rots, 3:] = u
+        columns = np.zeros((robot.n_params, 6, q.shape[0]))                 # Jac_1 with the pose axis last
+        if walk.trans:
+            columns[walk.trans, :3] = np.stack(walk.trans_axes)
+        u = np.stack(walk.rot_axes)                                        # (K,3,P)
+        lever = walk.origin - np.stack(walk.bases)                         # p_laser - o
+        columns[walk.rots, :3] = _cross(u, lever)
+        columns[walk.rots, 3:] = u
         jac1 = np.ascontiguousarray(columns.transpose(2, 1, 0))
-    return ChainState(origin.T.copy(), np.ascontiguousarray(rotation.transpose(2, 0, 1)), beams,
-                      np.ascontiguousarray(joint_origin.transpose(2, 0, 1)),
-                      np.ascontiguousarray(joint_axis.transpose(2, 0, 1)), jac1)
+    return ChainState(walk.origin.T.copy(), np.ascontiguousarray(walk.rotation.transpose(2, 0, 1)),
+                      np.ascontiguousarray(_beams(robot, walk.rotation).transpose(2, 0, 1)),
+                      np.ascontiguousarray(walk.joint_origin.transpose(2, 0, 1)),
+                      np.ascontiguousarray(walk.joint_axis.transpose(2, 0, 1)), jac1)
 
 
 @dataclass(frozen=True)
@@ -269,12 +297,39 @@ class Prediction:
 
 
 def predict(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, jacobian: bool = False) -> Prediction:
-    state = forward(robot, q, errors, twists=jacobian)
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    walk = _walk(robot, q, errors, 0, jacobian)
+    beams = _beams(robot, walk.rotation)                                   # (L,3,P)
+    # what the spots need pose-first; the rest as views (its callers rarely look)
+    state = ChainState(walk.origin.T.copy(), walk.rotation.transpose(2, 0, 1),
+                       np.ascontiguousarray(beams.transpose(2, 0, 1)), walk.joint_origin.transpose(2, 0, 1),
+                       walk.joint_axis.transpose(2, 0, 1), None)
     spots = intersect(robot, state)
-    jac = None
-    if jacobian:
-        jac = spot_jacobian(state, spots) @ state.twists[:, None]
+    jac = _spot_jacobian(robot, walk, beams, spots.k.T) if jacobian else None
     return Prediction(spots.yz, spots.hit, spots.k, jac, state)
+
+
+def _spot_jacobian(robot: Robot, walk: _Walk, beams: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """The measurement Jacobian (P,L,2,n) (eq. 12) without forming Jac_1: a
+    translation along u moves the spot point s = p + k z (3-D, on the screen)
+    by u, a rotation about u through o by u x (s - o) (the twist (u x (p - o), u)
+    of eq. 5 carried along the beam: u x (p - o) + k u x z); Jac_2's projection
+    Pi = I - z e_x^T / z_x (eq. 11) keeps its (y, z) rows: (Pi m)_i = m_i - (z_i / z_x) m_x.
+    beams (L,3,P), k (L,P): pose axis last, so each step is a few vector operations."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = beams[:, 1:] / beams[:, :1]                                # (L,2,P) z_i / z_x
+        spot = walk.origin + k[:, None] * beams                            # (L,3,P)
+    jac = np.zeros((len(beams), 2, robot.n_params, beams.shape[2]))        # (L,2,n,P)
+    if walk.trans:
+        u = np.stack(walk.trans_axes)                                      # (Kt,3,P)
+        jac[:, :, walk.trans] = u[:, 1:].transpose(1, 0, 2) - slope[:, :, None] * u[:, 0]
+    if walk.rots:
+        u = np.stack(walk.rot_axes)                                        # (Kr,3,P)
+        bases = np.stack(walk.bases)
+        for laser, s in enumerate(spot):
+            motion = _cross(u, s - bases)                                  # (Kr,3,P)
+            jac[laser][:, walk.rots] = (motion[:, 1:] - slope[laser] * motion[:, :1]).transpose(1, 0, 2)
+    return np.ascontiguousarray(jac.transpose(3, 0, 1, 2))
 
 
 def joint_columns(robot: Robot) -> np.ndarray:

@@ -182,20 +182,19 @@ def spot_model(robot: Robot, samples: Samples, effects: tuple[Effect, ...] = (),
 
 def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None = None, effects: tuple = (),
              compensator: Compensator | None = None, start: np.ndarray | None = None) -> dict[str, SetEvaluation]:
-    """Predict every set once with the nominal (the robot file's model as given, start) and the calibrated model."""
+    """Predict every set once with the nominal (the robot file's model as given, start) and the
+    calibrated model; on the calibration set these are the estimate's own predictions at its
+    start and its result (est fitted this model there, calibrate)."""
     start = np.zeros(len(est.values)) if start is None else start
-    sets = {"calibration": samples} | ({"test": test} if test is not None else {})
-    out = {}
-    for name, s in sets.items():
-        model = spot_model(robot, s, effects, compensator)
-        out[name] = SetEvaluation(s, residuals_at(model, start).predicted, residuals_at(model, est.values).predicted)
+
+    def predicted(s: Samples, known: np.ndarray | None, values: np.ndarray) -> np.ndarray:
+        return known if known is not None else residuals_at(spot_model(robot, s, effects, compensator), values).predicted
+
+    out = {"calibration": SetEvaluation(samples, predicted(samples, est.predicted_at_start, start),
+                                        predicted(samples, est.fit.predicted, est.values))}
+    if test is not None:
+        out["test"] = SetEvaluation(test, predicted(test, None, start), predicted(test, None, est.values))
     return out
-
-
-def predicted_spots(robot: Robot, samples: Samples, errors: np.ndarray) -> np.ndarray:
-    """(P,2,2) the spots the model with errors (n,) predicts at the readings of
-    samples (kinematics.predict's, through the spot model block by block of poses)."""
-    return residuals_at(SpotModel(robot, samples), errors).predicted
 
 
 def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Samples | None = None,

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 from pathlib import Path
 
 import numpy as np
@@ -33,25 +32,28 @@ def format_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np
 def write_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]], out) -> None:
     """format_pose_table's text written to the text stream ``out``, ROWS_AT_ONCE rows at a time."""
     columns = list(dict.fromkeys(name for _, _, table in sets.values() for name in table))
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["set", "pose", "stamp"] + columns)
+    csv.writer(out, lineterminator="\n").writerow(["set", "pose", "stamp"] + columns)
     for set_name, (pose, stamp, table) in sets.items():
         for start in range(0, len(pose), ROWS_AT_ONCE):
             rows = slice(start, start + ROWS_AT_ONCE)
-            # column by column: one type test per column, not one per cell
+            # column by column (one type test per column, not one per cell); no field needs CSV quoting
             cells = [[str(int(v)) for v in np.asarray(pose[rows]).tolist()],
-                     [repr(v) for v in np.asarray(stamp[rows], float).tolist()]]
+                     list(map(repr, np.asarray(stamp[rows], float).tolist()))]
             cells += [_cells(None if table.get(c) is None else table[c][rows], len(cells[0])) for c in columns]
-            writer.writerows([set_name, *row] for row in zip(*cells))
+            out.write("".join(f"{set_name},{line}\n" for line in map(",".join, zip(*cells))))
 
 
 def _cells(values: np.ndarray | None, n_rows: int) -> list[str]:
-    """One column's fields: integer columns (fold indices) as integers, floats at full precision (repr)."""
+    """One column's fields: integer columns (fold indices) as integers, floats at full precision (repr), NaN empty."""
     if values is None:
         return [""] * n_rows
     if np.issubdtype(values.dtype, np.integer):
         return [str(v) for v in values.tolist()]
-    return ["" if math.isnan(v) else repr(v) for v in values.astype(float).tolist()]
+    values = values.astype(float)
+    cells = list(map(repr, values.tolist()))
+    for i in np.flatnonzero(np.isnan(values)).tolist():
+        cells[i] = ""
+    return cells
 
 
 def save_pose_table(sets: dict[str, tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]], path: str | Path) -> None:
