@@ -196,9 +196,12 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                    x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] = (),
                    at_start: Residuals | None = None) -> Estimate:
     """The same steps on any measurement model (geometric + effects, other sensors).
+    prior_sigma: None takes the model's own (an EffectModel's penalised effects), if any;
     impossible: (pose index, channel, reason) of units refused before the fit;
     at_start: the model's residuals at x0 (residuals_at), when the caller has them."""
     start = time.perf_counter()
+    if prior_sigma is None:
+        prior_sigma = getattr(model, "prior_sigma", None)
     names = tuple(model.names)
     n = len(names)
     x0 = np.zeros(n) if x0 is None else np.asarray(x0, float)
