@@ -151,56 +151,37 @@ def surface_terms(degree: int) -> tuple[tuple[int, int], ...]:
 
 
 @dataclass(frozen=True)
-class ScreenSurface(Surface):
-    """A smooth screen surface of any shape (Surface): the 2-D Legendre series
-
-        f = sum over 1 <= i + j <= degree of c_ij (P_i(u) P_j(v) - P_i(0) P_j(0)),
-        u = (y - centre_y) / half_y, v = (z - centre_z) / half_z,
-
-    P_n the Legendre polynomials, over the box the calibration spots cover
-    (``make``: the centre and half sizes of their range), where they are
-    nearly orthogonal, so the coefficients are nearly uncorrelated and each is
-    about the size of its term at the edge of the data (|P_n(1)| = 1); a
-    polynomial over the whole screen would be fitted on part of its domain,
-    and its folds would extrapolate. Each term is 0 at the centre: a constant
-    is a screen offset, held by the geometric errors. Earlier diagnoses chose
-    its degree and wrote it; robot files that hold it are read. The diagnosis
-    now fits a screen of any shape as effects.screen_spline.ScreenSpline (a
-    polynomial of degree 4 or more extrapolates wildly beyond the spots).
-    Degree 2 spans what ScreenShape does. Coefficients in m; scale 1 mm.
-    """
-
-    kind: ClassVar[str] = "screen_surface"
-    title: ClassVar[str] = "screen not flat (smooth surface)"
+class BoxSurface(Surface):
+    """A surface over the box the calibration spots cover (``box``: the
+    centre and half sizes of their range), in u = (y - centre_y) / half_y,
+    v = (z - centre_z) / half_z: a polynomial over the whole screen would be
+    fitted on part of its domain, and its folds would extrapolate. Its
+    coefficients are lengths in m; scale and typical size 1 mm."""
 
     centre_y: float
     centre_z: float
     half_y: float
     half_z: float
-    degree: int
 
-    @classmethod
-    def make(cls, spots: np.ndarray, degree: int) -> "ScreenSurface":
-        """The surface of ``degree`` over the range of the measured spots (P,L,2) m (NaN where not seen)."""
+    @staticmethod
+    def box(spots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Centre (2,) and half sizes (2,) m of the range of the measured spots (P,L,2) (NaN where not seen)."""
         low, high = np.nanmin(spots, axis=(0, 1)), np.nanmax(spots, axis=(0, 1))
-        centre, half = (low + high) / 2, np.maximum((high - low) / 2, MM)
-        return cls(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), degree)
+        return (low + high) / 2, np.maximum((high - low) / 2, MM)
 
-    @property
-    def params(self) -> tuple[str, ...]:  # type: ignore[override]
-        return tuple(f"c{i}{j}" for i, j in surface_terms(self.degree))
+    @staticmethod
+    def box_from_yaml(robot: Robot, entry: Mapping[str, Any], where: str) -> tuple[float, float, float, float]:
+        return (yaml_number(where, entry, "centre_y", 0.0), yaml_number(where, entry, "centre_z", 0.0),
+                positive_number(where, entry, "half_y", robot.screen.half_y),
+                positive_number(where, entry, "half_z", robot.screen.half_z))
+
+    def normalised(self, s: np.ndarray) -> np.ndarray:
+        """(u, v) (...,2) of spots s (...,2) m."""
+        return (s - np.array([self.centre_y, self.centre_z])) / np.array([self.half_y, self.half_z])
 
     @property
     def units(self) -> tuple[str, ...]:  # type: ignore[override]
         return ("m",) * len(self.params)
-
-    @property
-    def tag(self) -> str:
-        return "surface"
-
-    @property
-    def label(self) -> str:
-        return f"{self.kind} (screen, degree {self.degree})"
 
     @property
     def scales(self) -> np.ndarray:
@@ -211,20 +192,60 @@ class ScreenSurface(Surface):
         return np.full(len(self.params), MM)
 
     def constants(self) -> dict:
-        return {"centre_y": self.centre_y, "centre_z": self.centre_z, "half_y": self.half_y, "half_z": self.half_z,
-                "degree": self.degree}
+        return {"centre_y": self.centre_y, "centre_z": self.centre_z, "half_y": self.half_y, "half_z": self.half_z}
+
+
+@dataclass(frozen=True)
+class ScreenSurface(BoxSurface):
+    """A smooth screen surface (BoxSurface): the 2-D Legendre series
+
+        f = sum over 1 <= i + j <= degree of c_ij (P_i(u) P_j(v) - P_i(0) P_j(0)),
+
+    P_n the Legendre polynomials, nearly orthogonal over the box, so the
+    coefficients are nearly uncorrelated and each is about the size of its
+    term at the edge of the data (|P_n(1)| = 1). Each term is 0 at the
+    centre: a constant is a screen offset, held by the geometric errors.
+    Earlier diagnoses chose its degree and wrote it; robot files that hold it
+    are read. The diagnosis now fits a screen of any shape as
+    effects.screen_spline.ScreenSpline (a polynomial of degree 4 or more
+    extrapolates wildly beyond the spots). Degree 2 spans what ScreenShape does.
+    """
+
+    kind: ClassVar[str] = "screen_surface"
+    title: ClassVar[str] = "screen not flat (smooth surface)"
+
+    degree: int
+
+    @classmethod
+    def make(cls, spots: np.ndarray, degree: int) -> "ScreenSurface":
+        """The surface of ``degree`` over the range of the measured spots (P,L,2) m (NaN where not seen)."""
+        centre, half = cls.box(spots)
+        return cls(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), degree)
+
+    @property
+    def params(self) -> tuple[str, ...]:  # type: ignore[override]
+        return tuple(f"c{i}{j}" for i, j in surface_terms(self.degree))
+
+    @property
+    def tag(self) -> str:
+        return "surface"
+
+    @property
+    def label(self) -> str:
+        return f"{self.kind} (screen, degree {self.degree})"
+
+    def constants(self) -> dict:
+        return {**super().constants(), "degree": self.degree}
 
     @classmethod
     def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "ScreenSurface":
         degree = entry.get("degree")
         if isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= MAX_DEGREE:
             raise InputError(f"{where}.degree", f"expected a whole number 1..{MAX_DEGREE}, got {degree!r}")
-        return cls(yaml_number(where, entry, "centre_y", 0.0), yaml_number(where, entry, "centre_z", 0.0),
-                   positive_number(where, entry, "half_y", robot.screen.half_y),
-                   positive_number(where, entry, "half_z", robot.screen.half_z), degree, camera=robot.screen.camera)
+        return cls(*cls.box_from_yaml(robot, entry, where), degree, camera=robot.screen.camera)
 
     def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        u, v = (s[..., 0] - self.centre_y) / self.half_y, (s[..., 1] - self.centre_z) / self.half_z
+        u, v = np.moveaxis(self.normalised(s), -1, 0)
         derivative = legendre.legder(np.eye(self.degree + 1))   # (degree, degree + 1): column n is P_n'
         pu, pv = legendre.legvander(u, self.degree), legendre.legvander(v, self.degree)   # (..., degree + 1)
         du = legendre.legvander(u, self.degree - 1) @ derivative

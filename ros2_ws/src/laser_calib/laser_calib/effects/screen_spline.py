@@ -39,8 +39,8 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from laser_calib.effects.base import Effect, positive_number, yaml_number
-from laser_calib.effects.screen import MM, Surface
+from laser_calib.effects.base import Effect
+from laser_calib.effects.screen import BoxSurface
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number
 from laser_calib.model.robot import Robot
@@ -91,7 +91,7 @@ def spread_knots(points: np.ndarray, count: int) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class ScreenSpline(Surface):
+class ScreenSpline(BoxSurface):
     """A screen of any smooth shape (module docstring). ``penalty_order`` m (the null
     space: polynomials of degree < m); ``knots`` (n,2) in the normalised
     coordinates; ``modes`` (n,K) and ``tails`` (len(exponents(m)),K) the knot
@@ -103,10 +103,6 @@ class ScreenSpline(Surface):
     kind: ClassVar[str] = "screen_spline"
     title: ClassVar[str] = "screen not flat (smooth surface)"
 
-    centre_y: float
-    centre_z: float
-    half_y: float
-    half_z: float
     penalty_order: int
     knots: np.ndarray
     modes: np.ndarray | None = None
@@ -121,8 +117,7 @@ class ScreenSpline(Surface):
         seen), knots spread over them; no smoothing chosen yet (variants)."""
         seen = spots.reshape(-1, 2)
         seen = seen[~np.isnan(seen).any(axis=1)]
-        low, high = seen.min(axis=0), seen.max(axis=0)
-        centre, half = (low + high) / 2, np.maximum((high - low) / 2, MM)
+        centre, half = cls.box(spots)
         knot_form = cls(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), order,
                         spread_knots((seen - centre) / half, MAX_KNOTS), camera=camera)
         return knot_form.with_order(order)
@@ -159,20 +154,8 @@ class ScreenSpline(Surface):
                 + tuple(f"{prefix}{k + 1}" for k in range(count)))
 
     @property
-    def units(self) -> tuple[str, ...]:  # type: ignore[override]
-        return ("m",) * len(self.params)
-
-    @property
     def tag(self) -> str:
         return "spline"
-
-    @property
-    def scales(self) -> np.ndarray:
-        return np.full(len(self.params), MM)
-
-    @property
-    def typical(self) -> np.ndarray:
-        return np.full(len(self.params), MM)
 
     @property
     def prior(self) -> np.ndarray | None:
@@ -182,8 +165,7 @@ class ScreenSpline(Surface):
         return np.concatenate([np.full(len(exponents(self.penalty_order)) - 1, np.inf), modes])
 
     def constants(self) -> dict:
-        return {"centre_y": self.centre_y, "centre_z": self.centre_z, "half_y": self.half_y, "half_z": self.half_z,
-                "penalty_order": self.penalty_order, "knots": self.knots.tolist()}
+        return {**super().constants(), "penalty_order": self.penalty_order, "knots": self.knots.tolist()}
 
     def to_yaml(self, values: np.ndarray) -> dict[str, Any]:
         """The knot form: polynomial coefficients and one weight per knot."""
@@ -205,12 +187,9 @@ class ScreenSpline(Surface):
                 or not all(isinstance(k, list) and len(k) == 2 for k in knots)):
             raise InputError(f"{where}.knots", "expected a list of [u, v] pairs (normalised knot positions)")
         points = np.array([[finite_number(value, f"{where}.knots[{n}]") for value in k] for n, k in enumerate(knots)])
-        return cls(yaml_number(where, entry, "centre_y", 0.0), yaml_number(where, entry, "centre_z", 0.0),
-                   positive_number(where, entry, "half_y", robot.screen.half_y),
-                   positive_number(where, entry, "half_z", robot.screen.half_z), order, points,
-                   camera=robot.screen.camera)
+        return cls(*cls.box_from_yaml(robot, entry, where), order, points, camera=robot.screen.camera)
 
-    def _normalised(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _in_box(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """phi (...,k) and d phi / d x (...,k,2) at normalised points x (...,2), before the centre's value is removed."""
         offset = x[..., None, :] - self.knots                                 # (..., n, 2)
         eta, slope = kernel(np.einsum("...nd,...nd->...n", offset, offset), self.penalty_order)
@@ -227,9 +206,8 @@ class ScreenSpline(Surface):
 
     @cached_property
     def _at_centre(self) -> np.ndarray:
-        return self._normalised(np.zeros(2))[0]
+        return self._in_box(np.zeros(2))[0]
 
     def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        half = np.array([self.half_y, self.half_z])
-        phi, d_phi = self._normalised((s - np.array([self.centre_y, self.centre_z])) / half)
-        return phi - self._at_centre, d_phi / half
+        phi, d_phi = self._in_box(self.normalised(s))
+        return phi - self._at_centre, d_phi / np.array([self.half_y, self.half_z])
