@@ -207,6 +207,8 @@ def test_a_cubic_screen_seen_by_the_camera_is_fitted_as_a_spline():
     result = diagnose(s.nominal, s.cal, s.test, options=options)
     splines = [e for e in result.final.effects if isinstance(e, ScreenSpline)]
     assert splines and splines[0].camera == CAMERA
+    known = result.to_json()["effects"][0]["known_over_m"]
+    assert known["y"] == pytest.approx([np.nanmin(s.cal.spots[..., 0]), np.nanmax(s.cal.spots[..., 0])])
     spent = result.final.n_free - result.stages[0].fitted.n_free
     assert len(exponents(splines[0].penalty_order)) - 1 < spent < len(splines[0].params)
     true_model = EffectModel(SpotModel(s.nominal, s.cal), [s.truth[0].effect])

@@ -218,6 +218,9 @@ def parameter_report(fitted: Fitted, alternatives: Sequence[Sequence[str]]) -> t
             item["covariate"] = effect.covariate
         if isinstance(effect, ScreenSpline):
             item["penalty_order"], item["smoothing_m"] = effect.penalty_order, effect.smoothing
+            # what the data saw of the screen: beyond it the surface is extrapolated
+            item["known_over_m"] = {"y": [effect.centre_y - effect.half_y, effect.centre_y + effect.half_y],
+                                    "z": [effect.centre_z - effect.half_z, effect.centre_z + effect.half_z]}
         out.append(item)
     return tuple(out)
 
