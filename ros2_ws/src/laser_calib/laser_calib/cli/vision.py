@@ -61,6 +61,9 @@ def cmd_screen_calibrate(args: argparse.Namespace) -> int:
           f"{len(screens)} screen views")
     print(f"fiducial corners through the map: RMS {np.sqrt(np.mean(error_mm ** 2)):.3f} mm, "
           f"max {error_mm.max():.3f} mm ({len(known)} corners)")
+    centre = ", ".join(f"{v:.3f}" for v in calibration.centre)
+    print(f"camera centre in frame {{0}}: [{centre}] m (the robot file's screen: camera:, which a screen that is "
+          "not flat needs)")
     print(f"wrote {args.out}")
     return 0
 

@@ -102,7 +102,8 @@ class Fitter:
             train = estimate_model(model.subset(~held), options, None, est.values)
             cv_chi2[held], cv[held], _ = self.scored(model.subset(held), train.values)
             self.report(k + 2, label)
-        return Fitted(effects, model, est, cv, cv_chi2, cal, float(chi2.sum()), n_values, int(est.identifiable.sum()))
+        return Fitted(effects, model, est, cv, cv_chi2, cal, float(chi2.sum()), n_values,
+                      effective_parameters(model, est))
 
     def report(self, done: int, note: str) -> None:
         """Progress: ``done`` of the folds + 1 fits of one model."""
@@ -141,7 +142,9 @@ class Fitter:
         triangular factor R of [J | r] (QR), which has J's singular values, so
         the solve on R's columns is the one on J's; the candidates go in
         groups whose effect bases (per pose, the joint models hold them) fit
-        in SCREEN_BYTES.
+        in SCREEN_BYTES. A penalised effect is screened at each of its
+        penalties (Effect.variants, the prior's rows appended to the solve) and
+        the best is returned: its penalty is chosen by this held-out error.
         """
         n_current = len(current.model.names)
         kept = list(np.flatnonzero(current.estimate.identifiable))
@@ -155,14 +158,22 @@ class Fitter:
                       rows - rows * int((self.fold == k).sum()) // len(self.fold)) for k in range(len(white))]
             for effect, block in zip(group, model.blocks[len(current.effects):]):
                 columns = kept + list(range(model.n_geometric + block.start, model.n_geometric + block.stop))
-                chi2 = squared = 0.0
-                for k, (factor, train_rows) in enumerate(train):
-                    # rcond as lstsq's default on the stacked training rows
-                    rcond = np.finfo(float).eps * max(train_rows, len(columns))
-                    step = np.linalg.lstsq(factor[:, columns], factor[:, -1], rcond=rcond)[0]
-                    chi2 += held_sum(white[k], columns, step)
-                    squared += held_sum(raw[k], columns, step)
-                out.append((effect, chi2 / max(n_values, 1), squared / max(n_units, 1)))
+                scores = []
+                for variant in effect.variants():
+                    # a prior's rows: x_j / sigma_j in the scaled parameters, toward 0 (the start)
+                    prior = np.zeros(len(effect.params)) if variant.prior is None else 1.0 / variant.prior
+                    rows = np.zeros((len(columns), len(columns) + 1))
+                    rows[len(kept):, len(kept):-1] = np.diag(prior * variant.scales)
+                    chi2 = squared = 0.0
+                    for k, (factor, train_rows) in enumerate(train):
+                        # rcond as lstsq's default on the stacked training rows
+                        rcond = np.finfo(float).eps * max(train_rows, len(columns))
+                        system = np.vstack([factor[:, columns + [-1]], rows])
+                        step = np.linalg.lstsq(system[:, :-1], system[:, -1], rcond=rcond)[0]
+                        chi2 += held_sum(white[k], columns, step)
+                        squared += held_sum(raw[k], columns, step)
+                    scores.append((variant, chi2 / max(n_values, 1), squared / max(n_units, 1)))
+                out.append(min(scores, key=lambda item: item[1]))
         return sorted(out, key=lambda item: item[1])
 
     def _factors(self, model: EffectModel, x: np.ndarray) -> tuple[list, list, int, int, int]:
@@ -210,6 +221,19 @@ def screen_groups(current: Fitted, pool: Sequence[Effect]) -> list[list[Effect]]
         groups[-1].append(effect)
         size += len(effect.params)
     return [g for g in groups if g]
+
+
+def effective_parameters(model: EffectModel, est: Estimate) -> float:
+    """The free parameters a fit spends: their count, less what the priors
+    (penalised effects) hold, tr((J^T J + Q)^-1 J^T J) = k - sum_j Q_jj cov_jj
+    for the diagonal prior precision Q (the effective degrees of freedom of a
+    penalised fit)."""
+    free = est.identifiable
+    prior = model.prior_sigma
+    if prior is None:
+        return float(free.sum())
+    held = free & np.isfinite(prior)
+    return float(free.sum() - np.sum(np.diag(est.fit.covariance)[held] / prior[held] ** 2))
 
 
 def held_sum(factor: np.ndarray, columns: list[int], step: np.ndarray) -> float:

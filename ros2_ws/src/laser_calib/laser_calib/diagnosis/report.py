@@ -115,6 +115,11 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
                 lines.append(f"| {e['title']} | {where} | {p['name']} | {value} | {std} | {p['unit']} | "
                              f"{p.get('note', '')} |")
         for e in result["effects"]:
+            if "known_over_m" in e:
+                (y0, y1), (z0, z1) = e["known_over_m"]["y"], e["known_over_m"]["z"]
+                lines.append(f"\nThe screen's surface is known over the box of the calibration spots (y {y0:.3f} to "
+                             f"{y1:.3f} m, z {z0:.3f} to {z1:.3f} m); a spot beyond it is predicted by extrapolation, "
+                             "which grazing beams multiply.")
             if e["indistinguishable_from"]:
                 lines.append(f"\n{e['group']} (held-out error not significantly different): neither is named "
                              f"the cause; the figures use {e['name']} ({e['where']}), the lowest BIC.")

@@ -36,7 +36,7 @@ class Fitted:
     cal: np.ndarray
     chi2: float
     n_values: int
-    n_free: int
+    n_free: float  # effective parameters (fitter.effective_parameters): the count, less what priors hold
 
     @property
     def label(self) -> str:

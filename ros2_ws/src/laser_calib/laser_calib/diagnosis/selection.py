@@ -5,9 +5,10 @@ Besides the statistical rules (engine docstring), a candidate is judged
 physically: a sensor-side effect whose fitted value lies outside what its
 sensor can do (effects.bounds) by more than its standard error is rejected,
 and so is one none of whose parameters can be reported (each is not
-identifiable or not separable from another parameter). The screen is fitted
-as a surface whose degree the held-out error of the folds chooses
-(surface_ladder). Candidates the data cannot tell apart (held-out errors not
+identifiable or not separable from another parameter). The screen is the
+library's quadratic or, where the held-out error of the folds says it
+predicts better, a penalised spline whose penalty that error chose
+(screen_fit). Candidates the data cannot tell apart (held-out errors not
 significantly different) are reported as the group: the figures use the one
 with the lowest BIC, the verdict names none of them as the cause
 (ambiguous_verdict).
@@ -29,16 +30,14 @@ from laser_calib.diagnosis.result import Fitted, Ranked
 from laser_calib.effects.base import Effect
 from laser_calib.effects.bounds import limit_of
 from laser_calib.effects.catalog import same_place
-from laser_calib.effects.screen import MAX_DEGREE, ScreenShape, ScreenSurface
+from laser_calib.effects.screen import ScreenShape, Surface
+from laser_calib.effects.screen_spline import ORDERS, ScreenSpline
 
 # A parameter this correlated with another free one has no value of its own to
 # report, however small its standard error: a slight misfit moves it along the other.
 UNREPORTABLE_CORRELATION = 0.999
-# Measured values per screen-surface coefficient at least: the highest degree tried.
-VALUES_PER_COEFFICIENT = 10
-# Degrees tried past the last one that improved the held-out error significantly
-# (a symmetric shape gains little from an odd degree and much from the next even one).
-LOOK_AHEAD = 2
+# Distinct spots a screen spline needs beyond its null space: fewer, and the screen is the quadratic.
+MIN_SPLINE_SPOTS = 20
 
 
 def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
@@ -49,8 +48,10 @@ def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
     current = fitter.start()
     stages = [current]
     rounds, alternatives = [], []
+    pool = [screen_candidate(fitter, c) for c in pool]
     while len(current.effects) < options.max_effects:
-        remaining = [c for c in pool if not any(same_place(c, e) for e in current.effects)]
+        remaining = [c for c in pool if not any(same_place(c, e) or isinstance(c, Surface) and isinstance(e, Surface)
+                                                for e in current.effects)]
         if not remaining:
             break
         screened = fitter.screen(current, remaining)
@@ -96,9 +97,9 @@ def select(fitter: Fitter, pool: list[Effect], options: DiagnoseOptions
 
 def candidate_fit(fitter: Fitter, current: Fitted, effect: Effect, alpha: float) -> Fitted:
     """The current model plus the candidate, fitted from the current fit (the
-    candidate's parameters at 0); a screen surface at the degree its held-out error chooses."""
-    if isinstance(effect, ScreenShape):
-        return surface_ladder(fitter, current, effect, alpha)
+    candidate's parameters at 0); the screen as the surface its held-out error chooses."""
+    if isinstance(effect, ScreenSpline):
+        return screen_fit(fitter, current, effect, alpha)
     return extended_fit(fitter, current, effect)
 
 
@@ -108,35 +109,43 @@ def extended_fit(fitter: Fitter, current: Fitted, effect: Effect) -> Fitted:
                       np.concatenate([current.estimate.values, np.zeros(len(effect.params))]))
 
 
-def surface_ladder(fitter: Fitter, current: Fitted, start: ScreenShape, alpha: float) -> Fitted:
-    """The screen surface of the degree the folds choose: from the library's
-    quadratic (degree 2) up, a degree is taken when its held-out chi^2 (the
-    same folds as every model) is significantly below that of the degree taken
-    so far over the poses (ranked_p < alpha) and lower in total, trying LOOK_AHEAD degrees past the last one taken,
-    up to the degree whose coefficients the data holds VALUES_PER_COEFFICIENT
-    values each for (at most MAX_DEGREE)."""
-    best = extended_fit(fitter, current, start)
-    top = 2
-    while top < MAX_DEGREE and (top + 2) * (top + 3) / 2 - 1 <= current.n_values / VALUES_PER_COEFFICIENT:
-        top += 1
-    taken = 2
-    for degree in range(3, top + 1):
-        if degree - taken > LOOK_AHEAD:
-            break
-        fitted = extended_fit(fitter, current, ScreenSurface.make(fitter.base.samples.spots, degree))
-        # Most poses predicted better (the rank test) and the held-out error itself lower: a
-        # degree that wins most poses but fails badly where it extrapolates is not taken.
-        if ranked_p(best, fitted) < alpha and fitted.cv_chi2.sum() < best.cv_chi2.sum():
-            best, taken = fitted, degree
-    return best
+def screen_candidate(fitter: Fitter, effect: Effect) -> Effect:
+    """The pool's screen: the library's quadratic becomes the spline over the
+    calibration spots (its null space is that quadratic), so that the screening
+    sees any smooth shape; the quadratic where the spots are too few for a spline."""
+    if not isinstance(effect, ScreenShape):
+        return effect
+    spots = fitter.base.samples.spots
+    distinct = len(np.unique(spots[~np.isnan(spots).any(axis=-1)], axis=0))
+    return ScreenSpline.make(spots, camera=effect.camera) if distinct > MIN_SPLINE_SPOTS else effect
+
+
+def screen_fit(fitter: Fitter, current: Fitted, spline: ScreenSpline, alpha: float) -> Fitted:
+    """The screen: the library's quadratic, or the spline of the penalty order
+    and smoothing the linearised held-out error chooses (Fitter.screen over
+    ORDERS and SMOOTHINGS) where its held-out chi^2 over the poses is lower in
+    total and significantly lower than the quadratic's by its mean or by its
+    ranks (paired_p or ranked_p below alpha / 2: a screen's gain often lies in
+    a few poses at the edge of the spots, which the rank test misses, or in
+    most poses by a little, which the mean's tails hide): a quadratic screen
+    stays the library's effect, with its 5 parameters."""
+    robot = fitter.base.robot
+    quadratic = extended_fit(fitter, current, ScreenShape(robot.screen.half_y, robot.screen.half_z,
+                                                          camera=spline.camera))
+    orders = [spline.with_order(order) for order in ORDERS]
+    chosen, _, _ = fitter.screen(current, orders)[0]
+    fitted = extended_fit(fitter, current, chosen)
+    significant = min(paired_p(quadratic, fitted), ranked_p(quadratic, fitted)) < alpha / 2
+    return fitted if significant and fitted.cv_chi2.sum() < quadratic.cv_chi2.sum() else quadratic
 
 
 def ranked_p(lower: Fitted, higher: Fitted) -> float:
     """One-sided Wilcoxon signed-rank p over the calibration poses that the
-    higher degree's held-out chi^2 is smaller. Not the mean (paired_p): a
-    polynomial's held-out error is dominated by the few poses of a fold beyond
-    the spots the other folds cover, where every degree extrapolates; the degree
-    is the one that predicts most poses better."""
+    richer model's held-out chi^2 is smaller. Not the mean (paired_p): a
+    surface's held-out error is dominated by the few poses of a fold beyond
+    the spots the other folds cover, where every surface extrapolates (at
+    grazing beams, by many times the surface's error); the richer surface is
+    the one that predicts most poses better."""
     difference = lower.cv_chi2 - higher.cv_chi2
     if np.count_nonzero(difference) < 6:
         return 1.0
@@ -207,8 +216,11 @@ def parameter_report(fitted: Fitted, alternatives: Sequence[Sequence[str]]) -> t
             item["group"] = " or ".join([effect.label] + list(others)) + ": the data cannot tell them apart"
         if hasattr(effect, "covariate"):
             item["covariate"] = effect.covariate
-        if isinstance(effect, ScreenSurface):
-            item["degree"] = effect.degree
+        if isinstance(effect, ScreenSpline):
+            item["penalty_order"], item["smoothing_m"] = effect.penalty_order, effect.smoothing
+            # what the data saw of the screen: beyond it the surface is extrapolated
+            item["known_over_m"] = {"y": [effect.centre_y - effect.half_y, effect.centre_y + effect.half_y],
+                                    "z": [effect.centre_z - effect.half_z, effect.centre_z + effect.half_z]}
         out.append(item)
     return tuple(out)
 

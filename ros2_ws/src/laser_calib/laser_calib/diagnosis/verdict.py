@@ -37,7 +37,7 @@ def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions,
     est = final.estimate
     res = residuals_at(final.model, est.values, jacobian=True, parameters=False)  # by blocks: bounded transients
     m = int(res.valid.sum()) * res.r.shape[2]
-    dof = max(m - int(est.identifiable.sum()), 1)
+    dof = max(round(m - final.n_free), 1)  # effective parameters: a penalised screen spends fewer than it has
     scale = math.sqrt(m / dof)
     spot, joint = noise_components(res, scale, options.spot_sigma, options.joint_sigma)
     sources = ("given" if options.spot_sigma is not None else "estimated",

@@ -12,7 +12,9 @@ from laser_calib.effects.drift import Drift
 from laser_calib.effects.joint import Backlash, Compliance, JointScale, Periodic, gravity_torques
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.screen import CameraDistortion, ScreenShape
+from laser_calib.effects.screen_spline import ScreenSpline
 
 __all__ = ["JOINT", "PARAM", "SPOT", "Effect", "JointEffect", "ParamEffect", "SpotEffect", "move_directions",
            "KINDS", "calibrated_model", "candidates", "effects_from_robot", "effects_to_yaml", "Drift", "Backlash", "Compliance",
-           "JointScale", "Periodic", "gravity_torques", "EffectModel", "CameraDistortion", "ScreenShape"]
+           "JointScale", "Periodic", "gravity_torques", "EffectModel", "CameraDistortion", "ScreenShape",
+           "ScreenSpline"]

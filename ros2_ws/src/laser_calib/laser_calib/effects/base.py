@@ -88,6 +88,19 @@ class Effect(ABC):
         """(k,) default size of each parameter in the simulator's truth form."""
 
     @property
+    def prior(self) -> np.ndarray | None:
+        """(k,) standard deviation of a zero-mean Gaussian prior on each parameter
+        (inf: none), or None: no prior. A penalised effect (the screen spline)
+        has one; every fit of a model with it carries it, and the diagnosis
+        counts the fit's effective parameters."""
+        return None
+
+    def variants(self) -> tuple["Effect", ...]:
+        """The forms the diagnosis screens, keeping the best: the effect itself, or a
+        penalised effect at each of its penalties (same parameters, other priors)."""
+        return (self,)
+
+    @property
     def tag(self) -> str:
         """Short identifier used in parameter names: 'backlash3', 'screen'."""
         return self.kind

@@ -44,7 +44,7 @@ KIND_LIMITS: dict[str, dict[str, float]] = {
 }
 # Which limit each sensor-side effect kind obeys.
 LIMITED = {"sensor_scale": "scale", "camera_distortion": "distortion", "screen_shape": "screen",
-           "screen_surface": "screen"}
+           "screen_surface": "screen", "screen_spline": "screen"}
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ MIN_MOTION = 1e-6  # rad, m or covariate unit: below this a basis is constant ov
 
 
 def screen_shape(robot: Robot) -> ScreenShape:
-    return ScreenShape(half_y=robot.screen.half_y, half_z=robot.screen.half_z)
+    return ScreenShape(half_y=robot.screen.half_y, half_z=robot.screen.half_z, camera=robot.screen.camera)
 
 
 def camera_distortion(robot: Robot) -> CameraDistortion:

@@ -110,6 +110,15 @@ class EffectModel:
         return EffectModel(self.base.subset(index), self.effects, self.bases.subset(index),
                            None if self.fixed is None else self.fixed.subset(index))
 
+    @property
+    def prior_sigma(self) -> np.ndarray | None:
+        """(n,) the effects' priors (Effect.prior; inf where none), None when no effect has one."""
+        priors = [e.prior for e in self.effects]
+        if all(p is None for p in priors):
+            return None
+        return np.concatenate([np.full(self.n_geometric, np.inf)]
+                              + [np.full(len(e.params), np.inf) if p is None else p for e, p in zip(self.effects, priors)])
+
     def split(self, x: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         """Geometric errors (n,) and each effect's values."""
         x = np.asarray(x, float)

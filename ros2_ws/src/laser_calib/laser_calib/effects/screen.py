@@ -1,17 +1,19 @@
-"""Spot effects (base.SPOT): the screen is not flat (a quadratic, or a smooth
-surface of any degree), the camera's residual distortion.
+"""Spot effects (base.SPOT): the screen is not flat (Surface: the quadratic, a
+Legendre series; effects.screen_spline: a smooth surface of any shape), the
+camera's residual distortion.
 
 Both act on the predicted spot s = (y, z) (m) of the flat-screen model, in
 normalised screen coordinates so that every coefficient is a length in metres
 (its size at the screen edge). They are applied in physical order: the beam
-meets the real surface (ScreenShape), then the camera reports where it sees the
-spot (CameraDistortion).
+meets the real surface and the camera sees it there through the screen's
+homography (Surface), then the camera's lens displaces what it reports
+(CameraDistortion).
 """
 
 from __future__ import annotations
 
 from abc import abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Mapping
 
 import numpy as np
@@ -22,25 +24,44 @@ from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
 
 MM = 1e-3
-FIXED_POINT_ITERATIONS = 6  # |grad f . t| ~ 1e-3: six iterations reach 1e-18 m
+# Newton's method on (1) converges quadratically from the flat spot (|grad f . t| ~ 1e-3 for a gentle
+# screen seen head-on, 0.1 for a bumpy one at a grazing beam, |t| up to 10 on the paper's 7-DOF arm).
+NEWTON_TOLERANCE = 1e-13  # m
+NEWTON_ITERATIONS = 20
 MAX_DEGREE = 8  # 44 coefficients: beyond this a screen is not smooth at the scale of the poses
 
 
+@dataclass(frozen=True)
 class Surface(SpotEffect):
     """A screen surface x = f(y, z) = phi(y, z) . c, linear in its coefficients c
     (no constant term: a screen offset along x is the same as moving the base,
-    which the geometric errors already hold). The beam p + k z meets it where
-    p_x + k z_x = f(s): with the flat spot s0 and t = (z_y, z_z) / z_x,
+    which the geometric errors already hold), seen by a camera at ``camera``
+    (its centre in {0}, m; None: far away along the screen normal).
+
+    The beam p + k z meets the surface where p_x + k z_x = f(s): with the flat
+    spot s0 and t = (z_y, z_z) / z_x,
 
         s = s0 + f(s) t                                                (1)
 
-    solved by fixed-point iteration (exact). Differentiating (1),
-    (I - t grad f^T) ds = ds0 + t phi^T dc (+ f dt, neglected: second order,
-    f ~ mm times the beam-direction change), so
-    d s / d s0 = (I - t g^T)^-1 = I + t g^T / (1 - g.t) and
-    d s / d c = t phi^T / (1 - g.t), g = grad f.
+    solved by Newton's method (to 1e-13 m). The camera's screen calibration
+    (a homography) maps what it sees onto the plane x = 0: a point (f, s) off
+    the plane lands where the camera's line of sight through it meets the
+    plane, with C the camera centre,
+
+        r = s - f(s) tau,   tau = (s - C_yz) / (f(s) - C_x)            (2)
+
+    so the reported spot depends on the beam's direction (t) and on the
+    camera's viewpoint (tau), not on s alone; a camera 2.5 m in front of the
+    screen sees a third of the beam's displacement on the paper's arms
+    (|t| ~ 1, |tau| ~ 0.3). Without a camera, r = s (tau = 0).
+    Differentiating (1), (I - t g^T) ds = ds0 + t phi^T dc (+ f dt, neglected:
+    second order, f ~ mm times the beam-direction change), g = grad f, so
+    d s / d s0 = (I - t g^T)^-1 and d s / d c = t phi^T / (1 - g.t); and (2),
+    with kappa = -C_x / (f - C_x), d r / d s = kappa (I - tau g^T) and
+    d r / d c (s held) = -kappa tau phi^T.
     """
 
+    camera: tuple[float, float, float] | None = field(default=None, kw_only=True)
     order: ClassVar[int] = 0
 
     @property
@@ -54,15 +75,27 @@ class Surface(SpotEffect):
     def apply(self, spots, beams, values):
         t = beams[..., 1:] / beams[..., :1]
         s = spots
-        for _ in range(FIXED_POINT_ITERATIONS):
-            phi, _ = self.terms(s)
-            s = spots + (phi @ values)[..., None] * t
-        phi, dphi = self.terms(s)
-        g = np.einsum("...kd,k->...d", dphi, values)
-        denominator = (1.0 - np.einsum("...d,...d->...", g, t))[..., None, None]
+        for _ in range(NEWTON_ITERATIONS):
+            phi, dphi = self.terms(s)
+            g = values @ dphi                                            # grad f (...,2)
+            denominator = (1.0 - np.sum(g * t, axis=-1))[..., None, None]
+            # Newton on (1): s - s0 - f(s) t = 0, its Jacobian I - t g^T inverted (Sherman-Morrison)
+            miss = s - spots - (phi @ values)[..., None] * t
+            step = miss + t * np.sum(g * miss, axis=-1)[..., None] / denominator[..., 0]
+            s = s - step
+            if not np.abs(step).max(initial=0.0) > NEWTON_TOLERANCE:
+                break   # phi, g at s + step: the same to 1e-13 m
         d_spots = np.eye(2) + t[..., :, None] * g[..., None, :] / denominator
         d_values = t[..., :, None] * phi[..., None, :] / denominator
-        return s, d_spots, d_values
+        if self.camera is None:
+            return s, d_spots, d_values
+        centre = np.asarray(self.camera)
+        f = (phi @ values)[..., None]
+        tau = (s - centre[1:]) / (f - centre[0])
+        kappa = (-centre[0] / (f - centre[0]))[..., None]
+        seen = kappa * (np.eye(2) - tau[..., :, None] * g[..., None, :])   # d r / d s
+        return (s - f * tau, seen @ d_spots,
+                seen @ d_values - kappa * tau[..., :, None] * phi[..., None, :])
 
 
 @dataclass(frozen=True)
@@ -101,7 +134,7 @@ class ScreenShape(Surface):
     @classmethod
     def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "ScreenShape":
         return cls(positive_number(where, entry, "half_y", robot.screen.half_y),
-                   positive_number(where, entry, "half_z", robot.screen.half_z))
+                   positive_number(where, entry, "half_z", robot.screen.half_z), camera=robot.screen.camera)
 
     def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u, v = s[..., 0] / self.half_y, s[..., 1] / self.half_z
@@ -118,55 +151,37 @@ def surface_terms(degree: int) -> tuple[tuple[int, int], ...]:
 
 
 @dataclass(frozen=True)
-class ScreenSurface(Surface):
-    """A smooth screen surface of any shape (Surface): the 2-D Legendre series
-
-        f = sum over 1 <= i + j <= degree of c_ij (P_i(u) P_j(v) - P_i(0) P_j(0)),
-        u = (y - centre_y) / half_y, v = (z - centre_z) / half_z,
-
-    P_n the Legendre polynomials, over the box the calibration spots cover
-    (``make``: the centre and half sizes of their range), where they are
-    nearly orthogonal, so the coefficients are nearly uncorrelated and each is
-    about the size of its term at the edge of the data (|P_n(1)| = 1); a
-    polynomial over the whole screen would be fitted on part of its domain,
-    and its folds would extrapolate. Each term is 0 at the centre: a constant
-    is a screen offset, held by the geometric errors. The degree is chosen by
-    the held-out error of the folds (diagnosis.selection.surface_ladder).
-    Degree 2 spans what ScreenShape does, which stays the quadratic of the
-    library. Coefficients in m; scale 1 mm; typical truth 1 mm.
-    """
-
-    kind: ClassVar[str] = "screen_surface"
-    title: ClassVar[str] = "screen not flat (smooth surface)"
+class BoxSurface(Surface):
+    """A surface over the box the calibration spots cover (``box``: the
+    centre and half sizes of their range), in u = (y - centre_y) / half_y,
+    v = (z - centre_z) / half_z: a polynomial over the whole screen would be
+    fitted on part of its domain, and its folds would extrapolate. Its
+    coefficients are lengths in m; scale and typical size 1 mm."""
 
     centre_y: float
     centre_z: float
     half_y: float
     half_z: float
-    degree: int
 
-    @classmethod
-    def make(cls, spots: np.ndarray, degree: int) -> "ScreenSurface":
-        """The surface of ``degree`` over the range of the measured spots (P,L,2) m (NaN where not seen)."""
+    @staticmethod
+    def box(spots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Centre (2,) and half sizes (2,) m of the range of the measured spots (P,L,2) (NaN where not seen)."""
         low, high = np.nanmin(spots, axis=(0, 1)), np.nanmax(spots, axis=(0, 1))
-        centre, half = (low + high) / 2, np.maximum((high - low) / 2, MM)
-        return cls(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), degree)
+        return (low + high) / 2, np.maximum((high - low) / 2, MM)
 
-    @property
-    def params(self) -> tuple[str, ...]:  # type: ignore[override]
-        return tuple(f"c{i}{j}" for i, j in surface_terms(self.degree))
+    @staticmethod
+    def box_from_yaml(robot: Robot, entry: Mapping[str, Any], where: str) -> tuple[float, float, float, float]:
+        return (yaml_number(where, entry, "centre_y", 0.0), yaml_number(where, entry, "centre_z", 0.0),
+                positive_number(where, entry, "half_y", robot.screen.half_y),
+                positive_number(where, entry, "half_z", robot.screen.half_z))
+
+    def normalised(self, s: np.ndarray) -> np.ndarray:
+        """(u, v) (...,2) of spots s (...,2) m."""
+        return (s - np.array([self.centre_y, self.centre_z])) / np.array([self.half_y, self.half_z])
 
     @property
     def units(self) -> tuple[str, ...]:  # type: ignore[override]
         return ("m",) * len(self.params)
-
-    @property
-    def tag(self) -> str:
-        return "surface"
-
-    @property
-    def label(self) -> str:
-        return f"{self.kind} (screen, degree {self.degree})"
 
     @property
     def scales(self) -> np.ndarray:
@@ -177,20 +192,60 @@ class ScreenSurface(Surface):
         return np.full(len(self.params), MM)
 
     def constants(self) -> dict:
-        return {"centre_y": self.centre_y, "centre_z": self.centre_z, "half_y": self.half_y, "half_z": self.half_z,
-                "degree": self.degree}
+        return {"centre_y": self.centre_y, "centre_z": self.centre_z, "half_y": self.half_y, "half_z": self.half_z}
+
+
+@dataclass(frozen=True)
+class ScreenSurface(BoxSurface):
+    """A smooth screen surface (BoxSurface): the 2-D Legendre series
+
+        f = sum over 1 <= i + j <= degree of c_ij (P_i(u) P_j(v) - P_i(0) P_j(0)),
+
+    P_n the Legendre polynomials, nearly orthogonal over the box, so the
+    coefficients are nearly uncorrelated and each is about the size of its
+    term at the edge of the data (|P_n(1)| = 1). Each term is 0 at the
+    centre: a constant is a screen offset, held by the geometric errors.
+    Earlier diagnoses chose its degree and wrote it; robot files that hold it
+    are read. The diagnosis now fits a screen of any shape as
+    effects.screen_spline.ScreenSpline (a polynomial of degree 4 or more
+    extrapolates wildly beyond the spots). Degree 2 spans what ScreenShape does.
+    """
+
+    kind: ClassVar[str] = "screen_surface"
+    title: ClassVar[str] = "screen not flat (smooth surface)"
+
+    degree: int
+
+    @classmethod
+    def make(cls, spots: np.ndarray, degree: int) -> "ScreenSurface":
+        """The surface of ``degree`` over the range of the measured spots (P,L,2) m (NaN where not seen)."""
+        centre, half = cls.box(spots)
+        return cls(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), degree)
+
+    @property
+    def params(self) -> tuple[str, ...]:  # type: ignore[override]
+        return tuple(f"c{i}{j}" for i, j in surface_terms(self.degree))
+
+    @property
+    def tag(self) -> str:
+        return "surface"
+
+    @property
+    def label(self) -> str:
+        return f"{self.kind} (screen, degree {self.degree})"
+
+    def constants(self) -> dict:
+        return {**super().constants(), "degree": self.degree}
 
     @classmethod
     def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "ScreenSurface":
         degree = entry.get("degree")
         if isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= MAX_DEGREE:
             raise InputError(f"{where}.degree", f"expected a whole number 1..{MAX_DEGREE}, got {degree!r}")
-        return cls(yaml_number(where, entry, "centre_y", 0.0), yaml_number(where, entry, "centre_z", 0.0),
-                   positive_number(where, entry, "half_y", robot.screen.half_y),
-                   positive_number(where, entry, "half_z", robot.screen.half_z), degree)
+        return cls(*cls.box_from_yaml(robot, entry, where), degree, camera=robot.screen.camera)
 
     def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        u, v = (s[..., 0] - self.centre_y) / self.half_y, (s[..., 1] - self.centre_z) / self.half_z
+        u, v = np.moveaxis(self.normalised(s), -1, 0)
         derivative = legendre.legder(np.eye(self.degree + 1))   # (degree, degree + 1): column n is P_n'
         pu, pv = legendre.legvander(u, self.degree), legendre.legvander(v, self.degree)   # (..., degree + 1)
         du = legendre.legvander(u, self.degree - 1) @ derivative

@@ -151,11 +151,14 @@ def impossible_spots(robot: Robot, samples: Samples, nominal: Residuals) -> list
     """(pose index, laser index, reason) of every given spot that cannot be:
     outside the screen, or where the nominal beam misses the screen by far;
     nominal: the spot model's residuals at zero errors (valid: the beam meets
-    the screen plane ahead)."""
+    the screen plane ahead). Every spot outside the screen is a unit error, one line."""
     half = np.array([robot.screen.half_y, robot.screen.half_z])
     seen = samples.seen
     out = []
     outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
+    if outside.any() and outside.sum() == seen.sum():
+        raise ValueError(f"every spot lies outside the screen (half sizes {half[0]:g}, {half[1]:g} m): spot "
+                         "coordinates are in metres (these look like millimetres)")
     beyond = np.abs(nominal.predicted) - half * (1 + MISS_MARGIN)
     misses = seen & ~outside & ~(nominal.valid & (beyond <= 0).all(axis=2))
     for p, j in zip(*np.nonzero(outside)):
@@ -173,17 +176,8 @@ def estimate(robot: Robot, samples: Samples, options: EstimateOptions = Estimate
     model of these samples with effects, report.calibration.spot_model) its parameters
     too, from x0 (default 0)."""
     model = SpotModel(robot, samples) if model is None else model
-
-    def refused(nominal: Residuals) -> list[tuple[int, int, str]]:
-        impossible = impossible_spots(robot, samples, nominal)
-        outside = sum(why.startswith("outside") for *_, why in impossible)
-        if outside and outside == samples.seen.sum():
-            raise ValueError(f"every spot lies outside the screen (half sizes {robot.screen.half_y:g}, "
-                             f"{robot.screen.half_z:g} m): spot coordinates are in metres (these look like "
-                             "millimetres)")
-        return impossible
-
-    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), x0, impossible=refused)
+    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), x0,
+                          impossible=lambda nominal: impossible_spots(robot, samples, nominal))
 
 
 def pose_ids(model: MeasurementModel) -> np.ndarray:
@@ -226,9 +220,12 @@ def _factor_without(model: MeasurementModel, factor: np.ndarray, then: NoiseMode
 def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigma: np.ndarray | None = None,
                    x0: np.ndarray | None = None, impossible: list[tuple[int, int, str]] | Refusal = ()) -> Estimate:
     """The same steps on any measurement model (geometric + effects, other sensors).
+    prior_sigma: None takes the model's own (an EffectModel's penalised effects), if any;
     impossible: (pose index, channel, reason) of units refused before the fit,
     or the function that finds them in the model's residuals at x0."""
     start = time.perf_counter()
+    if prior_sigma is None:
+        prior_sigma = getattr(model, "prior_sigma", None)
     names = tuple(model.names)
     n = len(names)
     x0 = np.zeros(n) if x0 is None else np.asarray(x0, float)

@@ -67,8 +67,14 @@ class Laser:
 
 @dataclass(frozen=True)
 class Screen:
+    """The screen x = 0 of frame {0}: its half sizes (m) and, when known, the
+    centre (x, y, z) of the camera that watches it (m, in {0}; x != 0), which a
+    screen that is not flat needs (effects.screen: the camera sees a spot off
+    the plane displaced along its line of sight)."""
+
     half_y: float = 1.0
     half_z: float = 1.0
+    camera: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ EXTRA_KEYS = ("effects", "frames", "spot_sigma", "joint_reading_sigma", "sensor_
 JOINT_KEYS = ("a", "d", "alpha", "theta0", "min", "max", "type")
 SLM_KEYS = ("a", "d", "alpha", "theta", "beta")
 LASER_KEYS = ("gamma", "beta")
-SCREEN_KEYS = ("half_y", "half_z")
+SCREEN_KEYS = ("half_y", "half_z", "camera")
 
 
 def _mapping(where: str, value: Any, known: tuple[str, ...]) -> Mapping[str, Any]:
@@ -99,6 +99,19 @@ def robot_from_dict(data: Any, source: str = "<robot>", folder: Path | None = No
                  **_lasers_and_screen(data, source))
 
 
+def _camera(where: str, value: Any) -> tuple[float, float, float] | None:
+    """The screen's optional camera centre [x, y, z] (m, frame {0}), off the screen plane."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != 3:
+        raise InputError(f"{where}.camera", "expected a list of three numbers (the camera centre in metres)")
+    named = dict(zip("xyz", value))
+    centre = tuple(_length(f"{where}.camera", named, axis) for axis in "xyz")
+    if centre[0] == 0:
+        raise InputError(f"{where}.camera", "the camera centre lies on the screen plane (x = 0)")
+    return centre
+
+
 def _lasers_and_screen(data: Mapping[str, Any], source: str) -> dict[str, Any]:
     """slm, lasers, screen and gravity of a robot mapping (Robot's fields)."""
     # No slm: a robot without lasers (other sensors) and without SLM parameters.
@@ -123,7 +136,8 @@ def _lasers_and_screen(data: Mapping[str, Any], source: str) -> dict[str, Any]:
     if "screen" in data:
         where = f"{source}: screen"
         screen_map = _mapping(where, data["screen"], SCREEN_KEYS)
-        screen = Screen(_length(where, screen_map, "half_y", 1.0), _length(where, screen_map, "half_z", 1.0))
+        screen = Screen(_length(where, screen_map, "half_y", 1.0), _length(where, screen_map, "half_z", 1.0),
+                        _camera(where, screen_map.get("camera")))
         if screen.half_y <= 0 or screen.half_z <= 0:
             raise InputError(where, "half sizes must be positive")
     gravity = (0.0, 0.0, -1.0)
@@ -231,6 +245,8 @@ def robot_to_dict(robot: Robot) -> dict[str, Any]:
     if robot.lasers:
         data["lasers"] = [{"gamma": laser.gamma, "beta": laser.beta} for laser in robot.lasers]
     data["screen"] = {"half_y": robot.screen.half_y, "half_z": robot.screen.half_z}
+    if robot.screen.camera is not None:
+        data["screen"]["camera"] = list(robot.screen.camera)
     data["gravity"] = list(robot.gravity)
     data.update(robot.extra)
     if robot.chain is not None:  # last: the long text after the short keys

@@ -12,7 +12,7 @@ t = z_yz / z_x by ~1e-4 of a mm-sized effect).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, ClassVar, Sequence
 
 import numpy as np
@@ -83,7 +83,10 @@ class CurvedScreen(Surface, register=False):
       > 1) whose axis lies in the screen at angle a, the sag of the arc;
     - cubic: a cubic sag along direction a, (w u')^3 + b (w u')^2 v', u' the
       coordinate along a, v' across;
-    - bump: a gaussian bump of standard deviation ``width`` at (a, b).
+    - bump: a gaussian bump of standard deviation ``width`` at (a, b);
+    - wave: a ripple along direction a, sin(pi u' / w + b), crests ``width``
+      half sizes apart (the screen bench's held-out family: neither a
+      polynomial nor a single bump).
     """
 
     kind: ClassVar[str] = "curved_screen"
@@ -131,6 +134,9 @@ class CurvedScreen(Surface, register=False):
                 g = (w * along) ** 3 + self.b * (w * along) ** 2 * across
                 g_along = 3 * w ** 3 * along ** 2 + 2 * self.b * w ** 2 * along * across
                 g_across = self.b * (w * along) ** 2
+            elif self.shape == "wave":
+                phase = np.pi * along / self.width + self.b
+                g, g_along, g_across = np.sin(phase), np.pi / self.width * np.cos(phase), 0.0 * along
             else:
                 raise ValueError(f"unknown screen shape {self.shape!r}")
             gu, gv = c * g_along - s_ * g_across, s_ * g_along + c * g_across
@@ -139,21 +145,27 @@ class CurvedScreen(Surface, register=False):
 
 
 SCREEN_SHAPES = ("cylinder", "cubic", "bump")
+HELD_OUT_SHAPES = ("wave",)  # never looked at while the screen surface was built
 
 
 def curved_screen(robot: Robot, shape: str, rng: np.random.Generator) -> CurvedScreen:
-    """A curved screen of ``shape`` on the robot's screen, its width, direction
-    or centre drawn: cylinders of radius 1.5 to 3 half sizes (the screen corners, at 1.41, inside) (a strongly to a
-    mildly curved section), cubics over 0.8 to 1.2 of the screen, bumps of
-    width 0.25 to 0.6 anywhere within the middle half."""
-    half_y, half_z = robot.screen.half_y, robot.screen.half_z
+    """A curved screen of ``shape`` on the robot's screen (seen by its camera), its
+    width, direction or centre drawn: cylinders of radius 1.5 to 3 half sizes
+    (the screen corners, at 1.41, inside) (a strongly to a mildly curved
+    section), cubics over 0.8 to 1.2 of the screen, bumps of width 0.25 to 0.6
+    anywhere within the middle half, waves of crests 0.6 to 1.2 half sizes apart."""
+    half_y, half_z, camera = robot.screen.half_y, robot.screen.half_z, robot.screen.camera
+    if shape == "wave":
+        return CurvedScreen(half_y, half_z, shape, float(rng.uniform(0.6, 1.2)), float(rng.uniform(0, np.pi)),
+                            float(rng.uniform(0, 2 * np.pi)), camera=camera)
     if shape == "cylinder":
-        return CurvedScreen(half_y, half_z, shape, float(rng.uniform(1.5, 3.0)), float(rng.uniform(0, np.pi)), 0.0)
+        return CurvedScreen(half_y, half_z, shape, float(rng.uniform(1.5, 3.0)), float(rng.uniform(0, np.pi)), 0.0,
+                            camera=camera)
     if shape == "cubic":
         return CurvedScreen(half_y, half_z, shape, float(rng.uniform(0.8, 1.2)), float(rng.uniform(0, 2 * np.pi)),
-                            float(rng.uniform(-1, 1)))
+                            float(rng.uniform(-1, 1)), camera=camera)
     return CurvedScreen(half_y, half_z, shape, float(rng.uniform(0.25, 0.6)), float(rng.uniform(-0.5, 0.5)),
-                        float(rng.uniform(-0.5, 0.5)))
+                        float(rng.uniform(-0.5, 0.5)), camera=camera)
 
 
 Foreign = ForeignError | ForeignJointError
@@ -253,15 +265,17 @@ def temperature(stamps: np.ndarray, duration: float, rng: np.random.Generator) -
 def effect_session(case: str, seed: int,
                    make_truth: Callable[[Robot, np.ndarray, Samples, np.random.Generator], Sequence[Truth]],
                    n_cal: int = 80, n_test: int = 80, noise: NoiseSpec = NoiseSpec(),
-                   period: float = 10.0) -> EffectSession:
+                   period: float = 10.0, camera: tuple[float, float, float] | None = None) -> EffectSession:
     """A seeded session of ``case`` (simulation.CASES) over the whole workspace:
     random geometric errors (uniform within 10 mm / 1 deg), the true effects
     ``make_truth(nominal, true errors, calibration context, rng)`` (effects whose
     constants depend on the data, e.g. a drift's reference, see the calibration
     set's stamps and covariates; ``sized`` needs the errors), spot and joint
-    noise as in simulation.measure. Rows are ``period`` s apart."""
+    noise as in simulation.measure. Rows are ``period`` s apart; ``camera``: the
+    centre of the camera watching the screen (the robots' screen.camera)."""
     rng = np.random.default_rng(seed)
     nominal = bundled_robot(case)
+    nominal = replace(nominal, screen=replace(nominal.screen, camera=camera))
     errors = true_errors(nominal, rng)
     true = nominal.with_errors(errors)
     q_cal = sample_poses([nominal, true], n_cal, rng, "whole")

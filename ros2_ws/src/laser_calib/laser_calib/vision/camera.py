@@ -146,6 +146,20 @@ class ScreenCalibration:
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width} x {self.height}")
 
+    @property
+    def centre(self) -> np.ndarray:
+        """The camera's centre (3,) in frame {0}, m: the homography's inverse is
+        K [R_y R_z t] up to scale (CameraModel.screen_to_pixel_homography), so
+        with M = K^-1 homography^-1 scaled to unit columns (the sign that puts
+        the screen in front of the camera), R_x = R_y x R_z and C = -R^T t. A
+        screen that is not flat needs it (the robot file's screen.camera)."""
+        m = np.linalg.solve(self.K, np.linalg.inv(self.homography))
+        m = m / np.sqrt(np.linalg.norm(m[:, 0]) * np.linalg.norm(m[:, 1]))
+        if m[2, 2] < 0:  # the screen's origin in front of the camera
+            m = -m
+        rotation = np.column_stack([np.cross(m[:, 0], m[:, 1]), m[:, 0], m[:, 1]])
+        return -rotation.T @ m[:, 2]
+
     def pixels_to_screen(self, pixels: np.ndarray) -> np.ndarray:
         """Screen (y, z) in metres (M,2) of distorted image pixels (M,2)."""
         pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
