@@ -19,11 +19,11 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from laser_calib import __version__
-from laser_calib.diagnosis.compensator import Compensator
 from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
@@ -36,6 +36,9 @@ from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.report.plots import display_units
 from laser_calib.report.statistics import iso9283, laser_stats
+
+if TYPE_CHECKING:  # scikit-learn (1 s to import): only where a compensator is loaded
+    from laser_calib.diagnosis.compensator import Compensator
 
 
 def finite_or_none(value: float):

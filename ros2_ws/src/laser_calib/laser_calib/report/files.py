@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from laser_calib import __version__
-from laser_calib.diagnosis.compensator import Compensator
 from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot import Robot
@@ -23,6 +23,9 @@ from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.pose_table import save_pose_table, spot_columns
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.report.plots import plot_convergence, plot_histogram, plot_screen, stats_table
+
+if TYPE_CHECKING:  # scikit-learn (1 s to import): only where a compensator is loaded
+    from laser_calib.diagnosis.compensator import Compensator
 
 
 def run_estimate(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path,
