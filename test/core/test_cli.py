@@ -57,6 +57,18 @@ def test_estimate_writes_calibrated_robot_result_and_report(simulated, tmp_path,
     assert math.isclose(np.nanmean(test["l1_distance_m"]) * 1e3, result["spot_error"]["test"]["after"]["laser1"]["mean_mm"])
 
 
+def test_a_plot_failing_in_the_drawing_child_is_raised_by_the_command(simulated, tmp_path, monkeypatch):
+    """estimate draws its plots in a forked child (report.files.write_outputs); the
+    child inherits this failure, exits 1, and the command draws again in its own
+    process, so the error is the command's own, never lost in the child."""
+    def broken(*_args, **_kwargs):
+        raise RuntimeError("no room for the histogram")
+    monkeypatch.setattr("laser_calib.report.files.plot_histogram", broken)
+    with pytest.raises(RuntimeError, match="no room for the histogram"):
+        main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"),
+              "--samples", str(simulated / "case3_cal.csv"), "--out", str(tmp_path / "est")])
+
+
 def test_repeated_poses_give_iso9283_repeatability(tmp_path):
     """30 poses each measured twice with Gaussian spot noise sigma: per laser, the two
     visits lie |d|/2 from their barycentre, so RP = |d|/2 (S_l = 0) with d ~ N(0, 2 sigma^2 I):

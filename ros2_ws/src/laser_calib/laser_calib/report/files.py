@@ -9,6 +9,7 @@ all go through calibrate() and these writers, so their files are the same.
 from __future__ import annotations
 
 import json
+import multiprocessing
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -33,7 +34,7 @@ def run_estimate(robot: Robot, samples: Samples, options: EstimateOptions, out_d
                  sources: dict[str, str] | None = None, compensator: Compensator | None = None) -> Calibration:
     """calibrate(), then write_outputs() into out_dir: what `laser-calib estimate` does."""
     calibration = calibrate(robot, samples, options, test, sources, compensator)
-    write_outputs(calibration, out_dir, truth)
+    write_outputs(calibration, out_dir, truth, draw_apart=True)
     return calibration
 
 
@@ -57,13 +58,37 @@ def result_json(calibration: Calibration) -> str:
     return json.dumps(calibration.to_json(), indent=2)
 
 
-def write_outputs(calibration: Calibration, out_dir: str | Path, truth: np.ndarray | None = None) -> None:
+def write_outputs(calibration: Calibration, out_dir: str | Path, truth: np.ndarray | None = None,
+                  draw_apart: bool = False) -> None:
     """robot_calibrated.yaml (and, for a URDF robot, robot_calibrated.urdf and
     urdf_corrections.json), result.json, residuals.csv, report.md and the plots
     into out_dir. ``truth`` (n,) true errors, when known (simulation), is drawn in
-    the convergence plot."""
+    the convergence plot. draw_apart: the plots are drawn by a forked child
+    process while this one writes the tables (a command-line process: a second
+    core takes the second or two of matplotlib off the wall time; a process with
+    threads of its own, such as a ROS node, must not fork)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    drawing = None
+    if draw_apart and "fork" in multiprocessing.get_all_start_methods():
+        drawing = multiprocessing.get_context("fork").Process(target=_draw_quietly, args=(calibration, out, truth))
+        drawing.start()
+    try:
+        _write_tables(calibration, out)
+    except BaseException:  # Ctrl-C or a failure: no child left drawing into a folder being given up
+        if drawing is not None:
+            drawing.kill()
+            drawing.join()
+        raise
+    if drawing is not None:
+        drawing.join()
+    if drawing is None or drawing.exitcode != 0:  # drawn here: a failure is this process's, reported as such
+        write_plots(calibration, out, truth)
+    (out / "report.md").write_text(report_markdown(calibration, truth is not None))
+
+
+def _write_tables(calibration: Calibration, out: Path) -> None:
+    """The calibrated robot (YAML, and URDF for a URDF robot), result.json and residuals.csv."""
     (out / "robot_calibrated.yaml").write_text(calibrated_robot_yaml(calibration))
     if calibration.robot.chain is not None:  # the URDF to apply (docs/urdf.md)
         save_calibrated_urdf(calibration.calibrated, calibration.robot, calibration.estimate.identifiable, out,
@@ -71,8 +96,14 @@ def write_outputs(calibration: Calibration, out_dir: str | Path, truth: np.ndarr
     (out / "result.json").write_text(result_json(calibration))
     save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal))
                      for name, s in calibration.sets.items()}, out / "residuals.csv")
-    write_plots(calibration, out, truth)
-    (out / "report.md").write_text(report_markdown(calibration, truth is not None))
+
+
+def _draw_quietly(calibration: Calibration, out: Path, truth: np.ndarray | None) -> None:
+    """write_plots in the child: a failure is only its exit status (the parent draws again and reports it)."""
+    try:
+        write_plots(calibration, out, truth)
+    except BaseException:  # noqa: BLE001 - including Ctrl-C: the parent has it too
+        raise SystemExit(1) from None
 
 
 def write_plots(calibration: Calibration, out: Path, truth: np.ndarray | None) -> None:
