@@ -100,6 +100,14 @@ def test_library_effect_is_found_and_its_size_recovered(arm, kind):
     header = robot_header(diagnosis, diagnosis.to_json())
     for group in (p for p in diagnosis.parameters if not p["determined"]):
         assert diagnosis.verdict != EXPLAINED and f"Not one cause: {group['group']}" in header
+    # A screen surface is known where the calibration spots are: a test spot beyond them is named.
+    if kind == "screen_shape":
+        spots = session.test.spots[np.isfinite(session.test.spots).all(axis=-1)]
+        low, high = np.nanmin(session.cal.spots, axis=(0, 1)), np.nanmax(session.cal.spots, axis=(0, 1))
+        beyond = int(np.any((spots < low) | (spots > high), axis=1).sum())
+        named = [n for n in diagnosis.notes if "outside the box the calibration spots cover" in n]
+        assert len(named) == (1 if beyond else 0)
+        assert not named or named[0].startswith(f"{beyond} of {len(spots)} test spots")
     # Held-out error goes down on the calibration poses (cross-validated) and on the test poses.
     cv = [stage.fitted.cv for stage in diagnosis.stages]
     assert np.nanmean(cv[-1] ** 2) < np.nanmean(cv[0] ** 2)

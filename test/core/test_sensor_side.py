@@ -14,7 +14,7 @@ from laser_calib.diagnosis.sensor_data import diagnose as sensor_diagnose
 from laser_calib.effects import EffectModel, effects_from_robot
 from laser_calib.effects.bounds import limit_of
 from laser_calib.effects.catalog import camera_distortion, screen_shape
-from laser_calib.effects.screen import ScreenShape, ScreenSurface
+from laser_calib.effects.screen import ScreenShape, ScreenSurface, extrapolation_note
 from laser_calib.effects.screen_spline import ScreenSpline, exponents
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
 from laser_calib.estimation.sensor_fit import SensorFitOptions
@@ -254,3 +254,15 @@ def test_a_candidate_none_of_whose_parameters_can_be_reported_is_rejected():
                                                                 joint_sigma=NOISE.joint_sigma))
     objections = physical_objections(extended_fit(fitter, fitter.start(), JointScale(joint=3)), nominal)
     assert len(objections) == 1 and objections[0].startswith("no parameter separable (")
+
+
+def test_test_spots_beyond_the_calibration_spots_are_named_where_a_surface_extrapolates():
+    """Calibration spots (P,L,2) covering y in [-0.2, 0.3], z in [-0.1, 0.1] m; of five
+    measured test spots two lie beyond that box (one in y, one in z), one is not seen."""
+    calibration = np.array([[[-0.2, -0.1], [0.3, 0.1]], [[0.0, 0.0], [np.nan, np.nan]]])
+    test = np.array([[[0.0, 0.05], [0.31, 0.0]], [[0.1, -0.12], [-0.2, 0.1]], [[0.25, 0.0], [np.nan, np.nan]]])
+    note = extrapolation_note(["screen_spline (screen)"], calibration, test)
+    assert note.startswith("2 of 5 test spots lie outside the box the calibration spots cover (y -0.200 to 0.300 m, "
+                           "z -0.100 to 0.100 m): there screen_spline (screen) is extrapolated")
+    assert extrapolation_note([], calibration, test) is None            # nothing fitted on the screen
+    assert extrapolation_note(["screen_shape (screen)"], calibration, test[[0], :1]) is None   # all inside

@@ -47,6 +47,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         print(f"learned compensator kept: held-out gain {100 * kept['heldout_gain']:.1f} %"
               + (f", test spot error rms {test['rms_mm']:.3f} mm" if test else ""))
     print(f"verdict: {result['verdict']}. {result['evidence']}")
+    for note in result["notes"]:
+        print(f"note: {note}")
     print(f"wrote {args.out}/diagnosis.json, robot_calibrated.yaml, report.md" + (", compensator.json" if kept else ""))
     return 0
 

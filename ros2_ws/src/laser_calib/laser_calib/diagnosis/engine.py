@@ -83,6 +83,7 @@ from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.joint import gravity_torques
+from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.io.errors import InputError
@@ -227,6 +228,11 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
                                                       fitted.estimate.values)
         stages.append(Stage(fitted.label, fitted, test_d))
     final = fits[-1]
+    if isinstance(test, SpotData):
+        beyond = extrapolation_note([e.label for e in final.effects if isinstance(e, Surface)], data.samples.spots,
+                                    test.samples.spots)
+        if beyond:
+            notes.append(beyond)
     if options.progress is not None:
         options.progress(0, None, "the verdict's noise and structure tests")
     noise = verdict_noise(final, data.samples, options, rated_noise(data.robot))

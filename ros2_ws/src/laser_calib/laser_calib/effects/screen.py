@@ -150,6 +150,21 @@ def surface_terms(degree: int) -> tuple[tuple[int, int], ...]:
     return tuple((n - j, j) for n in range(1, degree + 1) for j in range(n + 1))
 
 
+def extrapolation_note(surfaces: list[str], calibration: np.ndarray, test: np.ndarray) -> str | None:
+    """Where the test spots leave what the calibration saw of the screen: the
+    fitted surfaces (labels) are only known over the box of the calibration's
+    measured spots (P,L,2, NaN where not seen), so a test spot (Q,L,2) beyond
+    it is predicted by extrapolation; None when every test spot is inside."""
+    low, high = np.nanmin(calibration, axis=(0, 1)), np.nanmax(calibration, axis=(0, 1))
+    measured = test[np.isfinite(test).all(axis=-1)]                       # (M,2)
+    outside = int(np.any((measured < low) | (measured > high), axis=1).sum())
+    if not surfaces or not outside:
+        return None
+    return (f"{outside} of {len(measured)} test spots lie outside the box the calibration spots cover (y {low[0]:.3f} "
+            f"to {high[0]:.3f} m, z {low[1]:.3f} to {high[1]:.3f} m): there {', '.join(surfaces)} is extrapolated, "
+            "and their test errors are not what the verdict, drawn from the calibration poses, speaks for")
+
+
 @dataclass(frozen=True)
 class BoxSurface(Surface):
     """A surface over the box the calibration spots cover (``box``: the
