@@ -257,12 +257,15 @@ def test_a_candidate_none_of_whose_parameters_can_be_reported_is_rejected():
 
 
 def test_test_spots_beyond_the_calibration_spots_are_named_where_a_surface_extrapolates():
-    """Calibration spots (P,L,2) covering y in [-0.2, 0.3], z in [-0.1, 0.1] m; of five
-    measured test spots two lie beyond that box (one in y, one in z), one is not seen."""
-    calibration = np.array([[[-0.2, -0.1], [0.3, 0.1]], [[0.0, 0.0], [np.nan, np.nan]]])
-    test = np.array([[[0.0, 0.05], [0.31, 0.0]], [[0.1, -0.12], [-0.2, 0.1]], [[0.25, 0.0], [np.nan, np.nan]]])
+    """Calibration spots (P,L,2) at the corners of the square y, z in [-0.1, 0.1] m and its
+    centre; of five measured test spots two lie beyond it (one in y, one in z), one is not seen."""
+    calibration = np.array([[[-0.1, -0.1], [0.1, -0.1]], [[0.1, 0.1], [-0.1, 0.1]], [[0.0, 0.0], [np.nan, np.nan]]])
+    test = np.array([[[0.0, 0.05], [0.11, 0.0]], [[0.05, -0.12], [-0.09, 0.09]], [[0.09, 0.0], [np.nan, np.nan]]])
     note = extrapolation_note(["screen_spline (screen)"], calibration, test)
-    assert note.startswith("2 of 5 test spots lie outside the box the calibration spots cover (y -0.200 to 0.300 m, "
-                           "z -0.100 to 0.100 m): there screen_spline (screen) is extrapolated")
+    assert note.startswith("2 of 5 test spots lie outside the convex hull of the calibration spots: there "
+                           "screen_spline (screen) is extrapolated")
     assert extrapolation_note([], calibration, test) is None            # nothing fitted on the screen
     assert extrapolation_note(["screen_shape (screen)"], calibration, test[[0], :1]) is None   # all inside
+    # spots along one line span no area: every test spot is beyond what they saw
+    line = np.array([[[-0.1, 0.0], [0.0, 0.0]], [[0.1, 0.0], [np.nan, np.nan]]])
+    assert extrapolation_note(["screen_shape (screen)"], line, test).startswith("5 of 5 ")

@@ -18,6 +18,7 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 from numpy.polynomial import legendre
+from scipy.spatial import Delaunay, QhullError
 
 from laser_calib.effects.base import SpotEffect, positive_number, yaml_number
 from laser_calib.io.errors import InputError
@@ -152,17 +153,21 @@ def surface_terms(degree: int) -> tuple[tuple[int, int], ...]:
 
 def extrapolation_note(surfaces: list[str], calibration: np.ndarray, test: np.ndarray) -> str | None:
     """Where the test spots leave what the calibration saw of the screen: the
-    fitted surfaces (labels) are only known over the box of the calibration's
-    measured spots (P,L,2, NaN where not seen), so a test spot (Q,L,2) beyond
-    it is predicted by extrapolation; None when every test spot is inside."""
-    low, high = np.nanmin(calibration, axis=(0, 1)), np.nanmax(calibration, axis=(0, 1))
+    fitted surfaces (labels) are only known over the convex hull of the
+    calibration's measured spots (P,L,2, NaN where not seen), so a test spot
+    (Q,L,2) beyond it is predicted by extrapolation; None when every test spot
+    is inside (or no surface is fitted)."""
     measured = test[np.isfinite(test).all(axis=-1)]                       # (M,2)
-    outside = int(np.any((measured < low) | (measured > high), axis=1).sum())
+    try:
+        inside = Delaunay(calibration[np.isfinite(calibration).all(axis=-1)]).find_simplex(measured) >= 0
+    except QhullError:  # the calibration spots span no area: the surface is known nowhere across the screen
+        inside = np.zeros(len(measured), bool)
+    outside = int((~inside).sum())
     if not surfaces or not outside:
         return None
-    return (f"{outside} of {len(measured)} test spots lie outside the box the calibration spots cover (y {low[0]:.3f} "
-            f"to {high[0]:.3f} m, z {low[1]:.3f} to {high[1]:.3f} m): there {', '.join(surfaces)} is extrapolated, "
-            "and their test errors are not what the verdict, drawn from the calibration poses, speaks for")
+    return (f"{outside} of {len(measured)} test spots lie outside the convex hull of the calibration spots: there "
+            f"{', '.join(surfaces)} is extrapolated, and their test errors are not what the verdict, drawn from the "
+            "calibration poses, speaks for")
 
 
 @dataclass(frozen=True)
