@@ -127,6 +127,7 @@ def test_calibrate_poses_diagnose_runs_the_diagnosis_engine(run, tmp_path, capsy
                 str(tmp_path / "samples.csv"), "--folds", "3", "--diagnose", "--out", str(out)]) == 0
     diagnosis = json.loads((out / "result.json").read_text())["diagnosis"]
     assert diagnosis["stages"][1]["model"] == "geometric + sensor scale"
+    assert diagnosis["joints"] == {"q1": "q1", "q2": "q2"}   # a D-H robot's joints are its readings' numbers
     assert diagnosis["stages"][-1]["heldout_mean_mm"] < diagnosis["stages"][0]["heldout_mean_mm"] < 1.74
     labels = {r["label"] for ranking in diagnosis["selection"] for r in ranking}
     assert labels and not any(label.startswith(("screen_shape", "camera_distortion")) for label in labels)

@@ -183,3 +183,28 @@ def test_plan_and_slm_calibrate_take_a_urdf_robot(tmp_path):
                  "--spot-sigma", "0.0001", "--out", str(out)]) == 0
     written = load_robot(out)
     assert written.chain is not None and written.param_names == robot.param_names
+
+
+def test_a_urdf_robots_joint_effects_name_its_joints(tmp_path):
+    """A diagnosis of a URDF robot names joints as the URDF does (beside the number the
+    files keep); read back from a robot file, an effect has the same name; the paper's
+    D-H robot (the same arm) keeps numbers only."""
+    from dataclasses import replace
+
+    from laser_calib.effects import effects_from_robot, effects_to_yaml
+    from laser_calib.effects.catalog import candidates
+    from laser_calib.io.samples import Samples
+    from laser_calib.sim.simulation import bundled_robot, sample_poses
+
+    robot = load_robot(_urdf_robot_yaml(tmp_path))
+    q = sample_poses([robot], 12, np.random.default_rng(0))
+    samples = Samples(np.arange(12), np.arange(12.0), q, np.full((12, 2, 2), np.nan))
+    joint_effects = [e for e in candidates(robot, samples) if hasattr(e, "joint")]
+    assert len({e.joint for e in joint_effects}) == robot.n_joints
+    assert all(e.where == f"joint {e.joint + 1} {robot.chain.readings[e.joint]}" for e in joint_effects)
+    entries = effects_to_yaml(joint_effects, [np.zeros(len(e.params)) for e in joint_effects])
+    assert all(isinstance(entry["joint"], int) for entry in entries)     # the file keeps the number
+    again, _ = effects_from_robot(replace(robot, extra={**robot.extra, "effects": entries}))
+    assert [e.label for e in again] == [e.label for e in joint_effects]
+    dh_effects = [e for e in candidates(bundled_robot("paper-7dof"), samples) if hasattr(e, "joint")]
+    assert {e.where for e in dh_effects} == {f"joint {i + 1}" for i in range(7)}

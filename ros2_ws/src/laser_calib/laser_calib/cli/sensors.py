@@ -106,7 +106,7 @@ def _diagnosis(robot: Robot, samples: Samples, options: SensorFitOptions, folds:
     return {"stages": stages, "heldout_nested_mean_mm": float(np.nanmean(nested)) * 1e3,
             "nested_choices": list(chosen), "selection": full["selection"], "effects": full["effects"],
             "verdict": diagnosis.verdict, "evidence": diagnosis.evidence, "noise": full["noise"],
-            "notes": full["notes"]}
+            "notes": full["notes"], "joints": full["joints"]}
 
 
 def _evaluate(model: MeasurementModel, fit: SensorFit, prefix: str = "",

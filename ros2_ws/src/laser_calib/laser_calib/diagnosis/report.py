@@ -89,6 +89,9 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
              f"**Verdict: {result['verdict']}.** {result['evidence']}", ""]
     if diagnosis.notes:
         lines += [f"Note: {n}." for n in diagnosis.notes] + [""]
+    if diagnosis.robot.chain is not None:
+        lines += ["Joints (the covariates q1..qN, the effects' joint numbers): "
+                  + ", ".join(f"{q} = {name}" for q, name in result["joints"].items()) + ".", ""]
     lines += ["## Stages", "",
               "Spot distance (mm) between measured and predicted spots: on the calibration poses, held out "
               "(each pose predicted by the fit on the other folds) and on the test poses.", "",

@@ -145,6 +145,8 @@ class Diagnosis:
     def to_json(self) -> dict:
         return {
             "robot": self.robot.name,
+            # what the covariates q1..qN and the effects' joint numbers are: a URDF's joint names
+            "joints": {f"q{i + 1}": name for i, name in enumerate(self.robot.joint_names)},
             "stages": [{"model": s.label, "cal": summary(s.fitted.cal, 1e3, "_mm"), "cv": summary(s.fitted.cv, 1e3, "_mm"),
                         "test": None if s.test is None else summary(s.test, 1e3, "_mm"),
                         "parameters": int(s.fitted.estimate.identifiable.sum()),

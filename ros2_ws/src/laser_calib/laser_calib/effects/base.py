@@ -24,7 +24,7 @@ simulator's truth form).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Mapping
 
 import numpy as np
@@ -129,14 +129,17 @@ class Effect(ABC):
 
 @dataclass(frozen=True)
 class JointEffect(Effect):
-    """An effect on the angle of one joint (0-based index ``joint``)."""
+    """An effect on the angle of one joint (0-based index ``joint``; ``name``:
+    the robot's own name for it, a URDF joint's, shown beside the number; the
+    files keep the number)."""
 
     family: ClassVar[str] = JOINT
     joint: int
+    name: str = field(default="", compare=False, kw_only=True)
 
     @property
     def where(self) -> str:
-        return f"joint {self.joint + 1}"
+        return f"joint {self.joint + 1}" + (f" {self.name}" if self.name else "")
 
     @property
     def tag(self) -> str:
@@ -147,7 +150,8 @@ class JointEffect(Effect):
 
     @classmethod
     def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "JointEffect":
-        return cls(joint=yaml_joint(robot, entry, where))
+        joint = yaml_joint(robot, entry, where)
+        return cls(joint=joint, name=joint_name(robot, joint))
 
     @abstractmethod
     def basis(self, robot: Robot, samples: Samples) -> np.ndarray:
@@ -179,6 +183,11 @@ class SpotEffect(Effect):
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """spots (P,L,2) m and unit beams (P,L,3) in {0} (finite everywhere) ->
         (new spots (P,L,2), d new / d spots (P,L,2,2), d new / d values (P,L,2,k))."""
+
+
+def joint_name(robot: Robot, joint: int) -> str:
+    """The name of the 0-based ``joint`` a URDF robot gives it; "" for a D-H robot (its joints are numbered)."""
+    return robot.joint_names[joint] if robot.chain is not None else ""
 
 
 def yaml_joint(robot: Robot, entry: Mapping[str, Any], where: str) -> int:

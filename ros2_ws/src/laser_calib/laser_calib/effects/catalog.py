@@ -11,7 +11,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
-from laser_calib.effects.base import REGISTRY, Effect, move_directions, yaml_number
+from laser_calib.effects.base import REGISTRY, Effect, joint_name, move_directions, yaml_number
 from laser_calib.effects.drift import STAMP, Drift, length_params
 from laser_calib.effects.joint import JOINT_EFFECTS, Backlash, Compliance, gravity_torques
 from laser_calib.effects.effect_model import EffectModel
@@ -49,9 +49,9 @@ def candidates(robot: Robot, samples: Samples) -> list[Effect]:
         for cls in JOINT_EFFECTS:
             if cls is Compliance:
                 if np.ptp(torques[:, i]) > MIN_MOTION:
-                    out.append(Compliance(joint=i, torque_span=float(np.ptp(torques[:, i]))))
+                    out.append(Compliance(joint=i, torque_span=float(np.ptp(torques[:, i])), name=joint_name(robot, i)))
             elif cls is not Backlash or np.ptp(directions[:, i]) > 0:
-                out.append(cls(joint=i))
+                out.append(cls(joint=i, name=joint_name(robot, i)))
     names = robot.param_names
     for covariate in covariate_names(samples):
         out += [Drift.make(robot, samples, names[j], covariate) for j in length_params(robot)]

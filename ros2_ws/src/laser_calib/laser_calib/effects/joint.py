@@ -18,7 +18,7 @@ import numpy as np
 from laser_calib.model.kinematics import forward
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
-from laser_calib.effects.base import JointEffect, move_directions, positive_number, yaml_joint
+from laser_calib.effects.base import JointEffect, joint_name, move_directions, positive_number, yaml_joint
 
 MRAD = 1e-3
 
@@ -112,12 +112,15 @@ class Compliance(JointEffect):
 
     @classmethod
     def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "Compliance":
-        return cls(joint=yaml_joint(robot, entry, where), torque_span=positive_number(where, entry, "torque_span", 1.0))
+        joint = yaml_joint(robot, entry, where)
+        return cls(joint=joint, torque_span=positive_number(where, entry, "torque_span", 1.0),
+                   name=joint_name(robot, joint))
 
     @classmethod
     def make(cls, robot: Robot, samples: Samples, joint: int) -> "Compliance":
         """The candidate at ``joint`` (0-based) for the calibration samples."""
-        return cls(joint=joint, torque_span=float(np.ptp(gravity_torques(robot, samples.q)[:, joint])))
+        return cls(joint=joint, torque_span=float(np.ptp(gravity_torques(robot, samples.q)[:, joint])),
+                   name=joint_name(robot, joint))
 
 
 @dataclass(frozen=True)
