@@ -119,6 +119,21 @@ def test_calibrate_poses_command_writes_result_and_calibrated_robot(run, tmp_pat
     assert "cannot fix unknown parameter 'nope'" in capsys.readouterr().err
 
 
+def test_calibrate_poses_writes_no_stale_effects(run, tmp_path, capsys):
+    """A robot file's effects are not fitted by calibrate-poses: it says so, and the
+    calibrated robot does not carry their old values (fitted with another geometry)."""
+    assert run(["import-positioner", "--data", str(DATA), "--out", str(tmp_path)]) == 0
+    robot_file = tmp_path / "robot.yaml"
+    data = yaml.safe_load(robot_file.read_text())
+    data["effects"] = [{"type": "periodic", "joint": 1, "c1": 1e-3, "s1": 0.0, "c2": 0.0, "s2": 0.0}]
+    robot_file.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    assert run(["calibrate-poses", "--robot", str(robot_file), "--samples", str(tmp_path / "samples.csv"),
+                "--folds", "0", "--out", str(out)]) == 0
+    assert f"warning: {robot_file}: its effects (1) are not fitted by calibrate-poses" in capsys.readouterr().out
+    assert "effects" not in yaml.safe_load((out / "robot_calibrated.yaml").read_text())
+
+
 def test_calibrate_poses_diagnose_runs_the_diagnosis_engine(run, tmp_path, capsys):
     """--diagnose: the engine of diagnosis.py on the pose data; the sensor scale first, no spot effects."""
     assert run(["import-positioner", "--data", str(DATA), "--out", str(tmp_path)]) == 0

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -247,6 +248,11 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
               "robust": fit.estimate.robust,
               "warnings": list(dict.fromkeys([f"nominal (frames-only) fit: {w}" for w in fit.nominal.warnings]
                                              + list(fit.estimate.warnings)))}
+    stale = robot.extra.get("effects")
+    if stale:  # their values belong to the geometry they were fitted with, not to this calibration's
+        result["warnings"].append(f"{args.robot}: its effects ({len(stale)}) are not fitted by calibrate-poses (the "
+                                  "geometric model and the frames only): the calibrated robot is written without "
+                                  "them; --diagnose selects effects anew")
     accuracy = _accuracy(samples, fit.model, fit)
     if accuracy:
         result["insample"]["iso9283"] = accuracy
@@ -273,7 +279,9 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
             written = save_calibrated_urdf(fit.corrected(robot), robot, fit.estimate.identifiable, out,
                                            str(args.robot))
         else:
-            save_robot(fit.corrected(robot), out / "robot_calibrated.yaml",
+            corrected = fit.corrected(robot)
+            save_robot(replace(corrected, extra={k: v for k, v in corrected.extra.items() if k != "effects"}),
+                       out / "robot_calibrated.yaml",
                        header=f"Calibrated from {args.samples} (laser-calib calibrate-poses).")
             written = ("robot_calibrated.yaml",)
         (out / "result.json").write_text(json.dumps(result, indent=2))
