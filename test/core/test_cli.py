@@ -57,6 +57,25 @@ def test_estimate_writes_calibrated_robot_result_and_report(simulated, tmp_path,
     assert math.isclose(np.nanmean(test["l1_distance_m"]) * 1e3, result["spot_error"]["test"]["after"]["laser1"]["mean_mm"])
 
 
+def test_test_poses_beyond_the_calibrated_joint_ranges_are_named(simulated, tmp_path, capsys):
+    """The paper's case 1: calibrated within +-10 deg of zero, tested over the whole
+    workspace: every joint's test readings leave the calibrated range, which the
+    console and result.json say per joint; the calibration's own poses as the test
+    set leave nothing."""
+    out = tmp_path / "case1"
+    assert main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"), "--samples",
+                 str(simulated / "case1_cal.csv"), "--test", str(simulated / "case1_test.csv"), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    said = [w for w in json.loads((out / "result.json").read_text())["warnings"]
+            if "outside the range the calibration covered" in w]
+    assert [w.split(" of the test poses have ")[1].split()[0] for w in said] == [f"q{i + 1}" for i in range(7)]
+    assert all(f"warning: {w}" in printed for w in said)
+    assert main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"), "--samples",
+                 str(simulated / "case1_cal.csv"), "--test", str(simulated / "case1_cal.csv"),
+                 "--out", str(tmp_path / "same")]) == 0
+    assert "outside the range the calibration covered" not in capsys.readouterr().out
+
+
 def test_a_plot_failing_in_the_drawing_child_is_raised_by_the_command(simulated, tmp_path, monkeypatch):
     """estimate draws its plots in a forked child (report.files.write_outputs); the
     child inherits this failure, exits 1, and the command draws again in its own

@@ -84,7 +84,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.joint import gravity_torques
 from laser_calib.effects.screen import Surface, extrapolation_note
-from laser_calib.estimation.folds import kfold_labels
+from laser_calib.estimation.folds import kfold_labels, test_range_warnings
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
@@ -228,6 +228,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
                                                       fitted.estimate.values)
         stages.append(Stage(fitted.label, fitted, test_d))
     final = fits[-1]
+    if test is not None:
+        notes.extend(test_range_warnings(data.samples.q, test.samples.q, "test", data.robot.joint_names))
     if isinstance(test, SpotData):
         beyond = extrapolation_note([e.label for e in final.effects if isinstance(e, Surface)], data.samples.spots,
                                     test.samples.spots)

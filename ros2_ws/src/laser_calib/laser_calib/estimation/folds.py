@@ -54,3 +54,10 @@ def range_warnings(fraction: np.ndarray, what: str, joints: tuple[str, ...]) -> 
     return [f"{what}: {share:.0%} of the test poses have {joint} outside the range the calibration covered "
             "(held-out errors there are an extrapolation)"
             for joint, share in zip(joints, fraction) if share > 0]
+
+
+def test_range_warnings(q_calibration: np.ndarray, q_test: np.ndarray, what: str, joints: tuple[str, ...]) -> list[str]:
+    """range_warnings for a test set (Q,N) against the calibration's readings (P,N)."""
+    both = np.vstack([q_calibration, q_test])
+    labels = np.r_[np.zeros(len(q_calibration), int), np.ones(len(q_test), int)]
+    return range_warnings(outside_range(both, labels, (1,)), what, joints)

@@ -28,6 +28,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
+from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
@@ -214,5 +215,8 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
                          f"made for the model {', '.join(compensator.names[robot.n_params:]) or 'without effects'}, "
                          f"not {', '.join(model.names[robot.n_params:]) or 'this one without effects'} of the robot file")
     est = estimate(robot, samples, options, model, start)
+    if test is not None:  # a test pose beyond the joint ranges calibrated on is an extrapolation: said with the fit's
+        est = replace(est, warnings=est.warnings + tuple(test_range_warnings(samples.q, test.q, "test",
+                                                                             robot.joint_names)))
     return Calibration(robot, options, est, evaluate(robot, samples, est, test, effects, compensator, start), sources,
                        effects, compensator)
