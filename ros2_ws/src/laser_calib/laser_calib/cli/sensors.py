@@ -30,7 +30,7 @@ from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
 from laser_calib.model.robot_file import load_robot, load_robot_description, save_robot
 from laser_calib.report.urdf_export import save_calibrated_urdf
-from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings
+from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings, test_outside_range
 from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, calibrate, is_frame_param, kfold,
                                                make_model, pose_errors, sensor_of)
 from laser_calib.io.errors import InputError
@@ -219,8 +219,7 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Sample
     """--test FILE: the calibration (its fitted frames, fixed ones as given) predicts the test poses."""
     model = make_model(robot, test, fit.rotation_length, options.scale)
     columns = _evaluate(model, fit, components=True)
-    both = np.vstack([samples.q, test.q])
-    outside = outside_range(both, np.r_[np.zeros(len(samples), int), np.ones(len(test), int)], (1,))
+    outside = test_outside_range(samples.q, test.q)
     result["test"] = {"samples": str(args.test), "poses": len(test), **_summaries(columns),
                       "outside_joint_range": outside.tolist()}
     accuracy = _accuracy(test, model, fit)

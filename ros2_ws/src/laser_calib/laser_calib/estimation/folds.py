@@ -56,8 +56,12 @@ def range_warnings(fraction: np.ndarray, what: str, joints: tuple[str, ...]) -> 
             for joint, share in zip(joints, fraction) if share > 0]
 
 
+def test_outside_range(q_calibration: np.ndarray, q_test: np.ndarray) -> np.ndarray:
+    """outside_range (N,) of a test set (Q,N) against the calibration's readings (P,N)."""
+    labels = np.r_[np.zeros(len(q_calibration), int), np.ones(len(q_test), int)]
+    return outside_range(np.vstack([q_calibration, q_test]), labels, (1,))
+
+
 def test_range_warnings(q_calibration: np.ndarray, q_test: np.ndarray, what: str, joints: tuple[str, ...]) -> list[str]:
     """range_warnings for a test set (Q,N) against the calibration's readings (P,N)."""
-    both = np.vstack([q_calibration, q_test])
-    labels = np.r_[np.zeros(len(q_calibration), int), np.ones(len(q_test), int)]
-    return range_warnings(outside_range(both, labels, (1,)), what, joints)
+    return range_warnings(test_outside_range(q_calibration, q_test), what, joints)
