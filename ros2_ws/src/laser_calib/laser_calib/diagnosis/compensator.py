@@ -2,8 +2,8 @@
 
 After the physical effects, what remains may still follow the inputs
 smoothly (detector.py). The detector's regression refitted on all calibration
-poses gives, per pose, a joint-angle offset f_j(z) of each joint and a twist
-offset of each link, from the pose's inputs z (readings, move directions,
+poses gives, per pose, a joint-angle offset f_j(z) of each joint and a twist,
+length and offset change of each link, from the pose's inputs z (readings, move directions,
 stamp, extra columns). It is kept only when the detector's held-out gain is
 significant (the test that decides it held each pose out), it never replaces
 a physical effect (the report lists it apart, with its gain) and it acts
@@ -16,9 +16,12 @@ with robot the nominal robot of the diagnosis and effects those of its
 robot_calibrated.yaml (effects_from_robot): the file holds the geometric
 errors and effect values refitted together with the compensation (backfit).
 
-File (JSON, compensator.json of a diagnosis): inputs, targets (theta_j are
-joint offsets, alpha_j twist offsets), the basis (standardisation, knots,
-pairs, size), the coefficients (m', b) of the directions used; load it with
+File (JSON, compensator.json of a diagnosis, version 2): inputs, targets
+(theta_j are joint offsets, alpha_j, d_j and a_j offsets of the link's
+parameters), the basis (standardisation, knots, pairs, size), the coefficients
+``coef`` (m', b) of the directions used, in SI units (rad for theta_j and
+alpha_j, m for d_j and a_j; version 1 files, from before the length
+directions, hold only angles under ``coef_rad`` and still load); load it with
 load_compensator(path). The move directions are taken from the row order of
 the samples it is applied to (from q = 0), as in the calibration.
 """
@@ -41,14 +44,15 @@ from laser_calib.effects.effect_model import EffectModel, Fixed
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
 
-VERSION = 1
+VERSION = 2
+READABLE = (1, 2)  # version 1: angle targets only, coefficients under "coef_rad"
 BACKFIT = 3  # rounds of model refit / regression refit
 
 
 @dataclass(frozen=True)
 class Compensator:
     """inputs (d,) names; targets (m,) parameter names; used (m,) the targets
-    the regression has; coef (m', b) rad per basis function; heldout_gain the
+    the regression has; coef (m', b) per basis function (rad or m, the target's unit); heldout_gain the
     detector's held-out gain of the regression (fraction of the whitened
     residual sum of squares); names and values (n,) of the model it completes
     (its geometric errors and effect parameters refitted with the compensation)."""
@@ -110,7 +114,7 @@ class Compensator:
         return {"version": VERSION, "inputs": list(self.inputs), "targets": list(self.targets),
                 "used": self.used.tolist(), "mean": self.basis.mean.tolist(), "std": self.basis.std.tolist(),
                 "knots": self.basis.knots.tolist(), "pairs": self.basis.pairs.tolist(), "size": self.basis.size,
-                "coef_rad": self.coef.tolist(), "heldout_gain": self.heldout_gain,
+                "coef": self.coef.tolist(), "heldout_gain": self.heldout_gain,
                 "model": {"names": list(self.names), "values": self.values.tolist()}}
 
     def save(self, path: str | Path) -> None:
@@ -140,11 +144,14 @@ def load_compensator(path: str | Path) -> Compensator:
     """A compensator file (module docstring); InputError naming the file and key on bad input."""
     try:
         data = json.loads(Path(path).read_text())
-        if data.get("version") != VERSION:
-            raise InputError(str(path), f"compensator version {data.get('version')!r}, expected {VERSION}")
+        version = data.get("version")
+        if version not in READABLE:
+            raise InputError(str(path), f"compensator version {version!r}, expected one of "
+                                        f"{', '.join(map(str, READABLE))}")
+        key = "coef_rad" if version == 1 else "coef"
         basis = Basis(np.array(data["mean"], float), np.array(data["std"], float), np.array(data["knots"], float),
                       np.array(data["pairs"], int).reshape(-1, 2), float(data["size"]))
-        coef = np.array(data["coef_rad"], float)
+        coef = np.array(data[key], float)
         used = np.array(data["used"], bool)
         compensator = Compensator(tuple(data["inputs"]), tuple(data["targets"]), used, basis, coef,
                                   float(data["heldout_gain"]), tuple(data["model"]["names"]),
@@ -152,5 +159,5 @@ def load_compensator(path: str | Path) -> Compensator:
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise InputError(str(path), f"not a compensator file ({error})") from None
     if coef.shape != (int(used.sum()), basis(np.zeros((1, len(compensator.inputs)))).shape[1]):
-        raise InputError(f"{path}: coef_rad", f"shape {coef.shape} does not match the inputs and targets")
+        raise InputError(f"{path}: {key}", f"shape {coef.shape} does not match the inputs and targets")
     return compensator

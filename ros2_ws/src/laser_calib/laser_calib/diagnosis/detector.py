@@ -6,10 +6,11 @@ axis) on all the inputs of a pose jointly: every joint reading, the sign of
 each joint's last move, the stamp and every extra column (temperature). The
 regression goes through the kinematics: a pose's residual is modelled as
 
-    W r  =  sum_j (W g_j) f_j(z)         g_j = d predicted / d theta_j, d alpha_j
+    W r  =  sum_j (W g_j) f_j(z)         g_j = d predicted / d theta_j, d alpha_j, d d_j, d a_j
 
-a smooth joint-angle error f_j and a smooth link-twist error (link bending,
-a tilted bearing) of each joint, as functions of the inputs z. Each f_j is a
+a smooth joint-angle error f_j and smooth errors of each link's twist (link
+bending, a tilted bearing), offset and length (a hose that pulls, a link that
+grows with heat other than linearly), as functions of the inputs z. Each f_j is a
 penalised regression on a basis of z (scikit-learn SplineTransformer: cubic
 B-splines of every input, additive; plus the products of pairs of joint
 readings, for errors that depend on two joints; scikit-learn Ridge), the
@@ -54,6 +55,7 @@ PERMUTATIONS = 99
 ALPHAS = np.logspace(-2, 5, 8)
 N_KNOTS, DEGREE = 4, 3
 MIN_SPREAD = 1e-9  # an input that does not vary is left out
+LINK_DIRECTIONS = ("alpha", "d", "a")  # the D-H link parameters a smooth error may follow, beside theta
 
 
 def input_table(q: np.ndarray, stamp: np.ndarray, extra: dict[str, np.ndarray]) -> tuple[list[str], np.ndarray]:
@@ -167,12 +169,13 @@ class Detection:
 def directions(names: tuple[str, ...], res: Residuals, whitener: np.ndarray, n_joints: int
                ) -> tuple[tuple[str, ...], np.ndarray]:
     """The whitened directions (P,V,m) of each pose's V values: every joint
-    angle (jac_q) and every link twist alpha_j the model has (jac)."""
+    angle (jac_q) and every link parameter of LINK_DIRECTIONS the model has (jac)."""
     n_poses = res.r.shape[0]
     flat_q = res.jac_q.reshape(n_poses, -1, n_joints)
-    twist = [names.index(f"alpha{j + 1}") for j in range(n_joints) if f"alpha{j + 1}" in names]
-    columns = np.concatenate([flat_q, res.jac.reshape(n_poses, -1, res.jac.shape[-1])[..., twist]], axis=-1)
-    targets = tuple(f"theta{j + 1}" for j in range(n_joints)) + tuple(names[k] for k in twist)
+    link = [names.index(f"{kind}{j + 1}") for kind in LINK_DIRECTIONS for j in range(n_joints)
+            if f"{kind}{j + 1}" in names]
+    columns = np.concatenate([flat_q, res.jac.reshape(n_poses, -1, res.jac.shape[-1])[..., link]], axis=-1)
+    targets = tuple(f"theta{j + 1}" for j in range(n_joints)) + tuple(names[k] for k in link)
     return targets, np.einsum("pij,pjm->pim", whitener, columns)
 
 

@@ -24,7 +24,8 @@ from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
 from laser_calib.sim.simulation import NoiseSpec, ParamOffsets, SpotTransform, bundled_robot, measure, sample_poses, true_errors
 from laser_calib.effects.base import JOINT, PARAM, SPOT, Effect, sign_choice
-from laser_calib.effects.effect_model import EffectModel
+from laser_calib.effects.effect_model import EffectModel, Fixed
+from laser_calib.estimation.estimate import EstimateOptions, estimate_model
 from laser_calib.effects.screen import Surface
 
 TEMPERATURE = "temperature_c"
@@ -253,6 +254,19 @@ class EffectSession:
     test_truth: Samples
     truth: tuple[Truth, ...]
     noise: NoiseSpec
+
+
+def true_offsets_rms(session: EffectSession, truth: ForeignError | ForeignJointError,
+                     options: EstimateOptions) -> float:
+    """Test RMS (mm) of the spot error of the geometric errors fitted on the calibration set with
+    the true foreign offsets known: the best a model of the foreign error can do on these poses."""
+    def model(samples: Samples) -> EffectModel:
+        errors = truth.param_offsets(session.true, samples)
+        return EffectModel(SpotModel(session.nominal, samples), (), None, Fixed(np.zeros_like(samples.q), errors))
+    est = estimate_model(model(session.cal), options)
+    test = model(session.test).residuals(est.values, False)
+    d = np.linalg.norm(test.r, axis=-1)[test.valid]
+    return float(np.sqrt(np.mean(d ** 2)) * 1e3)
 
 
 def temperature(stamps: np.ndarray, duration: float, rng: np.random.Generator) -> np.ndarray:
