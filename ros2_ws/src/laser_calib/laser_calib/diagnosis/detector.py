@@ -124,9 +124,12 @@ class OffsetRegression(BaseEstimator, RegressorMixin):
         importance predicts 146 times; all of them are ~20x the chosen sub-model's)."""
         if self.columns is None:
             return self.all_features(X)
-        basis = self.basis(X[:, :self.n_inputs])
-        width = basis.shape[1]
-        return X[:, self.n_inputs + self.columns // width] * basis[:, self.columns % width] / self.basis.size
+        return self.formed(X, self.basis(X[:, :self.n_inputs]), self.columns)
+
+    def formed(self, X: np.ndarray, basis_values: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """(rows, len(columns)) the ``columns`` of all_features from the basis at the rows' inputs (rows, b)."""
+        width = basis_values.shape[1]
+        return X[:, self.n_inputs + columns // width] * basis_values[:, columns % width] / self.basis.size
 
     def fit(self, X: np.ndarray, y: np.ndarray) -> "OffsetRegression":
         self.ridge_ = Ridge(alpha=self.alpha, fit_intercept=False).fit(self.features(X), y)
@@ -237,15 +240,21 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
     orders = [np.arange(n_poses)] + [rng.permutation(n_poses) for _ in range(PERMUTATIONS)]
     Y = np.stack([y[order].ravel() for order in orders], axis=1)                  # (P*V, 1+B)
     rows_fold = np.repeat(fold, n_values)
-    features = OffsetRegression(basis, z.shape[1]).all_features(X)
     subsets = submodels(basis, z.shape[1], g.shape[-1])
     sse = np.zeros((len(subsets), len(ALPHAS), Y.shape[1]))
-    for k in np.unique(fold):
-        train, held = rows_fold != k, rows_fold == k
-        gram, cross = features[train].T @ features[train], features[train].T @ Y[train]
-        held_features, held_y = features[held], Y[held]
-        for m, columns in enumerate(subsets):
-            sse[m] += ridge_path_sse(gram[np.ix_(columns, columns)], cross[columns], held_features[:, columns], held_y)
+    # Each sub-model's columns of all_features formed on their own (all of them at once, m b
+    # columns, were the detector's largest array), and a fold's training sums as all rows'
+    # less its held rows' (no copy of the training rows).
+    former = OffsetRegression(basis, z.shape[1])
+    basis_values = basis(X[:, :z.shape[1]])
+    held = [rows_fold == k for k in np.unique(fold)]
+    held_y = [Y[rows] for rows in held]
+    for m, columns in enumerate(subsets):
+        features = former.formed(X, basis_values, columns)
+        gram_all, cross_all = features.T @ features, features.T @ Y
+        for rows, y_held in zip(held, held_y):
+            part = features[rows]
+            sse[m] += ridge_path_sse(gram_all - part.T @ part, cross_all - part.T @ y_held, part, y_held)
     # The model and penalty of the best held-out gain, for the data and for every permutation alike.
     all_gains = 1.0 - sse / np.maximum((Y ** 2).sum(axis=0), 1e-300)
     gains = all_gains.reshape(-1, Y.shape[1]).max(axis=0)
