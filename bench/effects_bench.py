@@ -367,12 +367,15 @@ def summary(rows: list[dict]) -> dict:
     foreign family (not "explained", never "explained" beyond 1.3x the true
     model's test RMS, compensated within 25 % of it)."""
     library = [r for r in rows if r["effect"] not in FOREIGN]
-    out = {"library_all_checks": [sum(all(r["checks"].values()) for r in library), len(library)]}
+    out = {}
+    if library:
+        out["library_all_checks"] = [sum(all(r["checks"].values()) for r in library), len(library)]
     # A false alarm: "structure remains" where the model is the true one; "undetermined" there is
     # counted apart (the selection's rule: effects the data cannot tell apart, selection.ambiguous_verdict).
     clean = [r for r in library if r["effect"] in PLACES[r["arm"]] or r["effect"] == "none"]
-    out["false_alarms"] = [sum(r["verdict"] == "structure remains" for r in clean), len(clean)]
-    out["clean_undetermined"] = [sum(r["verdict"] == "undetermined" for r in clean), len(clean)]
+    if clean:
+        out["false_alarms"] = [sum(r["verdict"] == "structure remains" for r in clean), len(clean)]
+        out["clean_undetermined"] = [sum(r["verdict"] == "undetermined" for r in clean), len(clean)]
     six = [r for r in rows if r["effect"] in FOREIGN and r["effect"] not in NEW_KINDS + PROBE_KINDS]
     for prefix, group in (("", six), ("new_kinds_", [r for r in rows if r["effect"] in NEW_KINDS]),
                           ("probe_kinds_", [r for r in rows if r["effect"] in PROBE_KINDS])):
