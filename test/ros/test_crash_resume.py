@@ -80,7 +80,11 @@ def test_kill_and_resume(ros, tmp_path):
     ekf = OnlineEkf(load_robot(ROBOT), online_options(0.0))
     for k in range(len(csv)):
         ekf.update(csv.q[k], csv.spots[k])
-    np.testing.assert_allclose(published["errors"], ekf.errors, rtol=1e-9, atol=1e-15)
+    # Seen once in a full suite under load (passing on rerun): all 33 differed with sample_count 12; the
+    # logs say which samples the estimator took when it happens again.
+    np.testing.assert_allclose(published["errors"], ekf.errors, rtol=1e-9, atol=1e-15,
+                               err_msg=f"estimator:\n{ros.log('estimator')}\nfirst sequencer:\n{ros.log('sequencer')}"
+                                       f"\nresumed:\n{log}")
 
     # a finished session is not measured again
     proc = ros.start("sequencer_again", *args, node="sequencer")
