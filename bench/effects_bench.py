@@ -65,8 +65,8 @@ from laser_calib.effects.catalog import camera_distortion, screen_shape
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.joint import gravity_torques
 from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignError, ForeignJointError, TrueEffect, Truth, draw_truth,
-                                          effect_session, sized, true_offsets_rms)
-from laser_calib.estimation.estimate import EstimateOptions, estimate_model
+                                          effect_session, fitted_test_rms, sized, true_offsets_rms)
+from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
@@ -283,11 +283,7 @@ def not_worse(diagnosis) -> bool:
 def true_model_rms(session, truth: list[TrueEffect], options: EstimateOptions) -> float:
     """Test RMS (mm) of the geometric errors plus the true effects, fitted on the calibration set."""
     effects = [t.effect for t in truth]
-    model = EffectModel(SpotModel(session.nominal, session.cal), effects)
-    est = estimate_model(model, options)
-    test = EffectModel(SpotModel(session.nominal, session.test), effects).residuals(est.values, False)
-    d = np.linalg.norm(test.r, axis=-1)[test.valid]
-    return float(np.sqrt(np.mean(d ** 2)) * 1e3)
+    return fitted_test_rms(session, lambda samples: EffectModel(SpotModel(session.nominal, samples), effects), options)
 
 
 def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given: str = "both") -> dict:

@@ -256,17 +256,23 @@ class EffectSession:
     noise: NoiseSpec
 
 
+def fitted_test_rms(session: EffectSession, model_of: Callable[[Samples], EffectModel],
+                    options: EstimateOptions) -> float:
+    """Test RMS (mm) of the spot error of model_of(samples) fitted on the calibration set."""
+    est = estimate_model(model_of(session.cal), options)
+    test = model_of(session.test).residuals(est.values, False)
+    d = np.linalg.norm(test.r, axis=-1)[test.valid]
+    return float(np.sqrt(np.mean(d ** 2)) * 1e3)
+
+
 def true_offsets_rms(session: EffectSession, truth: ForeignError | ForeignJointError,
                      options: EstimateOptions) -> float:
-    """Test RMS (mm) of the spot error of the geometric errors fitted on the calibration set with
-    the true foreign offsets known: the best a model of the foreign error can do on these poses."""
+    """fitted_test_rms of the geometric errors with the true foreign offsets known: the best a
+    model of the foreign error can do on these poses."""
     def model(samples: Samples) -> EffectModel:
         errors = truth.param_offsets(session.true, samples)
         return EffectModel(SpotModel(session.nominal, samples), (), None, Fixed(np.zeros_like(samples.q), errors))
-    est = estimate_model(model(session.cal), options)
-    test = model(session.test).residuals(est.values, False)
-    d = np.linalg.norm(test.r, axis=-1)[test.valid]
-    return float(np.sqrt(np.mean(d ** 2)) * 1e3)
+    return fitted_test_rms(session, model, options)
 
 
 def temperature(stamps: np.ndarray, duration: float, rng: np.random.Generator) -> np.ndarray:
