@@ -108,7 +108,8 @@ class Estimator(Node):
             if key in self.keys:
                 return
             self.keys.add(key)
-        self.add(row)
+        # One line per pose (the sequencer's pace): which samples the online EKF took, in which order.
+        self.get_logger().info(f"sample of pose {row[0]} (stamp {row[1]:.6f} s) taken: {self.add(row)} samples")
 
     def on_joint_state(self, msg: JointState) -> None:
         q = np.array(msg.position, dtype=float)
@@ -140,7 +141,8 @@ class Estimator(Node):
         if bad.size:
             raise InputError(where, f"joint_positions[{bad[0]}] is not finite ({row[2][bad[0]]})")
 
-    def add(self, row) -> None:
+    def add(self, row) -> int:
+        """Update the online EKF with a row (pose, stamp, q, spots); the samples taken so far."""
         with self.lock:
             self.rows.append(row)
             count = len(self.rows)
@@ -155,6 +157,7 @@ class Estimator(Node):
                 rows = self.rows[-MAX_POINTS // 2:]
             self.marker_pub.publish(calibration_markers(self.robot, np.array([r[2] for r in rows]),
                                                         np.array([r[3] for r in rows]), errors, stamp))
+        return count
 
     # ---- services ----
     def on_reset(self, request, response):
