@@ -165,7 +165,7 @@ class Ros:
 
 def start_sim(ros: Ros, out: Path, speed: float = 4.0) -> None:
     """The simulated arm, camera, detector and the estimator."""
-    ros.start("estimator", "-p", f"robot:={ROBOT}")
+    ros.start("estimator", "-p", f"robot:={ROBOT}", "--log-level", "estimator:=debug")  # a line per sample taken
     ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", f"sim.joint_speed:={speed}",
               "-p", f"sim.true_robot_out:={out / 'robot_true.yaml'}")
     ros.start("camera_sim")

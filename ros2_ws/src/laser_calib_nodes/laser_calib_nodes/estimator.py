@@ -108,8 +108,9 @@ class Estimator(Node):
             if key in self.keys:
                 return
             self.keys.add(key)
-        # One line per pose (the sequencer's pace): which samples the online EKF took, in which order.
-        self.get_logger().info(f"sample of pose {row[0]} (stamp {row[1]:.6f} s) taken: {self.add(row)} samples")
+        # Which samples the online EKF took, in which order (--log-level estimator:=debug; the sequencer
+        # already says each pose at info).
+        self.get_logger().debug(f"sample of pose {row[0]} (stamp {row[1]:.6f} s) taken: {self.add(row)} samples")
 
     def on_joint_state(self, msg: JointState) -> None:
         q = np.array(msg.position, dtype=float)
