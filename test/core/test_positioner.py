@@ -111,6 +111,9 @@ def test_calibrate_poses_command_writes_result_and_calibrated_robot(run, tmp_pat
     result = json.loads((out / "result.json").read_text())
     assert result["heldout"]["position_mm"]["mean"] < 1.0 and result["insample"]["position_mm"]["mean"] < 1.0
     assert [p["name"] for p in result["parameters"] if p["value"] is not None][:2] == ["a1", "alpha1"]
+    notes = {p["name"]: p.get("note", "") for p in result["parameters"]}
+    # d1 moves the first axis along itself, as the sensor's frame does: held, and said to be the frames'
+    assert notes["d1"].startswith("carried by the frames: not separable from sensor_")
     calibrated = load_robot(out / "robot_calibrated.yaml")
     assert calibrated.joints[0].a == pytest.approx(result["parameters"][0]["value"])
     assert "held-out" in capsys.readouterr().out

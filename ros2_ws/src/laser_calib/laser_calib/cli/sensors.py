@@ -69,8 +69,8 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
                  "value": float(est.errors[i]) if math.isfinite(est.errors[i]) else None,
                  "std": float(est.std[i]) if math.isfinite(est.std[i]) else None}
         if name in fit.absorbed:  # held before the fit: said to be the frames' only where a frame carries it
-            frames = any(is_frame_param(word.strip(",;")) for word in fit.absorbed[name].split())
-            entry["note"] = ("carried by the frames: " if frames else "") + fit.absorbed[name]
+            held = fit.absorbed[name]
+            entry["note"] = ("carried by the frames: " if held.by_frames else "") + held.why
         elif not est.identifiable[i]:
             entry["note"] = est.identifiability.merged.get(name, "held")
         out.append(entry)

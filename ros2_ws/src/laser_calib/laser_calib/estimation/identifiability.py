@@ -22,7 +22,7 @@ combination names only f and the kept parameters that carry it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -42,8 +42,9 @@ class Identifiability:
     """singular_values (min(M,n),) of the scaled Jacobian; rank (directions kept);
     condition number (largest / smallest kept singular value); free (n,)
     parameters kept; null_combinations: one text per held direction; merged:
-    held parameter name -> the parameters that carry its combination;
-    min_singular: the threshold that was applied."""
+    held parameter name -> the parameters that carry its combination, as text;
+    min_singular: the threshold that was applied; carriers: held parameter
+    name -> the names of the kept parameters that carry its combination."""
 
     names: tuple[str, ...]
     singular_values: np.ndarray
@@ -53,6 +54,7 @@ class Identifiability:
     null_combinations: tuple[str, ...]
     merged: dict[str, str]
     min_singular: float = 0.0
+    carriers: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     def table(self) -> str:
         lines = [f"parameters: {len(self.names)}   numerical rank: {self.rank}   "
@@ -109,7 +111,7 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     free = np.zeros(n, bool)
     free[kept] = True
 
-    combinations, merged = [], {}
+    combinations, merged, carriers = [], {}, {}
     for j in np.flatnonzero(~free & ~fixed):
         direction = np.zeros(n)
         direction[j] = 1.0
@@ -118,10 +120,11 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
         combinations.append(describe(direction, names))
         weight = np.abs(direction) / np.abs(direction).max()
         partners = [names[i] for i in kept if weight[i] > TERM_THRESHOLD]
+        carriers[names[j]] = tuple(partners)
         merged[names[j]] = ("not separable from " + ", ".join(partners) + "; fixed at nominal, "
                             "those parameters carry the combination") if partners else \
             "not determined by the data; fixed at nominal"
     kept_singular = np.linalg.svd(r_factor[:, kept], compute_uv=False) if kept else np.zeros(0)
     condition = float(kept_singular[0] / kept_singular[-1]) if kept else float("inf")
     return Identifiability(tuple(names), singular, len(kept), condition, free, tuple(combinations), merged,
-                           float(threshold))
+                           float(threshold), carriers)

@@ -59,13 +59,13 @@ class SensorFitOptions:
 @dataclass(frozen=True)
 class SensorFit:
     """model: the final model; nominal: the frames-only fit; estimate: the full
-    fit; absorbed: name -> why the frames carry it; rotation_length (m/rad)
+    fit; absorbed: name -> why it was held (Absorbed); rotation_length (m/rad)
     the pose residuals were weighted with."""
 
     model: MeasurementModel
     nominal: Estimate
     estimate: Estimate
-    absorbed: dict[str, str]
+    absorbed: dict[str, Absorbed]
     rotation_length: float
 
     def corrected(self, robot: Robot) -> Robot:
@@ -84,8 +84,21 @@ def make_model(robot: Robot, samples: SensorSamples, rotation_length: float = 1.
     return PointModel(robot, samples, scale)
 
 
+@dataclass(frozen=True)
+class Absorbed:
+    """A parameter held before the fit: why, and the names of the parameters that
+    carry its combination (none: the data do not determine it)."""
+
+    why: str
+    carriers: tuple[str, ...] = ()
+
+    @property
+    def by_frames(self) -> bool:
+        return any(is_frame_param(name) for name in self.carriers)
+
+
 def frames_first(model: MeasurementModel, noise: NoiseModel, fixed: np.ndarray,
-                 x: np.ndarray | None = None) -> dict[str, str]:
+                 x: np.ndarray | None = None) -> dict[str, Absorbed]:
     """Parameters the frames carry: identifiability with the frame columns first,
     linearised at ``x`` (default zero: the frame guesses)."""
     res = model.residuals(np.zeros(len(model.names)) if x is None else x, True)
@@ -96,7 +109,7 @@ def frames_first(model: MeasurementModel, noise: NoiseModel, fixed: np.ndarray,
     ident = analyse(jac[:, order], model.scales[order], names, fixed[order])
     free = np.empty(len(order), bool)
     free[order] = ident.free
-    return {name: ident.merged.get(name, "not seen by the data")
+    return {name: Absorbed(ident.merged.get(name, "not seen by the data"), ident.carriers.get(name, ()))
             for name, keep, held in zip(model.names, free, fixed) if not keep and not held}
 
 
