@@ -83,6 +83,14 @@ def _no_spots_test(folder: Path) -> list[str]:
     return _estimate(folder) + ["--test", str(folder / "test.csv")]
 
 
+def _diagnose(folder: Path, *extra: str) -> list[str]:
+    return ["diagnose"] + _estimate(folder)[1:] + list(extra)
+
+
+def _no_spots_diagnose_test(folder: Path) -> list[str]:
+    return _diagnose(folder, "--test", _no_spots_test(folder)[-1])
+
+
 BOMB = "a: &a [x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b, *b]\n"
 
 CASES = {
@@ -92,6 +100,11 @@ CASES = {
     "0_1 with Python underscores": (lambda d: _estimate(d, samples=_cell(1, "q1", "0_1")), "field q1"),
     "spot 1e300": (lambda d: _estimate(d, samples=_cell(2, "l1_y", "1e300")), "field l1_y"),
     "test file with every spot missing": (_no_spots_test, "test.csv"),
+    "diagnose: test file with every spot missing": (_no_spots_diagnose_test, "test.csv"),
+    "diagnose --out is a file": (lambda d: (d / "taken").write_text("x") and _diagnose(d)[:-1] + [str(d / "taken")],
+                                 "--out"),
+    "diagnose --out unwritable": (lambda d: _diagnose(d)[:-1] + ["/proc/x/y"], "/proc"),
+    "diagnose --seed -1": (lambda d: _diagnose(d, "--seed", "-1"), "--seed"),
     "400-digit integer in YAML": (lambda d: _estimate(d, robot=_robot_text("a: 0.0", "a: " + "9" * 400)), "robot.yaml"),
     "recursive anchor": (lambda d: _estimate(d, robot="name: &a [*a]\n"), "robot.yaml"),
     "5000-deep nesting": (lambda d: _estimate(d, robot="name: " + "[" * 5000 + "]" * 5000 + "\n"), "robot.yaml"),
@@ -178,6 +191,15 @@ def test_a_failed_run_leaves_no_folder_and_a_reused_one_is_named(tmp_path, capsy
     assert _run(["estimate", "--robot", robot, "--samples", samples, "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "old_plot.png" in out and (tmp_path / "out" / "result.json").exists()
+
+
+def test_diagnose_says_when_the_nested_heldout_error_cannot_be_computed(tmp_path, capsys):
+    """Two folds of 12 poses leave 6 to select on, fewer than the diagnosis needs: no nested
+    held-out error (the notes say why), and the command still finishes."""
+    assert _run(_diagnose(tmp_path, "--folds", "2")) == 0
+    out = capsys.readouterr().out
+    assert "held out with the selection inside the folds: not computed" in out
+    assert "note: no held-out error with the selection inside the folds" in out
 
 
 TEXT = st.text(alphabet=st.characters(blacklist_categories=("Cs",)), max_size=30)

@@ -9,9 +9,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from laser_calib.cli.arguments import non_negative, non_negative_int, positive
+from laser_calib.cli.arguments import non_negative, non_negative_int, out_folder, positive, staged_folder
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
+from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
 from laser_calib.io.samples import load_samples
 from laser_calib.report.progress import Progress
@@ -24,23 +25,28 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
+    if test is not None and not test.seen.any():
+        raise InputError(str(args.test), "no spot is measured in the test set (every spot field empty)")
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
           file=sys.stderr, flush=True)
-    # per model fitted: its fit on all poses and one per fold
-    with Progress("diagnose", unit="fit") as progress:
-        options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
-                                  folds=args.folds, max_effects=args.max_effects, seed=args.seed,
-                                  compensate=not args.no_compensator, nested=True, progress=progress)
-        diagnosis = diagnose(robot, samples, test, options=options)
-    result = write_outputs(diagnosis, args.out, {"robot": str(args.robot), "samples": str(args.samples),
-                                                 "test": str(args.test) if args.test else None})
+    # The folder first: one that cannot be written fails before the work, and a failed run leaves none.
+    with staged_folder(args.out) as out:
+        # per model fitted: its fit on all poses and one per fold
+        with Progress("diagnose", unit="fit") as progress:
+            options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
+                                      folds=args.folds, max_effects=args.max_effects, seed=args.seed,
+                                      compensate=not args.no_compensator, nested=True, progress=progress)
+            diagnosis = diagnose(robot, samples, test, options=options)
+        result = write_outputs(diagnosis, out, {"robot": str(args.robot), "samples": str(args.samples),
+                                                "test": str(args.test) if args.test else None})
     for stage in result["stages"]:
         where = "test" if stage["test"] else "cv"
         s = stage[where]
         print(f"{stage['model']}: {where} spot error mean {s['mean_mm']:.3f} mm, rms {s['rms_mm']:.3f} mm, "
               f"max {s['max_mm']:.3f} mm")
     nested = result["heldout_nested"]
-    print(f"held out with the selection inside the folds: spot error rms {nested['rms_mm']:.3f} mm")
+    print("held out with the selection inside the folds: " + (f"spot error rms {nested['rms_mm']:.3f} mm" if nested
+                                                              else "not computed (the notes say why)"))
     kept = result["compensator"]
     if kept:
         test = kept["test"]
@@ -67,9 +73,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=METHODS, default="lm", help="estimator of every fit")
     p.add_argument("--folds", type=non_negative_int, default=5, help="cross-validation folds (at least 2)")
     p.add_argument("--max-effects", type=non_negative_int, default=4, help="effects added at most")
-    p.add_argument("--seed", type=int, default=0, help="seed of the fold split")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the fold split")
     p.add_argument("--no-compensator", action="store_true",
                    help="do not keep the learned compensator even when it wins held-out")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, type=out_folder, help="output folder")
     p.set_defaults(func=cmd_diagnose)
 
