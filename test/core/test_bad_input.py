@@ -76,6 +76,12 @@ def _slm(folder: Path, rows: str, *extra: str) -> list[str]:
             "--out", str(folder / "slm.yaml"), *extra]
 
 
+def _appended(header: str, value: str) -> str:
+    """SAMPLES with a column appended to every line."""
+    lines = SAMPLES.splitlines()
+    return "\n".join([lines[0] + header] + [line + value for line in lines[1:]]) + "\n"
+
+
 def _no_spots_test(folder: Path) -> list[str]:
     empty = SESSION.samples.subset(np.arange(3))
     text = format_samples(type(empty)(empty.pose, empty.stamp, empty.q, np.full_like(empty.spots, np.nan)))
@@ -121,6 +127,9 @@ CASES = {
         lambda r: r["joints"][1].__setitem__("alpha", 90.0))), "degrees"),
     "spots in millimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(
         SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q, SESSION.samples.spots * 1e3))), "millimetres"),
+    "a fifth joint's readings after the spots": (lambda d: _estimate(d, samples=_appended(",q5", ",0.1")), "column q5"),
+    "a third laser's spots": (lambda d: _estimate(d, samples=_appended(",l3_y,l3_z", ",0.1,0.2")), "column l3_y"),
+    "a column without a name": (lambda d: _estimate(d, samples=_appended(",", ",3")), "without a name"),
     "joint readings in degrees": (lambda d: _estimate(d, samples=_cell(1, "q2", "45")), "degrees"),
     "pose CSV without qz": (lambda d: _poses(d, "pose,stamp,q1,q2,q3,q4,x,y,z,qw,qx,qy"), "qz"),
     "positions in millimetres": (lambda d: _poses(d, "pose,stamp,q1,q2,q3,q4,x,y,z", "0,0.0,0.1,0.2,0.3,0.4,1000,500,200"),
@@ -170,6 +179,12 @@ def test_bad_input_is_one_line_and_exit_2(name, tmp_path, capsys):
     assert [line for line in err if line.startswith("laser-calib")] == err[-1:], err
     assert expected in err[-1], err[-1]
     assert not (tmp_path / "out").exists()      # nothing half-written
+
+
+def test_a_comma_at_the_end_of_every_line_is_no_column(tmp_path):
+    (tmp_path / "samples.csv").write_text(_appended(",", ","))
+    samples = load_samples(tmp_path / "samples.csv", ROBOT)
+    assert np.array_equal(samples.q, SESSION.samples.q) and samples.extra == {}
 
 
 def test_a_byte_order_mark_is_accepted(tmp_path):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -103,6 +104,9 @@ def read_table(text: str, source: str, expected_header: str) -> tuple[list[str],
     if not rows:
         raise InputError(source, f"empty file (expected a header row {expected_header})")
     header = [cell.strip() for cell in rows[0]]
+    if len(header) > 1 and not header[-1] and all(len(row) == len(header) and not row[-1].strip() for row in rows):
+        # a comma at the end of every line (a spreadsheet's export): no column
+        header, rows = header[:-1], [row[:-1] for row in rows]
     if header[:2] != ["pose", "stamp"]:
         raise _header_error(source, f"must start with 'pose,stamp', got {','.join(header[:2])!r}")
     n_q = 0
@@ -198,7 +202,24 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
     if robot is not None:
         check_joint_range(q, robot, source, pose)
     extra = {name: values[:, 5 + n_q + i] for i, name in enumerate(header[6 + n_q:])}
+    check_extra_columns(list(extra), n_q, robot, source)
     return Samples(pose, values[:, 0], q, spots, extra)
+
+
+def check_extra_columns(names: list[str], n_q: int, robot: Robot | None, source: str) -> None:
+    """One line for a column after the measured ones that is named like measured data: the
+    covariates there (temperature, ...) are free names, but q5 after a 4-joint arm's spots is a
+    bigger arm's log and l3_y a third laser's spot, which would otherwise be taken as covariates."""
+    for name in names:
+        if not name:
+            raise _header_error(source, "a column without a name after the measured columns (a covariate needs one)")
+        if re.fullmatch(r"q\d+", name):
+            joints = f"robot '{robot.name}' has {robot.n_joints} joints" if robot is not None else f"q1..q{n_q} come first"
+            raise _header_error(source, f"column {name} after the measured columns: joint readings are q1..q{n_q}, "
+                                        f"right after stamp ({joints})")
+        if re.fullmatch(r"l\d+_[yz]", name):
+            raise _header_error(source, f"column {name}: the laser module has two lasers, whose spots are "
+                                        f"{','.join(SPOT_COLUMNS)}")
 
 
 def check_distance_units(position: np.ndarray, where: str) -> None:

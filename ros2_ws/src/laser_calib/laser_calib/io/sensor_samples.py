@@ -22,8 +22,8 @@ from laser_calib.io.errors import InputError
 from laser_calib.io.figaroh import is_figaroh, parse_figaroh
 from laser_calib.io.read import read_text
 from laser_calib.model.robot import Robot
-from laser_calib.io.samples import (Samples, check_all_or_none, check_distance_units, check_joint_count,
-                                    check_joint_range, parse_table, read_table)
+from laser_calib.io.samples import (Samples, check_all_or_none, check_distance_units, check_extra_columns,
+                                    check_joint_count, check_joint_range, parse_table, read_table)
 
 POINT_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
@@ -67,6 +67,7 @@ def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | No
     quaternion = values[:, 4 + n_q:8 + n_q] if kind == "pose" else None
     extra = {name: values[:, 1 + n_q + len(measured) + i]
              for i, name in enumerate(header[2 + n_q + len(measured):])}
+    check_extra_columns(list(extra), n_q, robot, source)
     return Samples(pose, values[:, 0], q, extra=extra, position=position, quaternion=quaternion)
 
 
