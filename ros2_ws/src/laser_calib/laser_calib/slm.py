@@ -24,6 +24,7 @@ import numpy as np
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Laser, Robot
 from laser_calib.io.read import csv_rows, parse_int, parse_number, read_text
+from laser_calib.io.samples import MAX_DISTANCE
 
 COLUMNS = ("laser", "distance", "u", "v")
 
@@ -68,6 +69,16 @@ def fit_laser(distance: np.ndarray, uv: np.ndarray, sigma: float | None = None) 
     return LaserAngles(gamma, beta, gamma_std, t_std / (1 + t ** 2), len(distance))
 
 
+def _check_distance(distance: float, where: str) -> None:
+    """A fixture distance is positive, and no fixture holds the SLM over MAX_DISTANCE
+    (as a sensor's target distance) from the screen: such a value is in millimetres."""
+    if distance <= 0:
+        raise InputError(where, f"must be positive, got {distance}")
+    if distance > MAX_DISTANCE:
+        raise InputError(where, f"{distance:g} m is not a plausible fixture distance: distances are in metres "
+                                "(this looks like millimetres)")
+
+
 def load_measurements(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """CSV with header laser,distance,u,v (laser 1 or 2; metres) -> {laser: (D (K,), uv (K,2))}."""
     path = Path(path)
@@ -84,8 +95,7 @@ def load_measurements(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarra
         if laser not in data:
             raise InputError(f"{path}: line {line}, field laser", f"expected 1 or 2, got {laser}")
         values = [parse_number(cell, f"{path}: line {line}, field {name}") for name, cell in zip(COLUMNS[1:], row[1:])]
-        if values[0] <= 0:
-            raise InputError(f"{path}: line {line}, field distance", f"must be positive, got {values[0]}")
+        _check_distance(values[0], f"{path}: line {line}, field distance")
         data[laser].append(tuple(values))
     out = {}
     for laser, entries in data.items():

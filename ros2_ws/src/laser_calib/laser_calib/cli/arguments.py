@@ -20,9 +20,11 @@ from laser_calib.io.read import parse_int, parse_number
 
 
 # Plausible noise levels: a spot or position noise outside 1 nm .. 1 m, or a
-# joint noise over 0.5 rad (29 deg), is a unit mistake, not a sensor.
+# joint noise over 0.5 rad (29 deg), is a unit mistake, not a sensor. A length
+# tolerance is bounded alike: 10 (mm typed as m) is no arm's tolerance.
 SIGMA_LENGTH = (1e-9, 1.0)
 MAX_SIGMA_ANGLE = 0.5
+MAX_SIGMA_DEG = math.degrees(MAX_SIGMA_ANGLE)
 
 
 def _number(text: str, allow_zero: bool) -> float:
@@ -44,13 +46,28 @@ def non_negative(text: str) -> float:
     return _number(text, allow_zero=True)
 
 
+def _length(text: str, what: str, low: float) -> float:
+    """A length in metres within low .. SIGMA_LENGTH[1] (low 0: zero allowed)."""
+    value = _number(text, allow_zero=low == 0)
+    if not low <= value <= SIGMA_LENGTH[1]:
+        raise argparse.ArgumentTypeError(f"{text} m is not a plausible {what} (expected {low:g} .. "
+                                         f"{SIGMA_LENGTH[1]:g} m; lengths are in metres)")
+    return value
+
+
 def sigma_length(text: str) -> float:
     """A noise standard deviation in metres."""
-    value = positive(text)
-    if not SIGMA_LENGTH[0] <= value <= SIGMA_LENGTH[1]:
-        raise argparse.ArgumentTypeError(f"{text} m is not a plausible noise level (expected "
-                                         f"{SIGMA_LENGTH[0]:g} .. {SIGMA_LENGTH[1]:g} m; lengths are in metres)")
-    return value
+    return _length(text, "noise level", SIGMA_LENGTH[0])
+
+
+def tolerance_length(text: str) -> float:
+    """A prior's length tolerance in metres: the same range as a noise level."""
+    return _length(text, "tolerance", SIGMA_LENGTH[0])
+
+
+def noise_length(text: str) -> float:
+    """A simulated noise half-width in metres (0: none)."""
+    return _length(text, "noise level", 0.0)
 
 
 def sigma_angle(text: str) -> float:
@@ -59,6 +76,15 @@ def sigma_angle(text: str) -> float:
     if value > MAX_SIGMA_ANGLE:
         raise argparse.ArgumentTypeError(f"{text} rad is not a plausible joint noise (at most {MAX_SIGMA_ANGLE} "
                                          "rad; angles are in radians)")
+    return value
+
+
+def noise_angle_deg(text: str) -> float:
+    """A simulated joint noise half-width in degrees (0: none), bounded as sigma_angle."""
+    value = non_negative(text)
+    if value > MAX_SIGMA_DEG:
+        raise argparse.ArgumentTypeError(f"{text} deg is not a plausible joint noise (at most {MAX_SIGMA_DEG:.1f} "
+                                         "deg)")
     return value
 
 
@@ -136,8 +162,9 @@ def out_file(text: str) -> str:
 def staged_folder(out: str) -> Iterator[Path]:
     """A fresh folder beside ``out`` to write into. On success its files replace
     the same names in ``out`` (other files there are left and named, so it is
-    clear what this run wrote); on failure it is removed, so a failed run leaves
-    no half-written folder."""
+    clear what this run wrote), a subfolder as a whole (no file of an earlier
+    run left in it); on failure it is removed, so a failed run leaves no
+    half-written folder."""
     target = Path(out)
     try:
         target.absolute().parent.mkdir(parents=True, exist_ok=True)
@@ -149,7 +176,7 @@ def staged_folder(out: str) -> Iterator[Path]:
         target.mkdir(exist_ok=True)
         written = sorted(p.name for p in stage.iterdir())
         for name in written:
-            os.replace(stage / name, target / name)
+            _replace(stage / name, target / name, stage)
     except OSError as exc:
         raise InputError(out, f"cannot write ({exc.strerror or exc})") from None
     finally:
@@ -158,3 +185,10 @@ def staged_folder(out: str) -> Iterator[Path]:
     if others:
         print(f"note: {out}/ also holds files this run did not write (left as they were): "
               + ", ".join(others[:6]) + (f" and {len(others) - 6} more" if len(others) > 6 else ""))
+
+
+def _replace(new: Path, old: Path, stage: Path) -> None:
+    """new in old's place; an old folder is first moved into the stage, which is removed after."""
+    if old.is_dir() and not old.is_symlink():
+        os.replace(old, Path(tempfile.mkdtemp(prefix=".replaced-", dir=stage)) / old.name)
+    os.replace(new, old)

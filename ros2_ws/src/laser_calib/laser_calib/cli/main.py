@@ -33,8 +33,9 @@ from laser_calib.cli import diagnose as diagnose_cli
 from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
-from laser_calib.cli.arguments import (non_negative, out_file, out_folder, positive, positive_int, print_warnings,
-                                      sigma_angle, sigma_length, staged_folder)
+from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, noise_angle_deg, noise_length, non_negative_int,
+                                      out_file, out_folder, positive, positive_int, print_warnings, sigma_angle,
+                                      sigma_length, staged_folder, tolerance_length)
 
 EXIT_BAD_INPUT = 2
 
@@ -103,13 +104,20 @@ def _bag_samples(path: str, robot) -> object:
     return samples
 
 
+def _measured(samples, source: str, problem: str = "no measured spot") -> None:
+    """One line naming the file when no spot in it is measured: nothing to fit or to judge."""
+    if not samples.seen.any():
+        raise InputError(source, f"{problem} (every spot field empty)")
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = _bag_samples(args.bag, robot) if args.bag else load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
-    if test is not None and not test.seen.any():
-        raise InputError(str(args.test), "no spot is measured in the test set (every spot field empty)")
+    _measured(samples, str(args.samples or args.bag))
+    if test is not None:
+        _measured(test, str(args.test), "no spot is measured in the test set")
     compensator = None
     if args.compensator:
         from laser_calib.diagnosis.compensator import load_compensator  # scikit-learn: only when asked for
@@ -137,6 +145,7 @@ def _summary(calibration) -> None:
 def cmd_identify(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
+    _measured(samples, args.samples)
     model = SpotModel(robot, samples)
     factor, n_values = whitened_factor(model, NoiseModel(args.spot_sigma, args.joint_sigma), np.zeros(robot.n_params))
     print(f"{robot.name}: {len(samples)} poses, {n_values // 2} spots")
@@ -147,6 +156,9 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 def cmd_slm_calibrate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
+    if robot.slm is None:  # the file written would be refused by every other command
+        raise InputError(args.robot, "has no laser module ('slm:' and 'lasers:'): slm-calibrate writes the "
+                                     "robot file with its lasers' angles; give the robot with its SLM")
     measurements = slm_calibration.load_measurements(args.measurements)
     calibrated, angles = slm_calibration.calibrate(robot, measurements, args.spot_sigma)
     for j, a in enumerate(angles):
@@ -176,12 +188,14 @@ def build_parser() -> argparse.ArgumentParser:
     arm.add_argument("--robot", help="any robot YAML with lasers (D-H, or 'urdf:' docs/urdf.md), in the paper's "
                                      f"session ({CASE_POSES['paper-7dof']} + {CASE_POSES['paper-7dof']} poses unless "
                                      "--poses-per-span)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--out", required=True, type=out_folder)
     p.add_argument("--poses-per-span", type=positive_int, default=None,
                    help="poses in each of the small-range and whole-workspace sets (paper: 30 / 25)")
-    p.add_argument("--spot-noise", type=non_negative, default=0.002, help="half-width of uniform spot noise, m")
-    p.add_argument("--joint-noise-deg", type=non_negative, default=0.1, help="half-width of joint disturbance, deg")
+    p.add_argument("--spot-noise", type=noise_length, default=0.002,
+                   help=f"half-width of uniform spot noise, m (0 .. {SIGMA_LENGTH[1]:g})")
+    p.add_argument("--joint-noise-deg", type=noise_angle_deg, default=0.1,
+                   help=f"half-width of joint disturbance, deg (0 .. {MAX_SIGMA_DEG:.1f})")
     p.add_argument("--random-errors", action="store_true",
                    help="true errors uniform within +-10 mm / 1 deg instead of the paper's all-positive ones")
     p.set_defaults(func=cmd_simulate)
@@ -197,7 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="spot noise std per coordinate, m (default: estimated from the residual)")
     p.add_argument("--joint-sigma", type=sigma_angle, default=0.0, help="joint reading noise std, rad")
     p.add_argument("--prior", action="store_true", help="tolerance prior: 10 mm and 1 deg per error")
-    p.add_argument("--prior-length", type=positive, default=None, help="length tolerance, m (implies --prior)")
+    p.add_argument("--prior-length", type=tolerance_length, default=None,
+                   help=f"length tolerance, m ({SIGMA_LENGTH[0]:g} .. {SIGMA_LENGTH[1]:g}; implies --prior)")
     p.add_argument("--prior-angle-deg", type=positive, default=None, help="angle tolerance, deg (implies --prior)")
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
                    help="robust fit: outlier spots rejected and listed (default; the rule is in result.json)")

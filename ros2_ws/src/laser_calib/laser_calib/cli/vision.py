@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from laser_calib.cli.arguments import positive_int
+from laser_calib.cli.arguments import non_negative_int, out_file, out_folder, positive_int, staged_folder
 from laser_calib.io.errors import InputError
 from laser_calib.vision import (RenderOptions, board_poses, calibrate_screen, default_camera, detect_fiducials,
                      render_board_frame, render_fiducial_frame, save_calibration)
@@ -55,7 +55,10 @@ def cmd_screen_calibrate(args: argparse.Namespace) -> int:
     undistorted, known = detect_fiducials(screens[0], calibration.K, calibration.dist)
     mapped = cv2.perspectiveTransform(undistorted.reshape(-1, 1, 2), calibration.homography).reshape(-1, 2)
     error_mm = np.linalg.norm(mapped - known, axis=1) * 1e3
-    save_calibration(calibration, args.out)
+    try:
+        save_calibration(calibration, args.out)
+    except OSError as exc:  # --out was checked at the start: the disk filled or the folder went meanwhile
+        raise InputError(args.out, f"cannot write ({exc.strerror or exc})") from None
     print(f"camera {calibration.width}x{calibration.height}: fx {calibration.K[0, 0]:.1f} px, "
           f"fy {calibration.K[1, 1]:.1f} px, k1 {calibration.dist[0]:+.4f}; {len(boards)} board views, "
           f"{len(screens)} screen views")
@@ -71,29 +74,36 @@ def cmd_screen_calibrate(args: argparse.Namespace) -> int:
 def cmd_render_calibration_images(args: argparse.Namespace) -> int:
     camera = default_camera()
     rng = np.random.default_rng(args.seed)
-    out = Path(args.out)
-    for name, images in (("board", [render_board_frame(camera, rvec, tvec, rng, options=CALIBRATION_LIGHT)
-                                    for rvec, tvec in board_poses(camera, count=args.board_views, rng=rng)]),
-                         ("screen", [render_fiducial_frame(camera, rng, CALIBRATION_LIGHT)
-                                     for _ in range(args.screen_views)])):
-        (out / name).mkdir(parents=True, exist_ok=True)
-        for k, image in enumerate(images):
-            cv2.imwrite(str(out / name / f"{name}_{k:03d}.png"), image)
-    print(f"wrote {args.board_views} board views to {out}/board and {args.screen_views} screen views to "
-          f"{out}/screen (simulated camera, seed {args.seed})")
+    with staged_folder(args.out) as out:
+        for name, images in (("board", [render_board_frame(camera, rvec, tvec, rng, options=CALIBRATION_LIGHT)
+                                        for rvec, tvec in board_poses(camera, count=args.board_views, rng=rng)]),
+                             ("screen", [render_fiducial_frame(camera, rng, CALIBRATION_LIGHT)
+                                         for _ in range(args.screen_views)])):
+            (out / name).mkdir()
+            for k, image in enumerate(images):
+                _write_image(out / name / f"{name}_{k:03d}.png", image)
+    print(f"wrote {args.board_views} board views to {args.out}/board and {args.screen_views} screen views to "
+          f"{args.out}/screen (simulated camera, seed {args.seed})")
     return 0
+
+
+def _write_image(path: Path, image: np.ndarray) -> None:
+    """cv2.imwrite says a failed write only by returning False: an OSError, so the stage is removed."""
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"cannot write {path.name}")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("screen-calibrate", help="camera intrinsics and image-to-screen map from fiducial images")
     p.add_argument("--board-images", required=True, help="folder of ChArUco board views (intrinsics)")
     p.add_argument("--screen-images", required=True, help="folder of screen fiducial views from the fixed camera")
-    p.add_argument("--out", required=True, help="calibration YAML for the spot_detector")
+    p.add_argument("--out", required=True, type=out_file, help="calibration YAML for the spot_detector")
     p.set_defaults(func=cmd_screen_calibrate)
 
     p = sub.add_parser("render-calibration-images", help="calibration images of the simulated camera")
-    p.add_argument("--out", required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, type=out_folder, help="folder of the board/ and screen/ image folders "
+                                                                  "(each replaced as a whole)")
+    p.add_argument("--seed", type=non_negative_int, default=0)
     # As calibrate_screen recommends (20-30 tilted board views, 5-10 screen views).
     p.add_argument("--board-views", type=positive_int, default=30)
     p.add_argument("--screen-views", type=positive_int, default=8)
