@@ -22,13 +22,20 @@ parameters), the basis (standardisation, knots, pairs, size), the coefficients
 ``coef`` (m', b) of the directions used, in SI units (rad for theta_j and
 alpha_j, m for d_j and a_j; version 1 files, from before the length
 directions, hold only angles under ``coef_rad`` and still load); load it with
-load_compensator(path). The move directions are taken from the row order of
-the samples it is applied to (from q = 0), as in the calibration.
+load_compensator(path), which checks the whole file when it reads it (every
+key's type, shape and finite numbers: one InputError naming the file and key,
+never an error deep in a fit). The move directions are taken from the row order of
+the samples it is applied to (from q = 0), as in the calibration. Applied to a
+robot or model it was not made for (a target that is not the robot's, other
+parameter names), it raises InputError saying what differs.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import re
+import reprlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Mapping
@@ -37,7 +44,8 @@ import numpy as np
 
 from sklearn.base import clone
 
-from laser_calib.diagnosis.detector import Basis, Detection, OffsetRegression, design, input_table
+from laser_calib.diagnosis.detector import (LINK_DIRECTIONS, MIN_SPREAD, Basis, Detection, OffsetRegression, design,
+                                            input_table)
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.effects.effect_model import EffectModel, Fixed
@@ -47,6 +55,8 @@ from laser_calib.model.robot import Robot
 VERSION = 2
 READABLE = (1, 2)  # version 1: angle targets only, coefficients under "coef_rad"
 BACKFIT = 3  # rounds of model refit / regression refit
+TARGET = re.compile(rf"(theta|{'|'.join(LINK_DIRECTIONS)})[1-9][0-9]*")  # detector.directions' names
+JOINT_READING = re.compile(r"q[1-9][0-9]*")  # input_table's name of a joint reading
 
 
 @dataclass(frozen=True)
@@ -55,7 +65,8 @@ class Compensator:
     the regression has; coef (m', b) per basis function (rad or m, the target's unit); heldout_gain the
     detector's held-out gain of the regression (fraction of the whitened
     residual sum of squares); names and values (n,) of the model it completes
-    (its geometric errors and effect parameters refitted with the compensation)."""
+    (its geometric errors and effect parameters refitted with the compensation);
+    source the file it was read from, which its errors name."""
 
     inputs: tuple[str, ...]
     targets: tuple[str, ...]
@@ -65,6 +76,7 @@ class Compensator:
     heldout_gain: float
     names: tuple[str, ...] = ()
     values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    source: str = "compensator"
 
     @classmethod
     def of(cls, regression: OffsetRegression, detection: Detection, names: tuple[str, ...], values: np.ndarray
@@ -78,13 +90,13 @@ class Compensator:
                 ) -> tuple[np.ndarray, np.ndarray]:
         """Joint offsets dq (P,N) rad and geometric-parameter offsets (P,n) of
         the poses with readings q (P,N), stamps (P,) and extra columns."""
+        self.check_targets(robot)
         names, z = input_table(q, stamp, dict(extra))
-        missing = [n for n in self.inputs if n not in names]
+        missing = [k for k, n in enumerate(self.inputs) if n not in names]
         if missing:
-            raise InputError("samples", f"no column '{missing[0]}' (the compensator follows it)")
-        z = z[:, [names.index(n) for n in self.inputs]]
-        values = np.zeros((len(q), len(self.targets)))
-        values[:, self.used] = self.basis(z) @ self.coef.T
+            raise InputError(f"{self.source}: inputs[{missing[0]}]", f"'{self.inputs[missing[0]]}' is not a column "
+                                                                     "of the samples (the compensator follows it)")
+        values = self.values_at(z[:, [names.index(n) for n in self.inputs]])
         dq = np.zeros_like(np.asarray(q, float))
         errors = np.zeros((len(q), robot.n_params))
         for k, name in enumerate(self.targets):
@@ -94,8 +106,41 @@ class Compensator:
                 errors[:, robot.param_names.index(name)] += values[:, k]
         return dq, errors
 
+    def values_at(self, z: np.ndarray) -> np.ndarray:
+        """Every target's offset (P,m) at inputs z (P,d); InputError naming the file where the
+        standardised inputs or the offsets overflow (numbers of the file far beyond the inputs':
+        scikit-learn would refuse the infinite inputs, the fit the NaN offsets, neither naming it)."""
+        values = np.zeros((len(z), len(self.targets)))
+        with np.errstate(all="ignore"):  # numpy's warnings would be lines beside the error
+            finite = np.isfinite((z - self.basis.mean) / self.basis.std).all()
+            if finite:
+                values[:, self.used] = self.basis(z) @ self.coef.T
+        if not (finite and np.isfinite(values).all()):
+            raise InputError(self.source, "its offsets overflow at these poses (mean, std or coef far beyond the "
+                                          "inputs' range)")
+        return values
+
+    def check_targets(self, robot: Robot) -> None:
+        """InputError at the first target that is not a parameter of ``robot`` (a joint offset
+        theta_j of one of its joints, or one of its parameter names), before any offset is indexed."""
+        for k, name in enumerate(self.targets):
+            if not _is_target_of(name, robot):
+                raise InputError(f"{self.source}: targets[{k}]", f"'{name}' is not a parameter of robot "
+                                                                 f"'{robot.name}' (joints 1..{robot.n_joints})")
+
+    def check_model(self, model: EffectModel) -> None:
+        """InputError naming the file when ``model`` is not the one the compensator was made for
+        (its values are that model's): the parameter counts and the names only one of them has."""
+        this = tuple(model.names)
+        if this != self.names:
+            raise InputError(self.source, f"made for a {len(self.names)}-parameter model, not this "
+                                          f"{len(this)}-parameter one of robot '{model.robot.name}' "
+                                          f"({_difference(self.names, this)})")
+
     def apply(self, model: EffectModel) -> EffectModel:
-        """The model with the compensation's offsets on its poses."""
+        """The model with the compensation's offsets on its poses (InputError when it is
+        not the model the compensator was made for, check_model)."""
+        self.check_model(model)
         samples = model.samples
         dq, errors = self.offsets(model.robot, samples.q, samples.stamp, samples.extra)
         padded = np.zeros((len(dq), model.n_geometric))
@@ -105,9 +150,6 @@ class Compensator:
     def predict(self, model: EffectModel) -> np.ndarray:
         """The compensated prediction (P,C,D) of ``model``'s poses (the model of
         the diagnosis, on any samples) at the compensator's own values."""
-        if tuple(model.names) != self.names:
-            raise InputError("compensator", f"made for the model {', '.join(self.names[-3:])}..., not "
-                                            f"{', '.join(model.names[-3:])}...")
         return self.apply(model).residuals(self.values, False).predicted
 
     def to_json(self) -> dict:
@@ -141,23 +183,187 @@ def backfit(detection: Detection, model: EffectModel, x: np.ndarray, options: Es
 
 
 def load_compensator(path: str | Path) -> Compensator:
-    """A compensator file (module docstring); InputError naming the file and key on bad input."""
+    """A compensator file (module docstring), checked whole when it is read: each problem is
+    one InputError naming the file and key (a damaged or hand-edited file would otherwise
+    fail deep in a fit, in numpy's or scikit-learn's words, or not at all)."""
+    source = str(path)
     try:
         data = json.loads(Path(path).read_text())
-        version = data.get("version")
-        if version not in READABLE:
-            raise InputError(str(path), f"compensator version {version!r}, expected one of "
-                                        f"{', '.join(map(str, READABLE))}")
-        key = "coef_rad" if version == 1 else "coef"
-        basis = Basis(np.array(data["mean"], float), np.array(data["std"], float), np.array(data["knots"], float),
-                      np.array(data["pairs"], int).reshape(-1, 2), float(data["size"]))
-        coef = np.array(data[key], float)
-        used = np.array(data["used"], bool)
-        compensator = Compensator(tuple(data["inputs"]), tuple(data["targets"]), used, basis, coef,
-                                  float(data["heldout_gain"]), tuple(data["model"]["names"]),
-                                  np.array(data["model"]["values"], float))
-    except (OSError, ValueError, KeyError, TypeError) as error:
-        raise InputError(str(path), f"not a compensator file ({error})") from None
-    if coef.shape != (int(used.sum()), basis(np.zeros((1, len(compensator.inputs)))).shape[1]):
-        raise InputError(f"{path}: {key}", f"shape {coef.shape} does not match the inputs and targets")
-    return compensator
+    except (OSError, ValueError, RecursionError) as error:
+        raise InputError(source, f"not a compensator file ({error})") from None
+    if not isinstance(data, dict):
+        raise InputError(source, f"not a compensator file (expected a JSON object, not {reprlib.repr(data)})")
+    file = _Fields(source, data)
+    version = file["version"]
+    if isinstance(version, bool) or version not in READABLE:
+        raise file.error("version", f"{reprlib.repr(version)}, expected one of {', '.join(map(str, READABLE))}")
+    inputs = _inputs(file)
+    targets = _targets(file)
+    basis = _basis(file, inputs)
+    used = _flags(file["used"], file.where("used"), len(targets))
+    key = "coef_rad" if version == 1 else "coef"
+    width = _width(basis)
+    coef = _array(file[key], file.where(key), ((int(used.sum()), "one row per used target"),
+                                               (width, "one per basis function")))
+    names, values = _model(file)
+    return Compensator(inputs, targets, used, basis, coef, _number(file["heldout_gain"], file.where("heldout_gain")),
+                       names, values, source)
+
+
+@dataclass(frozen=True)
+class _Fields:
+    """A JSON object of a compensator file, its keys prefixed (``model.``) in the errors that name them."""
+
+    source: str
+    data: dict
+    prefix: str = ""
+
+    def where(self, key: str) -> str:
+        return f"{self.source}: {self.prefix}{key}"
+
+    def error(self, key: str, problem: str) -> InputError:
+        return InputError(self.where(key), problem)
+
+    def __getitem__(self, key: str) -> object:
+        if key not in self.data:
+            raise InputError(self.source, f"no key '{self.prefix}{key}' (every compensator file has it)")
+        return self.data[key]
+
+
+def _inputs(file: _Fields) -> tuple[str, ...]:
+    """The input names: at least one (the basis has a column per input)."""
+    inputs = _names(file["inputs"], file.where("inputs"))
+    if not inputs:
+        raise file.error("inputs", "empty (a compensator follows at least one input)")
+    return inputs
+
+
+def _targets(file: _Fields) -> tuple[str, ...]:
+    """The target names, each a direction the detector fits (offsets() reads its joint from the name)."""
+    targets = _names(file["targets"], file.where("targets"))
+    for k, name in enumerate(targets):
+        if not TARGET.fullmatch(name):
+            raise file.error(f"targets[{k}]", f"{name!r} is not a target (theta_j, "
+                                              f"{', '.join(f'{kind}_j' for kind in LINK_DIRECTIONS)}; j = 1, 2, ...)")
+    return targets
+
+
+def _basis(file: _Fields, inputs: tuple[str, ...]) -> Basis:
+    """The basis: standardisation and knots per input, pairs of joint readings, size, such that
+    Basis evaluates it (a positive spread, increasing knots, pairs of existing columns)."""
+    per_input = ((len(inputs), "one per input"),)
+    mean = _array(file["mean"], file.where("mean"), per_input)
+    std = _array(file["std"], file.where("std"), per_input)
+    small = np.flatnonzero(std <= MIN_SPREAD)
+    if len(small):
+        raise file.error(f"std[{small[0]}]", f"{std[small[0]]:g}, expected above {MIN_SPREAD:g} (it divides "
+                                             f"input {inputs[small[0]]})")
+    knots = _array(file["knots"], file.where("knots"), ((None, "one row per knot"),) + per_input)
+    if len(knots) < 2:
+        raise file.error("knots", f"{_count(len(knots), 'row')}, expected at least 2 (a spline's first and last "
+                                  "knot)")
+    rows, columns = np.nonzero(np.diff(knots, axis=0) <= 0)
+    if len(rows):
+        r, c = rows[0] + 1, columns[0]
+        raise file.error(f"knots[{r}][{c}]", f"{knots[r, c]:g} is not above knots[{r - 1}][{c}] = {knots[r - 1, c]:g} "
+                                             f"(the knots of input {inputs[c]} increase)")
+    size = _number(file["size"], file.where("size"))
+    if size <= 0:
+        raise file.error("size", f"{size:g}, expected above 0 (it divides the features)")
+    return Basis(mean, std, knots, _pairs(file["pairs"], file.where("pairs"), inputs), size)
+
+
+def _width(basis: Basis) -> int:
+    """The number of basis functions (coef's columns). Quietly: knots far apart overflow where
+    scikit-learn extends them, which values_at refuses (the offsets are not finite)."""
+    with np.errstate(all="ignore"):
+        return basis(basis.mean[None, :]).shape[1]
+
+
+def _model(file: _Fields) -> tuple[tuple[str, ...], np.ndarray]:
+    """The names and values of the model the compensator completes (predict's values)."""
+    model = file["model"]
+    if not isinstance(model, dict):
+        raise file.error("model", f"expected an object with names and values, not {reprlib.repr(model)}")
+    fields = _Fields(file.source, model, "model.")
+    names = _names(fields["names"], fields.where("names"))
+    return names, _array(fields["values"], fields.where("values"), ((len(names), "one per name of model.names"),))
+
+
+def _names(value: object, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(name, str) for name in value):
+        raise InputError(where, f"expected a list of names, not {reprlib.repr(value)}")
+    return tuple(value)
+
+
+def _flags(value: object, where: str, length: int) -> np.ndarray:
+    """used: a true/false per target (a boolean mask: numbers would index instead)."""
+    if not isinstance(value, list) or not all(isinstance(flag, bool) for flag in value):
+        raise InputError(where, f"expected a list of true/false (one per target), not {reprlib.repr(value)}")
+    if len(value) != length:
+        raise InputError(where, f"{_count(len(value), 'value')}, expected {length} (one per target)")
+    return np.array(value, bool).reshape(length)
+
+
+def _pairs(value: object, where: str, inputs: tuple[str, ...]) -> np.ndarray:
+    """(np, 2) the pairs [i, j]: indices of joint-reading inputs, the columns Basis multiplies."""
+    readings = [k for k, name in enumerate(inputs) if JOINT_READING.fullmatch(name)]
+    if not isinstance(value, list):
+        raise InputError(where, f"expected a list of [i, j] pairs, not {reprlib.repr(value)}")
+    for p, pair in enumerate(value):
+        if not (isinstance(pair, list) and len(pair) == 2):
+            raise InputError(f"{where}[{p}]", f"expected a pair [i, j] of input indices, not {reprlib.repr(pair)}")
+        for side, k in enumerate(pair):
+            if isinstance(k, bool) or not isinstance(k, int) or k not in readings:
+                named = ", ".join(f"{i} ({inputs[i]})" for i in readings) or "none"
+                raise InputError(f"{where}[{p}][{side}]", f"{reprlib.repr(k)} is not the index of a joint reading "
+                                                          f"among the inputs ({named})")
+    return np.array(value, int).reshape(-1, 2)
+
+
+def _array(value: object, where: str, shape: tuple[tuple[int | None, str], ...]) -> np.ndarray:
+    """value, nested lists of finite numbers of ``shape`` (per axis its length, None for any,
+    and what it counts), as floats; InputError at the first element (where[i][j]) that is not."""
+    if not shape:
+        return np.array(_number(value, where))
+    (length, counts), inner = shape[0], shape[1:]
+    if not isinstance(value, list):
+        raise InputError(where, f"expected a list ({counts}), not {reprlib.repr(value)}")
+    if length is not None and len(value) != length:
+        raise InputError(where, f"{_count(len(value), 'row' if inner else 'value')}, expected {length} ({counts})")
+    items = [_array(item, f"{where}[{k}]", inner) for k, item in enumerate(value)]
+    return np.array(items, float).reshape(len(value), *(n for n, _ in inner))
+
+
+def _number(value: object, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(where, f"not a number ({reprlib.repr(value)})")
+    try:
+        number = float(value)
+    except OverflowError:  # a JSON integer beyond float's range
+        number = math.inf
+    if not math.isfinite(number):
+        raise InputError(where, f"not a finite number ({reprlib.repr(value)})")
+    return number
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
+def _is_target_of(name: str, robot: Robot) -> bool:
+    """theta_j offsets the reading of joint j (offsets' dq); the other targets are parameter names."""
+    if name.startswith("theta"):
+        return int(name[5:]) <= robot.n_joints
+    return name in robot.param_names
+
+
+def _difference(made: tuple[str, ...], this: tuple[str, ...]) -> str:
+    """The parameter names only one of two models has (a few each), or that their order differs."""
+    def few(names: list[str]) -> str:
+        return ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
+
+    only_this, only_made = [n for n in this if n not in made], [n for n in made if n not in this]
+    said = ([f"only this one has {few(only_this)}"] if only_this else []) + (
+        [f"only that one has {few(only_made)}"] if only_made else [])
+    return "; ".join(said) or "the same names in another order"

@@ -30,7 +30,6 @@ from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.problem import residuals_at
-from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import RobotModel
 from laser_calib.measurement.spot import SpotModel
@@ -210,10 +209,6 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     effects = tuple(effects)
     model = spot_model(robot, samples, effects, compensator)
     start = np.concatenate([np.zeros(robot.n_params), *values])
-    if compensator is not None and tuple(compensator.names) != tuple(model.names):
-        raise InputError(str(sources.get("compensator", "compensator")),
-                         f"made for the model {', '.join(compensator.names[robot.n_params:]) or 'without effects'}, "
-                         f"not {', '.join(model.names[robot.n_params:]) or 'this one without effects'} of the robot file")
     est = estimate(robot, samples, options, model, start)
     if test is not None:  # a test pose beyond the joint ranges calibrated on is an extrapolation: said with the fit's
         est = replace(est, warnings=est.warnings + tuple(test_range_warnings(samples.q, test.q, "test",
