@@ -181,6 +181,26 @@ def test_bad_input_is_one_line_and_exit_2(name, tmp_path, capsys):
     assert not (tmp_path / "out").exists()      # nothing half-written
 
 
+UR10E = Path(__file__).resolve().parents[2] / "data" / "real" / "ur10e_mocap"
+
+
+def test_an_unconverged_fit_exits_3_and_the_still_joint_is_named(tmp_path, capsys):
+    """The real UR10e log with the elbow's column replaced by one value: the fit cannot converge
+    (the elbow did move); the files are written, the joint is named, and the exit status is not 0."""
+    lines = (UR10E / "samples.csv").read_text().splitlines()
+    column = lines[0].split(",").index("q3")
+    edited = [lines[0]] + [",".join(c if k != column else "0.3" for k, c in enumerate(line.split(",")))
+                           for line in lines[1:]]
+    (tmp_path / "still.csv").write_text("\n".join(edited) + "\n")
+    code = _run(["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
+                 "wrist_3_link", "--samples", str(tmp_path / "still.csv"), "--out", str(tmp_path / "out"),
+                 "--folds", "0"])
+    out = capsys.readouterr().out
+    assert code == 3, out
+    assert "warning: elbow_joint reads 0.3 in all" in out and "error: NOT CONVERGED" in out
+    assert (tmp_path / "out" / "result.json").exists()
+
+
 def test_a_comma_at_the_end_of_every_line_is_no_column(tmp_path):
     (tmp_path / "samples.csv").write_text(_appended(",", ","))
     samples = load_samples(tmp_path / "samples.csv", ROBOT)

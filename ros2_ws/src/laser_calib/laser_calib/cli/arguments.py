@@ -122,10 +122,17 @@ def fraction(text: str) -> float:
     return value
 
 
-def print_warnings(warnings: list[str]) -> None:
-    """One line each on the console; an unconverged fit is an error line."""
+# A fit that did not converge: its files are written (nothing measured is lost, and they show
+# where it stopped) but they are not a calibration, so a script must not take them for one.
+EXIT_NOT_CONVERGED = 3
+
+
+def print_warnings(warnings: list[str]) -> int:
+    """One line each on the console, an unconverged fit an error line; the command's exit
+    status: EXIT_NOT_CONVERGED after such a fit, else 0."""
     for warning in warnings:
         print(f"{'error' if warning.startswith(NOT_CONVERGED) else 'warning'}: {warning}")
+    return EXIT_NOT_CONVERGED if any(w.startswith(NOT_CONVERGED) for w in warnings) else 0
 
 
 def _writable_ancestor(path: Path) -> Path:

@@ -1,7 +1,9 @@
 """Command line: laser-calib simulate | estimate | identify | slm-calibrate | replay | diagnose |
 screen-calibrate | render-calibration-images | import-positioner | calibrate-poses | plan.
 
-Bad input gives one line on stderr naming the file, field or pose, and exit status 2.
+Bad input gives one line on stderr naming the file, field or pose, and exit status 2;
+a fit that did not converge, an error line and exit status 3 (its files are written,
+but they are not a calibration).
 """
 
 from __future__ import annotations
@@ -128,18 +130,19 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                                             "test": str(args.test) if args.test else None,
                                             "compensator": args.compensator},
                                    compensator=compensator)
-    _summary(calibration)
+    status = _summary(calibration)
     urdf = ", robot_calibrated.urdf, urdf_corrections.json" if robot.chain is not None else ""
     print(f"wrote {args.out}/robot_calibrated.yaml{urdf}, result.json, report.md, residuals.csv")
-    return 0
+    return status
 
 
-def _summary(calibration) -> None:
+def _summary(calibration) -> int:
+    """The spot errors before and after, the warnings; the exit status (print_warnings)."""
     for set_name, by_model in calibration.spot_error.items():
         b, a = by_model["before"]["all"], by_model["after"]["all"]
         print(f"{set_name:12s} mean spot error {b['mean_mm']:.3f} mm -> {a['mean_mm']:.3f} mm "
               f"(max {b['max_mm']:.3f} -> {a['max_mm']:.3f}; {a['n']} spots)")
-    print_warnings(list(calibration.estimate.warnings))
+    return print_warnings(list(calibration.estimate.warnings))
 
 
 def cmd_identify(args: argparse.Namespace) -> int:

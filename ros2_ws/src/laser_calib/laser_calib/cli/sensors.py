@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from laser_calib.cli.arguments import (add_robot_arguments, fraction, non_negative, non_negative_int, out_file,
-                                      out_folder, positive, positive_int, print_warnings, sigma_angle, sigma_length,
-                                      staged_folder)
+from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fraction, non_negative, non_negative_int,
+                                      out_file, out_folder, positive, positive_int, print_warnings, sigma_angle,
+                                      sigma_length, staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
@@ -286,9 +286,9 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         (out / "result.json").write_text(json.dumps(result, indent=2))
         save_pose_table(sets, out / "residuals.csv")
     print("\n".join(lines))
-    print_warnings(result["warnings"])
+    status = print_warnings(result["warnings"])
     print(f"wrote {args.out}/{', '.join(written)}, result.json and residuals.csv")
-    return 0
+    return status
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -321,13 +321,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="m/rad weighing rotation residuals (default: estimated from the residuals)")
     p.add_argument("--fix", nargs="*", default=[], help="parameter names to hold (D-H, frame or scale)")
     p.add_argument("--prior", action="store_true", help="tolerance prior on the D-H errors: 10 mm and 1 deg")
-    p.add_argument("--frame-prior-length", type=positive, default=None, help="prior std of frame offsets, m")
+    p.add_argument("--frame-prior-length", type=tolerance_length, default=None,
+                   help=f"prior std of frame offsets, m ({SIGMA_LENGTH[0]:g} .. {SIGMA_LENGTH[1]:g})")
     p.add_argument("--frame-prior-angle-deg", type=positive, default=None, help="prior std of frame angles, deg")
     p.add_argument("--scale", action="store_true", help="estimate the sensor's scale per axis")
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
                    help="robust fit: outlying samples rejected and listed (default; rule in result.json)")
     p.add_argument("--folds", type=non_negative_int, default=5, help="k of the k-fold held-out error (0: none)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the fold split")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the fold split")
     p.add_argument("--chronological", type=fraction, default=None, metavar="FRACTION",
                    help="also calibrate on the first FRACTION of the poses in measurement order and test on the rest")
     p.add_argument("--test", default=None, metavar="FILE",
@@ -348,5 +349,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="random poses to choose from (at least --n)")
     p.add_argument("--margin", type=non_negative, default=PlanOptions(1).margin,
                    help="keep both nominal spots this far inside the screen edge, m")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.set_defaults(func=cmd_plan)
