@@ -111,6 +111,8 @@ CASES = {
                                  "--out"),
     "diagnose --out unwritable": (lambda d: _diagnose(d)[:-1] + ["/proc/x/y"], "/proc"),
     "diagnose --seed -1": (lambda d: _diagnose(d, "--seed", "-1"), "--seed"),
+    "diagnose on 3 poses": (lambda d: ["diagnose"] + _estimate(d, samples="\n".join(SAMPLES.splitlines()[:4]))[1:],
+                            "samples.csv: 3 poses"),
     "400-digit integer in YAML": (lambda d: _estimate(d, robot=_robot_text("a: 0.0", "a: " + "9" * 400)), "robot.yaml"),
     "recursive anchor": (lambda d: _estimate(d, robot="name: &a [*a]\n"), "robot.yaml"),
     "5000-deep nesting": (lambda d: _estimate(d, robot="name: " + "[" * 5000 + "]" * 5000 + "\n"), "robot.yaml"),

@@ -20,7 +20,7 @@ from laser_calib.report.progress import Progress
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
     # The engine pulls in scikit-learn and scipy.stats (0.8 s): only this command pays for them.
-    from laser_calib.diagnosis.engine import diagnose, write_outputs
+    from laser_calib.diagnosis.engine import TooFewPoses, diagnose, write_outputs
 
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
@@ -36,7 +36,10 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                                       folds=args.folds, max_effects=args.max_effects, seed=args.seed,
                                       compensate=not args.no_compensator, nested=True, progress=progress)
-            diagnosis = diagnose(robot, samples, test, options=options)
+            try:
+                diagnosis = diagnose(robot, samples, test, options=options)
+            except TooFewPoses as exc:  # the engine knows the count, the command the file
+                raise InputError(str(args.samples), exc.problem) from None
         result = write_outputs(diagnosis, out, {"robot": str(args.robot), "samples": str(args.samples),
                                                 "test": str(args.test) if args.test else None})
     for stage in result["stages"]:
