@@ -19,6 +19,7 @@ import yaml
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
+from laser_calib.measurement.frames import robot_frames
 from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, PAPER, Joint, Laser, Robot,
                                      Screen, Slm)
 from laser_calib.model.urdf import calibrated_urdf, is_urdf, load_urdf_robot, robot_from_urdf, urdf_text
@@ -66,7 +67,15 @@ def robot_from_dict(data: Any, source: str = "<robot>", folder: Path | None = No
     looked up (the YAML's folder); ``description``: URDF text from elsewhere
     (the /robot_description topic) for a URDF robot that names no file."""
     if isinstance(data, Mapping) and ("joints" not in data or description is not None):
-        return _urdf_robot(data, source, folder, description)
+        robot = _urdf_robot(data, source, folder, description)
+    else:
+        robot = _dh_robot(data, source)
+    robot_frames(robot, source)  # checked here, where the file's name is known (its readers have none)
+    return robot
+
+
+def _dh_robot(data: Any, source: str) -> Robot:
+    """A D-H robot YAML (``joints:``)."""
     data = _mapping(source, data, _KNOWN_KEYS + EXTRA_KEYS)
     for key in ("name", "joints"):
         if key not in data:
@@ -176,6 +185,9 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
     base = _string(f"{source}: base", data["base"])
     tips = data["tip"] if isinstance(data["tip"], list) else [data["tip"]]
     tips = [_string(f"{source}: tip", tip) for tip in tips]
+    if not tips or len(set(tips)) != len(tips):
+        raise InputError(f"{source}: tip", f"expected a link name or a non-empty list of distinct link names, "
+                                           f"got {data['tip']!r}")
     if "xacro_args" in data and not (isinstance(data.get("urdf"), str) and data["urdf"].endswith(".xacro")):
         raise InputError(f"{source}: xacro_args", "applies to a 'urdf:' file ending in .xacro only")
     if "urdf" in data:
@@ -198,8 +210,8 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
         raise InputError(f"{source}: name", f"expected a string, got {type(name).__name__}")
     parts = _lasers_and_screen(data, source)
     try:
-        robot = robot_from_urdf(text, base, tips if len(tips) > 1 else tips[0], where, slm=parts["slm"],
-                                lasers=parts["lasers"], screen=parts["screen"], name=name)
+        robot = robot_from_urdf(text, base, tips, where, slm=parts["slm"], lasers=parts["lasers"],
+                                screen=parts["screen"], name=name)
     except InputError as exc:  # a link or joint of the URDF: name the robot file that chose it too
         raise InputError(exc.where, f"{exc.problem} (robot file {source})") from None
     extra = {k: v for k, v in data.items() if k in EXTRA_KEYS}

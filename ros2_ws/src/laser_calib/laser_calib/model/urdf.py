@@ -2,13 +2,14 @@
 link to one or more tip links (joint_chain.py).
 
 Parsed with yourdfpy (maintained, pure Python, reads every URDF element and
-keeps mimic and limits; urdfdom-py is not on PyPI for Python 3.12). A .xacro
-file is expanded to URDF text with the ``xacro`` package first. The URDF text
-itself is kept in the chain, so the calibrated description can be written as the
-same file with corrected origins (calibrated_urdf; report/urdf_export.py adds
-the list of corrections). The ROS nodes get the text from the
-/robot_description topic: robot_from_urdf(text, base, tip). A robot YAML names
-the URDF with ``urdf:`` and adds the lasers (robot_file.py, docs/urdf.md).
+keeps mimic and limits; urdfdom-py is not on PyPI for Python 3.12) once
+urdf_checks.py has checked the text. A .xacro file is expanded to URDF text
+with the ``xacro`` package first. The URDF text itself is kept in the chain, so
+the calibrated description can be written as the same file with corrected
+origins (calibrated_urdf; report/urdf_export.py adds the list of corrections).
+The ROS nodes get the text from the /robot_description topic:
+robot_from_urdf(text, base, tip). A robot YAML names the URDF with ``urdf:``
+and adds the lasers (robot_file.py, docs/urdf.md).
 
 Joint readings q are the read (non-mimic) movable joints, in the order they are
 met walking from the base to each tip in turn; then each mimic joint's source
@@ -18,6 +19,7 @@ that is not itself on the way (its reading drives the mimic joint).
 from __future__ import annotations
 
 import io
+import math
 import re
 import warnings
 from dataclasses import replace
@@ -33,6 +35,7 @@ from laser_calib.measurement.frames import Pose
 from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
                                            ChainJoint, JointChain)
 from laser_calib.model.robot import LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, Laser, Robot, Screen, Slm
+from laser_calib.model.urdf_checks import check_tree
 
 URDF_SUFFIXES = (".urdf", ".xacro")
 _KINDS = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC, "fixed": FIXED_JOINT}
@@ -67,9 +70,10 @@ def _parse(text: str, source: str):
     from lxml import etree
 
     try:  # strict XML first: yourdfpy would fall back to a lenient parse of a broken file
-        etree.fromstring(text.encode())
+        root = etree.fromstring(text.encode())
     except etree.XMLSyntaxError as exc:
         raise InputError(f"{source}: line {exc.lineno}", f"not valid XML ({exc.msg})") from None
+    check_tree(root, source)
     try:
         return yourdfpy.URDF.load(io.BytesIO(text.encode()), build_scene_graph=False, load_meshes=False)
     except Exception as exc:  # lxml and yourdfpy raise many types for a broken file
@@ -78,10 +82,13 @@ def _parse(text: str, source: str):
 
 def _path(joints_by_child: dict, base: str, tip: str, source: str) -> list:
     """The URDF joints from base to tip."""
-    path, link = [], tip
+    path, link, seen = [], tip, set()
     while link != base:
         if link not in joints_by_child:
             raise InputError(source, f"link '{tip}' is not below link '{base}'")
+        if link in seen:  # check_tree refuses loops; a walk up must end whatever it is given
+            raise InputError(source, f"kinematic loop (link '{link}' is its own ancestor)")
+        seen.add(link)
         joint = joints_by_child[link]
         path.append(joint)
         link = joint.parent
@@ -99,9 +106,16 @@ def _chain_joint(joint, source: str, rpy: float = 0.0) -> ChainJoint:
     norm = np.linalg.norm(axis)
     if _KINDS[joint.type] != FIXED_JOINT and not (np.isfinite(norm) and norm > 0):
         raise InputError(f"{where}: axis", f"expected a non-zero axis, got {axis.tolist()}")
-    limit = joint.limit
-    limited = joint.type != "continuous" and limit is not None and limit.lower is not None and limit.upper is not None
-    lower, upper = (float(limit.lower), float(limit.upper)) if limited else (-UNLIMITED, UNLIMITED)
+    # The spec requires a revolute or prismatic joint's <limit>, its missing lower / upper 0:
+    # a joint the file holds still is a mistake on the chain (off it, no concern of ours).
+    limited = joint.type in ("revolute", "prismatic")
+    bounds = (None, None) if joint.limit is None else (joint.limit.lower, joint.limit.upper)
+    if limited and not all(bound is not None and math.isfinite(bound) for bound in bounds):
+        raise InputError(f"{where}: limit", f"a {joint.type} joint needs finite <limit lower=\"...\" upper=\"...\"> "
+                                            "(a missing one is 0 in the URDF spec, holding it still), got " +
+                                            ", ".join(f"{key} {'none' if bound is None else bound}"
+                                                      for key, bound in zip(("lower", "upper"), bounds)))
+    lower, upper = (float(bounds[0]), float(bounds[1])) if limited else (-UNLIMITED, UNLIMITED)
     if lower >= upper and _KINDS[joint.type] != FIXED_JOINT:
         raise InputError(f"{where}: limit", f"lower {lower} is not below upper {upper}")
     _check_units(where, joint, origin, rpy, (lower, upper) if limited else ())
@@ -164,6 +178,9 @@ def chain_from_urdf(urdf, text: str, base: str, tips: Sequence[str], source: str
         if source_joint is None or source_joint.mimic is not None or _KINDS.get(source_joint.type) in (None,
                                                                                                    FIXED_JOINT):
             raise InputError(f"{source}: joint '{name}': mimic", f"'{mimic.joint}' is not a driven joint")
+        if not all(math.isfinite(value) for value in (mimic.multiplier, mimic.offset) if value is not None):
+            raise InputError(f"{source}: joint '{name}': mimic", f"expected a finite multiplier and offset, got "
+                                                                 f"{mimic.multiplier} and {mimic.offset}")
     # A source off the way (a gripper's other finger, a torso joint above the base) is read
     # for its mimic joint only: it has a reading and limits, no placement in this chain.
     off_way = [n for n in dict.fromkeys(m.joint for m in mimics.values()) if n not in readings]
@@ -197,6 +214,9 @@ def robot_from_urdf(text: str, base: str, tip: str | Sequence[str], source: str 
     robot file (conventions.md), and spots are predicted from the first tip.
     """
     tips = (tip,) if isinstance(tip, str) else tuple(tip)
+    if not tips or len(set(tips)) != len(tips):  # a tip twice would be measured as two
+        raise InputError(source, f"tip: expected a link name or a non-empty list of distinct link names, "
+                                 f"got {', '.join(tips) or 'none'}")
     if lasers and slm is None:
         raise InputError(source, "lasers need an slm placement")
     urdf = _parse(text, source)

@@ -1,0 +1,141 @@
+"""The checks of a URDF's text before yourdfpy reads it (urdf.py): one line
+naming the file and the link or joint, where yourdfpy would crash with a
+message naming neither, trimesh would warn and go on with nan, or the link
+tree would hold a loop that a walk from a tip to the base never leaves.
+
+These hold for the whole file; what concerns the calibrated chain only (a
+revolute joint's limits, a mimic's factor) is checked in urdf.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+from laser_calib.io.errors import InputError
+
+_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar")  # the URDF spec's
+# A joint's elements besides parent and child (at most one each: yourdfpy reads the first only) ->
+# their vector and number attributes, which yourdfpy reads as floats without naming the joint.
+_JOINT_PARTS = {"origin": (("xyz", "rpy"), ()), "axis": (("xyz",), ()),
+                "limit": ((), ("lower", "upper", "effort", "velocity")), "mimic": ((), ("multiplier", "offset")),
+                "dynamics": ((), ("damping", "friction")), "calibration": ((), ("rising", "falling")),
+                "safety_controller": ((), ("soft_lower_limit", "soft_upper_limit", "k_position", "k_velocity"))}
+
+
+def _named(elements: list, tag: str, source: str) -> dict:
+    """Name -> element of the robot's <link> or <joint> elements, each named once."""
+    out = {}
+    for element in elements:
+        name = element.get("name")
+        if not name:
+            raise InputError(f"{source}: line {element.sourceline}: {tag}", "missing attribute 'name'")
+        if name in out:
+            raise InputError(f"{source}: {tag} '{name}'", f"defined twice (lines {out[name].sourceline} and "
+                                                          f"{element.sourceline})")
+        out[name] = element
+    return out
+
+
+def _vector(where: str, element, key: str) -> None:
+    """Three finite numbers, if given: with fewer yourdfpy fails with an index or
+    broadcast message, with nan / inf trimesh warns and the fit diverges."""
+    text = element.get(key)
+    if text is None:
+        return
+    try:
+        values = [float(v) for v in text.split()]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(map(math.isfinite, values)):
+        raise InputError(f"{where} {key}", f"expected 3 finite numbers, got {text!r}")
+
+
+def _number(where: str, element, key: str) -> None:
+    """A number, if given: yourdfpy's message for text names no joint, and nan is
+    no value of anything (inf may be: a velocity, a continuous joint's bound)."""
+    text = element.get(key)
+    if text is None:
+        return
+    try:
+        if not math.isnan(float(text)):
+            return
+    except ValueError:
+        pass
+    raise InputError(f"{where} {key}", f"expected a number, got {text!r}")
+
+
+def _check_link(name: str, element, source: str) -> None:
+    """The origins of a link's inertial, visual and collision elements (yourdfpy reads them all)."""
+    for part in element:
+        origin = part.find("origin") if part.tag in ("inertial", "visual", "collision") else None
+        if origin is not None:
+            for key in ("xyz", "rpy"):
+                _vector(f"{source}: link '{name}': {part.tag} origin", origin, key)
+
+
+def _check_joint(name: str, element, links: dict, source: str) -> tuple[str, str]:
+    """The parent and child link of a joint whose elements yourdfpy can read as written."""
+    where = f"{source}: joint '{name}'"
+    if element.get("type") not in _TYPES:
+        raise InputError(f"{where}: type", f"expected one of {', '.join(_TYPES)}, got {element.get('type')!r}")
+    ends = []
+    for tag in ("parent", "child"):
+        found = element.findall(tag)
+        if len(found) != 1 or not found[0].get("link"):
+            got = "one without link" if len(found) == 1 else len(found)
+            raise InputError(f"{where}: {tag}", f"expected one <{tag} link=\"...\"/>, got {got}")
+        if found[0].get("link") not in links:
+            raise InputError(f"{where}: {tag}", f"no link '{found[0].get('link')}'")
+        ends.append(found[0].get("link"))
+    for tag, (vectors, numbers) in _JOINT_PARTS.items():
+        found = element.findall(tag)
+        if len(found) > 1:
+            raise InputError(f"{where}: {tag}", f"{len(found)} <{tag}> elements (a joint has at most one)")
+        for part in found:
+            for key in vectors:
+                _vector(f"{where}: {tag}", part, key)
+            for key in numbers:
+                _number(f"{where}: {tag}", part, key)
+    return ends[0], ends[1]
+
+
+def _check_loops(parent_of: dict[str, str], joint_of: dict[str, str], source: str) -> None:
+    """Every walk up from a link ends at a root: a link that is its own ancestor
+    would hang it. ``parent_of``, ``joint_of``: child link -> parent link, joint."""
+    rooted: set[str] = set()
+    for start in parent_of:
+        walk: dict[str, int] = {}  # link -> its step in this walk
+        link = start
+        while link in parent_of and link not in rooted:
+            if link in walk:
+                loop = list(walk)[walk[link]:]
+                raise InputError(f"{source}: joint '{joint_of[link]}'",
+                                 f"kinematic loop (link '{link}' is its own ancestor through joints "
+                                 f"{', '.join(joint_of[each] for each in loop)})")
+            walk[link] = len(walk)
+            link = parent_of[link]
+        rooted.update(walk)
+
+
+def check_tree(root, source: str) -> None:
+    """``root``: the parsed <robot> element (lxml). One line naming the link or
+    joint for what yourdfpy would crash on, read wrong without a word, or turn
+    into a tree our walks never leave: names missing or twice, a joint's parent
+    / child not one link, a link the child of two joints, a loop, a vector not
+    of three finite numbers, a number that is none."""
+    if root.tag != "robot":
+        raise InputError(source, f"expected a <robot> element, got <{root.tag}>")
+    if root.get("name") is None:
+        raise InputError(f"{source}: robot", "missing attribute 'name'")
+    links = _named(root.findall("link"), "link", source)
+    for name, element in links.items():
+        _check_link(name, element, source)
+    parent_of: dict[str, str] = {}
+    joint_of: dict[str, str] = {}
+    for name, element in _named(root.findall("joint"), "joint", source).items():
+        parent, child = _check_joint(name, element, links, source)
+        if child in joint_of:
+            raise InputError(f"{source}: link '{child}'", f"child of two joints ('{joint_of[child]}' and "
+                                                          f"'{name}'): a closed loop, which a URDF cannot describe")
+        parent_of[child], joint_of[child] = parent, name
+    _check_loops(parent_of, joint_of, source)
