@@ -108,8 +108,6 @@ class Estimator(Node):
             if key in self.keys:
                 return
             self.keys.add(key)
-        # Which samples the online EKF took, in which order (--log-level estimator:=debug; the sequencer
-        # already says each pose at info).
         self.get_logger().debug(f"sample of pose {row[0]} (stamp {row[1]:.6f} s) taken: {self.add(row)} samples")
 
     def on_joint_state(self, msg: JointState) -> None:
@@ -142,8 +140,7 @@ class Estimator(Node):
         if bad.size:
             raise InputError(where, f"joint_positions[{bad[0]}] is not finite ({row[2][bad[0]]})")
 
-    def add(self, row) -> int:
-        """Update the online EKF with a row (pose, stamp, q, spots); the samples taken so far."""
+    def add(self, row) -> int:  # the samples taken so far
         with self.lock:
             self.rows.append(row)
             count = len(self.rows)

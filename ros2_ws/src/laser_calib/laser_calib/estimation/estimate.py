@@ -40,6 +40,7 @@ from typing import Callable
 import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
+from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses,
@@ -63,7 +64,6 @@ NOISE_RATIO = 2.0  # the residual's noise beyond 2x or below 1/2 the given sigma
 LISTED = 8         # poses named in one warning line
 MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
 FAR_SCALES = 10.0  # a fitted error beyond 10 tolerance scales (100 mm, 10 deg) is not a manufacturing error
-STILL_SPREAD = 1e-6  # rad or m: readings within this of each other are one joint position (no calibration moves less)
 NOT_CONVERGED = "NOT CONVERGED"  # how an unconverged fit's warning starts (the console makes it an error line)
 
 
@@ -361,25 +361,13 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         worst = int(np.argmax(np.where(own, size, 0.0)))
         warnings.append(f"implausible: {names[worst]} is fitted at {size[worst]:.0f} times its tolerance scale; a "
                         "wrong minimum, a wrong nominal model or data the model cannot explain")
-    warnings.extend(still_joints(model))
+    if getattr(model, "robot", None) is not None and getattr(model, "samples", None) is not None:
+        warnings.extend(still_joint_warnings(model.samples.q, model.robot.joint_names))
     if not result.converged:
         warnings.append(f"{NOT_CONVERGED}: {options.method} stopped after {result.iterations} iterations; the "
                         "values are not a minimum")
     return Estimate(names, free.copy(), ident, result, sigma, sigma_estimated, tuple(rejected), tuple(warnings),
                     time.perf_counter() - start, restarts, tuple(impossible), robust, at_start.predicted)
-
-
-def still_joints(model: MeasurementModel) -> list[str]:
-    """One warning per joint whose readings do not change over the poses: what only its motion
-    shows is held (identifiability), but the user should hear why, and a column of constant
-    readings where the joint did move (a wrong export) leaves the rest of the fit to explain it."""
-    robot, samples = getattr(model, "robot", None), getattr(model, "samples", None)
-    if robot is None or samples is None or len(samples.q) < 2:
-        return []
-    q = samples.q
-    return [f"{name} reads {q[0, i]:.6g} in all {len(q)} poses: the joint never moved in these data (what only its "
-            "motion shows is held); if it did move, its column holds something else"
-            for i, name in enumerate(robot.joint_names) if np.ptp(q[:, i]) <= STILL_SPREAD]
 
 
 def rescaled(fit: Fit, ratio: float) -> Fit:

@@ -1,6 +1,7 @@
 """How poses are split for held-out errors: seeded k-fold, or chronological
-(calibrate on the first part of a session, test on the rest), and how far the
-test poses leave the joint range the calibration covered.
+(calibrate on the first part of a session, test on the rest), how far the
+test poses leave the joint range the calibration covered, and the joints it
+never moved.
 
 Samples are in measurement order (stamps increase, conventions.md), so row
 order is time order.
@@ -14,6 +15,7 @@ import numpy as np
 # the extreme poses of a random k-fold always lie just outside their training
 # folds, a step past the data rather than a region of the workspace it never saw.
 RANGE_SLACK = 0.05
+STILL_SPREAD = 1e-6  # rad or m: readings within this of each other are one joint position (no calibration moves less)
 
 
 def kfold_labels(n: int, k: int, seed: int) -> np.ndarray:
@@ -65,3 +67,14 @@ def test_outside_range(q_calibration: np.ndarray, q_test: np.ndarray) -> np.ndar
 def test_range_warnings(q_calibration: np.ndarray, q_test: np.ndarray, what: str, joints: tuple[str, ...]) -> list[str]:
     """range_warnings for a test set (Q,N) against the calibration's readings (P,N)."""
     return range_warnings(test_outside_range(q_calibration, q_test), what, joints)
+
+
+def still_joint_warnings(q: np.ndarray, joints: tuple[str, ...]) -> list[str]:
+    """One warning per joint whose readings q (P,N) do not change over the poses: what only its
+    motion shows is held (identifiability), but the user should hear why, and a column of constant
+    readings where the joint did move (a wrong export) leaves the rest of the fit to explain it."""
+    if len(q) < 2:
+        return []
+    return [f"{name} reads {q[0, i]:.6g} in all {len(q)} poses: the joint never moved in these data (what only its "
+            "motion shows is held); if it did move, its column holds something else"
+            for i, name in enumerate(joints) if np.ptp(q[:, i]) <= STILL_SPREAD]
