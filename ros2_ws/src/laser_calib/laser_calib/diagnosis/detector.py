@@ -30,10 +30,17 @@ the best held-out gain counts, the choice inside the permutation test.
 Test: the held-out gain 1 - SSE / SS0 over the engine's folds (each pose's
 residual predicted by the fit on the other folds, SS0 that of predicting 0),
 against its distribution under "the residual is noise": the same statistic
-with the poses' residual vectors permuted (PERMUTATIONS of them, each with its
-own best penalty, so the choice of the penalty is inside the test; all fitted
-as columns of one multi-target ridge per fold and penalty). The test is scale-free: a
-misstated noise level does not change it. What it found is named by
+with the poses' residual vectors permuted (each permutation with its own best
+sub-model and penalty, so the choice is inside the test; a batch of them fitted
+as columns of one multi-target ridge per fold and penalty). The permutations
+are drawn sequentially (Besag and Clifford 1991, "Sequential Monte Carlo
+p-values"): batches of BATCH until EXCEEDANCES permuted gains reach the data's
+(p = EXCEEDANCES / l, l the permutations drawn when the last of them came) or
+MAX_PERMUTATIONS are drawn (p = (g + 1) / (MAX_PERMUTATIONS + 1), g of them
+reaching it). A fixed 99 could not resolve p below 0.01: a test at alpha 0.01
+then needed every permutation below the data, and lost structure whose p lies
+near alpha; residuals with nothing in them stop after one batch. The test is
+scale-free: a misstated noise level does not change it. What it found is named by
 sklearn.inspection.permutation_importance of the inputs. Its regression,
 refitted on all poses, is the learned compensator (compensator.py).
 """
@@ -51,7 +58,9 @@ from sklearn.preprocessing import SplineTransformer
 from laser_calib.effects.base import move_directions
 from laser_calib.measurement.base import NoiseModel, Residuals
 
-PERMUTATIONS = 99
+BATCH = 99               # permutations per pass (the first pass also fits the data)
+MAX_PERMUTATIONS = 999   # p resolved to 0.001
+EXCEEDANCES = 10         # permuted gains at least the data's that decide p early (Besag and Clifford's h)
 ALPHAS = np.logspace(-2, 5, 8)
 N_KNOTS, DEGREE = 4, 3
 MIN_SPREAD = 1e-9  # an input that does not vary is left out
@@ -152,7 +161,7 @@ class Detection:
     permutation p, the null gains' 99th percentile, the inputs by permutation
     importance (name, mean increase of the MSE in whitened units^2, its std),
     the best regression refitted on all poses (the compensator's), the
-    direction names and the inputs."""
+    direction names, the inputs and the permutations drawn."""
 
     gain: float
     p: float
@@ -161,12 +170,13 @@ class Detection:
     regression: OffsetRegression
     targets: tuple[str, ...]
     inputs: tuple[str, ...]
+    permutations: int = BATCH
 
     def sentence(self) -> str:
         named = ", ".join(f"{n} ({v:.2g})" for n, v, _ in self.importance[:4] if v > 0) or "no input singly"
         return (f"a flexible regression on all inputs predicts the held-out residual {100 * self.gain:.1f} % better "
-                f"than zero (permutation p = {self.p:.2g}, {PERMUTATIONS} permutations; 99 % of permuted gains below "
-                f"{100 * self.null_99:.1f} %); inputs by importance: {named}")
+                f"than zero (permutation p = {self.p:.2g}, {self.permutations} permutations; 99 % of permuted gains "
+                f"below {100 * self.null_99:.1f} %); inputs by importance: {named}")
 
 
 def directions(names: tuple[str, ...], res: Residuals, whitener: np.ndarray, n_joints: int
@@ -196,19 +206,36 @@ def submodels(basis: Basis, n_inputs: int, n_directions: int) -> list[np.ndarray
     return [j * width + cols for j in range(n_directions) for cols in local]
 
 
-def ridge_path_sse(gram: np.ndarray, cross: np.ndarray, held: np.ndarray, y_held: np.ndarray) -> np.ndarray:
-    """(len(ALPHAS), T) held-out sum of squares of the ridge fits (no intercept)
-    of T targets at every penalty, from the training Gram matrix F^T F (k,k)
-    and F^T Y (k,T): one eigendecomposition serves every penalty (sklearn's
-    Ridge would refactor per penalty and sub-model, the detector's cost)."""
-    values, vectors = np.linalg.eigh(gram)
-    rotated = vectors.T @ cross                                     # (k,T)
-    held_v = held @ vectors                                         # (H,k)
-    out = np.empty((len(ALPHAS), cross.shape[1]))
-    for a, alpha in enumerate(ALPHAS):
-        predicted = held_v @ (rotated / (np.maximum(values, 0.0) + alpha)[:, None])
-        out[a] = ((y_held - predicted) ** 2).sum(axis=0)
-    return out
+@dataclass(frozen=True)
+class FoldRidge:
+    """What the held-out errors of a sub-model's ridge fits on one fold need
+    besides the targets: the eigenvalues (k,) and eigenvectors (k,k) of the
+    training rows' Gram matrix F_t^T F_t and the held rows' Gram matrix in
+    that basis, V^T F_h^T F_h V (k,k). Kept per sub-model and fold, so that
+    every batch of permutations pays only for its products with the targets."""
+
+    values: np.ndarray
+    vectors: np.ndarray
+    held_gram: np.ndarray
+
+    @classmethod
+    def of(cls, gram_train: np.ndarray, gram_held: np.ndarray) -> "FoldRidge":
+        values, vectors = np.linalg.eigh(gram_train)
+        return cls(np.maximum(values, 0.0), vectors, vectors.T @ gram_held @ vectors)
+
+    def sse(self, cross_train: np.ndarray, cross_held: np.ndarray, y_held_squared: np.ndarray) -> np.ndarray:
+        """(len(ALPHAS), T) held-out sums of squares of the ridge fits (no intercept) of T
+        targets at every penalty, from F_t^T Y_t and F_h^T Y_h (k,T) and the held targets'
+        sums of squares (T,): with w = V (D + alpha)^-1 V^T F_t^T Y_t,
+        ||Y_h - F_h w||^2 = ||Y_h||^2 - 2 w^T F_h^T Y_h + w^T F_h^T F_h w, all in the
+        eigenbasis, so no held row is predicted (one eigendecomposition serves every
+        penalty; sklearn's Ridge would refactor per penalty and sub-model)."""
+        rotated, held = self.vectors.T @ cross_train, self.vectors.T @ cross_held     # (k,T) each
+        out = np.empty((len(ALPHAS), rotated.shape[1]))
+        for a, alpha in enumerate(ALPHAS):
+            w = rotated / (self.values + alpha)[:, None]
+            out[a] = y_held_squared - 2.0 * (w * held).sum(axis=0) + (w * (self.held_gram @ w)).sum(axis=0)
+        return out
 
 
 def design(names: tuple[str, ...], res: Residuals, noise: NoiseModel, z: np.ndarray
@@ -237,36 +264,53 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
     basis = Basis.of(z, int(varying[:n_joints].sum()), size)
     n_values = y.shape[1]
     rng = np.random.default_rng(seed)
-    orders = [np.arange(n_poses)] + [rng.permutation(n_poses) for _ in range(PERMUTATIONS)]
-    Y = np.stack([y[order].ravel() for order in orders], axis=1)                  # (P*V, 1+B)
-    rows_fold = np.repeat(fold, n_values)
     subsets = submodels(basis, z.shape[1], g.shape[-1])
-    sse = np.zeros((len(subsets), len(ALPHAS), Y.shape[1]))
-    # Each sub-model's columns of all_features formed on their own (all of them at once, m b
-    # columns, were the detector's largest array), and a fold's training sums as all rows'
-    # less its held rows' (no copy of the training rows).
+    held = [np.repeat(fold, n_values) == k for k in np.unique(fold)]
     former = OffsetRegression(basis, z.shape[1])
     basis_values = basis(X[:, :z.shape[1]])
-    held = [rows_fold == k for k in np.unique(fold)]
-    held_y = [Y[rows] for rows in held]
-    for m, columns in enumerate(subsets):
-        features = former.formed(X, basis_values, columns)
-        gram_all, cross_all = features.T @ features, features.T @ Y
-        for rows, y_held in zip(held, held_y):
-            part = features[rows]
-            sse[m] += ridge_path_sse(gram_all - part.T @ part, cross_all - part.T @ y_held, part, y_held)
+
+    ridges: list[list[FoldRidge]] = []   # per sub-model and fold, from the first batch on
+
+    def gains_of(orders: list[np.ndarray]) -> np.ndarray:
+        """(subsets, ALPHAS, T) held-out gains of the residual in each pose order."""
+        Y = np.stack([y[order].ravel() for order in orders], axis=1)              # (P*V, T)
+        held_y = [Y[rows] for rows in held]
+        squared = [(part ** 2).sum(axis=0) for part in held_y]
+        sse = np.zeros((len(subsets), len(ALPHAS), Y.shape[1]))
+        # Each sub-model's columns of all_features formed on their own (all of them at once, m b
+        # columns, were the detector's largest array), and a fold's training sums as all rows'
+        # less its held rows' (no copy of the training rows).
+        for m, columns in enumerate(subsets):
+            features = former.formed(X, basis_values, columns)
+            cross_all = features.T @ Y
+            parts = [features[rows] for rows in held]
+            if len(ridges) == m:
+                gram_all = features.T @ features
+                ridges.append([FoldRidge.of(gram_all - part.T @ part, part.T @ part) for part in parts])
+            for ridge, part, y_held, y_squared in zip(ridges[m], parts, held_y, squared):
+                cross_held = part.T @ y_held
+                sse[m] += ridge.sse(cross_all - cross_held, cross_held, y_squared)
+        return 1.0 - sse / np.maximum((Y ** 2).sum(axis=0), 1e-300)
+
     # The model and penalty of the best held-out gain, for the data and for every permutation alike.
-    all_gains = 1.0 - sse / np.maximum((Y ** 2).sum(axis=0), 1e-300)
-    gains = all_gains.reshape(-1, Y.shape[1]).max(axis=0)
-    p = float((1 + np.sum(gains[1:] >= gains[0])) / (PERMUTATIONS + 1))
+    all_gains = gains_of([np.arange(n_poses)] + [rng.permutation(n_poses) for _ in range(BATCH)])
+    gain = float(all_gains[..., 0].max())
+    null = all_gains[..., 1:].reshape(-1, BATCH).max(axis=0)
+    while np.sum(null >= gain) < EXCEEDANCES and len(null) < MAX_PERMUTATIONS:
+        more = min(BATCH, MAX_PERMUTATIONS - len(null))
+        null = np.concatenate([null, gains_of([rng.permutation(n_poses) for _ in range(more)]).reshape(
+            -1, more).max(axis=0)])
+    reached = np.flatnonzero(null >= gain)
+    p = (EXCEEDANCES / (reached[EXCEEDANCES - 1] + 1) if len(reached) >= EXCEEDANCES
+         else (len(reached) + 1) / (len(null) + 1))
     m, a = np.unravel_index(int(np.argmax(all_gains[..., 0])), all_gains.shape[:2])
-    regression = OffsetRegression(basis, z.shape[1], float(ALPHAS[a]), subsets[m]).fit(X, Y[:, 0])
+    regression = OffsetRegression(basis, z.shape[1], float(ALPHAS[a]), subsets[m]).fit(X, y.ravel())
     importance: tuple[tuple[str, float, float], ...] = ()
-    if gains[0] > 0:
-        found = permutation_importance(regression, X, Y[:, 0], scoring="neg_mean_squared_error", n_repeats=5,
+    if gain > 0:
+        found = permutation_importance(regression, X, y.ravel(), scoring="neg_mean_squared_error", n_repeats=5,
                                        random_state=seed)
         ranked = sorted(range(z.shape[1]), key=lambda c: -found.importances_mean[c])
         importance = tuple((input_names[c], float(found.importances_mean[c]), float(found.importances_std[c]))
                            for c in ranked)
-    return Detection(float(gains[0]), p, float(np.quantile(gains[1:], 0.99)), importance, regression, targets,
-                     tuple(input_names))
+    return Detection(gain, float(p), float(np.quantile(null, 0.99)), importance, regression, targets,
+                     tuple(input_names), len(null))
