@@ -16,6 +16,7 @@ from scipy import stats
 from scipy.spatial import Delaunay
 
 from laser_calib.cli.main import main as cli_main
+from laser_calib.diagnosis.detector import MAX_PERMUTATIONS
 from laser_calib.diagnosis.engine import diagnose, write_outputs
 from laser_calib.diagnosis.compensator import load_compensator
 from laser_calib.diagnosis.options import EXPLAINED, STRUCTURE, UNDETERMINED, DiagnoseOptions
@@ -122,6 +123,9 @@ def test_data_without_effects_is_explained_and_nothing_is_added(arm):
     assert diagnosis.verdict == EXPLAINED, diagnosis.evidence
     assert diagnosis.final.effects == ()
     assert len(diagnosis.stages) == 1
+    # nothing in the residual: the sequential permutation test stopped before its last batch
+    assert diagnosis.detection.p > diagnosis.options.alpha
+    assert diagnosis.detection.permutations < MAX_PERMUTATIONS
 
 
 def step(robot, joint):
@@ -269,6 +273,8 @@ def test_outside_effect_with_only_the_spot_sigma_given_is_not_explained():
     diagnosis = diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma)
     assert diagnosis.noise.level_test is None
     assert diagnosis.detection.p <= diagnosis.options.alpha, diagnosis.evidence
+    # significant only after every permutation is drawn (an early stop has p >= 10 / 999)
+    assert diagnosis.detection.permutations == MAX_PERMUTATIONS
     assert diagnosis.verdict == STRUCTURE
     top = [name for name, _, _ in diagnosis.detection.importance[:4]]
     assert {"q2", "q3"} & set(top), top
