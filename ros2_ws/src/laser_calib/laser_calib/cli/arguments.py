@@ -70,22 +70,23 @@ def noise_length(text: str) -> float:
     return _length(text, "noise level", 0.0)
 
 
+def _joint_noise(text: str, limit: float, unit: str) -> float:
+    """A joint noise in ``unit`` (0: none) up to limit, the same angle in either unit."""
+    value = non_negative(text)
+    if value > limit:
+        raise argparse.ArgumentTypeError(f"{text} {unit} is not a plausible joint noise (at most {limit:.3g} {unit}; "
+                                         f"this option is in {'radians' if unit == 'rad' else 'degrees'})")
+    return value
+
+
 def sigma_angle(text: str) -> float:
     """A joint noise standard deviation in radians (0: none)."""
-    value = non_negative(text)
-    if value > MAX_SIGMA_ANGLE:
-        raise argparse.ArgumentTypeError(f"{text} rad is not a plausible joint noise (at most {MAX_SIGMA_ANGLE} "
-                                         "rad; angles are in radians)")
-    return value
+    return _joint_noise(text, MAX_SIGMA_ANGLE, "rad")
 
 
 def noise_angle_deg(text: str) -> float:
     """A simulated joint noise half-width in degrees (0: none), bounded as sigma_angle."""
-    value = non_negative(text)
-    if value > MAX_SIGMA_DEG:
-        raise argparse.ArgumentTypeError(f"{text} deg is not a plausible joint noise (at most {MAX_SIGMA_DEG:.1f} "
-                                         "deg)")
-    return value
+    return _joint_noise(text, MAX_SIGMA_DEG, "deg")
 
 
 def _integer(text: str, minimum: int) -> int:
