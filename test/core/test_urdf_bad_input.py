@@ -155,6 +155,21 @@ def test_a_joint_without_limits_off_the_chain_is_no_concern():
         robot_from_urdf(ARM, "base_link", "fan")
 
 
+@pytest.mark.parametrize("name", ["ARM.URDF", "arm.xml"])
+def test_a_urdf_named_in_capitals_or_xml_is_read_as_a_urdf(name, tmp_path, capsys):
+    """Not as a robot YAML (whose reader said --base / --tip apply to a URDF only): the samples are
+    reached, and their absence is the one line."""
+    (tmp_path / name).write_text(ARM)
+    _one_line(capsys, _calibrate_poses(tmp_path, tmp_path / name, "--base", "base_link", "--tip", "tool"),
+              "none.csv")
+
+
+def test_a_urdf_not_in_utf8_is_said_so(tmp_path, capsys):
+    (tmp_path / "arm.urdf").write_bytes(ARM.replace("arm3", "arm\xe9", 1).encode("latin-1"))
+    _one_line(capsys, _calibrate_poses(tmp_path, tmp_path / "arm.urdf", "--base", "base_link", "--tip", "tool"),
+              "arm.urdf: line 2: not UTF-8 text (byte 0xe9)")
+
+
 def _urdf_robot_yaml(folder: Path, **keys) -> Path:
     """The paper's arm as a URDF robot YAML with lasers (the tester's file), ``keys`` replaced."""
     (folder / "arm7.urdf").write_text((DATA / "paper_arm_7dof.urdf").read_text())

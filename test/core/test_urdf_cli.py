@@ -116,7 +116,7 @@ BAD = {  # change of the robot YAML -> what the one line says
     "unknown key": ({"joint_names": ["a"]}, "unknown key 'joint_names'"),
     "no base": ({"base": None}, "missing key 'base'"),
     "no such file": ({"urdf": "missing.urdf"}, "arm.yaml: urdf: no file"),
-    "not a URDF": ({"urdf": "arm.stl"}, "urdf: expected a .urdf or .xacro file"),
+    "not a URDF": ({"urdf": "arm.stl"}, "urdf: expected a .urdf, .xacro or .xml file"),
     "xacro_args on a URDF": ({"xacro_args": {"x": 1}}, "xacro_args: applies to a 'urdf:' file ending in .xacro"),
     "twice": ({"robot_description": "<robot/>"}, "the URDF is given 2 times"),
     "no such tip": ({"tip": "hand"}, "no link 'hand'"),  # (robot file .../arm.yaml)

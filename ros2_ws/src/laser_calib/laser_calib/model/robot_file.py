@@ -188,13 +188,13 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
     if not tips or len(set(tips)) != len(tips):
         raise InputError(f"{source}: tip", f"expected a link name or a non-empty list of distinct link names, "
                                            f"got {data['tip']!r}")
-    if "xacro_args" in data and not (isinstance(data.get("urdf"), str) and data["urdf"].endswith(".xacro")):
+    if "xacro_args" in data and not (isinstance(data.get("urdf"), str) and data["urdf"].lower().endswith(".xacro")):
         raise InputError(f"{source}: xacro_args", "applies to a 'urdf:' file ending in .xacro only")
     if "urdf" in data:
         name = _string(f"{source}: urdf", data["urdf"])
         path = Path(folder or ".") / name
         if not is_urdf(path):
-            raise InputError(f"{source}: urdf", f"expected a .urdf or .xacro file, got {name!r}")
+            raise InputError(f"{source}: urdf", f"expected a .urdf, .xacro or .xml file, got {name!r}")
         if not path.is_file():
             raise InputError(f"{source}: urdf", f"no file {path}")
         args = data.get("xacro_args", {})

@@ -31,13 +31,14 @@ from scipy.spatial.transform import Rotation
 
 from laser_calib.io.ament import package_index
 from laser_calib.io.errors import InputError
+from laser_calib.io.read import read_text
 from laser_calib.measurement.frames import Pose
 from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
                                            ChainJoint, JointChain)
 from laser_calib.model.robot import LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, Laser, Robot, Screen, Slm
 from laser_calib.model.urdf_checks import check_tree
 
-URDF_SUFFIXES = (".urdf", ".xacro")
+URDF_SUFFIXES = (".urdf", ".xacro", ".xml")  # in any case: ARM.URDF, and older descriptions named .xml
 _KINDS = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC, "fixed": FIXED_JOINT}
 UNLIMITED = 1e3  # rad or m: the range of a continuous joint (no limit in the file)
 _MISSING_PACKAGE = re.compile(r"package '([^']+)' not found")  # ament_index_python's PackageNotFoundError
@@ -47,13 +48,13 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None) -> str
     """The URDF text of a .urdf file, or of a .xacro file after expansion with
     ``xacro_args`` (name -> value, as ``xacro file.xacro name:=value``)."""
     path = Path(path)
+    if path.suffix.lower() != ".xacro":
+        return read_text(path)
     try:
-        if path.suffix == ".xacro":
-            import xacro  # only for xacro input
+        import xacro  # only for xacro input
 
-            with package_index():  # $(find pkg): installed packages, then ROS_PACKAGE_PATH's
-                return xacro.process_file(str(path), mappings=dict(xacro_args or {})).toxml()
-        return path.read_text()
+        with package_index():  # $(find pkg): installed packages, then ROS_PACKAGE_PATH's
+            return xacro.process_file(str(path), mappings=dict(xacro_args or {})).toxml()
     except OSError as exc:
         raise InputError(str(path), f"cannot read ({exc.strerror})") from None
     except Exception as exc:  # xacro raises its own XacroException and XML errors
@@ -230,7 +231,7 @@ def load_urdf_robot(path: str | Path, base: str, tip: str | Sequence[str]) -> Ro
 
 
 def is_urdf(path: str | Path) -> bool:
-    return Path(path).suffix in URDF_SUFFIXES
+    return Path(path).suffix.lower() in URDF_SUFFIXES
 
 
 def _transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
