@@ -123,6 +123,10 @@ CASES = {
         lambda r: r["lasers"][0].__setitem__("bta", r["lasers"][0].pop("beta")))), "did you mean 'beta'"),
     "duplicated key": (lambda d: _estimate(d, robot=_robot_text("{a: 0.0,", "{a: 0.0, a: 0.1,")), "duplicated key 'a'"),
     "no lasers with spot samples": (lambda d: _estimate(d, robot=_robot_yaml(lambda r: r.pop("lasers"))), "lasers"),
+    "a robot without a name": (lambda d: _estimate(d, robot=_robot_yaml(lambda r: r.__setitem__("name", ""))),
+                               "robot.yaml: name"),
+    "two identical lasers": (lambda d: _estimate(d, robot=_robot_yaml(
+        lambda r: r["lasers"].__setitem__(1, dict(r["lasers"][0])))), "robot.yaml: lasers[1]"),
     "lengths in millimetres": (lambda d: _estimate(d, robot=_robot_yaml(
         lambda r: r["joints"][1].__setitem__("a", 350.0))), "millimetres"),
     "angles in degrees": (lambda d: _estimate(d, robot=_robot_yaml(

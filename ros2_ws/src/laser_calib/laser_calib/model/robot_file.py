@@ -80,8 +80,8 @@ def _dh_robot(data: Any, source: str) -> Robot:
     for key in ("name", "joints"):
         if key not in data:
             raise InputError(source, f"missing key '{key}'")
-    if not isinstance(data["name"], str):
-        raise InputError(f"{source}: name", f"expected a string, got {type(data['name']).__name__}")
+    if not isinstance(data["name"], str) or not data["name"].strip():
+        raise InputError(f"{source}: name", f"expected the robot's name, got {data['name']!r}")
     if not isinstance(data["joints"], list) or not data["joints"]:
         raise InputError(f"{source}: joints", "expected a non-empty list of joints")
     joints = []
@@ -141,6 +141,8 @@ def _lasers_and_screen(data: Mapping[str, Any], source: str) -> dict[str, Any]:
         where = f"{source}: lasers[{j}]"
         entry = _mapping(where, entry, LASER_KEYS)
         lasers.append(Laser(_angle(where, entry, "gamma"), _angle(where, entry, "beta", 0.0)))
+    if len(lasers) == 2 and lasers[0] == lasers[1]:  # one beam twice: its spots could not tell the lasers apart
+        raise InputError(f"{source}: lasers[1]", "the same gamma and beta as lasers[0]: the two lasers must differ")
     screen = Screen()
     if "screen" in data:
         where = f"{source}: screen"
@@ -206,8 +208,8 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
                                                                     data["robot_description"])
         where = source if description is None else f"{source} (robot description)"
     name = data.get("name")
-    if name is not None and not isinstance(name, str):
-        raise InputError(f"{source}: name", f"expected a string, got {type(name).__name__}")
+    if name is not None and (not isinstance(name, str) or not name.strip()):
+        raise InputError(f"{source}: name", f"expected the robot's name, got {name!r}")
     parts = _lasers_and_screen(data, source)
     try:
         robot = robot_from_urdf(text, base, tips, where, slm=parts["slm"], lasers=parts["lasers"],
