@@ -156,3 +156,16 @@ def test_calibrate_poses_diagnose_runs_the_diagnosis_engine(run, tmp_path, capsy
     printed = capsys.readouterr().out
     assert diagnosis["verdict"] in ("explained", "structure remains") and "verdict" in printed
     assert f"held-out mean {diagnosis['heldout_nested_mean_mm']:.3f} mm with the selection inside the folds" in printed
+
+
+def test_a_reading_in_degrees_is_refused_at_the_import(run, tmp_path, capsys):
+    """The tester's edit: one target joint reading typed in degrees. The import wrote it as good
+    samples and only calibrate-poses refused it; now the import names it."""
+    shutil.copy(DATA / "pose_initial_guesses.yaml", tmp_path / "pose_initial_guesses.yaml")
+    text = (DATA / "measurements.yaml").read_text()
+    assert text.count("  - -0.5229825973510742\n") > 1
+    (tmp_path / "measurements.yaml").write_text(text.replace("  - -0.5229825973510742\n", "  - -29.96\n", 1))
+    assert run(["import-positioner", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "measurements.yaml (in time order): pose 0, field q1" in err and "looks like degrees" in err, err
+    assert not (tmp_path / "o").exists()

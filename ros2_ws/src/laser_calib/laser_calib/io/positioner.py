@@ -21,6 +21,7 @@ import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, load_yaml, read_text
+from laser_calib.io.samples import check_joint_range
 from laser_calib.model.robot import STANDARD, Joint, Robot, Slm
 from laser_calib.measurement.frames import POSE_KEYS, Pose, with_frames
 from laser_calib.measurement.rotations import quaternion_to_matrix
@@ -103,4 +104,6 @@ def read_positioner(directory: str | Path) -> tuple[Robot, SensorSamples]:
     values = np.array([row[2] for row in rows])
     samples = SensorSamples(pose=np.arange(len(rows)), stamp=stamp, q=np.array([row[1] for row in rows]),
                             position=values[:, :3], quaternion=values[:, 3:])
+    # here, not only when the samples are calibrated: the import writes them as if they were good
+    check_joint_range(samples.q, robot, f"{measurements_path} (in time order)", samples.pose)
     return robot, samples
