@@ -108,7 +108,7 @@ class Estimator(Node):
             if key in self.keys:
                 return
             self.keys.add(key)
-        self.get_logger().debug(f"sample of pose {row[0]} (stamp {row[1]:.6f} s) taken: {self.add(row)} samples")
+        self.add(row)
 
     def on_joint_state(self, msg: JointState) -> None:
         q = np.array(msg.position, dtype=float)
@@ -140,7 +140,7 @@ class Estimator(Node):
         if bad.size:
             raise InputError(where, f"joint_positions[{bad[0]}] is not finite ({row[2][bad[0]]})")
 
-    def add(self, row) -> int:  # the samples taken so far
+    def add(self, row) -> None:
         with self.lock:
             self.rows.append(row)
             count = len(self.rows)
@@ -148,6 +148,7 @@ class Estimator(Node):
             errors = np.array(self.online.errors, dtype=float)
             std = np.array(self.online.std, dtype=float)
             identifiable = np.array(self.online.identifiable, dtype=bool)
+        self.get_logger().debug(f"sample {row[0]} (stamp {row[1]:.6f} s) taken: {count} samples")  # in their order
         stamp = self.get_clock().now().to_msg()
         self.param_pub.publish(online_parameters(self.robot, errors, std, identifiable, count, stamp))
         if self.markers_on:
@@ -155,7 +156,6 @@ class Estimator(Node):
                 rows = self.rows[-MAX_POINTS // 2:]
             self.marker_pub.publish(calibration_markers(self.robot, np.array([r[2] for r in rows]),
                                                         np.array([r[3] for r in rows]), errors, stamp))
-        return count
 
     # ---- services ----
     def on_reset(self, request, response):
