@@ -1,7 +1,7 @@
 """Argument types of the command line: each checks one text and returns its
 value, or raises argparse.ArgumentTypeError (argparse then prints one line and
 exits with status 2); output folders written all or nothing (staged_folder);
-warnings printed one line each."""
+warnings printed one line each; samples with nothing measured refused."""
 
 from __future__ import annotations
 
@@ -121,6 +121,12 @@ def fraction(text: str) -> float:
     if value >= 1:
         raise argparse.ArgumentTypeError(f"expected a fraction between 0 and 1, got {text}")
     return value
+
+
+def require_measured(samples, source: str, problem: str = "no measured spot") -> None:
+    """One line naming the file when no spot in it is measured: nothing to fit or to judge."""
+    if not samples.seen.any():
+        raise InputError(source, f"{problem} (every spot field empty)")
 
 
 # A fit that did not converge: its files are written (nothing measured is lost, and they show

@@ -9,7 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from laser_calib.cli.arguments import non_negative, non_negative_int, out_folder, positive, staged_folder
+from laser_calib.cli.arguments import (non_negative, non_negative_int, out_folder, positive, require_measured,
+                                      staged_folder)
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.io.errors import InputError
@@ -25,8 +26,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
-    if test is not None and not test.seen.any():
-        raise InputError(str(args.test), "no spot is measured in the test set (every spot field empty)")
+    if test is not None:
+        require_measured(test, str(args.test), "no spot is measured in the test set")
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
           file=sys.stderr, flush=True)
     # The folder first: one that cannot be written fails before the work, and a failed run leaves none.

@@ -36,8 +36,8 @@ from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
 from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, noise_angle_deg, noise_length, non_negative_int,
-                                      out_file, out_folder, positive, positive_int, print_warnings, sigma_angle,
-                                      sigma_length, staged_folder, tolerance_length)
+                                      out_file, out_folder, positive, positive_int, print_warnings, require_measured,
+                                      sigma_angle, sigma_length, staged_folder, tolerance_length)
 
 EXIT_BAD_INPUT = 2
 
@@ -106,20 +106,14 @@ def _bag_samples(path: str, robot) -> object:
     return samples
 
 
-def _measured(samples, source: str, problem: str = "no measured spot") -> None:
-    """One line naming the file when no spot in it is measured: nothing to fit or to judge."""
-    if not samples.seen.any():
-        raise InputError(source, f"{problem} (every spot field empty)")
-
-
 def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = _bag_samples(args.bag, robot) if args.bag else load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
-    _measured(samples, str(args.samples or args.bag))
+    require_measured(samples, str(args.samples or args.bag))
     if test is not None:
-        _measured(test, str(args.test), "no spot is measured in the test set")
+        require_measured(test, str(args.test), "no spot is measured in the test set")
     compensator = None
     if args.compensator:
         from laser_calib.diagnosis.compensator import load_compensator  # scikit-learn: only when asked for
@@ -148,7 +142,7 @@ def _summary(calibration) -> int:
 def cmd_identify(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
-    _measured(samples, args.samples)
+    require_measured(samples, args.samples)
     model = SpotModel(robot, samples)
     factor, n_values = whitened_factor(model, NoiseModel(args.spot_sigma, args.joint_sigma), np.zeros(robot.n_params))
     print(f"{robot.name}: {len(samples)} poses, {n_values // 2} spots")
