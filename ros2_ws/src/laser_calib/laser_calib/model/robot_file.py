@@ -22,7 +22,8 @@ from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text,
 from laser_calib.measurement.frames import robot_frames
 from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, PAPER, Joint, Laser, Robot,
                                      Screen, Slm)
-from laser_calib.model.urdf import calibrated_urdf, is_urdf, load_urdf_robot, robot_from_urdf, urdf_text
+from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, load_urdf_robot, robot_from_urdf,
+                                    urdf_text)
 
 _KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "convention")
 # A URDF robot: the arm from the URDF text (a file, the text itself, or the node's topic).
@@ -186,10 +187,7 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
                                      f"{'starts' if key == 'base' else 'ends'} at)")
     base = _string(f"{source}: base", data["base"])
     tips = data["tip"] if isinstance(data["tip"], list) else [data["tip"]]
-    tips = [_string(f"{source}: tip", tip) for tip in tips]
-    if not tips or len(set(tips)) != len(tips):
-        raise InputError(f"{source}: tip", f"expected a link name or a non-empty list of distinct link names, "
-                                           f"got {data['tip']!r}")
+    tips = check_tips([_string(f"{source}: tip", tip) for tip in tips], source)
     if "xacro_args" in data and not (isinstance(data.get("urdf"), str) and data["urdf"].lower().endswith(".xacro")):
         raise InputError(f"{source}: xacro_args", "applies to a 'urdf:' file ending in .xacro only")
     if "urdf" in data:

@@ -214,10 +214,7 @@ def robot_from_urdf(text: str, base: str, tip: str | Sequence[str], source: str 
     with them, ``slm`` places the laser module on the (first) tip link as in a
     robot file (conventions.md), and spots are predicted from the first tip.
     """
-    tips = (tip,) if isinstance(tip, str) else tuple(tip)
-    if not tips or len(set(tips)) != len(tips):  # a tip twice would be measured as two
-        raise InputError(source, f"tip: expected a link name or a non-empty list of distinct link names, "
-                                 f"got {', '.join(tips) or 'none'}")
+    tips = check_tips((tip,) if isinstance(tip, str) else tuple(tip), source)
     if lasers and slm is None:
         raise InputError(source, "lasers need an slm placement")
     urdf = _parse(text, source)
@@ -228,6 +225,14 @@ def robot_from_urdf(text: str, base: str, tip: str | Sequence[str], source: str 
 
 def load_urdf_robot(path: str | Path, base: str, tip: str | Sequence[str]) -> Robot:
     return robot_from_urdf(urdf_text(path), base, tip, str(path))
+
+
+def check_tips(tips: Sequence[str], source: str) -> tuple[str, ...]:
+    """The tip links: at least one, each once (a tip twice would be measured as two)."""
+    if not tips or len(set(tips)) != len(tips):
+        raise InputError(f"{source}: tip", f"expected a link name or a non-empty list of distinct link names, "
+                                           f"got {', '.join(tips) or 'none'}")
+    return tuple(tips)
 
 
 def is_urdf(path: str | Path) -> bool:
