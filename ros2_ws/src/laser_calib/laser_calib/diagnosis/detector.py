@@ -170,7 +170,7 @@ class Detection:
     regression: OffsetRegression
     targets: tuple[str, ...]
     inputs: tuple[str, ...]
-    permutations: int = BATCH
+    permutations: int
 
     def sentence(self) -> str:
         named = ", ".join(f"{n} ({v:.2g})" for n, v, _ in self.importance[:4] if v > 0) or "no input singly"
@@ -293,13 +293,16 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
         return 1.0 - sse / np.maximum((Y ** 2).sum(axis=0), 1e-300)
 
     # The model and penalty of the best held-out gain, for the data and for every permutation alike.
+    def best(gains: np.ndarray) -> np.ndarray:
+        """(T,) each order's best gain over the sub-models and penalties of gains (subsets, ALPHAS, T)."""
+        return gains.reshape(-1, gains.shape[-1]).max(axis=0)
+
     all_gains = gains_of([np.arange(n_poses)] + [rng.permutation(n_poses) for _ in range(BATCH)])
     gain = float(all_gains[..., 0].max())
-    null = all_gains[..., 1:].reshape(-1, BATCH).max(axis=0)
+    null = best(all_gains[..., 1:])
     while np.sum(null >= gain) < EXCEEDANCES and len(null) < MAX_PERMUTATIONS:
         more = min(BATCH, MAX_PERMUTATIONS - len(null))
-        null = np.concatenate([null, gains_of([rng.permutation(n_poses) for _ in range(more)]).reshape(
-            -1, more).max(axis=0)])
+        null = np.concatenate([null, best(gains_of([rng.permutation(n_poses) for _ in range(more)]))])
     reached = np.flatnonzero(null >= gain)
     p = (EXCEEDANCES / (reached[EXCEEDANCES - 1] + 1) if len(reached) >= EXCEEDANCES
          else (len(reached) + 1) / (len(null) + 1))
