@@ -15,7 +15,7 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from laser_calib.cli.main import main
+from cli_status import exit_status
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import load_yaml
 from laser_calib.io.samples import format_samples, load_samples, parse_samples
@@ -166,18 +166,11 @@ def _latin1(folder: Path) -> list[str]:
             "--out", str(folder / "out")]
 
 
-def _run(argv: list[str]) -> int:
-    try:
-        return main(argv)
-    except SystemExit as exc:  # argparse's own one-line errors
-        return exc.code
-
-
 @pytest.mark.parametrize("name", list(CASES))
 def test_bad_input_is_one_line_and_exit_2(name, tmp_path, capsys):
     make, expected = CASES[name]
     argv = make(tmp_path)
-    code = _run(argv)
+    code = exit_status(argv)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2, (name, err)
     # one error line, the last (argparse prints its usage and progress lines may precede it)
@@ -198,7 +191,7 @@ def test_an_unconverged_fit_exits_3_and_the_still_joint_is_named(tmp_path, capsy
     edited = [lines[0]] + [",".join(c if k != column else "0.3" for k, c in enumerate(line.split(",")))
                            for line in lines[1:]]
     (tmp_path / "still.csv").write_text("\n".join(edited) + "\n")
-    code = _run(["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
+    code = exit_status(["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
                  "wrist_3_link", "--samples", str(tmp_path / "still.csv"), "--out", str(tmp_path / "out"),
                  "--folds", "0"])
     out = capsys.readouterr().out
@@ -223,13 +216,13 @@ def test_a_failed_run_leaves_no_folder_and_a_reused_one_is_named(tmp_path, capsy
     empty = format_samples(type(SESSION.samples)(SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q,
                                                  np.full_like(SESSION.samples.spots, np.nan)))
     Path(samples).write_text(empty)
-    assert _run(["estimate", "--robot", robot, "--samples", samples, "--out", str(tmp_path / "out")]) == 2
+    assert exit_status(["estimate", "--robot", robot, "--samples", samples, "--out", str(tmp_path / "out")]) == 2
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.partial-*"))
     Path(samples).write_text(SAMPLES)
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "old_plot.png").write_text("from another run")
     capsys.readouterr()
-    assert _run(["estimate", "--robot", robot, "--samples", samples, "--out", str(tmp_path / "out")]) == 0
+    assert exit_status(["estimate", "--robot", robot, "--samples", samples, "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "old_plot.png" in out and (tmp_path / "out" / "result.json").exists()
 
@@ -237,7 +230,7 @@ def test_a_failed_run_leaves_no_folder_and_a_reused_one_is_named(tmp_path, capsy
 def test_diagnose_says_when_the_nested_heldout_error_cannot_be_computed(tmp_path, capsys):
     """Two folds of 12 poses leave 6 to select on, fewer than the diagnosis needs: no nested
     held-out error (the notes say why), and the command still finishes."""
-    assert _run(_diagnose(tmp_path, "--folds", "2")) == 0
+    assert exit_status(_diagnose(tmp_path, "--folds", "2")) == 0
     out = capsys.readouterr().out
     assert "held out with the selection inside the folds: not computed" in out
     assert "note: no held-out error with the selection inside the folds" in out

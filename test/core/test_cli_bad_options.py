@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
+from cli_status import exit_status
 from laser_calib.cli import vision as vision_cli
-from laser_calib.cli.main import build_parser, main
+from laser_calib.cli.main import build_parser
 from laser_calib.io.samples import format_samples
 from laser_calib.model.robot_file import dump_robot, robot_to_dict
 from laser_calib.sim.simulation import bundled_robot, paper_session
@@ -20,13 +21,6 @@ from laser_calib.sim.simulation import bundled_robot, paper_session
 ROBOT = bundled_robot("paper-4dof")
 SESSION = paper_session("paper-4dof", 0, n_per_span=6)
 SLM_ROWS = "1,0.5,0.01,0.02\n1,1.0,0.02,0.04\n1,1.5,0.03,0.06\n2,0.5,-0.01,0.02\n2,1.0,-0.02,0.04\n2,1.5,-0.03,0.06\n"
-
-
-def _run(argv: list[str]) -> int:
-    try:
-        return main(argv)
-    except SystemExit as exc:  # argparse's own one-line errors
-        return exc.code
 
 
 def _files(folder: Path, spots: np.ndarray | None = None) -> tuple[str, str]:
@@ -106,7 +100,7 @@ CASES = {
 @pytest.mark.parametrize("name", list(CASES))
 def test_bad_option_is_one_line_and_exit_2(name, tmp_path, capsys):
     make, expected = CASES[name]
-    code = _run(make(tmp_path))
+    code = exit_status(make(tmp_path))
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2, (name, err)
     assert not any("Traceback" in line for line in err)
@@ -116,7 +110,7 @@ def test_bad_option_is_one_line_and_exit_2(name, tmp_path, capsys):
 
 
 def test_slm_millimetres_are_named_as_such(tmp_path, capsys):
-    assert _run(_slm(tmp_path, MM_ROWS)) == 2
+    assert exit_status(_slm(tmp_path, MM_ROWS)) == 2
     err = capsys.readouterr().err
     assert "500 m" in err and "looks like millimetres" in err
 
@@ -135,7 +129,7 @@ def test_plausible_sizes_and_seeds_are_accepted():
 
 
 def test_slm_in_metres_still_calibrates(tmp_path):
-    assert _run(_slm(tmp_path)) == 0 and (tmp_path / "out").is_file()
+    assert exit_status(_slm(tmp_path)) == 0 and (tmp_path / "out").is_file()
 
 
 @pytest.fixture
@@ -157,7 +151,7 @@ def test_a_render_that_fails_midway_leaves_no_folder(tmp_path, monkeypatch, caps
         written.append(path)
         return real(path, image)
     monkeypatch.setattr(vision_cli.cv2, "imwrite", filling)
-    assert _run(_render(tmp_path)) == 2
+    assert exit_status(_render(tmp_path)) == 2
     assert capsys.readouterr().err.strip().endswith("out: cannot write (No space left on device)")
     assert written and not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.partial-*"))
 
@@ -165,7 +159,7 @@ def test_a_render_that_fails_midway_leaves_no_folder(tmp_path, monkeypatch, caps
 def test_a_second_render_replaces_the_image_folders(tmp_path, blank_frames):
     """A smaller second run must not leave the first run's extra views behind: screen-calibrate
     reads every image of the folder."""
-    assert _run(["render-calibration-images", "--out", str(tmp_path / "out"), "--board-views", "2",
+    assert exit_status(["render-calibration-images", "--out", str(tmp_path / "out"), "--board-views", "2",
                  "--screen-views", "1"]) == 0
-    assert _run(_render(tmp_path)) == 0
+    assert exit_status(_render(tmp_path)) == 0
     assert sorted(p.name for p in (tmp_path / "out" / "board").iterdir()) == ["board_000.png"]

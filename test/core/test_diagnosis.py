@@ -15,6 +15,7 @@ import pytest
 from scipy import stats
 from scipy.spatial import Delaunay
 
+from cli_status import exit_status
 from laser_calib.cli.main import main as cli_main
 from laser_calib.diagnosis.detector import MAX_PERMUTATIONS
 from laser_calib.diagnosis.engine import diagnose, write_outputs
@@ -229,10 +230,7 @@ def test_command_line_bad_input_exits_2_with_one_line(tmp_path, capsys, args, te
     for key, value in zip(args[::2], args[1::2]):
         base[key] = value
     argv = [item for pair in base.items() for item in pair]
-    try:
-        status = diagnose_main(argv)
-    except SystemExit as exit_:  # argparse rejects the value itself
-        status = exit_.code
+    status = exit_status(["diagnose", *argv])  # argparse rejects some values itself
     err = capsys.readouterr().err.strip().splitlines()
     assert status == 2
     assert text in err[-1]
