@@ -24,6 +24,7 @@ from laser_calib.model.robot_file import dump_robot, robot_from_dict, robot_to_d
 from laser_calib.sim.simulation import bundled_robot, paper_session
 
 ROBOT = bundled_robot("paper-4dof")
+UR10E = Path(__file__).resolve().parents[2] / "data" / "real" / "ur10e_mocap"
 SESSION = paper_session("paper-4dof", 0, n_per_span=6)
 SAMPLES = format_samples(SESSION.samples)
 
@@ -97,6 +98,14 @@ def _no_spots_diagnose_test(folder: Path) -> list[str]:
     return _diagnose(folder, "--test", _no_spots_test(folder)[-1])
 
 
+def _ur10e(folder: Path, rows: int, *extra: str) -> list[str]:
+    """calibrate-poses on the first rows of the real UR10e pose log."""
+    lines = (UR10E / "samples.csv").read_text().splitlines()
+    (folder / "poses.csv").write_text("\n".join(lines[:rows + 1]) + "\n")
+    return ["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
+            "wrist_3_link", "--samples", str(folder / "poses.csv"), "--out", str(folder / "out"), *extra]
+
+
 BOMB = "a: &a [x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b, *b]\n"
 
 CASES = {
@@ -113,6 +122,9 @@ CASES = {
     "diagnose --seed -1": (lambda d: _diagnose(d, "--seed", "-1"), "--seed"),
     "diagnose on 3 poses": (lambda d: ["diagnose"] + _estimate(d, samples="\n".join(SAMPLES.splitlines()[:4]))[1:],
                             "samples.csv: 3 poses"),
+    "estimate on 3 poses": (lambda d: _estimate(d, samples="\n".join(SAMPLES.splitlines()[:4])),
+                            "samples.csv: 12 measured values cannot determine"),
+    "calibrate-poses on 4 poses": (lambda d: _ur10e(d, 4, "--folds", "0"), "poses.csv: 24 measured values"),
     "400-digit integer in YAML": (lambda d: _estimate(d, robot=_robot_text("a: 0.0", "a: " + "9" * 400)), "robot.yaml"),
     "recursive anchor": (lambda d: _estimate(d, robot="name: &a [*a]\n"), "robot.yaml"),
     "5000-deep nesting": (lambda d: _estimate(d, robot="name: " + "[" * 5000 + "]" * 5000 + "\n"), "robot.yaml"),
@@ -178,9 +190,6 @@ def test_bad_input_is_one_line_and_exit_2(name, tmp_path, capsys):
     assert [line for line in err if line.startswith("laser-calib")] == err[-1:], err
     assert expected in err[-1], err[-1]
     assert not (tmp_path / "out").exists()      # nothing half-written
-
-
-UR10E = Path(__file__).resolve().parents[2] / "data" / "real" / "ur10e_mocap"
 
 
 def test_an_unconverged_fit_exits_3_and_the_still_joint_is_named(tmp_path, capsys):

@@ -22,7 +22,7 @@ from laser_calib.estimation.ekf import EkfOptions
 from laser_calib.estimation.lm import LmOptions
 from laser_calib.estimation.problem import whitened_factor
 from laser_calib.report.progress import Progress
-from laser_calib.estimation.identifiability import STD_FACTOR, analyse
+from laser_calib.estimation.identifiability import STD_FACTOR, TooFewValues, analyse
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.files import run_estimate
@@ -119,11 +119,14 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         from laser_calib.diagnosis.compensator import load_compensator  # scikit-learn: only when asked for
         compensator = load_compensator(args.compensator)
     with staged_folder(args.out) as out, Progress(args.method, unit="iteration") as progress:
-        calibration = run_estimate(robot, samples, _options(args, progress), out, test,
-                                   sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
-                                            "test": str(args.test) if args.test else None,
-                                            "compensator": args.compensator},
-                                   compensator=compensator)
+        try:
+            calibration = run_estimate(robot, samples, _options(args, progress), out, test,
+                                       sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
+                                                "test": str(args.test) if args.test else None,
+                                                "compensator": args.compensator},
+                                       compensator=compensator)
+        except TooFewValues as exc:  # the estimator counts the values, the command knows their file
+            raise InputError(str(args.samples or args.bag), str(exc)) from None
     status = _summary(calibration)
     urdf = ", robot_calibrated.urdf, urdf_corrections.json" if robot.chain is not None else ""
     print(f"wrote {args.out}/robot_calibrated.yaml{urdf}, result.json, report.md, residuals.csv")

@@ -23,6 +23,7 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       out_file, out_folder, positive, positive_int, print_warnings, sigma_angle,
                                       sigma_length, staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
+from laser_calib.estimation.identifiability import TooFewValues
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
 from laser_calib.planning import PlanOptions, plan
@@ -237,7 +238,10 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     if test is not None and test.kind != samples.kind:
         raise InputError(str(args.test), f"{test.kind} samples, but the calibration's are {samples.kind} samples")
     options = _options(args)
-    fit = calibrate(robot, samples, options)
+    try:
+        fit = calibrate(robot, samples, options)
+    except TooFewValues as exc:  # the estimator counts the values, the command knows their file
+        raise InputError(str(args.samples), str(exc)) from None
     table = _evaluate(fit.model, fit, components=True)
     result = {"robot": robot.name, "samples": str(args.samples), "kind": samples.kind, "poses": len(samples),
               "rotation_length_m_per_rad": fit.rotation_length, "sigma_m": fit.estimate.sigma,

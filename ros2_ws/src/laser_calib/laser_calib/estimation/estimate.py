@@ -41,7 +41,7 @@ import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.folds import still_joint_warnings
-from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, analyse
+from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses,
                                             whitened_factor)
@@ -265,8 +265,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     free = ident.free
     # as many values as parameters fit exactly: nothing tests the fit or estimates the noise
     if n_values <= free.sum() and prior_sigma is None:
-        raise ValueError(f"{n_values} measured values cannot determine and check {int(free.sum())} parameters; "
-                         "measure more poses or use the prior")
+        raise TooFewValues(n_values, int(free.sum()))
 
     def fit(problem: Problem, start_x: np.ndarray) -> Fit:
         if options.method == "lm":

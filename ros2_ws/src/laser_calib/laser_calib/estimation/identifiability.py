@@ -37,6 +37,15 @@ STD_FACTOR = 10.0
 TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed
 
 
+class TooFewValues(ValueError):
+    """As many measured values as free parameters, or fewer: they fit exactly, and nothing
+    tests the fit or estimates the noise. The estimator knows the counts, a command the file."""
+
+    def __init__(self, n_values: int, n_free: int):
+        super().__init__(f"{n_values} measured values cannot determine and check {n_free} parameters; "
+                         "measure more poses or use the prior")
+
+
 @dataclass(frozen=True)
 class Identifiability:
     """singular_values (min(M,n),) of the scaled Jacobian; rank (directions kept);
