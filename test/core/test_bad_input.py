@@ -125,6 +125,9 @@ CASES = {
     "estimate on 3 poses": (lambda d: _estimate(d, samples="\n".join(SAMPLES.splitlines()[:4])),
                             "samples.csv: 12 measured values cannot determine"),
     "calibrate-poses on 4 poses": (lambda d: _ur10e(d, 4, "--folds", "0"), "poses.csv: 24 measured values"),
+    # enough for the diagnosis on all 8, not on the 6 of a fold's training part its held-out error runs it on
+    "calibrate-poses --diagnose on 8 poses": (lambda d: _ur10e(d, 8, "--diagnose", "--folds", "0"),
+                                              "poses.csv: 8 poses, at least 9 needed for --diagnose"),
     "400-digit integer in YAML": (lambda d: _estimate(d, robot=_robot_text("a: 0.0", "a: " + "9" * 400)), "robot.yaml"),
     "recursive anchor": (lambda d: _estimate(d, robot="name: &a [*a]\n"), "robot.yaml"),
     "5000-deep nesting": (lambda d: _estimate(d, robot="name: " + "[" * 5000 + "]" * 5000 + "\n"), "robot.yaml"),

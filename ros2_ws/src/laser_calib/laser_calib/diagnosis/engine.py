@@ -134,6 +134,15 @@ def minimum_poses(n_errors: int, values_per_pose: float, folds: int) -> int:
     return n
 
 
+def minimum_poses_nested(needed: int, folds: int) -> int:
+    """The fewest poses whose every training part (all poses but the largest fold,
+    kfold_labels) holds ``needed``: a diagnosis run again inside the folds needs as many."""
+    n = needed
+    while n - math.ceil(n / folds) < needed:
+        n += 1
+    return n
+
+
 def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: tuple[str, ...] = ()) -> Diagnosis:
     """The diagnosis engine (module docstring) on any data set: the geometric
     fit of data.base(), selection over the candidates the base model supports,
