@@ -17,6 +17,7 @@ from typing import Iterator
 from laser_calib.estimation.estimate import NOT_CONVERGED
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import parse_int, parse_number
+from laser_calib.io.sensor_samples import POINT_COLUMNS, QUATERNION_COLUMNS
 
 
 # Plausible noise levels: a spot or position noise outside 1 nm .. 1 m, or a
@@ -123,10 +124,17 @@ def fraction(text: str) -> float:
     return value
 
 
-def require_measured(samples, source: str, problem: str = "no measured spot") -> None:
-    """One line naming the file when no spot in it is measured: nothing to fit or to judge."""
+# The fields a row leaves empty where its measurement was not seen, by Samples.kind.
+MEASURED_FIELDS = {"spot": "spot", "point": ", ".join(POINT_COLUMNS),
+                   "pose": ", ".join(POINT_COLUMNS + QUATERNION_COLUMNS)}
+
+
+def require_measured(samples, source: str, problem: str | None = None) -> None:
+    """One line naming the file when nothing in it is measured: nothing to fit or to judge.
+    problem: what is wrong, by default 'no measured <spot, point or pose>'."""
     if not samples.seen.any():
-        raise InputError(source, f"{problem} (every spot field empty)")
+        raise InputError(source, f"{problem or 'no measured ' + samples.kind} "
+                                 f"(every {MEASURED_FIELDS[samples.kind]} field empty)")
 
 
 # A fit that did not converge: its files are written (nothing measured is lost, and they show

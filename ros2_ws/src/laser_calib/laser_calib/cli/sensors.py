@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fraction, non_negative, non_negative_int,
-                                      out_file, out_folder, positive, positive_int, print_warnings, sigma_angle,
-                                      sigma_length, staged_folder, tolerance_length)
+                                      out_file, out_folder, positive, positive_int, print_warnings, require_measured,
+                                      sigma_angle, sigma_length, staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.identifiability import TooFewValues
 from laser_calib.model.robot import Robot
@@ -242,6 +242,7 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Sample
 def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     robot = load_robot_description(args.robot, args.base, args.tip)
     samples = load_sensor_samples(args.samples, robot)
+    require_measured(samples, str(args.samples))
     test = load_sensor_samples(args.test, robot) if args.test else None
     if test is not None and test.kind != samples.kind:
         raise InputError(str(args.test), f"{test.kind} samples, but the calibration's are {samples.kind} samples")
