@@ -170,6 +170,8 @@ CASES = {
                                                          str(d / "p.csv"), "--joint-sigma", "inf"], "--joint-sigma"),
     "simulate --poses-per-span 0": (lambda d: ["simulate", "--case", "paper-4dof", "--out", str(d / "s"),
                                                "--poses-per-span", "0"], "--poses-per-span"),
+    # said before replay's need of ROS (not sourced here), which a user would otherwise fix first
+    "replay a missing bag": (lambda d: ["replay", str(d / "nobag")], "nobag: no such bag"),
     "--out is a file": (lambda d: (d / "taken").write_text("x") and _estimate(d)[:-1] + [str(d / "taken")], "--out"),
     "--out unwritable": (lambda d: _estimate(d)[:-1] + ["/proc/x/y"], "/proc"),
     "plan --out is a folder": (lambda d: _files(d) and ["plan", "--robot", str(d / "robot.yaml"), "--n", "5", "--out",

@@ -28,7 +28,7 @@ from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
-from laser_calib.io.bag import read_samples_checked
+from laser_calib.io.bag import bag_topics, read_samples_checked
 from laser_calib.io.samples import check_joint_range, load_samples, save_samples
 from laser_calib.sim.simulation import CASE_POSES, CASES, NoiseSpec, paper_session, robot_session
 from laser_calib.cli import diagnose as diagnose_cli
@@ -171,6 +171,7 @@ def cmd_slm_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """Hand over to the replay node (a ROS process): the core itself never imports rclpy."""
+    bag_topics(args.bag)  # opened ROS-free first: a missing or unreadable bag is said before the lack of ROS
     executable = installed("lib/laser_calib_nodes/replay")
     if executable is None or not os.access(executable, os.X_OK):
         raise InputError("replay", "needs the ROS 2 environment: run scripts/setup, then use scripts/laser-calib "
