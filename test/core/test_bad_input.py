@@ -8,6 +8,8 @@ text at the readers: they return a value or raise InputError, nothing else.
 
 from __future__ import annotations
 
+import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -253,6 +255,19 @@ def test_diagnose_says_when_the_nested_heldout_error_cannot_be_computed(tmp_path
     out = capsys.readouterr().out
     assert "held out with the selection inside the folds: not computed" in out
     assert "note: no held-out error with the selection inside the folds" in out
+
+
+def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
+    """laser-calib identify ... | head -3: once head has its lines the pipe is closed, and the
+    next write fails. Closed here before anything is written, so every run meets it."""
+    robot, samples = _files(tmp_path)
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    script = Path(__file__).resolve().parents[2] / "scripts" / "laser-calib"
+    done = subprocess.run([str(script), "identify", "--robot", robot, "--samples", samples], stdout=write_end,
+                          stderr=subprocess.PIPE, text=True, timeout=300)
+    os.close(write_end)
+    assert done.returncode == 141 and "Error" not in done.stderr, done.stderr
 
 
 TEXT = st.text(alphabet=st.characters(blacklist_categories=("Cs",)), max_size=30)

@@ -3,7 +3,7 @@ screen-calibrate | render-calibration-images | import-positioner | calibrate-pos
 
 Bad input gives one line on stderr naming the file, field or pose, and exit status 2;
 a fit that did not converge, an error line and exit status 3 (its files are written,
-but they are not a calibration).
+but they are not a calibration); a reader that stops early (| head), no line and 141.
 """
 
 from __future__ import annotations
@@ -40,6 +40,8 @@ from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, noise_angle_
                                       sigma_angle, sigma_length, staged_folder, tolerance_length)
 
 EXIT_BAD_INPUT = 2
+# The reader of the output went away (| head): the status a shell gives a program SIGPIPE ends (128 + 13).
+EXIT_BROKEN_PIPE = 141
 
 
 def _progress(message: str) -> None:
@@ -251,7 +253,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit as a traceback
+        return status
+    except BrokenPipeError:
+        # What the reader wanted was printed. Python flushes stdout again at exit: devnull takes that.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except InputError as exc:
         print(f"laser-calib: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
