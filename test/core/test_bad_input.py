@@ -100,15 +100,21 @@ def _no_spots_diagnose_test(folder: Path) -> list[str]:
     return _diagnose(folder, "--test", _no_spots_test(folder)[-1])
 
 
-def _ur10e(folder: Path, rows: int, *extra: str, unseen: bool = False) -> list[str]:
-    """calibrate-poses on the first rows of the real UR10e pose log; unseen: every
-    row's measured fields (after pose, stamp and the 6 joints) empty."""
+def _ur10e_file(folder: Path, name: str, rows: int, unseen: bool = False) -> str:
+    """The first rows of the real UR10e pose log; unseen: every row's measured fields
+    (after pose, stamp and the 6 joints) empty."""
     lines = (UR10E / "samples.csv").read_text().splitlines()[:rows + 1]
     if unseen:
         lines[1:] = [",".join(line.split(",")[:8] + [""] * 7) for line in lines[1:]]
-    (folder / "poses.csv").write_text("\n".join(lines) + "\n")
+    (folder / name).write_text("\n".join(lines) + "\n")
+    return str(folder / name)
+
+
+def _ur10e(folder: Path, rows: int, *extra: str, unseen: bool = False) -> list[str]:
+    """calibrate-poses on the first rows of the real UR10e pose log (_ur10e_file)."""
     return ["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
-            "wrist_3_link", "--samples", str(folder / "poses.csv"), "--out", str(folder / "out"), *extra]
+            "wrist_3_link", "--samples", _ur10e_file(folder, "poses.csv", rows, unseen), "--out", str(folder / "out"),
+            *extra]
 
 
 BOMB = "a: &a [x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b, *b]\n"
@@ -132,6 +138,9 @@ CASES = {
     "calibrate-poses on 4 poses": (lambda d: _ur10e(d, 4, "--folds", "0"), "poses.csv: 24 measured values"),
     "calibrate-poses, no pose seen": (lambda d: _ur10e(d, 23, "--folds", "0", unseen=True),
                                       "poses.csv: no measured pose (every x, y, z, qw, qx, qy, qz field empty)"),
+    "calibrate-poses, no pose seen in --test": (lambda d: _ur10e(d, 23, "--folds", "0", "--test",
+                                                                _ur10e_file(d, "test.csv", 5, unseen=True)),
+                                                "test.csv: no pose is measured in the test set"),
     # enough for the diagnosis on all 8, not on the 6 of a fold's training part its held-out error runs it on
     "calibrate-poses --diagnose on 8 poses": (lambda d: _ur10e(d, 8, "--diagnose", "--folds", "0"),
                                               "poses.csv: 8 poses, at least 9 needed for --diagnose"),

@@ -246,6 +246,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     test = load_sensor_samples(args.test, robot) if args.test else None
     if test is not None and test.kind != samples.kind:
         raise InputError(str(args.test), f"{test.kind} samples, but the calibration's are {samples.kind} samples")
+    if test is not None:
+        require_measured(test, str(args.test), f"no {test.kind} is measured in the test set")
     options = _options(args)
     try:
         fit = calibrate(robot, samples, options)
