@@ -141,6 +141,10 @@ CASES = {
     "calibrate-poses, no pose seen in --test": (lambda d: _ur10e(d, 23, "--folds", "0", "--test",
                                                                 _ur10e_file(d, "test.csv", 5, unseen=True)),
                                                 "test.csv: no pose is measured in the test set"),
+    # enough for the fit on all 7, not on the 5 of a 5-fold training part
+    "calibrate-poses on 7 poses, 5 folds": (lambda d: _ur10e(d, 7), "poses.csv: 7 poses, too few for the 5-fold"),
+    "calibrate-poses, --chronological leaves too few": (lambda d: _ur10e(d, 9, "--folds", "0", "--chronological",
+                                                                         "0.5"), "--chronological 0.5: the first 4"),
     # enough for the diagnosis on all 8, not on the 6 of a fold's training part its held-out error runs it on
     "calibrate-poses --diagnose on 8 poses": (lambda d: _ur10e(d, 8, "--diagnose", "--folds", "0"),
                                               "poses.csv: 8 poses, at least 9 needed for --diagnose"),

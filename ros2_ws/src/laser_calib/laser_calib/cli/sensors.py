@@ -201,7 +201,13 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
              table: dict, result: dict, lines: list[str]) -> None:
     """k-fold and chronological held-out errors into the result, the table and the console."""
     if args.folds:
-        held = kfold(robot, samples, options, args.folds, args.seed)
+        try:
+            held = kfold(robot, samples, options, args.folds, args.seed)
+        except TooFewValues as exc:  # a training part's counts: said as a part of the file given
+            raise InputError(str(args.samples), f"{len(samples)} poses, too few for the {args.folds}-fold held-out "
+                                                f"error: a training part holds {exc.n_values} measured values for "
+                                                f"{exc.n_free} parameters; measure more poses, or give more --folds "
+                                                "(each leaves out fewer) or --folds 0 (none)") from None
         table.update({"fold": held.fold, "kfold_nominal_position_m": held.nominal_position,
                       "kfold_position_m": held.position})
         if samples.kind == "pose":
@@ -213,7 +219,13 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
         lines.append(_line(f"{args.folds}-fold held-out", result["heldout"], _design(robot)))
     if args.chronological:
         train = chronological_labels(len(samples), args.chronological) == 0
-        table.update(_split(robot, samples, options, train, "chronological_"))
+        try:
+            table.update(_split(robot, samples, options, train, "chronological_"))
+        except TooFewValues as exc:
+            raise InputError(str(args.samples), f"--chronological {args.chronological}: the first {train.sum()} of "
+                                                f"the {len(samples)} poses hold {exc.n_values} measured values for "
+                                                f"{exc.n_free} parameters; give a larger fraction or measure more "
+                                                "poses") from None
         outside = outside_range(samples.q, (~train).astype(int), (1,))
         result["chronological"] = {"calibration_fraction": args.chronological,
                                    "calibration_poses": int(train.sum()), "test_poses": int((~train).sum()),

@@ -44,6 +44,7 @@ class TooFewValues(ValueError):
     def __init__(self, n_values: int, n_free: int):
         super().__init__(f"{n_values} measured values cannot determine and check {n_free} parameters; "
                          "measure more poses or use the prior")
+        self.n_values, self.n_free = n_values, n_free
 
 
 @dataclass(frozen=True)
