@@ -164,6 +164,10 @@ CASES = {
         lambda r: r["lasers"].__setitem__(1, dict(r["lasers"][0])))), "robot.yaml: lasers[1]"),
     "lengths in millimetres": (lambda d: _estimate(d, robot=_robot_yaml(
         lambda r: r["joints"][1].__setitem__("a", 350.0))), "millimetres"),
+    "a frame guess in millimetres": (lambda d: _estimate(d, robot=_robot_yaml(
+        lambda r: r.__setitem__("frames", {"sensor": {"x": 2200, "y": 700, "z": 1075}}))),
+        "robot.yaml: frames.sensor.x: 2200 m is not a plausible length: lengths are in metres "
+        "(this looks like millimetres)"),
     "angles in degrees": (lambda d: _estimate(d, robot=_robot_yaml(
         lambda r: r["joints"][1].__setitem__("alpha", 90.0))), "degrees"),
     "spots in millimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(

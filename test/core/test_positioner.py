@@ -169,3 +169,17 @@ def test_a_reading_in_degrees_is_refused_at_the_import(run, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "measurements.yaml (in time order): pose 0, field q1" in err and "looks like degrees" in err, err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_guess_in_millimetres_is_refused_at_the_import(run, tmp_path, capsys):
+    """The tester's edit: the camera guess's x typed in millimetres (2200 for 2.2 m), which the
+    import took as a sensor 2.2 km away; now the D-H lengths' units rule names the key."""
+    shutil.copy(DATA / "measurements.yaml", tmp_path / "measurements.yaml")
+    text = (DATA / "pose_initial_guesses.yaml").read_text()
+    assert "  x: 2.2\n" in text
+    (tmp_path / "pose_initial_guesses.yaml").write_text(text.replace("  x: 2.2\n", "  x: 2200\n", 1))
+    assert run(["import-positioner", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert ("pose_initial_guesses.yaml: camera_mount_to_camera_guess.x: 2200 m is not a plausible length: lengths "
+            "are in metres (this looks like millimetres)") in err, err
+    assert not (tmp_path / "o").exists()

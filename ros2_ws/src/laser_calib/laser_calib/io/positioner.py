@@ -22,7 +22,7 @@ import numpy as np
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, load_yaml, read_text
 from laser_calib.io.samples import check_joint_range
-from laser_calib.model.robot import STANDARD, Joint, Robot, Slm
+from laser_calib.model.robot import STANDARD, Joint, Robot, Slm, plausible_length
 from laser_calib.measurement.frames import POSE_KEYS, Pose, with_frames
 from laser_calib.measurement.rotations import quaternion_to_matrix
 from laser_calib.io.sensor_samples import SensorSamples
@@ -47,9 +47,9 @@ def _pose(where: str, mapping: Any) -> np.ndarray:
     """(x, y, z, qw, qx, qy, qz) from a mapping with those keys."""
     if not isinstance(mapping, Mapping):
         raise InputError(where, "expected a pose mapping x, y, z, qw, qx, qy, qz")
-    values = []
-    for key in POSE_KEYS:
-        values.append(finite_number(mapping.get(key), f"{where}.{key}"))
+    values = [finite_number(mapping.get(key), f"{where}.{key}") for key in POSE_KEYS]
+    for key, value in zip("xyz", values):
+        plausible_length(f"{where}.{key}", value)
     if abs(np.linalg.norm(values[3:]) - 1.0) > 1e-3:
         raise InputError(where, f"quaternion norm {np.linalg.norm(values[3:]):.6g} is not 1")
     return np.array(values)

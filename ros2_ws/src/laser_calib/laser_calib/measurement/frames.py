@@ -26,7 +26,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from laser_calib.io.errors import InputError
-from laser_calib.model.robot import Robot
+from laser_calib.model.robot import Robot, plausible_length
 from laser_calib.measurement.rotations import matrix_to_quaternion, quaternion_to_matrix
 
 FRAMES = ("sensor", "base", "target")
@@ -112,7 +112,7 @@ def _pose_from_mapping(where: str, mapping: Any) -> Pose:
         value = mapping.get(key, 1.0 if key == "qw" else 0.0)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise InputError(f"{where}.{key}", f"expected a finite number, got {value!r}")
-        values.append(float(value))
+        values.append(plausible_length(f"{where}.{key}", float(value)) if key in ("x", "y", "z") else float(value))
     unknown = set(mapping) - set(POSE_KEYS)
     if unknown:
         raise InputError(where, f"unknown key '{sorted(unknown)[0]}' (expected {', '.join(POSE_KEYS)})")

@@ -20,6 +20,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from laser_calib.io.errors import InputError
 from laser_calib.model.joint_chain import JointChain
 
 PAPER = "paper"        # T_i = Trans(x,a) Trans(z,d) Rot(x,alpha) Rot(z,theta)
@@ -31,6 +32,15 @@ CONVENTIONS = (PAPER, STANDARD)
 MAX_LENGTH = 100.0
 MAX_ANGLE = 4 * np.pi
 LIMIT_ANGLE = 100.0  # joint limits: several turns are possible, 100 rad (5730 deg) is degrees
+
+
+def plausible_length(where: str, value: float, bound: float = MAX_LENGTH) -> float:
+    """``value`` (m), or one line saying it looks like millimetres: the one units
+    rule for every length a robot file, a URDF or a frame guess holds."""
+    if abs(value) > bound:
+        raise InputError(where, f"{value:g} m is not a plausible length: lengths are in metres "
+                                "(this looks like millimetres)")
+    return value
 
 LINK_PARAMS = ("a", "d", "alpha", "theta")
 SLM_PARAMS = ("slm_x", "slm_z", "slm_rx", "slm_ry", "slm_rz")

@@ -20,8 +20,8 @@ import yaml
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.measurement.frames import robot_frames
-from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, PAPER, Joint, Laser, Robot,
-                                     Screen, Slm)
+from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, PAPER, Joint, Laser, Robot, Screen, Slm,
+                                     plausible_length)
 from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, load_urdf_robot, robot_from_urdf,
                                     urdf_text)
 
@@ -46,11 +46,7 @@ def _mapping(where: str, value: Any, known: tuple[str, ...]) -> Mapping[str, Any
 
 
 def _length(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None) -> float:
-    value = yaml_number(where, mapping, key, default)
-    if abs(value) > MAX_LENGTH:
-        raise InputError(f"{where}.{key}", f"{value:g} m is not a plausible length: lengths are in metres "
-                                           "(this looks like millimetres)")
-    return value
+    return plausible_length(f"{where}.{key}", yaml_number(where, mapping, key, default))
 
 
 def _angle(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None,

@@ -35,7 +35,7 @@ from laser_calib.io.read import read_text
 from laser_calib.measurement.frames import Pose
 from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
                                            ChainJoint, JointChain)
-from laser_calib.model.robot import LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, Laser, Robot, Screen, Slm
+from laser_calib.model.robot import LIMIT_ANGLE, MAX_ANGLE, Laser, Robot, Screen, Slm, plausible_length
 from laser_calib.model.urdf_checks import check_tree
 
 URDF_SUFFIXES = (".urdf", ".xacro", ".xml")  # in any case: ARM.URDF, and older descriptions named .xml
@@ -126,17 +126,16 @@ def _chain_joint(joint, source: str, rpy: float = 0.0) -> ChainJoint:
 
 def _check_units(where: str, joint, origin: np.ndarray, rpy: float, limits: tuple[float, ...]) -> None:
     """One line for a length in mm or an angle in degrees (URDF is in metres and radians)."""
-    if np.abs(origin[:3, 3]).max() > MAX_LENGTH:
-        raise InputError(f"{where}: origin xyz", f"{np.abs(origin[:3, 3]).max():g} m is not a plausible length: "
-                                                 "URDF lengths are in metres (this looks like millimetres)")
+    plausible_length(f"{where}: origin xyz", float(np.abs(origin[:3, 3]).max()))
     if rpy > MAX_ANGLE:
         raise InputError(f"{where}: origin rpy", f"{rpy:g} rad is not a plausible angle: URDF angles are in "
                                                  "radians (this looks like degrees)")
-    bound, unit, what = (MAX_LENGTH, "m", "millimetres") if joint.type == "prismatic" else (LIMIT_ANGLE, "rad",
-                                                                                            "degrees")
-    if limits and max(map(abs, limits)) > bound:
-        raise InputError(f"{where}: limit", f"{max(map(abs, limits)):g} {unit} is not a plausible joint limit "
-                                            f"(this looks like {what})")
+    for side, bound in zip(("lower", "upper"), limits):
+        if joint.type == "prismatic":
+            plausible_length(f"{where}: limit {side}", bound)
+        elif abs(bound) > LIMIT_ANGLE:
+            raise InputError(f"{where}: limit {side}", f"{bound:g} rad is not a plausible joint limit "
+                                                       "(this looks like degrees)")
 
 
 def _written_rpy(text: str) -> dict[str, float]:
