@@ -168,6 +168,9 @@ CASES = {
         lambda r: r.__setitem__("frames", {"sensor": {"x": 2200, "y": 700, "z": 1075}}))),
         "robot.yaml: frames.sensor.x: 2200 m is not a plausible length: lengths are in metres "
         "(this looks like millimetres)"),
+    "laser module offset in millimetres": (lambda d: _estimate(d, robot=_robot_yaml(
+        lambda r: r["slm"].__setitem__("a", -30))),
+        "robot.yaml: slm.a: -30 m is not a plausible length: lengths are in metres (this looks like millimetres)"),
     "angles in degrees": (lambda d: _estimate(d, robot=_robot_yaml(
         lambda r: r["joints"][1].__setitem__("alpha", 90.0))), "degrees"),
     "spots in millimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(

@@ -32,6 +32,9 @@ CONVENTIONS = (PAPER, STANDARD)
 MAX_LENGTH = 100.0
 MAX_ANGLE = 4 * np.pi
 LIMIT_ANGLE = 100.0  # joint limits: several turns are possible, 100 rad (5730 deg) is degrees
+# The laser module sits on the last link's flange, a few cm off it (paper: 5 cm): an offset
+# of a metre is no module on a flange, and MAX_LENGTH would let -30 (mm) through as 30 m.
+MAX_SLM_OFFSET = 1.0
 
 
 def plausible_length(where: str, value: float, bound: float = MAX_LENGTH) -> float:

@@ -20,8 +20,8 @@ import yaml
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.measurement.frames import robot_frames
-from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, PAPER, Joint, Laser, Robot, Screen, Slm,
-                                     plausible_length)
+from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, MAX_SLM_OFFSET, PAPER, Joint,
+                                     Laser, Robot, Screen, Slm, plausible_length)
 from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, load_urdf_robot, robot_from_urdf,
                                     urdf_text)
 
@@ -45,8 +45,9 @@ def _mapping(where: str, value: Any, known: tuple[str, ...]) -> Mapping[str, Any
     return value
 
 
-def _length(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None) -> float:
-    return plausible_length(f"{where}.{key}", yaml_number(where, mapping, key, default))
+def _length(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None,
+            bound: float = MAX_LENGTH) -> float:
+    return plausible_length(f"{where}.{key}", yaml_number(where, mapping, key, default), bound)
 
 
 def _angle(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None,
@@ -125,8 +126,9 @@ def _lasers_and_screen(data: Mapping[str, Any], source: str) -> dict[str, Any]:
     if "slm" in data:
         where = f"{source}: slm"
         slm_map = _mapping(where, data["slm"], SLM_KEYS)
-        slm = Slm(_length(where, slm_map, "a"), _length(where, slm_map, "d"), _angle(where, slm_map, "alpha"),
-                  _angle(where, slm_map, "theta"), beta=_angle(where, slm_map, "beta", 0.0))
+        a, d = (_length(where, slm_map, key, bound=MAX_SLM_OFFSET) for key in ("a", "d"))
+        slm = Slm(a, d, _angle(where, slm_map, "alpha"), _angle(where, slm_map, "theta"),
+                  beta=_angle(where, slm_map, "beta", 0.0))
     # No lasers: an arm measured by another sensor (sensors/); with an SLM, exactly two.
     laser_list = data.get("lasers", [])
     if not isinstance(laser_list, list) or len(laser_list) not in (0, 2):
