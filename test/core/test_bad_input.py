@@ -173,6 +173,10 @@ CASES = {
         "robot.yaml: slm.a: -30 m is not a plausible length: lengths are in metres (this looks like millimetres)"),
     "angles in degrees": (lambda d: _estimate(d, robot=_robot_yaml(
         lambda r: r["joints"][1].__setitem__("alpha", 90.0))), "degrees"),
+    "joint limits in degrees": (lambda d: _estimate(d, robot=_robot_yaml(
+        lambda r: r["joints"][0].update(min=-30.0, max=30.0))),
+        "robot.yaml: joints[0] (joint 1).min: -30 rad is not a plausible angle: angles are in radians "
+        "(this looks like degrees)"),
     "spots in millimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(
         SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q, SESSION.samples.spots * 1e3))), "millimetres"),
     "a fifth joint's readings after the spots": (lambda d: _estimate(d, samples=_appended(",q5", ",0.1")), "column q5"),
@@ -201,6 +205,13 @@ CASES = {
     "slm --out is a folder": (lambda d: _slm(d, "1,0.5,0,0\n1,1.0,0,0\n2,0.5,0,0\n2,1.0,0,0\n")[:-1] + [str(d)],
                               "--out"),
 }
+
+
+def test_the_widest_catalogue_wrist_limits_load():
+    """+-455 deg (Yaskawa's T axis), 7.94 rad: within the revolute limits' units rule (3 pi)."""
+    data = robot_to_dict(ROBOT)
+    data["joints"][3].update(min=-7.94, max=7.94)
+    assert robot_from_dict(data).q_max[3] == 7.94
 
 
 def _latin1(folder: Path) -> list[str]:

@@ -79,6 +79,9 @@ BAD = {  # (text replaced, by) in ARM -> the one line
                                                                       "got 'nan'"),
     "infinite bound on the chain": (('lower="-2" upper="2"', 'lower="-2" upper="inf"'),
                                     "joint 'j2': limit: a revolute joint needs finite <limit lower="),
+    "revolute limits in degrees": (('lower="-2" upper="2"', 'lower="-30" upper="30"'),
+                                   "arm.urdf: joint 'j2': limit lower: -30 rad is not a plausible angle: angles are "
+                                   "in radians (this looks like degrees)"),
     "infinite mimic multiplier": (('<limit lower="0" upper="0.2" effort="9" velocity="1"/>',
                                    '<limit lower="0" upper="0.2" effort="9" velocity="1"/>'
                                    '<mimic joint="j2" multiplier="inf"/>'),

@@ -31,7 +31,10 @@ CONVENTIONS = (PAPER, STANDARD)
 # value is a length in mm or an angle in degrees.
 MAX_LENGTH = 100.0
 MAX_ANGLE = 4 * np.pi
-LIMIT_ANGLE = 100.0  # joint limits: several turns are possible, 100 rad (5730 deg) is degrees
+# Revolute joint limits: UR's joints turn +-2 pi, the widest catalogue wrists +-455 deg (Yaskawa's
+# T axis; FANUC's J6 +-450, ABB's axis 6 +-400), 7.9 rad. Beyond 3 pi (540 deg) a limit is in
+# degrees (+-30 typed for +-30 deg); a joint that turns without end is a URDF continuous joint.
+LIMIT_ANGLE = 3 * np.pi
 # The laser module sits on the last link's flange, a few cm off it (paper: 5 cm): an offset
 # of a metre is no module on a flange, and MAX_LENGTH would let -30 (mm) through as 30 m.
 MAX_SLM_OFFSET = 1.0
@@ -44,6 +47,16 @@ def plausible_length(where: str, value: float, bound: float = MAX_LENGTH) -> flo
         raise InputError(where, f"{value:g} m is not a plausible length: lengths are in metres "
                                 "(this looks like millimetres)")
     return value
+
+
+def plausible_angle(where: str, value: float, bound: float = MAX_ANGLE) -> float:
+    """``value`` (rad), or one line saying it looks like degrees: the one units
+    rule for every angle and revolute joint limit of a robot file or a URDF."""
+    if abs(value) > bound:
+        raise InputError(where, f"{value:g} rad is not a plausible angle: angles are in radians "
+                                "(this looks like degrees)")
+    return value
+
 
 LINK_PARAMS = ("a", "d", "alpha", "theta")
 SLM_PARAMS = ("slm_x", "slm_z", "slm_rx", "slm_ry", "slm_rz")

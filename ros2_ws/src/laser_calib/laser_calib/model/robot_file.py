@@ -21,7 +21,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.measurement.frames import robot_frames
 from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, MAX_SLM_OFFSET, PAPER, Joint,
-                                     Laser, Robot, Screen, Slm, plausible_length)
+                                     Laser, Robot, Screen, Slm, plausible_angle, plausible_length)
 from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, load_urdf_robot, robot_from_urdf,
                                     urdf_text)
 
@@ -51,12 +51,8 @@ def _length(where: str, mapping: Mapping[str, Any], key: str, default: float | N
 
 
 def _angle(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None,
-           limit: float = MAX_ANGLE) -> float:
-    value = yaml_number(where, mapping, key, default)
-    if abs(value) > limit:
-        raise InputError(f"{where}.{key}", f"{value:g} rad is not a plausible angle: angles are in radians "
-                                           "(this looks like degrees)")
-    return value
+           bound: float = MAX_ANGLE) -> float:
+    return plausible_angle(f"{where}.{key}", yaml_number(where, mapping, key, default), bound)
 
 
 def robot_from_dict(data: Any, source: str = "<robot>", folder: Path | None = None,
@@ -92,7 +88,7 @@ def _dh_robot(data: Any, source: str) -> Robot:
         prismatic = kind == "prismatic"
         # a prismatic joint's limits are lengths
         limit = (lambda key: _length(where, entry, key)) if prismatic else \
-            (lambda key: _angle(where, entry, key, limit=LIMIT_ANGLE))
+            (lambda key: _angle(where, entry, key, bound=LIMIT_ANGLE))
         joint = Joint(_length(where, entry, "a"), _length(where, entry, "d"), _angle(where, entry, "alpha"),
                       _angle(where, entry, "theta0"), limit("min"), limit("max"), prismatic=prismatic)
         if joint.min >= joint.max:

@@ -35,7 +35,7 @@ from laser_calib.io.read import read_text
 from laser_calib.measurement.frames import Pose
 from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
                                            ChainJoint, JointChain)
-from laser_calib.model.robot import LIMIT_ANGLE, MAX_ANGLE, Laser, Robot, Screen, Slm, plausible_length
+from laser_calib.model.robot import LIMIT_ANGLE, Laser, Robot, Screen, Slm, plausible_angle, plausible_length
 from laser_calib.model.urdf_checks import check_tree
 
 URDF_SUFFIXES = (".urdf", ".xacro", ".xml")  # in any case: ARM.URDF, and older descriptions named .xml
@@ -127,15 +127,12 @@ def _chain_joint(joint, source: str, rpy: float = 0.0) -> ChainJoint:
 def _check_units(where: str, joint, origin: np.ndarray, rpy: float, limits: tuple[float, ...]) -> None:
     """One line for a length in mm or an angle in degrees (URDF is in metres and radians)."""
     plausible_length(f"{where}: origin xyz", float(np.abs(origin[:3, 3]).max()))
-    if rpy > MAX_ANGLE:
-        raise InputError(f"{where}: origin rpy", f"{rpy:g} rad is not a plausible angle: URDF angles are in "
-                                                 "radians (this looks like degrees)")
+    plausible_angle(f"{where}: origin rpy", rpy)
     for side, bound in zip(("lower", "upper"), limits):
         if joint.type == "prismatic":
             plausible_length(f"{where}: limit {side}", bound)
-        elif abs(bound) > LIMIT_ANGLE:
-            raise InputError(f"{where}: limit {side}", f"{bound:g} rad is not a plausible joint limit "
-                                                       "(this looks like degrees)")
+        else:
+            plausible_angle(f"{where}: limit {side}", bound, LIMIT_ANGLE)
 
 
 def _written_rpy(text: str) -> dict[str, float]:
