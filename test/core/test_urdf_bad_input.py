@@ -57,6 +57,21 @@ BAD = {  # (text replaced, by) in ARM -> the one line
     "nan in a visual origin": (('<link name="l1"/>', '<link name="l1"><visual><origin xyz="0 0 nan"/>'
                                                      '<geometry><box size="1 1 1"/></geometry></visual></link>'),
                                "link 'l1': visual origin xyz: expected 3 finite numbers"),
+    "nan in a box": (('<link name="fan"/>', '<link name="fan"><collision><geometry><box size="nan 1 1"/></geometry>'
+                                            '</collision></link>'),
+                     "arm.urdf: link 'fan': collision geometry box size: expected 3 finite numbers, got 'nan 1 1'"),
+    "text for a radius": (('<link name="l2"/>', '<link name="l2"><visual><geometry><cylinder radius="abc" length="1"/>'
+                                                '</geometry></visual></link>'),
+                          "arm.urdf: link 'l2': visual geometry cylinder radius: expected 1 finite number, got 'abc'"),
+    "a sphere without radius": (('<link name="l2"/>', '<link name="l2"><visual><geometry><sphere/></geometry></visual>'
+                                                      '</link>'),
+                                "arm.urdf: link 'l2': visual geometry sphere: missing attribute 'radius'"),
+    "two numbers for a mesh scale": (('<link name="l2"/>', '<link name="l2"><visual><geometry><mesh filename="a.stl" '
+                                                           'scale="1 1"/></geometry></visual></link>'),
+                                     "link 'l2': visual geometry mesh scale: expected 3 finite numbers, got '1 1'"),
+    "a visual without geometry": (('<link name="l2"/>', '<link name="l2"><visual><origin xyz="0 0 0"/></visual>'
+                                                        '</link>'),
+                                  "link 'l2': visual geometry: expected a box, cylinder, sphere or mesh, got nothing"),
     "no parent": (('<parent link="l1"/>', ''), "joint 'j2': parent: expected one <parent link=\"...\"/>, got 0"),
     "no child": (('<child link="l2"/>', ''), "joint 'j2': child: expected one <child link=\"...\"/>, got 0"),
     "two parents": (('<parent link="l1"/>', '<parent link="l1"/><parent link="base_link"/>'),
@@ -140,6 +155,26 @@ def test_a_loop_in_the_ur10e_urdf_is_one_line(tmp_path, capsys):
     code = _calibrate_poses(tmp_path, tmp_path / "ur10_robot.urdf", "--base", "base_link", "--tip", "wrist_3_link")
     _one_line(capsys, code, "ur10_robot.urdf: joint 'shoulder_pan_joint': kinematic loop (link 'shoulder_link' is its "
                             "own ancestor through joints shoulder_pan_joint, wrist_3_joint")
+
+
+def test_a_bad_shape_in_the_ur10e_urdf_names_the_link(tmp_path, capsys):
+    """The tester's edit: a box of nan size for the upper arm's collision mesh."""
+    if not UR10E.exists():
+        pytest.skip(f"{UR10E} not available")
+    mesh = '<mesh filename="package://ur_description/meshes/ur10e/collision/upperarm.stl"/>'
+    (tmp_path / "ur10_robot.urdf").write_text(UR10E.read_text().replace(mesh, '<box size="nan 1 1"/>', 1))
+    code = _calibrate_poses(tmp_path, tmp_path / "ur10_robot.urdf", "--base", "base_link", "--tip", "wrist_3_link")
+    _one_line(capsys, code, "ur10_robot.urdf: link 'upper_arm_link': collision geometry box size: expected 3 finite "
+                            "numbers, got 'nan 1 1'")
+
+
+def test_shapes_as_the_spec_writes_them_load():
+    """A comment before the shape, a mesh without scale: as robot_state_publisher reads them."""
+    shapes = ('<link name="l2"><visual><geometry><!-- the casting --><mesh filename="package://arm/l2.stl"/>'
+              '</geometry></visual><collision><geometry><cylinder radius="0.05" length="0.3"/></geometry>'
+              '</collision></link>')
+    assert robot_from_urdf(ARM.replace('<link name="l2"/>', shapes), "base_link", "tool").joint_names == \
+        ("j1", "j2", "j3")
 
 
 def test_a_walk_up_a_looping_tree_ends_even_unchecked():

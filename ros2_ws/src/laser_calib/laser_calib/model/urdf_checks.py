@@ -20,6 +20,8 @@ _JOINT_PARTS = {"origin": (("xyz", "rpy"), ()), "axis": (("xyz",), ()),
                 "limit": ((), ("lower", "upper", "effort", "velocity")), "mimic": ((), ("multiplier", "offset")),
                 "dynamics": ((), ("damping", "friction")), "calibration": ((), ("rising", "falling")),
                 "safety_controller": ((), ("soft_lower_limit", "soft_upper_limit", "k_position", "k_velocity"))}
+# The URDF spec's shapes -> their number attributes and how many numbers each holds.
+_SHAPES = {"box": {"size": 3}, "cylinder": {"radius": 1, "length": 1}, "sphere": {"radius": 1}, "mesh": {"scale": 3}}
 
 
 def _named(elements: list, tag: str, source: str) -> dict:
@@ -36,8 +38,8 @@ def _named(elements: list, tag: str, source: str) -> dict:
     return out
 
 
-def _vector(where: str, element, key: str) -> None:
-    """Three finite numbers, if given: with fewer yourdfpy fails with an index or
+def _vector(where: str, element, key: str, count: int = 3) -> None:
+    """``count`` finite numbers, if given: with fewer yourdfpy fails with an index or
     broadcast message, with nan / inf trimesh warns and the fit diverges."""
     text = element.get(key)
     if text is None:
@@ -46,8 +48,9 @@ def _vector(where: str, element, key: str) -> None:
         values = [float(v) for v in text.split()]
     except ValueError:
         values = []
-    if len(values) != 3 or not all(map(math.isfinite, values)):
-        raise InputError(f"{where} {key}", f"expected 3 finite numbers, got {text!r}")
+    if len(values) != count or not all(map(math.isfinite, values)):
+        raise InputError(f"{where} {key}", f"expected {count} finite number{'s' if count > 1 else ''}, "
+                                           f"got {text!r}")
 
 
 def _number(where: str, element, key: str) -> None:
@@ -64,13 +67,37 @@ def _number(where: str, element, key: str) -> None:
     raise InputError(f"{where} {key}", f"expected a number, got {text!r}")
 
 
+def _check_geometry(where: str, part) -> None:
+    """The shape of a visual or collision element, as the URDF spec writes it:
+    yourdfpy reads its numbers as floats, and what it cannot read it reports
+    naming no link ('NoneType' object is not subscriptable, 'radius',
+    could not convert string to float); a nan size it takes as one. The
+    shape plays no part in the kinematics, but the calibrated URDF carries it
+    verbatim to robot_state_publisher, RViz and MoveIt, whose parser refuses it."""
+    geometry = part.find("geometry")
+    shape = None if geometry is None else next((child for child in geometry if isinstance(child.tag, str)), None)
+    if shape is None or shape.tag not in _SHAPES:
+        got = "nothing" if shape is None else f"<{shape.tag}>"
+        raise InputError(f"{where} geometry", f"expected a box, cylinder, sphere or mesh, got {got}")
+    for key, count in _SHAPES[shape.tag].items():
+        if shape.get(key) is None and key != "scale":  # a mesh's scale is optional (1 1 1)
+            raise InputError(f"{where} geometry {shape.tag}", f"missing attribute '{key}'")
+        _vector(f"{where} geometry {shape.tag}", shape, key, count)
+
+
 def _check_link(name: str, element, source: str) -> None:
-    """The origins of a link's inertial, visual and collision elements (yourdfpy reads them all)."""
+    """The origins of a link's inertial, visual and collision elements, and the
+    shapes of the latter two (yourdfpy reads them all)."""
     for part in element:
-        origin = part.find("origin") if part.tag in ("inertial", "visual", "collision") else None
+        if part.tag not in ("inertial", "visual", "collision"):
+            continue
+        where = f"{source}: link '{name}': {part.tag}"
+        origin = part.find("origin")
         if origin is not None:
             for key in ("xyz", "rpy"):
-                _vector(f"{source}: link '{name}': {part.tag} origin", origin, key)
+                _vector(f"{where} origin", origin, key)
+        if part.tag != "inertial":
+            _check_geometry(where, part)
 
 
 def _check_joint(name: str, element, links: dict, source: str) -> tuple[str, str]:
