@@ -20,6 +20,7 @@ import numpy as np
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import (csv_rows, integer_column, number_column, parse_int, parse_number, plain_table,
                               read_text)
+from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.model.robot import Robot
 
 SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
@@ -201,6 +202,7 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
     q = values[:, 1:1 + n_q]
     if robot is not None:
         check_joint_range(q, robot, source, pose)
+        check_spot_columns(robot, q, spots, source)
     extra = {name: values[:, 5 + n_q + i] for i, name in enumerate(header[6 + n_q:])}
     check_extra_columns(list(extra), n_q, robot, source)
     return Samples(pose, values[:, 0], q, spots, extra)
