@@ -110,6 +110,22 @@ def test_repeated_poses_give_iso9283_repeatability(tmp_path):
         assert abs(iso[laser]["RP"]["mean"] - expected) < 4 * spread, iso[laser]
 
 
+def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsys):
+    """A revolute joint marked prismatic: the fit moves two beams off the screen to drop
+    them. That is no calibration: an error line and exit 3, as for NOT CONVERGED."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--poses-per-span", "8", "--out", str(sim)]) == 0
+    robot = load_robot(sim / "robot_nominal.yaml")
+    joints = list(robot.joints)
+    joints[3] = replace(joints[3], prismatic=True)
+    save_robot(replace(robot, joints=tuple(joints)), tmp_path / "prismatic.yaml")
+    out = tmp_path / "out"
+    assert main(["estimate", "--robot", str(tmp_path / "prismatic.yaml"), "--samples", str(sim / "samples.csv"),
+                 "--out", str(out)]) == 3
+    assert any(line.startswith("error: NOT A CALIBRATION: the fit lost") for line in capsys.readouterr().out.splitlines())
+    assert (out / "robot_calibrated.yaml").exists() and (out / "result.json").exists()
+
+
 def test_identify_prints_the_table(simulated, capsys):
     robot = simulated / "robot_nominal.yaml"
     assert main(["identify", "--robot", str(robot), "--samples", str(simulated / "case3_cal.csv")]) == 0

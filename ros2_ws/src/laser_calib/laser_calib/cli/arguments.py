@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from laser_calib.estimation.estimate import NOT_CONVERGED
+from laser_calib.estimation.failures import is_failure
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import parse_int, parse_number
 from laser_calib.io.sensor_samples import POINT_COLUMNS, QUATERNION_COLUMNS
@@ -137,17 +137,18 @@ def require_measured(samples, source: str, problem: str | None = None) -> None:
                                  f"(every {MEASURED_FIELDS[samples.kind]} field empty)")
 
 
-# A fit that did not converge: its files are written (nothing measured is lost, and they show
-# where it stopped) but they are not a calibration, so a script must not take them for one.
-EXIT_NOT_CONVERGED = 3
+# A fit that did not converge, or whose minimum dropped measurements: its files are written
+# (nothing measured is lost, and they show where the fit went) but they are not a
+# calibration, so a script must not take them for one (estimation/failures.py).
+EXIT_NOT_A_CALIBRATION = 3
 
 
 def print_warnings(warnings: list[str]) -> int:
-    """One line each on the console, an unconverged fit an error line; the command's exit
-    status: EXIT_NOT_CONVERGED after such a fit, else 0."""
+    """One line each on the console, a failed fit's an error line; the command's exit
+    status: EXIT_NOT_A_CALIBRATION after such a fit, else 0."""
     for warning in warnings:
-        print(f"{'error' if warning.startswith(NOT_CONVERGED) else 'warning'}: {warning}")
-    return EXIT_NOT_CONVERGED if any(w.startswith(NOT_CONVERGED) for w in warnings) else 0
+        print(f"{'error' if is_failure(warning) else 'warning'}: {warning}")
+    return EXIT_NOT_A_CALIBRATION if any(map(is_failure, warnings)) else 0
 
 
 def _writable_ancestor(path: Path) -> Path:

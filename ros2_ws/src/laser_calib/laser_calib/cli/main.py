@@ -2,8 +2,9 @@
 screen-calibrate | render-calibration-images | import-positioner | calibrate-poses | plan.
 
 Bad input gives one line on stderr naming the file, field or pose, and exit status 2;
-a fit that did not converge, an error line and exit status 3 (its files are written,
-but they are not a calibration); a reader that stops early (| head), no line and 141.
+a fit that did not converge (NOT CONVERGED) or whose minimum dropped measurements
+(NOT A CALIBRATION), an error line and exit status 3 (its files are written, but
+they are not a calibration); a reader that stops early (| head), no line and 141.
 """
 
 from __future__ import annotations

@@ -40,6 +40,7 @@ from typing import Callable
 import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
+from laser_calib.estimation.failures import NOT_A_CALIBRATION, NOT_CONVERGED
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
@@ -64,7 +65,6 @@ NOISE_RATIO = 2.0  # the residual's noise beyond 2x or below 1/2 the given sigma
 LISTED = 8         # poses named in one warning line
 MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
 FAR_SCALES = 10.0  # a fitted error beyond 10 tolerance scales (100 mm, 10 deg) is not a manufacturing error
-NOT_CONVERGED = "NOT CONVERGED"  # how an unconverged fit's warning starts (the console makes it an error line)
 
 
 @dataclass(frozen=True)
@@ -348,8 +348,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         "overstated)")
     lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
     if lost > 0:
-        warnings.append(f"the fit lost {lost} measurements: at the fitted errors their beams no longer reach the "
-                        "screen, so the cost fell by dropping them; this minimum is not a calibration")
+        warnings.append(f"{NOT_A_CALIBRATION}: the fit lost {lost} measurements: at the fitted errors their beams "
+                        "no longer reach the screen, so the cost fell by dropping them (a wrong minimum or model)")
     if sigma_estimated and sigma < MIN_SIGMA:
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")
