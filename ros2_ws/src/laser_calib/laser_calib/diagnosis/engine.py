@@ -87,6 +87,7 @@ from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.folds import kfold_labels, test_range_warnings
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.io.errors import InputError
+from laser_calib.io.revisits import revisit_warnings
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.model.robot import Robot
@@ -112,6 +113,9 @@ def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_s
     notes = []
     if "effects" in robot.extra:
         notes.append("the input robot's effects key was not used: the diagnosis starts from the geometric model")
+    for name, s in (("samples", samples), ("test", test)):
+        if s is not None:
+            notes += revisit_warnings(s.pose, s.q, robot.joint_names, name)
     return run(SpotData(robot, samples), options, None if test is None else SpotData(robot, test), tuple(notes))
 
 

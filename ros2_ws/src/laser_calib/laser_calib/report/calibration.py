@@ -30,6 +30,7 @@ from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.problem import residuals_at
+from laser_calib.io.revisits import revisit_warnings
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import RobotModel
 from laser_calib.measurement.spot import SpotModel
@@ -210,8 +211,10 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     model = spot_model(robot, samples, effects, compensator)
     start = np.concatenate([np.zeros(robot.n_params), *values])
     est = estimate(robot, samples, options, model, start)
+    said = revisit_warnings(samples.pose, samples.q, robot.joint_names, str(sources.get("samples") or "samples"))
     if test is not None:  # a test pose beyond the joint ranges calibrated on is an extrapolation: said with the fit's
-        est = replace(est, warnings=est.warnings + tuple(test_range_warnings(samples.q, test.q, "test",
-                                                                             robot.joint_names)))
+        said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)
+        said += revisit_warnings(test.pose, test.q, robot.joint_names, str(sources.get("test") or "test"))
+    est = replace(est, warnings=est.warnings + tuple(said))
     return Calibration(robot, options, est, evaluate(robot, samples, est, test, effects, compensator, start), sources,
                        effects, compensator)
