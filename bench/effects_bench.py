@@ -43,6 +43,15 @@ the square of another joint's angle), not in the default run:
 
     .venv/bin/python bench/effects_bench.py --seeds 10 11 --name effects_probe \
         --kinds p_mount p_product p_one_sided p_heat p_length
+
+and on a second probe written after the first one's results were in, run once
+as written and not used to change anything (PROBE2_KINDS: backlash taken up by
+the load, a joint error at 1.5 times its angle, a warm-up settling in a tenth of
+the session, a link twist following the cube of another angle, a link offset
+following |another angle|):
+
+    .venv/bin/python bench/effects_bench.py --seeds 12 13 --name effects_probe2 \
+        --kinds s_load_backlash s_ratio s_warmup s_twist s_vee
 """
 
 from __future__ import annotations
