@@ -10,7 +10,8 @@ import pytest
 from laser_calib.cli.main import main
 from laser_calib.model.kinematics import rot_x, rot_y
 from laser_calib.model.robot_file import load_robot, save_robot
-from laser_calib.io.samples import save_samples
+from laser_calib.io.samples import load_samples, save_samples
+from laser_calib.session.estimate import estimate_options, run_calibration
 from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
 
 
@@ -124,6 +125,10 @@ def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsy
                  "--out", str(out)]) == 3
     assert any(line.startswith("error: NOT A CALIBRATION: the fit lost") for line in capsys.readouterr().out.splitlines())
     assert (out / "robot_calibrated.yaml").exists() and (out / "result.json").exists()
+    # The nodes' path (the Estimate service, the Calibrate action, the sequencer) says it as success false.
+    outcome = run_calibration(load_robot(tmp_path / "prismatic.yaml"), load_samples(sim / "samples.csv"),
+                              estimate_options("lm", 0.0, False, True), None)
+    assert outcome.calibration.failure.startswith("NOT A CALIBRATION: the fit lost")
 
 
 def test_identify_prints_the_table(simulated, capsys):

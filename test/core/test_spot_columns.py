@@ -98,3 +98,16 @@ def test_a_swapped_bag_is_refused_naming_the_bag(simulated, tmp_path, capsys):
                  "--out", str(tmp_path / "out")]) == 2
     assert capsys.readouterr().err.startswith(f"laser-calib: {tmp_path / 'bag'}: the spot columns look assigned "
                                               "wrongly: l1_* and l2_* swapped")
+
+
+def test_the_nodes_code_path_refuses_swapped_samples_too(simulated):
+    """An Estimate request or a live session builds its samples from messages, not from a
+    file: run_calibration (the nodes' path to calibrate) checks their columns itself."""
+    from laser_calib.io.errors import InputError
+    from laser_calib.session.estimate import estimate_options, run_calibration
+
+    samples = load_samples(simulated / "samples.csv")
+    swapped = type(samples)(samples.pose, samples.stamp, samples.q, samples.spots[:, [1, 0]])
+    with pytest.raises(InputError, match="16 samples of an Estimate request: the spot columns look assigned wrongly"):
+        run_calibration(load_robot(simulated / "robot_nominal.yaml"), swapped, estimate_options("lm", 0.0, False, True),
+                        None, sources={"samples": "16 samples of an Estimate request"})

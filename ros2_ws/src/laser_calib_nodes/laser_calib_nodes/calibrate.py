@@ -6,7 +6,9 @@ Feedback when each stage starts ('estimate', 'diagnosis') and at the end
 ('done'). A cancel is honoured between the stages (the result says what was
 done); a stage once started runs to its end (the core's fits have no hook to
 stop them). Goals are served one at a time; bad goals are aborted with a
-one-line message and the node keeps serving.
+one-line message and the node keeps serving. An estimate that is no calibration
+(NOT CONVERGED, NOT A CALIBRATION) is aborted too, its result filled (success
+false) and its files written, as the command line exits 3 for it.
 """
 
 from __future__ import annotations
@@ -67,6 +69,10 @@ class CalibrateServer:
                 return result
         node.fill(result, outcome, len(samples))
         stage("done", 1.0, outcome.message)
-        goal.succeed()
-        node.get_logger().info(outcome.message)
+        if outcome.calibration.failure:  # its files are written, but it is no calibration: the goal failed
+            goal.abort()
+            node.get_logger().error(outcome.message)
+        else:
+            goal.succeed()
+            node.get_logger().info(outcome.message)
         return result

@@ -238,7 +238,7 @@ class Estimator(Node):
         response.report_markdown = report_markdown(calibration)
         response.result_json = result_json(calibration)
         response.calibrated_robot_yaml = calibrated_robot_yaml(calibration)
-        response.success = True
+        response.success = calibration.failure is None  # not converged, or lost measurements: written, not trusted
         response.message = outcome.message
 
 

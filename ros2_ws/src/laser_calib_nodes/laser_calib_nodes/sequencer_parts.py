@@ -130,7 +130,10 @@ def finish(node) -> None:
         if end.mode == "local":
             from laser_calib.session.estimate import estimate_options, run_calibration
             options = estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
-            message = run_calibration(node.robot, samples, options, session.path, end.diagnose).calibration.summary()
+            calibration = run_calibration(node.robot, samples, options, session.path, end.diagnose).calibration
+            message = calibration.summary()
+            if calibration.failure:  # as the service answers it: files written, no calibration
+                raise common.NodeError(f"estimate failed: {message}; its files are in {session.path}", 4)
         else:
             message = call_service(node, samples)
         log.info(message)
@@ -180,7 +183,7 @@ def call_service(node, samples: Samples) -> str:
         if time.monotonic() > deadline:
             raise common.NodeError(f"the Estimate service did not answer within {end.timeout:g} s", 3)
     response = future.result()
-    if not response.success:
+    if not response.result_json:  # refused: nothing was estimated
         raise common.NodeError(f"estimate failed: {response.message}", 4)
     if not end.shared_fs:
         for file, text in (("report.md", response.report_markdown), ("result.json", response.result_json),
@@ -190,6 +193,8 @@ def call_service(node, samples: Samples) -> str:
             (path / "robot_calibrated.urdf").write_text(load_robot(path / "robot_calibrated.yaml").chain.urdf)
     if response.diagnosis_json:
         (path / "diagnosis.json").write_text(response.diagnosis_json)
+    if not response.success:  # estimated but no calibration (NOT CONVERGED ...): its files show where it went
+        raise common.NodeError(f"estimate failed: {response.message}; its files are in {path}", 4)
     return response.message
 
 

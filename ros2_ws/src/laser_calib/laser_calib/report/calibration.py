@@ -28,6 +28,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
+from laser_calib.estimation.failures import is_failure
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.revisits import revisit_warnings
@@ -161,6 +162,12 @@ class Calibration:
                 "targets": [t for t, u in zip(self.compensator.targets, self.compensator.used) if u],
                 "heldout_gain": self.compensator.heldout_gain, "file": self.sources.get("compensator")},
         }
+
+    @property
+    def failure(self) -> str | None:
+        """The warning that says this estimate is no calibration (NOT CONVERGED, NOT A
+        CALIBRATION: estimation/failures.py), None when it is one."""
+        return next((w for w in self.estimate.warnings if is_failure(w)), None)
 
     def summary(self) -> str:
         """One line: the spot error before and after, as the nodes log it."""

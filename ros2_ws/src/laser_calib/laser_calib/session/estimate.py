@@ -3,7 +3,9 @@
 Both the estimator's Estimate service and the sequencer's local mode call
 run_calibration: report.calibration.calibrate (what `laser-calib estimate`
 runs), the files written from its result when there is a folder for them, and
-the diagnosis on request. The service fills its response from the result object.
+the diagnosis on request. The service fills its response from the result object:
+success is false for an estimate that is no calibration (Calibration.failure), as
+the command line exits 3 for it.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from laser_calib.diagnosis.engine import DiagnoseOptions, TooFewPoses, diagnose,
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
+from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.model.robot import Robot
 from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.files import write_outputs
@@ -58,6 +61,8 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
     """calibrate() (what `laser-calib estimate` runs: the robot file's effects, and the
     learned compensator when given), its files into out_dir when given; ValueError
     from the estimate (too few spots, ...) becomes an InputError."""
+    # Samples from a request or a live session are not read from a file: their columns are checked here.
+    check_spot_columns(robot, samples.q, samples.spots, (sources or {}).get("samples") or "samples")
     try:
         calibration = calibrate(robot, samples, options, sources=sources, compensator=compensator)
     except ValueError as exc:
