@@ -8,6 +8,7 @@ text at the readers: they return a value or raise InputError, nothing else.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 from pathlib import Path
@@ -250,6 +251,10 @@ def test_an_unconverged_fit_exits_3_and_the_still_joint_is_named(tmp_path, capsy
     assert code == 3, out
     assert "warning: elbow_joint reads 0.3 in all" in out and "error: NOT CONVERGED" in out
     assert (tmp_path / "out" / "result.json").exists()
+    # robot_state_publisher and MoveIt show no console: the URDF and its corrections say it themselves
+    assert "<!-- NO CALIBRATION: NOT CONVERGED" in (tmp_path / "out" / "robot_calibrated.urdf").read_text()
+    failure = json.loads((tmp_path / "out" / "urdf_corrections.json").read_text())["failure"]
+    assert failure.startswith("NOT CONVERGED")
 
 
 def test_a_comma_at_the_end_of_every_line_is_no_column(tmp_path):

@@ -1,7 +1,8 @@
 """laser-calib diagnose: find what the geometric model lacks, add it, report before and after.
 
 cli.main calls register(subparsers). Bad input gives one line on stderr and
-exit status 2, as for every command.
+exit status 2, as for every command; a final model whose fit is no calibration
+(NOT CONVERGED, NOT A CALIBRATION), an error line and exit status 3.
 """
 
 from __future__ import annotations
@@ -9,8 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from laser_calib.cli.arguments import (non_negative, non_negative_int, out_folder, positive, require_measured,
-                                      staged_folder)
+from laser_calib.cli.arguments import (EXIT_NOT_A_CALIBRATION, non_negative, non_negative_int, out_folder, positive,
+                                      require_measured, staged_folder)
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.io.errors import InputError
@@ -60,6 +61,9 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     for note in result["notes"]:
         print(f"note: {note}")
     print(f"wrote {args.out}/diagnosis.json, robot_calibrated.yaml, report.md" + (", compensator.json" if kept else ""))
+    if result["failure"]:  # the final model's fit: what it wrote shows where the fit went, and is no calibration
+        print(f"error: {result['failure']}")
+        return EXIT_NOT_A_CALIBRATION
     return 0
 
 

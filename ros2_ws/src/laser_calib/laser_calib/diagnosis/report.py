@@ -87,6 +87,9 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
                f"sigma {np.degrees(noise['joint_sigma_rad']):.3g} deg ({noise['joint_sigma_source']}); "
                f"{diagnosis.options.folds}-fold cross-validation; {diagnosis.wall_time:.1f} s.", "",
              f"**Verdict: {result['verdict']}.** {result['evidence']}", ""]
+    if diagnosis.failure:
+        lines += [f"**Error: {diagnosis.failure}.** The calibrated robot written beside this report shows where the "
+                  "final fit went; it is no calibration.", ""]
     if diagnosis.notes:
         lines += [f"Note: {n}." for n in diagnosis.notes] + [""]
     if diagnosis.robot.chain is not None:

@@ -17,6 +17,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate
+from laser_calib.estimation.failures import is_failure
 from laser_calib.model.robot import Robot
 from laser_calib.report.statistics import summary
 
@@ -131,6 +132,12 @@ class Diagnosis:
     def final(self) -> Fitted:
         return self.stages[-1].fitted
 
+    @property
+    def failure(self) -> str | None:
+        """The final fit's warning that it is no calibration (NOT CONVERGED, NOT A CALIBRATION:
+        estimation/failures.py), None when it is one: the robot it writes is then none."""
+        return next((w for w in self.final.estimate.warnings if is_failure(w)), None)
+
     def calibrated_robot(self) -> Robot:
         """The robot with the geometric corrections and the ``effects:`` key
         (spot data: the base parameters are the D-H errors)."""
@@ -158,6 +165,7 @@ class Diagnosis:
             "heldout_nested": None if self.nested is None else summary(self.nested, 1e3, "_mm"),
             "verdict": self.verdict,
             "evidence": self.evidence,
+            "failure": self.failure,
             "noise": {"spot_sigma_m": self.noise.spot_sigma, "spot_sigma_source": self.noise.spot_source,
                       "joint_sigma_rad": self.noise.joint_sigma, "joint_sigma_source": self.noise.joint_source,
                       "repeated_pose_dof": self.noise.repeat_dof,

@@ -37,6 +37,7 @@ def robot_header(diagnosis: Diagnosis, result: dict) -> str:
     merged = "; ".join(f"{k}: {v}" for k, v in diagnosis.merged.items())
     return (f"Calibrated by laser_calib {__version__} diagnose from {len(diagnosis.samples)} poses: "
             f"{diagnosis.final.label}. Verdict: {diagnosis.verdict}."
+            + (f"\nNO CALIBRATION: {diagnosis.failure}" if diagnosis.failure else "")
             + (f"\nNot identifiable, held at nominal: {merged}" if merged else "")
             + "".join(f"\nEffect parameter not separable from the geometric errors (the model uses the "
                       f"value, which has no meaning alone): {u}" for u in unseparated)

@@ -48,6 +48,7 @@ def calibrated_robot_yaml(calibration: Calibration) -> str:
                              f"{len(calibration.samples)} poses"
                              + (f" with the effects {', '.join(e.label for e in calibration.effects)}"
                                 if calibration.effects else "") + "."
+                             + (f"\nNO CALIBRATION: {calibration.failure}" if calibration.failure else "")
                              + (f"\nNot identifiable, held at nominal: {merged}" if merged else "")
                              + ("\nFitted with the learned compensator "
                                 f"{calibration.sources.get('compensator', '')} (not in this file): predict with it "
@@ -92,7 +93,7 @@ def _write_tables(calibration: Calibration, out: Path) -> None:
     (out / "robot_calibrated.yaml").write_text(calibrated_robot_yaml(calibration))
     if calibration.robot.chain is not None:  # the URDF to apply (docs/urdf.md)
         save_calibrated_urdf(calibration.calibrated, calibration.robot, calibration.estimate.identifiable, out,
-                             str(calibration.sources.get("robot", "")))
+                             str(calibration.sources.get("robot", "")), calibration.failure)
     (out / "result.json").write_text(result_json(calibration))
     save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal))
                      for name, s in calibration.sets.items()}, out / "residuals.csv")
