@@ -124,11 +124,51 @@ def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsy
     assert main(["estimate", "--robot", str(tmp_path / "prismatic.yaml"), "--samples", str(sim / "samples.csv"),
                  "--out", str(out)]) == 3
     assert any(line.startswith("error: NOT A CALIBRATION: the fit lost") for line in capsys.readouterr().out.splitlines())
-    assert (out / "robot_calibrated.yaml").exists() and (out / "result.json").exists()
+    assert "NO CALIBRATION: NOT A CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
+    assert (out / "result.json").exists()
     # The nodes' path (the Estimate service, the Calibrate action, the sequencer) says it as success false.
     outcome = run_calibration(load_robot(tmp_path / "prismatic.yaml"), load_samples(sim / "samples.csv"),
                               estimate_options("lm", 0.0, False, True), None)
     assert outcome.calibration.failure.startswith("NOT A CALIBRATION: the fit lost")
+
+
+def test_a_diagnosis_whose_final_fit_is_no_calibration_says_so_in_its_files(tmp_path):
+    """A real diagnosis whose final fit is marked NOT CONVERGED (no small data set found makes
+    the diagnosis's own fits fail while its folds succeed): its JSON, report and calibrated
+    robot file say it is no calibration, as `diagnose` then exits 3 (cli/diagnose.py)."""
+    from laser_calib.diagnosis.engine import DiagnoseOptions, diagnose, write_outputs
+    from laser_calib.sim.simulation import paper_session
+
+    session = paper_session("paper-4dof", seed=1, n_per_span=8)
+    diagnosis = diagnose(session.nominal, session.samples, options=DiagnoseOptions(method="lm", max_effects=0))
+    assert diagnosis.failure is None
+    final = diagnosis.stages[-1]
+    stopped = "NOT CONVERGED: lm stopped after 100 iterations; the values are not a minimum"
+    estimate = replace(final.fitted.estimate, warnings=final.fitted.estimate.warnings + (stopped,))
+    failed = replace(diagnosis, stages=diagnosis.stages[:-1] + (replace(final, fitted=replace(final.fitted,
+                                                                                              estimate=estimate)),))
+    assert failed.failure == stopped
+    result = write_outputs(failed, tmp_path)
+    assert result["failure"] == stopped == json.loads((tmp_path / "diagnosis.json").read_text())["failure"]
+    assert f"**Error: {stopped}.**" in (tmp_path / "report.md").read_text()
+    assert f"NO CALIBRATION: {stopped}" in (tmp_path / "robot_calibrated.yaml").read_text()
+
+
+def test_estimate_names_test_spots_where_the_robot_files_screen_surface_extrapolates(tmp_path, capsys):
+    """The paper's case 1: calibrated on small-range poses, tested over the whole workspace.
+    With a screen surface in the robot file, the test spots beyond the calibration spots'
+    hull are predicted by extrapolation, and estimate says so, as diagnose does."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--out", str(sim)]) == 0
+    with_screen = tmp_path / "with_screen.yaml"
+    with_screen.write_text((sim / "robot_nominal.yaml").read_text() + "effects:\n  - {type: screen_shape, half_y: "
+                           "1.0, half_z: 1.0, u: 0.0, v: 0.0, uu: 0.0, uv: 0.0, vv: 0.0}\n")
+    args = ["estimate", "--samples", str(sim / "case1_cal.csv"), "--test", str(sim / "case1_test.csv")]
+    assert main(args + ["--robot", str(with_screen), "--out", str(tmp_path / "surface")]) == 0
+    said = [line for line in capsys.readouterr().out.splitlines() if "outside the convex hull" in line]
+    assert len(said) == 1 and said[0].startswith("warning: test: ") and "screen_shape" in said[0]
+    assert main(args + ["--robot", str(sim / "robot_nominal.yaml"), "--out", str(tmp_path / "flat")]) == 0
+    assert "outside the convex hull" not in capsys.readouterr().out  # a flat screen is known everywhere
 
 
 def test_identify_prints_the_table(simulated, capsys):

@@ -166,8 +166,8 @@ def extrapolation_note(surfaces: list[str], calibration: np.ndarray, test: np.nd
     if not surfaces or not outside:
         return None
     return (f"{outside} of {len(measured)} test spots lie outside the convex hull of the calibration spots: there "
-            f"{', '.join(surfaces)} is extrapolated, and their test errors are not what the verdict, drawn from the "
-            "calibration poses, speaks for")
+            f"{', '.join(surfaces)} is extrapolated: their test errors say how far it holds beyond the spots it "
+            "was fitted on, not how well it fits them")
 
 
 @dataclass(frozen=True)

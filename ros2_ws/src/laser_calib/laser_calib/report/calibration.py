@@ -27,6 +27,7 @@ from laser_calib import __version__
 from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
+from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.failures import is_failure
 from laser_calib.estimation.folds import test_range_warnings
@@ -222,6 +223,8 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     if test is not None:  # a test pose beyond the joint ranges calibrated on is an extrapolation: said with the fit's
         said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)
         said += revisit_warnings(test.pose, test.q, robot.joint_names, str(sources.get("test") or "test"))
+        beyond = extrapolation_note([e.label for e in effects if isinstance(e, Surface)], samples.spots, test.spots)
+        said += [f"test: {beyond}"] if beyond else []
     est = replace(est, warnings=est.warnings + tuple(said))
     return Calibration(robot, options, est, evaluate(robot, samples, est, test, effects, compensator, start), sources,
                        effects, compensator)
