@@ -13,6 +13,7 @@ from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.samples import load_samples, save_samples
 from laser_calib.session.estimate import estimate_options, run_calibration
 from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
+from wrong_robot import prismatic_mismatch
 
 
 @pytest.fixture(scope="module")
@@ -114,20 +115,14 @@ def test_repeated_poses_give_iso9283_repeatability(tmp_path):
 def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsys):
     """A revolute joint marked prismatic: the fit moves two beams off the screen to drop
     them. That is no calibration: an error line and exit 3, as for NOT CONVERGED."""
-    sim = tmp_path / "sim"
-    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--poses-per-span", "8", "--out", str(sim)]) == 0
-    robot = load_robot(sim / "robot_nominal.yaml")
-    joints = list(robot.joints)
-    joints[3] = replace(joints[3], prismatic=True)
-    save_robot(replace(robot, joints=tuple(joints)), tmp_path / "prismatic.yaml")
+    sim, wrong = prismatic_mismatch(tmp_path)
     out = tmp_path / "out"
-    assert main(["estimate", "--robot", str(tmp_path / "prismatic.yaml"), "--samples", str(sim / "samples.csv"),
-                 "--out", str(out)]) == 3
+    assert main(["estimate", "--robot", str(wrong), "--samples", str(sim / "samples.csv"), "--out", str(out)]) == 3
     assert any(line.startswith("error: NOT A CALIBRATION: the fit lost") for line in capsys.readouterr().out.splitlines())
     assert "NO CALIBRATION: NOT A CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
     assert (out / "result.json").exists()
     # The nodes' path (the Estimate service, the Calibrate action, the sequencer) says it as success false.
-    outcome = run_calibration(load_robot(tmp_path / "prismatic.yaml"), load_samples(sim / "samples.csv"),
+    outcome = run_calibration(load_robot(wrong), load_samples(sim / "samples.csv"),
                               estimate_options("lm", 0.0, False, True), None)
     assert outcome.calibration.failure.startswith("NOT A CALIBRATION: the fit lost")
 

@@ -83,16 +83,10 @@ def test_an_estimate_that_is_no_calibration_answers_success_false(ros, tmp_path)
     revolute joint prismatic (the fit drops measurements: NOT A CALIBRATION, the fields filled)."""
     from dataclasses import replace
 
-    from laser_calib.cli.main import main
     from laser_calib.io.samples import load_samples, save_samples
-    from laser_calib.model.robot_file import load_robot, save_robot
+    from wrong_robot import prismatic_mismatch
 
-    sim = tmp_path / "sim"
-    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--poses-per-span", "8", "--out", str(sim)]) == 0
-    robot = load_robot(sim / "robot_nominal.yaml")
-    joints = list(robot.joints)
-    joints[3] = replace(joints[3], prismatic=True)
-    save_robot(replace(robot, joints=tuple(joints)), tmp_path / "prismatic.yaml")
+    sim, wrong = prismatic_mismatch(tmp_path)
     samples = load_samples(sim / "samples.csv")
     save_samples(replace(samples, spots=samples.spots[:, [1, 0]]), tmp_path / "swapped.csv")
 
@@ -102,7 +96,7 @@ def test_an_estimate_that_is_no_calibration_answers_success_false(ros, tmp_path)
     assert swapped["result_json"] == ""
     assert ros.stop("estimator") == 0
 
-    ros.start("estimator", "-p", f"robot:={tmp_path / 'prismatic.yaml'}")
+    ros.start("estimator", "-p", f"robot:={wrong}")
     lost = ros.client("estimate-csv", str(sim / "samples.csv"))
     assert not lost["success"] and "NOT A CALIBRATION: the fit lost" in lost["message"]
     assert json.loads(lost["result_json"])["robot"]  # the fields show where the fit went
