@@ -18,19 +18,18 @@ def simulated(request, tmp_path_factory):
     return out
 
 
-def _swapped(simulated, tmp_path, lasers, coords, signs=(1, 1)):
+def _swapped(simulated, tmp_path, lasers, coords):
     samples = load_samples(simulated / "samples.csv")
     path = tmp_path / "swapped.csv"
-    spots = samples.spots[:, lasers][:, :, coords] * np.array(signs)
-    save_samples(type(samples)(samples.pose, samples.stamp, samples.q, spots), path)
+    save_samples(type(samples)(samples.pose, samples.stamp, samples.q, samples.spots[:, lasers][:, :, coords]), path)
     return path
 
 
-@pytest.mark.parametrize("swap", SWAPS, ids=["lasers", "y-z", "both", "y-negated", "z-negated"])
+@pytest.mark.parametrize("swap", SWAPS, ids=["lasers", "y-z", "both"])
 @pytest.mark.parametrize("command", ["estimate", "diagnose", "identify"])
 def test_swapped_columns_are_refused_naming_the_file_and_the_swap(simulated, tmp_path, capsys, swap, command):
-    label, lasers, coords, signs = swap
-    path = _swapped(simulated, tmp_path, lasers, coords, signs)
+    label, lasers, coords = swap
+    path = _swapped(simulated, tmp_path, lasers, coords)
     out = [] if command == "identify" else ["--out", str(tmp_path / "out")]
     assert main([command, "--robot", str(simulated / "robot_nominal.yaml"), "--samples", str(path)] + out) == 2
     err = capsys.readouterr().err.strip()
@@ -55,7 +54,7 @@ def test_honest_sessions_give_no_pose_a_vote(tmp_path, case, seed, extra):
                  str(tmp_path)] + extra) == 0
     robot = load_robot(tmp_path / "robot_nominal.yaml")
     samples = load_samples(tmp_path / "samples.csv", robot)
-    assert [v.votes for v in swap_votes(robot, samples.q, samples.spots)] == [0] * len(SWAPS)
+    assert [v.votes for v in swap_votes(robot, samples.q, samples.spots)] == [0, 0, 0]
 
 
 def test_a_few_gross_outliers_do_not_make_a_swap(simulated, tmp_path):

@@ -1,6 +1,5 @@
 """The spot columns' assignment checked against the nominal model: a samples file
-whose l1 and l2 columns (or y and z) are swapped, or whose y or z is negated (a
-screen frame or image axis the other way round), is refused, not fitted.
+whose l1 and l2 columns (or y and z) are swapped is refused, not fitted.
 
 Such a file fits to a wrong minimum with an exit status 0 (the fit drops the
 spots it cannot reach, or fits errors of metres), so it is caught before the fit,
@@ -14,8 +13,7 @@ model's error e from its predicted spot p, and a swap predicts p' instead, so
 |m - p'| >= |p - p'| - e and the swap gains at most 2e - |p - p'|. A pose votes
 only where its nominal error exceeds half of (|p - p'| + SWAP_MARGIN): the two
 spots of a pose lie 0.17 m to 1 m apart (lasers at +-30 deg), y and z differ
-alike away from the screen's diagonal (and a negated coordinate away from its
-axis), and manufacturing errors (10 mm / 1 deg)
+alike away from the screen's diagonal, and manufacturing errors (10 mm / 1 deg)
 move a spot by tens of mm (the paper's 7-DOF arm: median 90 mm, the worst spot
 of a session 0.3 m to 0.8 m). A swap shows the other way round, at every pose
 whose spots lie more than SWAP_MARGIN plus twice the error apart, so the file is
@@ -41,17 +39,10 @@ SWAP_MARGIN = 0.1  # m: a pose votes for a swap that brings its spots closer by 
 SWAP_RATIO = 2.0
 MIN_VOTES = 3      # a pose or two can be outliers; a swap of the columns shows at every pose
 
-# (what the columns hold if the swap is true, the laser order, the coordinate order, the
-# coordinates' signs): the columns exchanged, or a coordinate negated (a screen frame whose
-# axis points the other way, an image's rows counted downwards)
-SWAPS = (("l1_* and l2_* swapped (laser 1's spot is in l2_y,l2_z)", [1, 0], [0, 1], [1, 1]),
-         ("y and z swapped (l1_y holds laser 1's z)", [0, 1], [1, 0], [1, 1]),
-         ("l1_* and l2_* swapped, and y and z swapped", [1, 0], [1, 0], [1, 1]),
-         ("y negated (the screen frame's y axis reversed)", [0, 1], [0, 1], [-1, 1]),
-         ("z negated (the screen frame's z axis reversed)", [0, 1], [0, 1], [1, -1]))
-# Swaps whose predictions lie within this factor of the best one's are named with it: for a
-# module whose lasers are mirror images of each other, y negated and l1 <-> l2 look alike.
-ALIKE = 2.0
+# (what the columns hold if the swap is true, the laser order, the coordinate order)
+SWAPS = (("l1_* and l2_* swapped (laser 1's spot is in l2_y,l2_z)", [1, 0], [0, 1]),
+         ("y and z swapped (l1_y holds laser 1's z)", [0, 1], [1, 0]),
+         ("l1_* and l2_* swapped, and y and z swapped", [1, 0], [1, 0]))
 
 
 @dataclass(frozen=True)
@@ -75,8 +66,8 @@ def swap_votes(robot: Robot, q: np.ndarray, spots: np.ndarray) -> list[SwapVotes
     seen = ~np.isnan(spots).any(axis=2)
     given = np.linalg.norm(spots - predicted.spots, axis=2)               # (P,2) m
     out = []
-    for label, lasers, coords, signs in SWAPS:
-        swapped = np.linalg.norm(spots - predicted.spots[:, lasers][:, :, coords] * signs, axis=2)
+    for label, lasers, coords in SWAPS:
+        swapped = np.linalg.norm(spots - predicted.spots[:, lasers][:, :, coords], axis=2)
         usable = seen & ahead & ahead[:, lasers]                          # (P,2) judged both ways
         judged = usable.any(axis=1)
         if not judged.any():
@@ -95,11 +86,9 @@ def check_spot_columns(robot: Robot, q: np.ndarray, spots: np.ndarray, source: s
     q (P,N) match the nominal model far better with swapped columns (swap_votes)."""
     found = [v for v in swap_votes(robot, q, spots) if v.votes >= MIN_VOTES and 2 * v.votes > v.judged]
     if found:
-        best = min(found, key=lambda v: v.median_swapped)
-        alike = " or ".join(v.label for v in found if v.median_swapped <= ALIKE * best.median_swapped)
-        raise InputError(source, f"the spot columns look assigned wrongly: {alike}. At {best.votes} of "
-                                 f"{best.judged} poses the spots lie over {SWAP_MARGIN * 1e3:.0f} mm closer to the "
-                                 f"nominal model's spots swapped so (median {best.median_swapped * 1e3:.0f} mm "
-                                 f"swapped, {best.median_given * 1e3:.0f} mm as given); the columns are "
-                                 "l1_y,l1_z,l2_y,l2_z, laser 1 the first of the robot file's lasers, y and z along "
-                                 "the screen frame's axes")
+        worst = max(found, key=lambda v: (v.votes, -v.median_swapped))
+        raise InputError(source, f"the spot columns look assigned wrongly: {worst.label}. At {worst.votes} of "
+                                 f"{worst.judged} poses the spots lie over {SWAP_MARGIN * 1e3:.0f} mm closer to the "
+                                 f"nominal model's spots swapped so (median {worst.median_swapped * 1e3:.0f} mm "
+                                 f"swapped, {worst.median_given * 1e3:.0f} mm as given); the columns are "
+                                 "l1_y,l1_z,l2_y,l2_z, laser 1 the first of the robot file's lasers")
