@@ -142,9 +142,9 @@ class Estimator(Node):
 
     def add(self, row) -> None:
         with self.lock:
-            self.rows.append(row)
+            self.rows = sorted(self.rows + [row], key=lambda r: r[1])  # in stamp order, as the online EKF takes them
             count = len(self.rows)
-            self.online.update(row[2], row[3])
+            self.online.take(row[1], row[2], row[3])
             errors = np.array(self.online.errors, dtype=float)
             std = np.array(self.online.std, dtype=float)
             identifiable = np.array(self.online.identifiable, dtype=bool)

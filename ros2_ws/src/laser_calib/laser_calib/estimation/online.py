@@ -11,6 +11,8 @@ the same posterior, but linearised once per pose instead of iterated.
 
 from __future__ import annotations
 
+import bisect
+
 import numpy as np
 
 from laser_calib.estimation.ekf import information_update
@@ -50,6 +52,7 @@ class OnlineEkf:
         self.q = np.eye(n) * self.q_noise
         self._q: list[np.ndarray] = []
         self._spots: list[np.ndarray] = []
+        self._stamps: list[float] = []  # of the poses given to take(), in order
 
     @property
     def errors(self) -> np.ndarray:
@@ -77,6 +80,23 @@ class OnlineEkf:
         model = SpotModel(self.robot, self.samples())
         factor, _ = whitened_factor(model, self.noise, self.errors)
         return analyse(factor, model.scales, model.names).free
+
+    def take(self, stamp: float, q: np.ndarray, spots: np.ndarray) -> None:
+        """update() with the pose measured at ``stamp`` (s), in stamp order: the filter's
+        result depends on the order, and a pose can be delivered after a later one (a
+        subscriber matched late gets a latched history while the live samples flow), so
+        such a pose is put in its place and the poses are filtered again from the prior."""
+        at = bisect.bisect_right(self._stamps, stamp)
+        if at == len(self._stamps):
+            self._stamps.append(stamp)
+            self.update(q, spots)
+            return
+        poses = list(zip(self._stamps, self._q, self._spots))
+        poses.insert(at, (stamp, np.asarray(q, dtype=float).ravel(), np.asarray(spots, dtype=float).reshape(2, 2)))
+        self.reset()
+        for stamp_k, q_k, spots_k in poses:
+            self._stamps.append(stamp_k)
+            self.update(q_k, spots_k)
 
     def update(self, q: np.ndarray, spots: np.ndarray) -> None:
         q = np.asarray(q, dtype=float).reshape(1, self.robot.n_joints)
