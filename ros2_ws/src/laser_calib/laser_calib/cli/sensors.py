@@ -23,7 +23,7 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       out_file, out_folder, positive, positive_int, print_warnings, require_measured,
                                       sigma_angle, sigma_length, staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
-from laser_calib.estimation.failures import is_failure
+from laser_calib.estimation.failures import first_failure
 from laser_calib.estimation.identifiability import TooFewValues
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
@@ -302,7 +302,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         lines.append(f"diagnosis: {chosen['model']} (held-out mean {result['diagnosis']['heldout_nested_mean_mm']:.3f}"
                      f" mm with the selection inside the folds, {chosen['heldout_mean_mm']:.3f} mm for this model "
                      f"chosen on all poses); verdict: {result['diagnosis']['verdict']}")
-    failure = next((w for w in fit.estimate.warnings if is_failure(w)), None)
+    failure = first_failure(fit.estimate.warnings)
     with staged_folder(args.out) as out:
         if robot.chain is not None:
             written = save_calibrated_urdf(fit.corrected(robot), robot, fit.estimate.identifiable, out,

@@ -17,7 +17,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate
-from laser_calib.estimation.failures import is_failure
+from laser_calib.estimation.failures import first_failure
 from laser_calib.model.robot import Robot
 from laser_calib.report.statistics import summary
 
@@ -136,7 +136,7 @@ class Diagnosis:
     def failure(self) -> str | None:
         """The final fit's warning that it is no calibration (NOT CONVERGED, NOT A CALIBRATION:
         estimation/failures.py), None when it is one: the robot it writes is then none."""
-        return next((w for w in self.final.estimate.warnings if is_failure(w)), None)
+        return first_failure(self.final.estimate.warnings)
 
     def calibrated_robot(self) -> Robot:
         """The robot with the geometric corrections and the ``effects:`` key

@@ -29,7 +29,7 @@ from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
-from laser_calib.estimation.failures import is_failure
+from laser_calib.estimation.failures import first_failure
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.revisits import revisit_warnings
@@ -168,7 +168,7 @@ class Calibration:
     def failure(self) -> str | None:
         """The warning that says this estimate is no calibration (NOT CONVERGED, NOT A
         CALIBRATION: estimation/failures.py), None when it is one."""
-        return next((w for w in self.estimate.warnings if is_failure(w)), None)
+        return first_failure(self.estimate.warnings)
 
     def summary(self) -> str:
         """One line: the spot error before and after, as the nodes log it."""
