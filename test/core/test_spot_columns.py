@@ -37,6 +37,21 @@ def test_swapped_columns_are_refused_naming_the_file_and_the_swap(simulated, tmp
     assert "\n" not in err and not (tmp_path / "out").exists()
 
 
+def test_a_negated_y_refused_as_a_swap_is_named_first(tmp_path, capsys):
+    """The paper's 4-DOF lasers are mirror images about y: a file whose y is negated
+    votes for l1 <-> l2 too, and the message names both, the closer one first."""
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--poses-per-span", "8", "--spot-noise", "0.02",
+                 "--out", str(tmp_path)]) == 0
+    samples = load_samples(tmp_path / "samples.csv")
+    path = tmp_path / "mirrored.csv"
+    save_samples(type(samples)(samples.pose, samples.stamp, samples.q, samples.spots * [-1, 1]), path)
+    assert main(["estimate", "--robot", str(tmp_path / "robot_nominal.yaml"), "--samples", str(path),
+                 "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err.startswith(f"laser-calib: {path}: the spot columns look assigned wrongly: y negated "
+                                              "(the screen frame's y axis, or the image's, reversed), or l1_* and l2_* "
+                                              "swapped")
+
+
 def test_a_swapped_test_set_is_refused_too(simulated, tmp_path, capsys):
     path = _swapped(simulated, tmp_path, [1, 0], [0, 1])
     assert main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"), "--samples",
@@ -54,7 +69,7 @@ def test_honest_sessions_give_no_pose_a_vote(tmp_path, case, seed, extra):
                  str(tmp_path)] + extra) == 0
     robot = load_robot(tmp_path / "robot_nominal.yaml")
     samples = load_samples(tmp_path / "samples.csv", robot)
-    assert [v.votes for v in swap_votes(robot, samples.q, samples.spots)] == [0, 0, 0]
+    assert [v.votes for v in swap_votes(robot, samples.q, samples.spots)] == [0] * 5  # the swaps, then the mirrors
 
 
 def test_a_few_gross_outliers_do_not_make_a_swap(simulated, tmp_path):

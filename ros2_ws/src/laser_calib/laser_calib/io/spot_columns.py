@@ -1,5 +1,6 @@
 """The spot columns' assignment checked against the nominal model: a samples file
-whose l1 and l2 columns (or y and z) are swapped is refused, not fitted.
+whose l1 and l2 columns (or y and z) are swapped is refused, not fitted; a negated
+y or z that matches as well is named beside the swap (MIRRORS).
 
 Such a file fits to a wrong minimum with an exit status 0 (the fit drops the
 spots it cannot reach, or fits errors of metres), so it is caught before the fit,
@@ -43,6 +44,17 @@ MIN_VOTES = 3      # a pose or two can be outliers; a swap of the columns shows 
 SWAPS = (("l1_* and l2_* swapped (laser 1's spot is in l2_y,l2_z)", [1, 0], [0, 1]),
          ("y and z swapped (l1_y holds laser 1's z)", [0, 1], [1, 0]),
          ("l1_* and l2_* swapped, and y and z swapped", [1, 0], [1, 0]))
+# A coordinate negated (a screen frame's axis, or an image's rows, the other way round) is
+# never refused on its own: for spots on one side of an axis it looks like a nominal model
+# off along it, as a screen frame placed wrongly is. It is named beside a refused swap
+# that it predicts alike (ALIKE), as y negated and l1 <-> l2 do for lasers that are
+# mirror images about y, so the message does not name one cause where there are two.
+MIRRORS = (("y negated (the screen frame's y axis, or the image's, reversed)", [-1, 1]),
+           ("z negated (the screen frame's z axis, or the image's, reversed)", [1, -1]))
+ALIKE = 2.0
+# (label, laser order, coordinate order, coordinate signs) of every assignment compared
+ASSIGNMENTS = ([(label, lasers, coords, [1, 1]) for label, lasers, coords in SWAPS]
+               + [(label, [0, 1], [0, 1], signs) for label, signs in MIRRORS])
 
 
 @dataclass(frozen=True)
@@ -60,14 +72,15 @@ class SwapVotes:
 
 def swap_votes(robot: Robot, q: np.ndarray, spots: np.ndarray) -> list[SwapVotes]:
     """Each swap's votes (module docstring) from the spots (P,2,2) [pose, laser, (y,z)]
-    at the joint readings q (P,N), and the nominal model's prediction there."""
+    at the joint readings q (P,N), and the nominal model's prediction there: SWAPS,
+    then MIRRORS."""
     predicted = predict(robot, q)
     ahead = np.isfinite(predicted.spots).all(axis=2) & (predicted.k > 0)  # (P,2) beam meets the screen plane
     seen = ~np.isnan(spots).any(axis=2)
     given = np.linalg.norm(spots - predicted.spots, axis=2)               # (P,2) m
     out = []
-    for label, lasers, coords in SWAPS:
-        swapped = np.linalg.norm(spots - predicted.spots[:, lasers][:, :, coords], axis=2)
+    for label, lasers, coords, signs in ASSIGNMENTS:
+        swapped = np.linalg.norm(spots - predicted.spots[:, lasers][:, :, coords] * signs, axis=2)
         usable = seen & ahead & ahead[:, lasers]                          # (P,2) judged both ways
         judged = usable.any(axis=1)
         if not judged.any():
@@ -84,11 +97,16 @@ def swap_votes(robot: Robot, q: np.ndarray, spots: np.ndarray) -> list[SwapVotes
 def check_spot_columns(robot: Robot, q: np.ndarray, spots: np.ndarray, source: str) -> None:
     """One line naming ``source`` when most poses' spots (P,2,2) at the joint readings
     q (P,N) match the nominal model far better with swapped columns (swap_votes)."""
-    found = [v for v in swap_votes(robot, q, spots) if v.votes >= MIN_VOTES and 2 * v.votes > v.judged]
+    votes = [v for v in swap_votes(robot, q, spots) if v.votes >= MIN_VOTES and 2 * v.votes > v.judged]
+    found = [v for v in votes if v.label not in dict(MIRRORS)]
     if found:
         worst = max(found, key=lambda v: (v.votes, -v.median_swapped))
-        raise InputError(source, f"the spot columns look assigned wrongly: {worst.label}. At {worst.votes} of "
-                                 f"{worst.judged} poses the spots lie over {SWAP_MARGIN * 1e3:.0f} mm closer to the "
-                                 f"nominal model's spots swapped so (median {worst.median_swapped * 1e3:.0f} mm "
-                                 f"swapped, {worst.median_given * 1e3:.0f} mm as given); the columns are "
-                                 "l1_y,l1_z,l2_y,l2_z, laser 1 the first of the robot file's lasers")
+        named = sorted([worst] + [v for v in votes if v.label in dict(MIRRORS)
+                                  and v.median_swapped <= ALIKE * worst.median_swapped], key=lambda v: v.median_swapped)
+        best = named[0]
+        raise InputError(source, f"the spot columns look assigned wrongly: {', or '.join(v.label for v in named)}. "
+                                 f"At {best.votes} of {best.judged} poses the spots lie over {SWAP_MARGIN * 1e3:.0f} mm "
+                                 f"closer to the nominal model's spots so changed (median {best.median_swapped * 1e3:.0f} "
+                                 f"mm so, {best.median_given * 1e3:.0f} mm as given); the columns are "
+                                 "l1_y,l1_z,l2_y,l2_z, laser 1 the first of the robot file's lasers, y and z along the "
+                                 "screen frame's axes")
