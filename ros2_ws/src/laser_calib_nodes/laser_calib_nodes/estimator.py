@@ -189,7 +189,8 @@ class Estimator(Node):
             self.get_logger().error(response.message + "\n" + traceback.format_exc())
             return response
         self.fill(response, outcome, len(samples))
-        self.get_logger().info(response.message)
+        log = self.get_logger().warning if outcome.calibration.estimate.warnings else self.get_logger().info
+        log(response.message)
         return response
 
     def request_samples(self, request) -> tuple[Samples, str]:
@@ -227,9 +228,8 @@ class Estimator(Node):
         params.iterations = int(est.fit.iterations)
         params.sample_count = count
         response.parameters = params
-        stats = calibration.spot_error["calibration"]
         for field in ("before", "after"):
-            values = laser_statistics(stats[field])
+            values = laser_statistics(calibration.spot_error["calibration"][field])
             msg = self.SpotStatistics()
             msg.mean, msg.std, msg.max = values["mean"], values["std"], values["max"]
             msg.count = values["count"]

@@ -131,12 +131,13 @@ def finish(node) -> None:
             from laser_calib.session.estimate import estimate_options, run_calibration
             options = estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
             calibration = run_calibration(node.robot, samples, options, session.path, end.diagnose).calibration
-            message = calibration.summary()
-            if calibration.failure:  # as the service answers it: files written, no calibration
-                raise common.NodeError(f"estimate failed: {message}; its files are in {session.path}", 4)
+            message, warned = calibration.summary(), bool(calibration.estimate.warnings)
+            failed = calibration.failure is not None
         else:
-            message = call_service(node, samples)
-        log.info(message)
+            message, failed, warned = call_service(node, samples)
+        if failed:  # estimated but no calibration (NOT CONVERGED ...): its files show where the fit went
+            raise common.NodeError(f"estimate failed: {message}; its files are in {session.path}", 4)
+        (log.warning if warned else log.info)(message)  # the summary holds the estimate's warnings
         compare_with_truth(node)
         log.info(f"report: {session.path / 'report.md'}; calibrated robot: {session.path / 'robot_calibrated.yaml'}")
     session.set_info(state="finished")
@@ -159,7 +160,9 @@ def compare_with_truth(node) -> None:
             node.get_logger().info(line)
 
 
-def call_service(node, samples: Samples) -> str:
+def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
+    """The Estimate service's message, whether it failed (files written, no calibration)
+    and whether the estimate has warnings."""
     end, path = node.end, node.session.path
     name = node.resolve_service_name(common.ESTIMATE_SERVICE)
     deadline = time.monotonic() + end.timeout
@@ -193,9 +196,7 @@ def call_service(node, samples: Samples) -> str:
             (path / "robot_calibrated.urdf").write_text(load_robot(path / "robot_calibrated.yaml").chain.urdf)
     if response.diagnosis_json:
         (path / "diagnosis.json").write_text(response.diagnosis_json)
-    if not response.success:  # estimated but no calibration (NOT CONVERGED ...): its files show where it went
-        raise common.NodeError(f"estimate failed: {response.message}; its files are in {path}", 4)
-    return response.message
+    return response.message, not response.success, bool(json.loads(response.result_json)["warnings"])
 
 
 def stamps_from_float(stamp: float) -> tuple[int, int]:

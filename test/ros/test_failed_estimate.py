@@ -1,0 +1,37 @@
+"""A session whose fit is no calibration (the robot file the fit uses marks a revolute joint
+prismatic; the simulated arm is the right one): the sequencer writes the files, says so,
+and ends with status 4, whether it estimates in its own process or through the
+estimator's Estimate service (which fits with its own robot file)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from ros_harness import ROOT
+
+ROBOT = ROOT / "config" / "robots" / "manipulator_4dof.yaml"
+
+
+@pytest.mark.parametrize("mode", ["local", "service"])
+def test_a_fit_that_is_no_calibration_ends_the_session_with_status_4(ros, tmp_path, mode):
+    from laser_calib.model.robot_file import load_robot, save_robot
+    robot = load_robot(ROBOT)
+    joints = list(robot.joints)
+    joints[3] = replace(joints[3], prismatic=True)
+    wrong = tmp_path / "prismatic.yaml"
+    save_robot(replace(robot, joints=tuple(joints)), wrong)
+    out = tmp_path / "out"
+    out.mkdir()
+    ros.start("estimator", "-p", f"robot:={wrong if mode == 'service' else ROBOT}")
+    ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
+    ros.start("camera_sim")
+    ros.start("spot_detector")
+    ros.start("sequencer", "-p", f"robot:={wrong}", "-p", f"output_dir:={out}", "-p", "poses:=16",
+              "-p", "span:=whole", "-p", "seed:=5", "-p", f"estimate.mode:={mode}", "-p", "estimate.diagnose:=false")
+    code = ros.wait_exit("sequencer", 240)
+    log = ros.log("sequencer")
+    assert code == 4, log[-3000:]
+    assert "estimate failed: " in log and f"its files are in {out}" in log and "Traceback" not in log, log[-3000:]
+    assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
