@@ -273,8 +273,9 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
               "parameters": _parameters(fit, robot), "insample": _summaries(table),
               "rejected_poses": [int(samples.pose[p]) for p, _ in fit.estimate.rejected],
               "robust": fit.estimate.robust,
-              "warnings": list(dict.fromkeys([f"nominal (frames-only) fit: {w}" for w in fit.nominal.warnings]
-                                             + list(fit.estimate.warnings)))}
+              # a warning both fits give (a still joint's: the data's, not a fit's) is said once
+              "warnings": [f"nominal (frames-only) fit: {w}" for w in fit.nominal.warnings
+                           if w not in fit.estimate.warnings] + list(fit.estimate.warnings)}
     stale = robot.extra.get("effects")
     if stale:  # their values belong to the geometry they were fitted with, not to this calibration's
         result["warnings"].append(f"{args.robot}: its effects ({len(stale)}) are not fitted by calibrate-poses (the "
