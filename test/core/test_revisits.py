@@ -1,11 +1,16 @@
 """Rows sharing a pose id are repeated visits (conventions.md); readings of one id far
 apart are two poses under one id: a warning naming the file, pose and joint."""
 
+import json
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
 
 from laser_calib.cli.main import main
 from laser_calib.io.revisits import REVISIT_SPREAD, revisit_warnings
 from laser_calib.io.samples import load_samples, save_samples
+from laser_calib.io.sensor_samples import load_sensor_samples, save_sensor_samples
 
 JOINTS = ("q1", "q2", "q3")
 
@@ -55,3 +60,21 @@ def test_diagnose_notes_the_reused_id(tmp_path, capsys):
                  "--folds", "2", "--max-effects", "0", "--out", str(tmp_path / "out")]) == 0
     assert any(line.startswith("note: samples: a pose id repeated with different joint readings: pose 3")
                for line in capsys.readouterr().out.splitlines())
+
+
+def test_calibrate_poses_prints_the_warning_for_the_samples_and_the_test_file(tmp_path, capsys):
+    data = Path(__file__).resolve().parents[2] / "data" / "real" / "positioner_2axis"
+    assert main(["import-positioner", "--data", str(data), "--out", str(tmp_path)]) == 0
+    samples = load_sensor_samples(tmp_path / "samples.csv")
+    for name, reused, kept in (("cal.csv", 5, 3), ("test.csv", 8, 6)):  # another pose's row under kept's id
+        pose = samples.pose.copy()
+        pose[reused] = pose[kept]
+        save_sensor_samples(replace(samples, pose=pose), tmp_path / name)
+    assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"),
+                 "--test", str(tmp_path / "test.csv"), "--folds", "0", "--out", str(tmp_path / "out")]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "pose id" in line]
+    assert [line.split(" (")[0] for line in lines] == [
+        f"warning: {tmp_path / 'cal.csv'}: a pose id repeated with different joint readings: pose 3",
+        f"warning: {tmp_path / 'test.csv'}: a pose id repeated with different joint readings: pose 6"]
+    warnings = json.loads((tmp_path / "out" / "result.json").read_text())["warnings"]
+    assert [w for w in warnings if "pose id" in w] == [line.removeprefix("warning: ") for line in lines]

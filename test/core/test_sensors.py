@@ -1,5 +1,6 @@
 """Point and pose measurement models, unknown frames, standard D-H, sensor sample files."""
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
+from laser_calib.cli.main import main
 from laser_calib.diagnosis.engine import DiagnoseOptions, supports
 from laser_calib.effects import CameraDistortion, EffectModel, JointScale, Periodic, ScreenShape
 from laser_calib.io.errors import InputError
@@ -22,7 +24,7 @@ from laser_calib.diagnosis.sensor_data import diagnose, heldout_effects, sensor_
 from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, frames_first, pose_errors
 from laser_calib.measurement.chain import chain_names, target_in_sensor
 from laser_calib.measurement.rotations import matrix_to_quaternion, quaternion_to_matrix
-from laser_calib.io.sensor_samples import format_sensor_samples, parse_sensor_samples
+from laser_calib.io.sensor_samples import format_sensor_samples, parse_sensor_samples, save_sensor_samples
 from laser_calib.sim.simulation import bundled_robot
 
 STEP = 1e-6
@@ -39,10 +41,13 @@ def rig(convention: str = "paper"):
     return with_frames(robot, frames)
 
 
-def simulate(robot, truth: np.ndarray, n: int, seed: int, kind: str) -> SensorSamples:
-    """Measured samples of the true parameters ``truth`` (chain vector) with Gaussian noise."""
+def simulate(robot, truth: np.ndarray, n: int, seed: int, kind: str, still: int | None = None) -> SensorSamples:
+    """Measured samples of the true parameters ``truth`` (chain vector) with Gaussian noise;
+    still: a joint read at the middle of its range in every pose."""
     rng = np.random.default_rng(seed)
     q = rng.uniform(robot.q_min, robot.q_max, (n, robot.n_joints))
+    if still is not None:
+        q[:, still] = (robot.q_min[still] + robot.q_max[still]) / 2
     state = target_in_sensor(robot, robot_frames(robot), q, truth)
     position = state.position + rng.normal(0, SIGMA_T, (n, 3))
     quaternion = None
@@ -285,3 +290,18 @@ def test_the_diagnosis_engine_selects_the_sensor_scale_on_point_data():
     assert abs(scale[1]["value"] + 0.005) < 4.5 * scale[1]["std"]
     held = heldout_effects(robot, stretched, options, diagnosis.final.effects)
     assert np.mean(held.position) < np.mean(heldout_effects(robot, stretched, options, ()).position)
+
+
+def test_calibrate_poses_says_a_still_joint_once(tmp_path, capsys):
+    """A still joint is the data's, not a fit's: the frames-only and the full fit both
+    find it, and the console and result.json say it once."""
+    robot = rig("standard")
+    save_sensor_samples(simulate(robot, np.zeros(len(chain_names(robot))), 40, 1, "pose", still=2),
+                        tmp_path / "poses.csv")
+    (tmp_path / "robot.yaml").write_text(dump_robot(robot))
+    assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "poses.csv"),
+                 "--folds", "0", "--out", str(tmp_path / "out")]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "never moved" in line]
+    assert len(lines) == 1 and lines[0].startswith("warning: q3 reads ")
+    warnings = json.loads((tmp_path / "out" / "result.json").read_text())["warnings"]
+    assert [w for w in warnings if "never moved" in w] == [lines[0].removeprefix("warning: ")]
