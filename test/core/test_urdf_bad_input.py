@@ -42,6 +42,21 @@ ARM = """<?xml version="1.0"?>
 </robot>
 """
 J2_LIMIT = '<limit lower="-2" upper="2" effort="9" velocity="1"/>'
+INERTIA = {"ixx": "1", "ixy": "0", "ixz": "0", "iyy": "1", "iyz": "0", "izz": "1"}
+
+
+def _inertial(link: str, mass: str = '<mass value="1"/>', **moments: str | None) -> tuple:
+    """(text replaced, by) in ARM: ``link`` with an <inertial> of ``mass`` (its element's
+    text) and an <inertia> whose ``moments`` replace INERTIA's (None: left out)."""
+    inertia = " ".join(f'{key}="{value}"' for key, value in {**INERTIA, **moments}.items() if value is not None)
+    return f'<link name="{link}"/>', f'<link name="{link}"><inertial>{mass}<inertia {inertia}/></inertial></link>'
+
+
+def _colour(link: str, rgba: str) -> tuple:
+    """(text replaced, by) in ARM: ``link`` with a box visual of material 'paint' of ``rgba``."""
+    return f'<link name="{link}"/>', (f'<link name="{link}"><visual><geometry><box size="1 1 1"/></geometry>'
+                                      f'<material name="paint"><color rgba="{rgba}"/></material></visual></link>')
+
 
 BAD = {  # (text replaced, by) in ARM -> the one line
     "kinematic loop": (('<parent link="base_link"/><child link="l1"/>', '<parent link="tool"/><child link="l1"/>'),
@@ -72,6 +87,31 @@ BAD = {  # (text replaced, by) in ARM -> the one line
     "a visual without geometry": (('<link name="l2"/>', '<link name="l2"><visual><origin xyz="0 0 0"/></visual>'
                                                         '</link>'),
                                   "link 'l2': visual geometry: expected a box, cylinder, sphere or mesh, got nothing"),
+    "nan mass": (_inertial("l1", mass='<mass value="nan"/>'),
+                 "arm.urdf: link 'l1': inertial mass value: expected 1 finite number, got 'nan'"),
+    "text for a mass": (_inertial("fan", mass='<mass value="abc"/>'),
+                        "arm.urdf: link 'fan': inertial mass value: expected 1 finite number, got 'abc'"),
+    "an inertial without mass": (_inertial("l2", mass=''), "arm.urdf: link 'l2': inertial: missing element <mass>"),
+    "a mass without value": (_inertial("l2", mass='<mass/>'),
+                             "arm.urdf: link 'l2': inertial mass: missing attribute 'value'"),
+    "inf in an inertia": (_inertial("l1", ixx="inf"),
+                          "arm.urdf: link 'l1': inertial inertia ixx: expected 1 finite number, got 'inf'"),
+    "text for a product of inertia": (_inertial("l1", ixy="abc"),
+                                      "link 'l1': inertial inertia ixy: expected 1 finite number, got 'abc'"),
+    "an inertia without izz": (_inertial("l1", izz=None),
+                               "arm.urdf: link 'l1': inertial inertia: missing attribute 'izz'"),
+    "an inertial without inertia": (('<link name="l1"/>', '<link name="l1"><inertial><mass value="1"/></inertial>'
+                                                          '</link>'),
+                                    "arm.urdf: link 'l1': inertial: missing element <inertia>"),
+    "a colour out of range": (_colour("l2", "255 0 0 1"), "arm.urdf: link 'l2': visual material 'paint' color rgba: "
+                                                          "expected 4 numbers in [0, 1], got '255 0 0 1'"),
+    "three numbers for a colour": (_colour("fan", "1 0 0"),
+                                   "link 'fan': visual material 'paint' color rgba: expected 4 numbers in [0, 1]"),
+    "nan in a colour": (_colour("l1", "nan 0 0 1"),
+                        "link 'l1': visual material 'paint' color rgba: expected 4 numbers in [0, 1], got 'nan 0 0 1'"),
+    "nan in a robot's material": (('<robot name="arm3">', '<robot name="arm3"><material name="red"><color '
+                                                          'rgba="0 nan 0 1"/></material>'),
+                                  "arm.urdf: material 'red' color rgba: expected 4 numbers in [0, 1], got '0 nan 0 1'"),
     "no parent": (('<parent link="l1"/>', ''), "joint 'j2': parent: expected one <parent link=\"...\"/>, got 0"),
     "no child": (('<child link="l2"/>', ''), "joint 'j2': child: expected one <child link=\"...\"/>, got 0"),
     "two parents": (('<parent link="l1"/>', '<parent link="l1"/><parent link="base_link"/>'),
@@ -168,6 +208,22 @@ def test_a_bad_shape_in_the_ur10e_urdf_names_the_link(tmp_path, capsys):
                             "numbers, got 'nan 1 1'")
 
 
+@pytest.mark.parametrize("old, new, message", [
+    ('<mass value="12.93"/>', '<mass value="12,93"/>',
+     "ur10_robot.urdf: link 'upper_arm_link': inertial mass value: expected 1 finite number, got '12,93'"),
+    ('<color rgba="0.7 0.7 0.7 1.0"/>', '<color rgba="178 178 178 255"/>',
+     "ur10_robot.urdf: link 'base_link_inertia': visual material 'LightGrey' color rgba: expected 4 numbers in "
+     "[0, 1], got '178 178 178 255'")], ids=["decimal comma", "0-255 colour"])
+def test_a_bad_mass_or_colour_in_the_ur10e_urdf_names_the_link(old, new, message, tmp_path, capsys):
+    """A mass with a decimal comma (yourdfpy's line named no link) and a colour on the
+    0-255 scale (yourdfpy took it): robot_state_publisher would log an error for each."""
+    if not UR10E.exists():
+        pytest.skip(f"{UR10E} not available")
+    (tmp_path / "ur10_robot.urdf").write_text(UR10E.read_text().replace(old, new, 1))
+    code = _calibrate_poses(tmp_path, tmp_path / "ur10_robot.urdf", "--base", "base_link", "--tip", "wrist_3_link")
+    _one_line(capsys, code, message)
+
+
 def test_shapes_as_the_spec_writes_them_load():
     """A comment before the shape, a mesh without scale: as robot_state_publisher reads them."""
     shapes = ('<link name="l2"><visual><geometry><!-- the casting --><mesh filename="package://arm/l2.stl"/>'
@@ -175,6 +231,21 @@ def test_shapes_as_the_spec_writes_them_load():
               '</collision></link>')
     assert robot_from_urdf(ARM.replace('<link name="l2"/>', shapes), "base_link", "tool").joint_names == \
         ("j1", "j2", "j3")
+
+
+def test_inertials_and_colours_urdfdom_reads_load():
+    """Not stricter than urdfdom (robot_state_publisher's parser): a negative mass or
+    product of inertia, colours at 0 and 1, a material defined once at the top and
+    named in a visual, a material with a texture and no colour."""
+    text = ARM.replace('<robot name="arm3">', '<robot name="arm3"><material name="red"><color rgba="1 0 0 1"/>'
+                                              '</material><material name="skin"><texture filename="a.png"/>'
+                                              '</material>')
+    old, new = _inertial("l1", mass='<mass value="-0.5"/>', ixy="-0.2")
+    _, paint = _colour("l2", "0 0.5 1 0")
+    visuals = '<visual><geometry><sphere radius="1"/></geometry><material name="{}"/></visual>'
+    text = text.replace(old, new).replace('<link name="l2"/>', paint.replace(
+        "</link>", visuals.format("red") + visuals.format("skin") + "</link>"))
+    assert robot_from_urdf(text, "base_link", "tool").joint_names == ("j1", "j2", "j3")
 
 
 def test_a_walk_up_a_looping_tree_ends_even_unchecked():

@@ -1,7 +1,10 @@
 """The checks of a URDF's text before yourdfpy reads it (urdf.py): one line
 naming the file and the link or joint, where yourdfpy would crash with a
-message naming neither, trimesh would warn and go on with nan, or the link
-tree would hold a loop that a walk from a tip to the base never leaves.
+message naming neither, trimesh would warn and go on with nan, the link
+tree would hold a loop that a walk from a tip to the base never leaves, or
+urdfdom (robot_state_publisher, RViz, MoveIt) would log an error for the
+calibrated URDF, which carries the file's links verbatim (it keeps a link
+whose inertial or shape it cannot read, without the link's other elements).
 
 These hold for the whole file; what concerns the calibrated chain only (a
 revolute joint's limits, a mimic's factor) is checked in urdf.py.
@@ -22,6 +25,8 @@ _JOINT_PARTS = {"origin": (("xyz", "rpy"), ()), "axis": (("xyz",), ()),
                 "safety_controller": ((), ("soft_lower_limit", "soft_upper_limit", "k_position", "k_velocity"))}
 # The URDF spec's shapes -> their number attributes and how many numbers each holds.
 _SHAPES = {"box": {"size": 3}, "cylinder": {"radius": 1, "length": 1}, "sphere": {"radius": 1}, "mesh": {"scale": 3}}
+# An <inertial>'s elements -> their number attributes, each required by urdfdom.
+_INERTIAL = {"mass": ("value",), "inertia": ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")}
 
 
 def _named(elements: list, tag: str, source: str) -> dict:
@@ -38,19 +43,25 @@ def _named(elements: list, tag: str, source: str) -> dict:
     return out
 
 
-def _vector(where: str, element, key: str, count: int = 3) -> None:
-    """``count`` finite numbers, if given: with fewer yourdfpy fails with an index or
-    broadcast message, with nan / inf trimesh warns and the fit diverges."""
+def _vector(where: str, element, key: str, count: int = 3, required: bool = False,
+            bounds: tuple[float, float] = (-math.inf, math.inf)) -> None:
+    """``count`` finite numbers within ``bounds``, if given (or ``required``): with
+    fewer yourdfpy fails with an index or broadcast message, with nan / inf
+    trimesh warns and the fit diverges, and urdfdom reads neither nan nor inf."""
     text = element.get(key)
     if text is None:
+        if required:
+            raise InputError(where, f"missing attribute '{key}'")
         return
     try:
         values = [float(v) for v in text.split()]
     except ValueError:
         values = []
-    if len(values) != count or not all(map(math.isfinite, values)):
-        raise InputError(f"{where} {key}", f"expected {count} finite number{'s' if count > 1 else ''}, "
-                                           f"got {text!r}")
+    low, high = bounds
+    if len(values) != count or not all(math.isfinite(v) and low <= v <= high for v in values):
+        numbers = f"number{'s' if count > 1 else ''}"
+        what = f"finite {numbers}" if bounds == (-math.inf, math.inf) else f"{numbers} in [{low:g}, {high:g}]"
+        raise InputError(f"{where} {key}", f"expected {count} {what}, got {text!r}")
 
 
 def _number(where: str, element, key: str) -> None:
@@ -73,21 +84,44 @@ def _check_geometry(where: str, part) -> None:
     naming no link ('NoneType' object is not subscriptable, 'radius',
     could not convert string to float); a nan size it takes as one. The
     shape plays no part in the kinematics, but the calibrated URDF carries it
-    verbatim to robot_state_publisher, RViz and MoveIt, whose parser refuses it."""
+    verbatim to robot_state_publisher, RViz and MoveIt, whose parser (urdfdom)
+    logs an error and drops the rest of the link."""
     geometry = part.find("geometry")
     shape = None if geometry is None else next((child for child in geometry if isinstance(child.tag, str)), None)
     if shape is None or shape.tag not in _SHAPES:
         got = "nothing" if shape is None else f"<{shape.tag}>"
         raise InputError(f"{where} geometry", f"expected a box, cylinder, sphere or mesh, got {got}")
-    for key, count in _SHAPES[shape.tag].items():
-        if shape.get(key) is None and key != "scale":  # a mesh's scale is optional (1 1 1)
-            raise InputError(f"{where} geometry {shape.tag}", f"missing attribute '{key}'")
-        _vector(f"{where} geometry {shape.tag}", shape, key, count)
+    for key, count in _SHAPES[shape.tag].items():  # a mesh's scale is optional (1 1 1)
+        _vector(f"{where} geometry {shape.tag}", shape, key, count, required=key != "scale")
+
+
+def _check_inertial(where: str, part) -> None:
+    """A <mass value> and an <inertia ixx ... izz>, each a finite number, as
+    urdfdom requires (it takes a negative mass or moment, and so do we):
+    yourdfpy's message for text in one names no link, and a nan or a missing
+    one it takes without a word."""
+    for tag, keys in _INERTIAL.items():
+        found = part.find(tag)  # urdfdom reads the first
+        if found is None:
+            raise InputError(where, f"missing element <{tag}>")
+        for key in keys:
+            _vector(f"{where} {tag}", found, key, 1, required=True)
+
+
+def _check_color(where: str, material) -> None:
+    """A material's <color rgba>, if given: four numbers in [0, 1] (the URDF spec's;
+    urdfdom logs an error for a component it cannot read or out of range, and
+    takes a count other than four for black)."""
+    color = material.find("color")  # urdfdom reads the first
+    if color is not None:
+        name = material.get("name")
+        _vector(f"{where} '{name}' color" if name else f"{where} color", color, "rgba", 4, bounds=(0.0, 1.0))
 
 
 def _check_link(name: str, element, source: str) -> None:
-    """The origins of a link's inertial, visual and collision elements, and the
-    shapes of the latter two (yourdfpy reads them all)."""
+    """The origins of a link's inertial, visual and collision elements, the
+    inertial's mass and inertia, the shapes of the visuals and collisions, and
+    the colour of a visual's material (yourdfpy reads them all)."""
     for part in element:
         if part.tag not in ("inertial", "visual", "collision"):
             continue
@@ -96,8 +130,13 @@ def _check_link(name: str, element, source: str) -> None:
         if origin is not None:
             for key in ("xyz", "rpy"):
                 _vector(f"{where} origin", origin, key)
-        if part.tag != "inertial":
+        if part.tag == "inertial":
+            _check_inertial(where, part)
+        else:
             _check_geometry(where, part)
+        material = part.find("material") if part.tag == "visual" else None
+        if material is not None:
+            _check_color(f"{where} material", material)
 
 
 def _check_joint(name: str, element, links: dict, source: str) -> tuple[str, str]:
@@ -149,11 +188,14 @@ def check_tree(root, source: str) -> None:
     joint for what yourdfpy would crash on, read wrong without a word, or turn
     into a tree our walks never leave: names missing or twice, a joint's parent
     / child not one link, a link the child of two joints, a loop, a vector not
-    of three finite numbers, a number that is none."""
+    of three finite numbers, a number that is none; and, for urdfdom, a link's
+    inertial or a colour it cannot read."""
     if root.tag != "robot":
         raise InputError(source, f"expected a <robot> element, got <{root.tag}>")
     if root.get("name") is None:
         raise InputError(f"{source}: robot", "missing attribute 'name'")
+    for material in root.findall("material"):
+        _check_color(f"{source}: material", material)
     links = _named(root.findall("link"), "link", source)
     for name, element in links.items():
         _check_link(name, element, source)
