@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from laser_calib.cli.main import main
+from laser_calib.io.errors import InputError
 from laser_calib.model.kinematics import rot_x, rot_y
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.samples import load_samples, save_samples
-from laser_calib.session.estimate import estimate_options, run_calibration
+from laser_calib.session.estimate import estimate_options, run_calibration, run_diagnosis
 from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
 from wrong_robot import prismatic_mismatch
 
@@ -125,6 +126,40 @@ def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsy
     outcome = run_calibration(load_robot(wrong), load_samples(sim / "samples.csv"),
                               estimate_options("lm", 0.0, False, True), None)
     assert outcome.calibration.failure.startswith("NOT A CALIBRATION: the fit lost")
+
+
+@pytest.mark.parametrize("poses_per_span, moved", [(25, "every beam off it"),
+                                                    (8, "all but 2 beams off it, too few to fit 4 parameters")])
+def test_diagnose_on_a_wrong_robot_file_says_the_fit_moved_the_beams_off_the_screen(tmp_path, capsys, poses_per_span,
+                                                                                     moved):
+    """A revolute joint marked prismatic: the nominal model's beams meet the screen, but the
+    geometric fit moves them off it, and the fit the diagnosis starts from there has no spot
+    (50 poses) or too few (16) to fit. Not the data's words ("no measured spot", "measure
+    more poses"): one line naming the robot file and what to check in it, exit 2."""
+    sim, wrong = prismatic_mismatch(tmp_path, poses_per_span)
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main(["diagnose", "--robot", str(wrong), "--samples", str(sim / "samples.csv"), "--out", str(out)]) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("laser-calib")]
+    assert len(errors) == 1 and errors[0].startswith(f"laser-calib: {wrong}: the nominal model's beams meet the screen "
+                                                     "at "), errors
+    assert errors[0].endswith(f", but the fit moved {moved}: the robot model is likely wrong; check its joint types, "
+                              "axes and units")
+    assert not out.exists()
+    # The nodes' path (the Estimate service or Calibrate action with diagnose) refuses it as bad input too.
+    with pytest.raises(InputError, match="^robot: the nominal model's beams meet the screen"):
+        run_diagnosis(load_robot(wrong), load_samples(sim / "samples.csv"), estimate_options("lm", 0.0, False, True),
+                      None)
+
+
+def test_diagnose_with_every_spot_missing_says_so(simulated, tmp_path, capsys):
+    """Where the spots really are missing, the words stay the data's."""
+    samples = load_samples(simulated / "samples.csv")
+    save_samples(replace(samples, spots=np.full_like(samples.spots, np.nan)), tmp_path / "none.csv")
+    assert main(["diagnose", "--robot", str(simulated / "robot_nominal.yaml"), "--samples", str(tmp_path / "none.csv"),
+                 "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err.splitlines()[-1].endswith(
+        "no measured spot to fit (every spot missing, refused, or its beam misses the screen)")
 
 
 def test_a_diagnosis_whose_final_fit_is_no_calibration_says_so_in_its_files(tmp_path):

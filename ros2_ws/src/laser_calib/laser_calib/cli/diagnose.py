@@ -23,6 +23,7 @@ from laser_calib.report.progress import Progress
 def cmd_diagnose(args: argparse.Namespace) -> int:
     # The engine pulls in scikit-learn and scipy.stats (0.8 s): only this command pays for them.
     from laser_calib.diagnosis.engine import TooFewPoses, diagnose, write_outputs
+    from laser_calib.estimation.failures import FitMovedBeams
 
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
@@ -42,6 +43,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
                 diagnosis = diagnose(robot, samples, test, options=options)
             except TooFewPoses as exc:  # the engine knows the count, the command the file
                 raise InputError(str(args.samples), exc.problem) from None
+            except FitMovedBeams as exc:  # a fit knows the beams it moved, the command the robot file
+                raise InputError(str(args.robot), exc.problem) from None
         result = write_outputs(diagnosis, out, {"robot": str(args.robot), "samples": str(args.samples),
                                                 "test": str(args.test) if args.test else None})
     for stage in result["stages"]:

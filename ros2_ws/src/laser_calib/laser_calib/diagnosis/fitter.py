@@ -16,13 +16,29 @@ from laser_calib.diagnosis.result import Fitted
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model
+from laser_calib.estimation.failures import FitMovedBeams, NoSpotToFit
 from laser_calib.estimation.folds import kfold_labels
-from laser_calib.estimation.problem import pose_blocks
+from laser_calib.estimation.identifiability import TooFewValues
+from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.measurement.base import NoiseModel, count_values, whiten
 
 def distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
     res = model.residuals(x, False)
     return np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
+
+
+def warm_estimate(model: EffectModel, options: EstimateOptions, x0: np.ndarray) -> Estimate:
+    """estimate_model from x0, the values of a fit that started at the nominal model (0).
+    When x0 leaves no spot, or too few, to fit but the nominal model's beams meet the
+    screen at more, that fit moved the beams off it: FitMovedBeams, not the data's counts."""
+    try:
+        return estimate_model(model, options, None, x0)
+    except (NoSpotToFit, TooFewValues) as exc:
+        values, needed = (exc.n_values, exc.n_free) if isinstance(exc, TooFewValues) else (0, 0)
+        nominal = residuals_at(model, np.zeros_like(x0))
+        if count_values(nominal) > needed:
+            raise FitMovedBeams(int(nominal.valid.sum()), values // nominal.r.shape[2], needed) from None
+        raise
 
 
 class Fitter:
@@ -83,7 +99,7 @@ class Fitter:
         """The geometric errors plus ``effects`` fitted on all poses from the warm start x0,
         without LM restarts (x0 is a converged fit: the first geometric fit had them)."""
         model = EffectModel(self.base, effects)
-        return model, estimate_model(model, replace(self.fit_options, restarts=0), None, x0)
+        return model, warm_estimate(model, replace(self.fit_options, restarts=0), x0)
 
     def fit(self, effects: tuple[Effect, ...], x0: np.ndarray) -> Fitted:
         """Fit and cross-validate the geometric errors plus ``effects`` from the
@@ -99,7 +115,7 @@ class Fitter:
         cv_chi2 = np.zeros(len(cv))
         for k in range(self.options.folds):
             held = self.fold == k
-            train = estimate_model(model.subset(~held), options, None, est.values)
+            train = warm_estimate(model.subset(~held), options, est.values)
             cv_chi2[held], cv[held], _ = self.scored(model.subset(held), train.values)
             self.report(k + 2, label)
         return Fitted(effects, model, est, cv, cv_chi2, cal, float(chi2.sum()), n_values,

@@ -40,7 +40,7 @@ from typing import Callable
 import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
-from laser_calib.estimation.failures import NOT_A_CALIBRATION, NOT_CONVERGED
+from laser_calib.estimation.failures import NOT_A_CALIBRATION, NOT_CONVERGED, NoSpotToFit
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
@@ -258,7 +258,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     given_factor = None if options.spot_sigma is None else factor
     n_values = int((seen if excluded is None else seen & ~excluded).sum()) * dims
     if n_values == 0:
-        raise ValueError("no measured spot to fit (every spot missing, refused, or its beam misses the screen)")
+        raise NoSpotToFit()
     start_factor = _factor_without(model, start_factor, noise, noise, x0, excluded, excluded)
     start_noise = noise
     ident = analyse(start_factor, model.scales, names, user_fixed, std_factor=given_factor)
