@@ -36,3 +36,6 @@ def test_test_poses_are_measured_and_held_out(ros, tmp_path):
     assert "## Held-out poses and the truth" in report and "end-effector position" in report
     log = ros.log("sequencer")
     assert "Test poses (measured, never fitted)" in log and "Traceback" not in log
+    # the summary holds the estimate's warnings, and is logged at WARN when there are any
+    summary = next(line for line in log.splitlines() if f"lm on {FIT} poses: mean spot error" in line)
+    assert summary.startswith("[WARN]" if json.loads((out / "result.json").read_text())["warnings"] else "[INFO]")

@@ -30,13 +30,15 @@ def distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
 def warm_estimate(model: EffectModel, options: EstimateOptions, x0: np.ndarray) -> Estimate:
     """estimate_model from x0, the values of a fit that started at the nominal model (0).
     When x0 leaves no spot, or too few, to fit but the nominal model's beams meet the
-    screen at more, that fit moved the beams off it: FitMovedBeams, not the data's counts."""
+    screen at enough and at least twice as many, that fit moved the beams off it:
+    FitMovedBeams, not the data's counts (a beam or two grazing the screen's edge can
+    differ between honest fits, and then the data's count is the reason)."""
     try:
         return estimate_model(model, options, None, x0)
     except (NoSpotToFit, TooFewValues) as exc:
         values, needed = (exc.n_values, exc.n_free) if isinstance(exc, TooFewValues) else (0, 0)
         nominal = residuals_at(model, np.zeros_like(x0))
-        if count_values(nominal) > needed:
+        if count_values(nominal) > max(needed, 2 * values):
             raise FitMovedBeams(int(nominal.valid.sum()), values // nominal.r.shape[2], needed) from None
         raise
 
