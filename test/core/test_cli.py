@@ -153,13 +153,13 @@ def test_diagnose_on_a_wrong_robot_file_says_the_fit_moved_the_beams_off_the_scr
 
 
 def test_diagnose_with_every_spot_missing_says_so(simulated, tmp_path, capsys):
-    """Where the spots really are missing, the words stay the data's."""
+    """Where the spots really are missing, the words stay the data's, naming the file (as estimate's)."""
     samples = load_samples(simulated / "samples.csv")
     save_samples(replace(samples, spots=np.full_like(samples.spots, np.nan)), tmp_path / "none.csv")
     assert main(["diagnose", "--robot", str(simulated / "robot_nominal.yaml"), "--samples", str(tmp_path / "none.csv"),
                  "--out", str(tmp_path / "out")]) == 2
-    assert capsys.readouterr().err.splitlines()[-1].endswith(
-        "no measured spot to fit (every spot missing, refused, or its beam misses the screen)")
+    assert capsys.readouterr().err.splitlines() == [
+        f"laser-calib: {tmp_path / 'none.csv'}: no measured spot (every spot field empty)"]
 
 
 def test_a_diagnosis_whose_final_fit_is_no_calibration_says_so_in_its_files(tmp_path):

@@ -28,6 +28,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
+    require_measured(samples, str(args.samples))
     if test is not None:
         require_measured(test, str(args.test), "no spot is measured in the test set")
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
