@@ -128,6 +128,41 @@ def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsy
     assert outcome.calibration.failure.startswith("NOT A CALIBRATION: the fit lost")
 
 
+def test_spots_out_of_step_with_the_joint_readings_are_no_calibration(tmp_path, capsys):
+    """Each pose's spots paired with the previous pose's joint readings (a sync fault): the
+    fit misses the spots by hundreds of mm, which no camera does (estimation.failures.
+    MAX_RESIDUAL), without moving a beam off the screen. Before, that was exit 0 and a
+    calibration file (this session: every parameter held, the residual 0.4 m)."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-7dof", "--seed", "1", "--out", str(sim)]) == 0
+    samples = load_samples(sim / "case3_cal.csv")
+    lagged = type(samples)(samples.pose[1:], samples.stamp[1:], samples.q[1:], samples.spots[:-1])
+    save_samples(lagged, tmp_path / "lagged.csv")
+    out = tmp_path / "out"
+    assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(tmp_path / "lagged.csv"),
+                 "--out", str(out)]) == 3
+    errors = [line for line in capsys.readouterr().out.splitlines() if line.startswith("error: ")]
+    assert [e for e in errors if "NOT A CALIBRATION: the calibrated model still misses the measurements by" in e] \
+        == errors, errors
+    assert "NO CALIBRATION: NOT A CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
+    # the honest file of the same poses is a calibration
+    assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(sim / "case3_cal.csv"),
+                 "--out", str(tmp_path / "honest")]) == 0
+
+
+def test_calibrate_poses_with_a_wrong_joint_type_is_no_calibration(tmp_path, capsys):
+    """The real UR10e's elbow marked prismatic in its URDF: before, exit 0 with a
+    calibrated URDF 0.9 m off its poses."""
+    from pathlib import Path
+    real = Path(__file__).resolve().parents[2] / "data" / "real" / "ur10e_mocap"
+    urdf = tmp_path / "prismatic.urdf"
+    urdf.write_text((real / "ur10_robot.urdf").read_text().replace('name="elbow_joint" type="revolute"',
+                                                                     'name="elbow_joint" type="prismatic"'))
+    assert main(["calibrate-poses", "--robot", str(urdf), "--base", "base_link", "--tip", "wrist_3_link",
+                 "--samples", str(real / "calibration.csv"), "--out", str(tmp_path / "out")]) == 3
+    assert "error: NOT A CALIBRATION: the calibrated model still misses" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("poses_per_span, moved", [(25, "every beam off it"),
                                                     (8, "all but 2 beams off it, too few to fit 4 parameters")])
 def test_diagnose_on_a_wrong_robot_file_says_the_fit_moved_the_beams_off_the_screen(tmp_path, capsys, poses_per_span,

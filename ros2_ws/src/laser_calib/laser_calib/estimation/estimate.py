@@ -40,7 +40,7 @@ from typing import Callable
 import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
-from laser_calib.estimation.failures import NOT_A_CALIBRATION, NOT_CONVERGED, NoSpotToFit
+from laser_calib.estimation.failures import NOT_CONVERGED, NoSpotToFit, fit_failures
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
@@ -347,9 +347,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         f"value, far below the given spot sigma {sigma * 1e3:.3g} mm (standard deviations are "
                         "overstated)")
     lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
-    if lost > 0:
-        warnings.append(f"{NOT_A_CALIBRATION}: the fit lost {lost} measurements: at the fitted errors their beams "
-                        "no longer reach the screen, so the cost fell by dropping them (a wrong minimum or model)")
+    warnings.extend(fit_failures(lost, sigma * float(np.sqrt(result.chi2 / max(result.dof, 1)))))
     if sigma_estimated and sigma < MIN_SIGMA:
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")

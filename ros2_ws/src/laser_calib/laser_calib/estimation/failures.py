@@ -1,7 +1,7 @@
 """The warnings that say an estimate is no calibration. The console prints them as
 error lines and the command exits with status 3 (cli.arguments.print_warnings); the
 files are still written (they show where the fit went) but a script must not take
-them for a calibration. And the errors of a fit that has nothing to fit at its start:
+them for a calibration (fit_failures). And the errors of a fit that has nothing to fit at its start:
 no spot there (NoSpotToFit), or none because the fit it starts from moved the beams
 off the screen (FitMovedBeams)."""
 
@@ -12,6 +12,14 @@ from laser_calib.io.errors import InputError
 NOT_CONVERGED = "NOT CONVERGED"          # the fit stopped before a minimum
 NOT_A_CALIBRATION = "NOT A CALIBRATION"  # a minimum the fit reached by dropping measurements
 FAILURES = (NOT_CONVERGED, NOT_A_CALIBRATION)
+# m: a calibrated model that still misses its measurements by more than this RMS per value
+# describes no sensor's data here. A camera locates a laser spot on the screen to tenths of a
+# millimetre (a blurred spot on a coarse image to a few), motion capture a marker to about 1 mm,
+# a laser tracker to hundredths; data with an effect the geometric model lacks stay below it
+# (the effects benchmark's largest screen curvatures: under 5 mm). A wrong robot file (a joint
+# type, an axis, units), spots out of step with the joint readings or a joint column holding
+# something else leave tens to hundreds of millimetres, and still reach an exit status 0.
+MAX_RESIDUAL = 0.01
 
 
 def is_failure(warning: str) -> bool:
@@ -43,3 +51,19 @@ class FitMovedBeams(InputError):
         super().__init__("robot", f"the nominal model's beams meet the screen at {nominal} measured spots, but the "
                                   f"fit moved {moved}: the robot model is likely wrong; check its joint types, axes "
                                   "and units")
+
+
+def fit_failures(lost: int, level: float) -> list[str]:
+    """The warnings saying a fitted minimum is no calibration: ``lost`` measurements
+    dropped by moving their beams off the screen, or a residual ``level`` (m RMS per
+    value) beyond MAX_RESIDUAL."""
+    out = []
+    if lost > 0:
+        out.append(f"{NOT_A_CALIBRATION}: the fit lost {lost} measurements: at the fitted errors their beams no "
+                   "longer reach the screen, so the cost fell by dropping them (a wrong minimum or model)")
+    if level > MAX_RESIDUAL:
+        out.append(f"{NOT_A_CALIBRATION}: the calibrated model still misses the measurements by {level * 1e3:.3g} mm "
+                   f"RMS per value, beyond the {MAX_RESIDUAL * 1e3:g} mm of any sensor here: the model does not "
+                   "describe the data (a wrong robot file: a joint type, an axis, units; measurements out of step "
+                   "with the joint readings; a column holding something else)")
+    return out
