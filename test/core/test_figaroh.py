@@ -1,8 +1,9 @@
 """FIGAROH's calibration CSV read as it is (io/figaroh.py): the real UR10e file
 (data/real/ur10e_mocap) gives what the converter of bench/ur10e.py used to
-write, markers become tips, joint columns are found by their URDF names, and a
-bad file is one line."""
+write, markers become tips, joint columns are found by their URDF names, one the
+chain does not read is one warning if it moves, and a bad file is one line."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,7 @@ def _tree_file(rows: int, rng) -> tuple[str, object]:
     q = rng.uniform(np.maximum(robot.q_min, -1), np.minimum(robot.q_max, 1), (rows, robot.n_joints))
     markers = rng.uniform(0.5, 1.5, (rows, 6))
     names = list(robot.joint_names)
-    order = rng.permutation(len(names))  # any column order; a joint the robot does not read is ignored
+    order = rng.permutation(len(names))  # any column order; a still joint the robot does not read is ignored
     header = ["x1", "y1", "z1", "x2", "y2", "z2"] + [names[i] for i in order] + ["head_pan_joint"]
     lines = [",".join(header)] + [",".join(repr(float(v)) for v in [*markers[r], *q[r, order], 0.1])
                                   for r in range(rows)]
@@ -76,3 +77,65 @@ def test_markers_and_tips_must_agree_and_a_dh_robot_has_no_joint_names(tmp_path,
     dh = load_robot(Path(__file__).resolve().parents[2] / "config" / "robots" / "manipulator_4dof.yaml")
     with pytest.raises(InputError, match="names its joints as the URDF does"):
         parse_figaroh(text, "cal.csv", dh)
+
+
+def _ur10e(tmp_path, tip: str, urdf=lambda t: t, columns: dict | None = None):
+    """The UR10e's robot up to ``tip`` from its URDF changed by ``urdf``, and its FIGAROH file
+    with ``columns`` (name -> readings of the 23 rows) appended: (robot, file)."""
+    (tmp_path / "ur10.urdf").write_text(urdf((UR10E / "ur10_robot.urdf").read_text()))
+    lines = (UR10E / "calibration.csv").read_text().splitlines()
+    columns = columns or {}
+    lines = [",".join([lines[0], *columns])] + [",".join([line, *(repr(float(v[r])) for v in columns.values())])
+                                                for r, line in enumerate(lines[1:])]
+    (tmp_path / "cal.csv").write_text("\n".join(lines) + "\n")
+    return load_urdf_robot(tmp_path / "ur10.urdf", "base_link", tip), tmp_path / "cal.csv"
+
+
+def _elbow_fixed(urdf: str) -> str:
+    return urdf.replace('<joint name="elbow_joint" type="revolute">', '<joint name="elbow_joint" type="fixed">')
+
+
+UNMODELLED = {  # tip, URDF change, added columns -> the column the one warning names
+    "the tip before a moving joint": ("wrist_2_link", lambda t: t, {},
+                                      "wrist_3_joint (reads -2.49 .. 2.5; off the chain: check --tip)"),
+    "a moving joint the URDF marks fixed": ("wrist_3_link", _elbow_fixed, {},
+                                            "elbow_joint (reads -1.72 .. 1.66; the URDF marks it fixed)"),
+    "a moving gripper, a still one unsaid": ("wrist_3_link", lambda t: t, {"gripper_joint": np.linspace(0, 0.04, 23),
+                                                                           "finger_joint": np.full(23, 0.3)},
+                                             "gripper_joint (reads 0 .. 0.04; off the chain: check --tip)"),
+}
+
+
+@pytest.mark.parametrize("case", UNMODELLED)
+def test_a_moving_joint_column_the_chain_does_not_read_is_one_warning(case, tmp_path):
+    tip, urdf, columns, named = UNMODELLED[case]
+    robot, path = _ur10e(tmp_path, tip, urdf, columns)
+    assert load_sensor_samples(path, robot).warnings == (f"{path}: joint column {named} moves in these data but the "
+                                                         f"chain base_link -> {tip} does not read it: its motion is "
+                                                         "not modelled",)
+
+
+def test_columns_the_chain_models_or_that_stand_still_say_nothing(tmp_path):
+    robot = load_urdf_robot(UR10E / "ur10_robot.urdf", "base_link", "wrist_3_link")  # the documented run
+    assert load_sensor_samples(UR10E / "calibration.csv", robot).warnings == ()
+    # a mimic joint on the way moves with its source: modelled, though the chain reads only the source
+    robot = load_urdf_robot(Path(__file__).parent / "data" / "torso_two_arms.urdf", "base_link", "left_tool")
+    q = np.random.default_rng(3).uniform(robot.q_min / 2, robot.q_max / 2, (6, robot.n_joints))
+    header = ["x1", "y1", "z1", *robot.joint_names, "torso_pitch_2", "right_shoulder"]
+    rows = [",".join(repr(float(v)) for v in [1.0, 0.5, 0.2, *row, -0.8 * row[1] + 0.1, 0.25]) for row in q]
+    assert parse_figaroh("\n".join([",".join(header), *rows]), "cal.csv", robot).warnings == ()
+
+
+def test_the_warning_reaches_the_console_and_result_json(tmp_path, capsys):
+    robot, path = _ur10e(tmp_path, "wrist_3_link", _elbow_fixed, {"gripper_joint": np.linspace(0, 0.04, 23)})
+    (tmp_path / "test.csv").write_text(path.read_text())
+    code = main(["calibrate-poses", "--robot", str(tmp_path / "ur10.urdf"), "--base", "base_link", "--tip",
+                 "wrist_2_link", "--samples", str(path), "--test", str(tmp_path / "test.csv"), "--folds", "0",
+                 "--out", str(tmp_path / "out")])
+    said = [line.removeprefix("warning: ") for line in capsys.readouterr().out.splitlines() if "joint column" in line]
+    columns = ("elbow_joint (reads -1.72 .. 1.66; the URDF marks it fixed), wrist_3_joint (reads -2.49 .. 2.5; off "
+               "the chain: check --tip), gripper_joint (reads 0 .. 0.04; off the chain: check --tip) move in these "
+               "data but the chain base_link -> wrist_2_link does not read them: their motion is not modelled")
+    assert code == 0 and said == [f"{file}: joint columns {columns}" for file in (path, tmp_path / "test.csv")]
+    warnings = json.loads((tmp_path / "out" / "result.json").read_text())["warnings"]
+    assert [w for w in warnings if "joint column" in w] == said

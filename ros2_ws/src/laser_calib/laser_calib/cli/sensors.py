@@ -248,7 +248,7 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Sample
     accuracy = _accuracy(test, model, fit)
     if accuracy:
         result["test"]["iso9283"] = accuracy
-    result["warnings"] += range_warnings(outside, f"test {args.test}", robot.joint_names)
+    result["warnings"] += list(test.warnings) + range_warnings(outside, f"test {args.test}", robot.joint_names)
     result["warnings"] += revisit_warnings(test.pose, test.q, robot.joint_names, str(args.test))
     lines.append(_line(f"test ({len(test)} poses of {args.test})", result["test"], _design(robot)))
     return test.pose, test.stamp, columns
@@ -276,8 +276,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
               "rejected_poses": [int(samples.pose[p]) for p, _ in fit.estimate.rejected],
               "robust": fit.estimate.robust,
               # a warning both fits give (a still joint's: the data's, not a fit's) is said once
-              "warnings": [f"nominal (frames-only) fit: {w}" for w in fit.nominal.warnings
-                           if w not in fit.estimate.warnings] + list(fit.estimate.warnings)
+              "warnings": list(samples.warnings) + [f"nominal (frames-only) fit: {w}" for w in fit.nominal.warnings
+                                                    if w not in fit.estimate.warnings] + list(fit.estimate.warnings)
                           + revisit_warnings(samples.pose, samples.q, robot.joint_names, str(args.samples))}
     stale = robot.extra.get("effects")
     if stale:  # their values belong to the geometry they were fitted with, not to this calibration's

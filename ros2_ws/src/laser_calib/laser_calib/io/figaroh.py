@@ -6,10 +6,12 @@ One row per pose. x{k}, y{k}, z{k}: marker k's position in the measurement
 frame (m); phix{k}, phiy{k}, phiz{k}: its orientation as roll-pitch-yaw,
 R = Rz(phiz) Ry(phiy) Rx(phix) (rad), as FIGAROH composes it. Marker k is
 measured on the robot's tip k (``--tip``, in order). The joint columns are
-matched to the robot's readings by their URDF names; others (a gripper's
-joints) are ignored. Poses are numbered by row; with K markers a row gives K
-samples (pose ids K r + k, a ``tip`` column). A row whose marker fields are
-empty did not see that marker.
+matched to the robot's readings by their URDF names; the chain does not model
+the others: one warning names those whose readings move (a joint beyond the
+tip, or one the URDF marks fixed), a still one (a held gripper) goes unsaid.
+Poses are numbered by row; with K markers a row gives K samples (pose ids
+K r + k, a ``tip`` column). A row whose marker fields are empty did not see
+that marker.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import csv_rows
+from laser_calib.io.revisits import REVISIT_SPREAD
 from laser_calib.io.samples import Samples, check_all_or_none, check_distance_units, check_joint_range, parse_table
 from laser_calib.model.robot import Robot
 
@@ -79,6 +82,7 @@ def parse_figaroh(text: str, source: str, robot: Robot | None) -> Samples:
     column = {name: values[:, 1 + i] for i, name in enumerate(header)}
     q = np.stack([column[name] for name in robot.joint_names], axis=1)
     check_joint_range(q, robot, source, pose)
+    warnings = _unmodelled_joints({name: v for name, v in column.items() if not _MARKER.fullmatch(name)}, robot, source)
     blocks = []
     for k in range(1, count + 1):
         names = [f"{c}{k}" for c in POSITION + (ROTATION if oriented else ())]
@@ -99,4 +103,20 @@ def parse_figaroh(text: str, source: str, robot: Robot | None) -> Samples:
         quaternion[seen] = Rotation.from_euler("xyz", angles[seen]).as_quat(scalar_first=True)
     extra = {"tip": np.tile(np.arange(count, dtype=float), len(q))} if count > 1 else {}
     return Samples(np.arange(n), np.arange(n, dtype=float), np.repeat(q, count, axis=0), extra=extra,
-                   position=block[:, :3], quaternion=quaternion)
+                   position=block[:, :3], quaternion=quaternion, warnings=warnings)
+
+
+def _unmodelled_joints(columns: dict[str, np.ndarray], robot: Robot, source: str) -> tuple[str, ...]:
+    """One line naming the joint columns (name -> readings (P,)) the URDF chain neither reads nor
+    drives (mimic) whose readings move: over REVISIT_SPREAD, which one pose's visits stay within."""
+    fixed = {joint.name for joint in robot.chain.joints if not joint.movable}
+    modelled = set(robot.joint_names) | {joint.name for joint in robot.chain.joints if joint.movable}
+    moving = [f"{name} (reads {v.min():.3g} .. {v.max():.3g}; "
+              f"{'the URDF marks it fixed' if name in fixed else 'off the chain: check --tip'})"
+              for name, v in columns.items() if name not in modelled and np.ptp(v) > REVISIT_SPREAD]
+    if not moving:
+        return ()
+    one = len(moving) == 1
+    return (f"{source}: joint column{'' if one else 's'} {', '.join(moving)} move{'s' if one else ''} in these data "
+            f"but the chain {robot.chain.base} -> {', '.join(robot.chain.tip_links)} does not read "
+            f"{'it' if one else 'them'}: {'its' if one else 'their'} motion is not modelled",)

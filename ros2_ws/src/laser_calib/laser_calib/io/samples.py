@@ -39,6 +39,7 @@ class Samples:
     - point: position (P,3) of the marker in the sensor frame, m;
     - pose: position (P,3) and quaternion (P,4) (qw, qx, qy, qz) of the target
       in the sensor frame.
+    warnings: what reading the file found that is no error but must be said (one line each).
     """
 
     pose: np.ndarray
@@ -48,6 +49,7 @@ class Samples:
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     position: np.ndarray | None = None
     quaternion: np.ndarray | None = None
+    warnings: tuple[str, ...] = ()
 
     def __post_init__(self):
         # The fields of the other kinds stay None, so a mixed-up call fails here, not in a model.
