@@ -1,9 +1,11 @@
 """Which errors the laser spots can separate, on both of the paper's arms."""
 
+import json
 from dataclasses import replace
 
 import numpy as np
 
+from laser_calib.cli.main import main
 from laser_calib.estimation.estimate import EstimateOptions, estimate
 from laser_calib.estimation.identifiability import STD_FACTOR, analyse
 from laser_calib.measurement.base import NoiseModel, whiten
@@ -32,6 +34,20 @@ def test_4dof_has_two_sum_only_pairs_merged():
     assert set(ident.merged) == {"d2", "slm_z"}
     assert "d1" in ident.merged["d2"] and "d4" in ident.merged["slm_z"]
     assert sorted(ident.null_combinations) == sorted(["+1.00 d1 -1.00 d2", "+1.00 d4 -1.00 slm_z"])
+    assert ident.carried == {"d1": ("d2",), "d4": ("slm_z",)}
+
+
+def test_a_value_that_carries_a_combination_says_so_in_the_result_and_the_report(tmp_path):
+    """d1 kept holds d1 + d2 (the simulation's truth: 20 mm, d1 alone 10 mm): result.json and
+    report.md say its value is the combination's, not d1's own error."""
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--out", str(tmp_path / "sim")]) == 0
+    assert main(["estimate", "--robot", str(tmp_path / "sim" / "robot_nominal.yaml"), "--samples",
+                 str(tmp_path / "sim" / "case3_cal.csv"), "--out", str(tmp_path / "out")]) == 0
+    errors = {e["name"]: e for e in json.loads((tmp_path / "out" / "result.json").read_text())["errors"]}
+    assert errors["d1"]["identifiable"] and errors["d1"]["note"].startswith("carries its combination with d2")
+    assert "not d1's own error alone" in errors["d1"]["note"] and "note" not in errors["a1"]
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "| 2 | d1 * | " in report and "- d4: carries its combination with slm_z" in report
 
 
 def test_combinations_do_not_depend_on_the_basis_the_factorisation_returns():

@@ -66,6 +66,16 @@ class Identifiability:
     min_singular: float = 0.0
     carriers: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
+    @property
+    def carried(self) -> dict[str, tuple[str, ...]]:
+        """Kept parameter name -> the held ones whose combination it carries: its value
+        is that combination's, not its own error alone (d1 carrying d2 holds d1 + d2)."""
+        out: dict[str, tuple[str, ...]] = {}
+        for held, partners in self.carriers.items():
+            for name in partners:
+                out[name] = out.get(name, ()) + (held,)
+        return out
+
     def table(self) -> str:
         lines = [f"parameters: {len(self.names)}   numerical rank: {self.rank}   "
                  f"condition number (scaled): {self.condition:.3g}", "",
@@ -80,6 +90,12 @@ class Identifiability:
         else:
             lines += ["", "all parameters identifiable"]
         return "\n".join(lines)
+
+
+def carried_note(name: str, held: tuple[str, ...]) -> str:
+    """What a kept parameter's value is when it carries held ones' combination (Identifiability.carried)."""
+    return (f"carries its combination with {', '.join(held)} (held at nominal): the value is that combination's, "
+            f"not {name}'s own error alone")
 
 
 def describe(vector: np.ndarray, names: tuple[str, ...], threshold: float = TERM_THRESHOLD) -> str:

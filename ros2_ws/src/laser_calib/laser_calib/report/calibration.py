@@ -31,6 +31,7 @@ from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.failures import first_failure
 from laser_calib.estimation.folds import test_range_warnings
+from laser_calib.estimation.identifiability import carried_note
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.revisits import revisit_warnings
 from laser_calib.io.samples import Samples
@@ -127,6 +128,8 @@ class Calibration:
                      "identifiable": bool(est.identifiable[i]), "unit": unit}
             if name in est.identifiability.merged:
                 entry["note"] = est.identifiability.merged[name]
+            elif name in est.identifiability.carried:
+                entry["note"] = carried_note(name, est.identifiability.carried[name])
             errors.append(entry)
         ident = est.identifiability
         options_dict = {k: v for k, v in asdict(options).items() if k not in ("lm", "ekf")}

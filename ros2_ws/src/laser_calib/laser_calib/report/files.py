@@ -17,6 +17,7 @@ import numpy as np
 
 from laser_calib import __version__
 from laser_calib.estimation.estimate import EstimateOptions
+from laser_calib.estimation.identifiability import carried_note
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import dump_robot
@@ -150,13 +151,17 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
         lines += [f"- {c}" for c in ident.null_combinations]
         lines += ["", "Held at nominal, reported without a value:", ""]
         lines += [f"- {k}: {v}" for k, v in ident.merged.items()]
+    if ident.carried:
+        lines += ["", "Kept, each value a combination (marked * below):", ""]
+        lines += [f"- {k}: {carried_note(k, v)}" for k, v in ident.carried.items()]
     lines += ["", "## Estimated errors", "", "| # | error | value | std | unit |", "|---|---|---|---|---|"]
     for i, name in enumerate(est.names):
         factor, unit = units[i]
         digits = ".4f" if unit in ("mm", "deg") else ".4g"  # an effect's parameter in its own unit
         if est.identifiable[i]:
-            lines.append(f"| {i + 1} | {name} | {est.errors[i] * factor:+{digits}} | {est.std[i] * factor:{digits}} | "
-                         f"{unit} |")
+            mark = " *" if name in ident.carried else ""
+            lines.append(f"| {i + 1} | {name}{mark} | {est.errors[i] * factor:+{digits}} | "
+                         f"{est.std[i] * factor:{digits}} | {unit} |")
         else:
             lines.append(f"| {i + 1} | {name} | not identifiable | - | {unit} |")
     if calibration.effects or calibration.compensator is not None:
