@@ -16,7 +16,7 @@ from scipy.stats import chi2
 
 from laser_calib.estimation.estimate import EstimateOptions, estimate
 from laser_calib.estimation import robust
-from laser_calib.estimation.robust import WeightedNoise
+from laser_calib.estimation.robust import NO_JOINT_NOISE, WeightedNoise
 from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, pose_errors
 from laser_calib.cli.arguments import print_warnings
 from laser_calib.estimation.ekf import EkfOptions
@@ -65,9 +65,14 @@ def test_ten_percent_of_spots_anywhere_on_the_screen_are_all_rejected(method):
     samples = replace(session.samples, spots=spots)
     est = estimate(session.nominal, samples, _options(session, method=method, ekf=EkfOptions(r=None)))
     assert set(est.rejected) == {(int(p), int(j)) for p, j in picks}
-    assert any(w.startswith(f"robust: {len(picks)} of") for w in est.warnings)
+    line = next(w for w in est.warnings if w.startswith(f"robust: {len(picks)} of"))
+    assert not line.endswith(NO_JOINT_NOISE)  # the joint sigma is given
     assert _mahalanobis(est, session.errors) < chi2.ppf(0.999, int(est.identifiable.sum()))
     assert est.robust["rule"].startswith("IRLS with the Cauchy loss")
+    # without joint noise in the noise model, the rejections say what that can cost
+    without = estimate(session.nominal, samples, replace(_options(session, method=method, ekf=EkfOptions(r=None)),
+                                                         joint_sigma=0.0))
+    assert next(w for w in without.warnings if w.startswith("robust: ")).endswith(NO_JOINT_NOISE)
 
 
 def test_clean_data_lose_nothing():

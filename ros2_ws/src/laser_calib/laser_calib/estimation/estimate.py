@@ -46,7 +46,7 @@ from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, 
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses,
                                             whitened_factor)
-from laser_calib.estimation.robust import ROBUST_RULE, robust_fit
+from laser_calib.estimation.robust import NO_JOINT_NOISE, ROBUST_RULE, robust_fit
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import is_frame_param
 from laser_calib.measurement.spot import SpotModel
@@ -300,7 +300,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                   "weights_converged": outcome.converged, "rejected": len(rejected), "kept": kept}
         if rejected:
             warnings.append(f"robust: {len(rejected)} of {kept + len(rejected)} measurements rejected as outliers "
-                            f"and not fitted: {listing(model, rejected)}")
+                            f"and not fitted: {listing(model, rejected)}"
+                            + ("" if np.any(np.asarray(options.joint_sigma) > 0) else NO_JOINT_NOISE))
         if outcome.overflow:
             warnings.append(f"robust: {outcome.overflow} of {kept} measurements lie beyond the outlier limit: "
                             "the model does not fit the data (an unmodelled effect or wrong nominal model); "
