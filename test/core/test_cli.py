@@ -113,6 +113,25 @@ def test_repeated_poses_give_iso9283_repeatability(tmp_path):
         assert abs(iso[laser]["RP"]["mean"] - expected) < 4 * spread, iso[laser]
 
 
+def test_residuals_csv_says_which_spots_were_fitted_rejected_or_refused(tmp_path):
+    """Nothing measured is lost: a spot the robust rule rejected and one refused before the fit
+    (outside the screen) keep their rows, each laser's _fit column saying what became of it."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--out", str(sim)]) == 0
+    samples = load_samples(sim / "case3_cal.csv")
+    robot = load_robot(sim / "robot_nominal.yaml")
+    spots = samples.spots.copy()
+    spots[3, 0] += 0.2                                            # 200 mm off: an outlier
+    spots[7, 1] = [0.0, 1.5 * robot.screen.half_z]                # beyond the screen's edge
+    save_samples(replace(samples, spots=spots), tmp_path / "bad.csv")
+    assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(tmp_path / "bad.csv"),
+                 "--out", str(tmp_path / "out")]) == 0
+    rows = np.genfromtxt(tmp_path / "out" / "residuals.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    status = {(int(r["pose"]), j): str(r[f"l{j}_fit"]) for r in rows for j in (1, 2)}
+    assert status.pop((int(samples.pose[3]), 1)) == "rejected" and status.pop((int(samples.pose[7]), 2)) == "refused"
+    assert set(status.values()) == {"fitted"}
+
+
 def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsys):
     """A revolute joint marked prismatic: the fit moves two beams off the screen to drop
     them. That is no calibration: an error line and exit 3, as for NOT CONVERGED."""

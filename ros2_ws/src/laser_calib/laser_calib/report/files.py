@@ -22,7 +22,7 @@ from laser_calib.io.samples import Samples
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import dump_robot
 from laser_calib.report.calibration import Calibration, calibrate
-from laser_calib.report.pose_table import save_pose_table, spot_columns
+from laser_calib.report.pose_table import save_pose_table, spot_columns, spot_status
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.report.plots import plot_convergence, plot_histogram, plot_screen, stats_table
 
@@ -96,7 +96,9 @@ def _write_tables(calibration: Calibration, out: Path) -> None:
         save_calibrated_urdf(calibration.calibrated, calibration.robot, calibration.estimate.identifiable, out,
                              str(calibration.sources.get("robot", "")), calibration.failure)
     (out / "result.json").write_text(result_json(calibration))
-    save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal))
+    est = calibration.estimate
+    save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal)
+                            | (spot_status(s.samples, est.rejected, est.impossible) if name == "calibration" else {}))
                      for name, s in calibration.sets.items()}, out / "residuals.csv")
 
 

@@ -4,7 +4,8 @@
 
 one row per measured pose, in measurement order within each set
 ('calibration', 'test'); SI units in the column names (_m, _rad); an empty
-field where the figure does not apply (not seen, not in that split).
+field where the figure does not apply (not seen, not in that split); a
+calibration spot's status in its laser's _fit column (spot_status).
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ def _cells(values: np.ndarray | None, n_rows: int) -> list[str]:
     """One column's fields: integer columns (fold indices) as integers, floats at full precision (repr), NaN empty."""
     if values is None:
         return [""] * n_rows
+    if values.dtype.kind == "U":  # words (a spot's status): no field needs CSV quoting
+        return values.tolist()
     if np.issubdtype(values.dtype, np.integer):
         return [str(v) for v in values.tolist()]
     values = values.astype(float)
@@ -74,3 +77,16 @@ def spot_columns(samples: Samples, calibrated: np.ndarray, nominal: np.ndarray) 
                 columns[f"l{j + 1}_dy_m"], columns[f"l{j + 1}_dz_m"] = residual[:, j].T
             columns[f"{label}l{j + 1}_distance_m"] = np.linalg.norm(residual[:, j], axis=1)
     return columns
+
+
+def spot_status(samples: Samples, rejected, refused) -> dict[str, np.ndarray]:
+    """Per-pose columns (P,) l{j}_fit of a calibration set's laser spots: 'fitted',
+    'rejected' (an outlier of the robust rule; rejected: (pose index, laser) pairs)
+    or 'refused' (physically impossible, before the fit; refused: (pose index,
+    laser, reason)), empty where not seen: what residuals.csv holds of every spot."""
+    status = np.where(samples.seen, "fitted", "").astype("U8")  # room for the longest word
+    for p, j in rejected:
+        status[p, j] = "rejected"
+    for p, j, _ in refused:
+        status[p, j] = "refused"
+    return {f"l{j + 1}_fit": status[:, j] for j in range(status.shape[1])}
