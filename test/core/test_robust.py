@@ -16,6 +16,7 @@ from scipy.stats import chi2
 
 from laser_calib.estimation.estimate import EstimateOptions, estimate
 from laser_calib.estimation import robust
+from laser_calib.estimation.impossible import impossible_spots
 from laser_calib.estimation.robust import NO_JOINT_NOISE, WeightedNoise
 from laser_calib.estimation.sensor_fit import SensorFitOptions, calibrate, pose_errors
 from laser_calib.cli.arguments import print_warnings
@@ -107,6 +108,24 @@ def test_impossible_spots_are_refused_per_pose():
     line = next(w for w in est.warnings if "physically impossible" in w)
     assert f"pose {session.samples.pose[p]} laser 1: outside the screen" in line
     assert _mahalanobis(est, session.errors) < chi2.ppf(0.999, int(est.identifiable.sum()))
+
+
+def test_spots_refused_for_a_gross_nominal_error_are_fitted_from_the_minimum_reached():
+    """The robot file's theta1 0.2 rad off: some nominal beams miss the screen by far, so
+    their spots are refused at the start; the minimum reached meets the screen there, and the
+    fit again takes them (a gross nominal error, not wrong spots). The figures before the fit
+    stay the robot file's."""
+    session = paper_session("paper-7dof", 1)
+    joints = list(session.nominal.joints)
+    joints[0] = replace(joints[0], theta0=joints[0].theta0 - 0.2)
+    nominal = replace(session.nominal, joints=tuple(joints))
+    start = SpotModel(nominal, session.samples).residuals(np.zeros(nominal.n_params))
+    refused = impossible_spots(nominal, session.samples, start)
+    assert refused  # the premise: the nominal model refuses some
+    est = estimate(nominal, session.samples, _options(session))
+    assert est.impossible == () and est.warnings[0].startswith(f"{len(refused)} measurements whose nominal beam "
+                                                              "missed the screen by far were fitted")
+    assert np.array_equal(est.predicted_at_start, start.predicted)
 
 
 def test_spots_where_the_beam_cannot_reach_the_screen_are_refused():

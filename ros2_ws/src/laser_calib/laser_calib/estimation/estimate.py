@@ -2,9 +2,11 @@
 (command line, ROS estimator service and online node, replay).
 
 estimate(robot, samples, options) runs, in order:
-0. impossible spots (impossible_spots): a spot outside the screen, or one given
+0. impossible spots (impossible.py): a spot outside the screen, or one given
    where the nominal beam misses the screen by far, is flagged per pose and
-   left out (a warning line lists them);
+   left out (a warning line lists them); if the minimum reached meets the
+   screen with such a beam, all steps run again with its spot (a gross
+   nominal error, not a wrong spot);
 1. identifiability at the nominal model: parameters the spots cannot separate
    are fixed at nominal and reported as merged (never as numbers); one pass
    of the model gives the residuals at the start (step 0 finds the impossible
@@ -35,6 +37,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Callable
 
 import numpy as np
@@ -43,9 +46,10 @@ from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.failures import NOT_CONVERGED, NoSpotToFit, fit_failures
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse
+from laser_calib.estimation.impossible import impossible_spots
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses,
-                                            whitened_factor)
+                                            residuals_at, whitened_factor)
 from laser_calib.estimation.robust import NO_JOINT_NOISE, ROBUST_RULE, robust_fit
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import is_frame_param
@@ -57,10 +61,6 @@ from laser_calib.io.samples import Samples
 Refusal = Callable[[Residuals], list[tuple[int, int, str]]]
 METHODS = ("lm", "ekf")
 TRIAL_SIGMA = 0.001
-# A spot given where the nominal beam lands beyond the screen edge by more than
-# this fraction of the half size cannot be that laser's: nominal errors move a
-# spot by centimetres, not by a fifth of the screen.
-MISS_MARGIN = 0.2
 NOISE_RATIO = 2.0  # the residual's noise beyond 2x or below 1/2 the given sigma: a warning
 LISTED = 8         # poses named in one warning line
 MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
@@ -148,37 +148,25 @@ def prior_sigmas(model: MeasurementModel, n_geometric: int, options: EstimateOpt
     return sigma
 
 
-def impossible_spots(robot: Robot, samples: Samples, nominal: Residuals) -> list[tuple[int, int, str]]:
-    """(pose index, laser index, reason) of every given spot that cannot be:
-    outside the screen, or where the nominal beam misses the screen by far;
-    nominal: the spot model's residuals at zero errors (valid: the beam meets
-    the screen plane ahead). Every spot outside the screen is a unit error, one line."""
-    half = np.array([robot.screen.half_y, robot.screen.half_z])
-    seen = samples.seen
-    out = []
-    outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
-    if outside.any() and outside.sum() == seen.sum():
-        raise ValueError(f"every spot lies outside the screen (half sizes {half[0]:g}, {half[1]:g} m): spot "
-                         "coordinates are in metres (these look like millimetres)")
-    beyond = np.abs(nominal.predicted) - half * (1 + MISS_MARGIN)
-    misses = seen & ~outside & ~(nominal.valid & (beyond <= 0).all(axis=2))
-    for p, j in zip(*np.nonzero(outside)):
-        y, z = samples.spots[p, j]
-        out.append((int(p), int(j), f"outside the screen (y, z = {y:.4g}, {z:.4g} m; half sizes "
-                                    f"{half[0]:.4g}, {half[1]:.4g} m)"))
-    for p, j in zip(*np.nonzero(misses)):
-        out.append((int(p), int(j), "the nominal beam misses the screen by far"))
-    return sorted(out)
-
-
 def estimate(robot: Robot, samples: Samples, options: EstimateOptions = EstimateOptions(),
              model: MeasurementModel | None = None, x0: np.ndarray | None = None) -> Estimate:
     """Geometric errors (4N+5) of ``robot`` from spot samples; with ``model`` (the spot
     model of these samples with effects, report.calibration.spot_model) its parameters
     too, from x0 (default 0)."""
     model = SpotModel(robot, samples) if model is None else model
-    return estimate_model(model, options, prior_sigmas(model, robot.n_params, options), x0,
-                          impossible=lambda nominal: impossible_spots(robot, samples, nominal))
+    fit = partial(estimate_model, model, options, prior_sigmas(model, robot.n_params, options), x0)
+    first = fit(impossible=lambda start: impossible_spots(robot, samples, start))
+    # a beam the nominal model missed the screen with by far is judged again by the minimum
+    # reached: where its beam meets the screen, the nominal error was gross, not the spot
+    again = impossible_spots(robot, samples, residuals_at(model, first.values)) if first.impossible else []
+    if len(again) == len(first.impossible):
+        return first
+    second = fit(impossible=again)
+    readmitted = sorted({(p, c) for p, c, _ in first.impossible} - {(p, c) for p, c, _ in again})
+    return replace(second, wall_time=first.wall_time + second.wall_time,
+                   warnings=(f"{len(readmitted)} measurements whose nominal beam missed the screen by far were "
+                             f"fitted: the calibrated beams meet the screen there: {listing(model, readmitted)}",)
+                   + second.warnings)
 
 
 def pose_ids(model: MeasurementModel) -> np.ndarray:
