@@ -33,6 +33,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         require_measured(test, str(args.test), "no spot is measured in the test set")
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
           file=sys.stderr, flush=True)
+    sources = {"robot": str(args.robot), "samples": str(args.samples), "test": str(args.test) if args.test else None}
     # The folder first: one that cannot be written fails before the work, and a failed run leaves none.
     with staged_folder(args.out) as out:
         # per model fitted: its fit on all poses and one per fold
@@ -41,13 +42,12 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
                                       folds=args.folds, max_effects=args.max_effects, seed=args.seed,
                                       compensate=not args.no_compensator, nested=True, progress=progress)
             try:
-                diagnosis = diagnose(robot, samples, test, options=options)
+                diagnosis = diagnose(robot, samples, test, options=options, sources=sources)
             except TooFewPoses as exc:  # the engine knows the count, the command the file
                 raise InputError(str(args.samples), exc.problem) from None
             except FitMovedBeams as exc:  # a fit knows the beams it moved, the command the robot file
                 raise InputError(str(args.robot), exc.problem) from None
-        result = write_outputs(diagnosis, out, {"robot": str(args.robot), "samples": str(args.samples),
-                                                "test": str(args.test) if args.test else None})
+        result = write_outputs(diagnosis, out, sources)
     for stage in result["stages"]:
         where = "test" if stage["test"] else "cv"
         s = stage[where]

@@ -27,7 +27,7 @@ from laser_calib.estimation.failures import first_failure
 from laser_calib.estimation.identifiability import TooFewValues
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
-from laser_calib.io.revisits import revisit_warnings
+from laser_calib.io.revisits import repeat_warnings
 from laser_calib.planning import PlanOptions, plan
 from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
@@ -249,7 +249,6 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Sample
     if accuracy:
         result["test"]["iso9283"] = accuracy
     result["warnings"] += list(test.warnings) + range_warnings(outside, f"test {args.test}", robot.joint_names)
-    result["warnings"] += revisit_warnings(test.pose, test.q, robot.joint_names, str(args.test))
     lines.append(_line(f"test ({len(test)} poses of {args.test})", result["test"], _design(robot)))
     return test.pose, test.stamp, columns
 
@@ -278,7 +277,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
               # a warning both fits give (a still joint's: the data's, not a fit's) is said once
               "warnings": list(samples.warnings) + [f"nominal (frames-only) fit: {w}" for w in fit.nominal.warnings
                                                     if w not in fit.estimate.warnings] + list(fit.estimate.warnings)
-                          + revisit_warnings(samples.pose, samples.q, robot.joint_names, str(args.samples))}
+                          + repeat_warnings(samples, test, robot.joint_names,
+                                            {"samples": args.samples, "test": args.test})}
     stale = robot.extra.get("effects")
     if stale:  # their values belong to the geometry they were fitted with, not to this calibration's
         result["warnings"].append(f"{args.robot}: its effects ({len(stale)}) are not fitted by calibrate-poses (the "

@@ -87,7 +87,7 @@ from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.folds import kfold_labels, test_range_warnings
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.io.errors import InputError
-from laser_calib.io.revisits import revisit_warnings
+from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.model.robot import Robot
@@ -96,9 +96,11 @@ __all__ = ["DiagnoseOptions", "Diagnosis", "diagnose", "run", "supports", "write
 
 
 def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_sigma: float | None = None,
-             joint_sigma: float | None = None, options: DiagnoseOptions | None = None) -> Diagnosis:
+             joint_sigma: float | None = None, options: DiagnoseOptions | None = None,
+             sources: dict | None = None) -> Diagnosis:
     """Diagnose, select and add effects (module docstring). spot_sigma (m) and
-    joint_sigma (rad) override those of ``options``. ValueError (InputError) on
+    joint_sigma (rad) override those of ``options``; sources: the files of the
+    samples and the test set, named in the notes. ValueError (InputError) on
     bad input."""
     options = options or DiagnoseOptions()
     options = replace(options, spot_sigma=spot_sigma if spot_sigma is not None else options.spot_sigma,
@@ -113,9 +115,7 @@ def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_s
     notes = []
     if "effects" in robot.extra:
         notes.append("the input robot's effects key was not used: the diagnosis starts from the geometric model")
-    for name, s in (("samples", samples), ("test", test)):
-        if s is not None:
-            notes += revisit_warnings(s.pose, s.q, robot.joint_names, name)
+    notes += repeat_warnings(samples, test, robot.joint_names, sources or {})
     return run(SpotData(robot, samples), options, None if test is None else SpotData(robot, test), tuple(notes))
 
 

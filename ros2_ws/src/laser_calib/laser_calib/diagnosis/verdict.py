@@ -30,9 +30,9 @@ def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions,
     its real noise. The level can then be tested only against what was given
     or measured: a chi^2 test when both components are given, a lack-of-fit F
     test against the scatter of repeated poses (pure error) when there are
-    any; otherwise it is not tested. An estimated component with a rated value
-    (rated_noise: what the robot file says the hardware can do) is tested
-    against it (excess_tests).
+    any and they scatter at all (copied rows do not); otherwise it is not
+    tested. An estimated component with a rated value (rated_noise: what the
+    robot file says the hardware can do) is tested against it (excess_tests).
     """
     est = final.estimate
     res = residuals_at(final.model, est.values, jacobian=True, parameters=False)  # by blocks: bounded transients
@@ -50,7 +50,7 @@ def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions,
         r, _ = whiten(res, noise.whitener(res))
         chi2 = float(r @ r)
         return NoiseInfo(*common, "chi^2", chi2, (dof,), float(stats.chi2.sf(chi2, dof)), excess)
-    if repeat_dof >= MIN_REPEAT_DOF and dof > repeat_dof:
+    if repeat_dof >= MIN_REPEAT_DOF and dof > repeat_dof and pure > 0:  # repeats that never scatter: copies
         # Lack of fit: the whitened residual beyond the pure error of repeated poses.
         r, _ = whiten(res, noise.whitener(res))
         f = ((float(r @ r) - pure) / (dof - repeat_dof)) / (pure / repeat_dof)
@@ -141,8 +141,10 @@ def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, n_poses: i
                      f"mm RMS per coordinate; p = {noise.level_p:.2g})"
                      + (": the residual exceeds the noise" if level_fail else "") + f"; {sigma_text}.")
     else:
-        parts.append(f"The residual level is not tested: the noise is not fully given and there are "
-                     f"{'too few' if noise.repeat_dof else 'no'} repeated poses ({sigma_text}).")
+        repeats = ("no repeated poses" if not noise.repeat_dof else "too few repeated poses" if noise.repeat_rms
+                   else "repeated poses without any scatter (copied rows?)")
+        parts.append(f"The residual level is not tested: the noise is not fully given and there are {repeats} "
+                     f"({sigma_text}).")
     detected = detection.p <= alpha and detection.gain > 0
     parts.append(("Detector: " if detected else "Detector, nothing significant: ") + detection.sentence() + ".")
     misspecified = bool(varying) and varying[0].p_adjusted < alpha

@@ -88,6 +88,14 @@ class Samples:
             return ~np.isnan(self.spots).any(axis=2)
         return ~np.isnan(self.position).any(axis=1)
 
+    @property
+    def measured(self) -> np.ndarray:
+        """(P,K) the measured block of each row: spot l1_y, l1_z, l2_y, l2_z; point x, y, z;
+        pose x, y, z, qw, qx, qy, qz (the CSV's columns); NaN where not seen."""
+        if self.spots is not None:
+            return self.spots.reshape(len(self), -1)
+        return self.position if self.quaternion is None else np.hstack([self.position, self.quaternion])
+
     def subset(self, index) -> "Samples":
         """Rows selected by a boolean mask or index array (order preserved)."""
         rows = {f.name: getattr(self, f.name)[index] for f in fields(self)

@@ -85,7 +85,7 @@ def format_sensor_samples(samples: Samples) -> str:
         raise ValueError("the sensor samples CSV holds point or pose samples, not spots (io/samples.py)")
     header = (["pose", "stamp"] + [f"q{i + 1}" for i in range(samples.n_joints)] + list(_columns(samples.kind))
               + list(samples.extra))
-    measured = samples.position if samples.quaternion is None else np.hstack([samples.position, samples.quaternion])
+    measured = samples.measured
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(header)

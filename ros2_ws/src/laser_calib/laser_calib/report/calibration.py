@@ -33,7 +33,7 @@ from laser_calib.estimation.failures import first_failure
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.identifiability import carried_note
 from laser_calib.estimation.problem import residuals_at
-from laser_calib.io.revisits import revisit_warnings
+from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import RobotModel
 from laser_calib.measurement.spot import SpotModel
@@ -222,10 +222,9 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     model = spot_model(robot, samples, effects, compensator)
     start = np.concatenate([np.zeros(robot.n_params), *values])
     est = estimate(robot, samples, options, model, start)
-    said = revisit_warnings(samples.pose, samples.q, robot.joint_names, str(sources.get("samples") or "samples"))
+    said = repeat_warnings(samples, test, robot.joint_names, sources)
     if test is not None:  # a test pose beyond the joint ranges calibrated on is an extrapolation: said with the fit's
         said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)
-        said += revisit_warnings(test.pose, test.q, robot.joint_names, str(sources.get("test") or "test"))
         beyond = extrapolation_note([e.label for e in effects if isinstance(e, Surface)], samples.spots, test.spots)
         said += [f"test: {beyond}"] if beyond else []
     est = replace(est, warnings=est.warnings + tuple(said))
