@@ -272,12 +272,16 @@ def test_calibrate_action_feedback_and_cancel(finished, tmp_path):
 
 
 def test_hardware_launch_with_a_mismatched_arm_file_ends_with_its_reason(tmp_path):
-    """The shipped dynamixel_arm.yaml (4 servos) with the 7-DOF robot: one line, the launch ends."""
+    """The shipped dynamixel_arm.yaml (4 servos) with the 7-DOF robot: one line, the launch ends.
+    The spot detector gets a valid screen calibration, so that no other node's refusal can end
+    the launch first (a missing one did, in one run: the two nodes start together)."""
+    from laser_calib.vision.camera import default_camera, save_calibration
+    save_calibration(default_camera().ideal_calibration(), tmp_path / "screen.yaml")
     ros = Ros(tmp_path)
     shown = ros.run(["ros2", "launch", "laser_calib_nodes", "hardware.launch.py", "--show-args"], timeout=60)
     assert shown.returncode == 0 and "'arm_params'" in shown.stdout, shown
     ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py", f"robot:={ROBOT}",
-                                 f"calibration:={tmp_path / 'none.yaml'}", f"output_dir:={tmp_path / 'session'}"])
+                                 f"calibration:={tmp_path / 'screen.yaml'}", f"output_dir:={tmp_path / 'session'}"])
     try:
         code = ros.wait_exit("launch", 120)
     finally:
