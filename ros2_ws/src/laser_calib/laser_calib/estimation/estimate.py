@@ -194,7 +194,7 @@ def _factor_without(model: MeasurementModel, factor: np.ndarray, then: NoiseMode
     nothing_removed = removed is None or not removed.any()
     if nothing_removed and then is noise:
         return factor
-    joint = np.any(np.asarray(then.joint_sigma) > 0) or np.any(np.asarray(noise.joint_sigma) > 0)
+    joint = then.joint_noise or noise.joint_noise
     if not joint and n_poses(model) is not None:
         factor = factor * (then.sigma / noise.sigma)
         if not nothing_removed:
@@ -289,7 +289,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         if rejected:
             warnings.append(f"robust: {len(rejected)} of {kept + len(rejected)} measurements rejected as outliers "
                             f"and not fitted: {listing(model, rejected)}"
-                            + ("" if np.any(np.asarray(options.joint_sigma) > 0) else NO_JOINT_NOISE))
+                            + ("" if noise.joint_noise else NO_JOINT_NOISE))
         if outcome.overflow:
             warnings.append(f"robust: {outcome.overflow} of {kept} measurements lie beyond the outlier limit: "
                             "the model does not fit the data (an unmodelled effect or wrong nominal model); "
@@ -315,7 +315,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     start_x = np.where(free, start_x, x0)
 
     problem = Problem(model, noise, free, prior_sigma, excluded)
-    if (options.method == "lm" and least_squares is not None and not np.any(np.asarray(noise.joint_sigma) > 0)
+    if (options.method == "lm" and least_squares is not None and not noise.joint_noise
             and np.array_equal(free, least_squares.free)):
         # the same weighted least squares at another sigma: its minimum does not move
         result = rescaled(least_squares, noise.sigma / robust_sigma)

@@ -1,16 +1,16 @@
-"""The warnings that say an estimate is no calibration. The console prints them as
-error lines and the command exits with status 3 (cli.arguments.print_warnings); the
-files are still written (they show where the fit went) but a script must not take
-them for a calibration (fit_failures). And the errors of a fit that has nothing to fit at its start:
-no spot there (NoSpotToFit), or none because the fit it starts from moved the beams
-off the screen (FitMovedBeams)."""
+"""The warnings that say an estimate is no calibration (fit_failures). The console
+prints them as error lines and the command exits with status 3
+(cli.arguments.print_warnings); the files are still written (they show where the fit
+went) but a script must not take them for a calibration. And the errors of a fit that
+has nothing to fit at its start: no spot there (NoSpotToFit), or none because the fit
+it starts from moved the beams off the screen (FitMovedBeams)."""
 
 from __future__ import annotations
 
 from laser_calib.io.errors import InputError
 
 NOT_CONVERGED = "NOT CONVERGED"          # the fit stopped before a minimum
-NOT_A_CALIBRATION = "NOT A CALIBRATION"  # a minimum the fit reached by dropping measurements
+NOT_A_CALIBRATION = "NOT A CALIBRATION"  # a minimum that dropped measurements or misses them (fit_failures)
 FAILURES = (NOT_CONVERGED, NOT_A_CALIBRATION)
 # m: a calibrated model that still misses its measurements by more than this RMS per value
 # describes no sensor's data here. A camera locates a laser spot on the screen to tenths of a

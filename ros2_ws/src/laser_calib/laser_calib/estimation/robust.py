@@ -98,7 +98,7 @@ class WeightedNoise(NoiseModel):
         weight = np.repeat(np.where(kept, self.weights, 1.0), dims, axis=1)        # (P, CD)
         left_out = np.repeat(kept, dims, axis=1)[:, None, :]                        # zero columns: no residual
         base = super().whitener(replace(residuals, valid=residuals.valid & kept))
-        if not (_joint_noise(self) and residuals.jac_q is not None):  # the base whitener is diagonal
+        if not (self.joint_noise and residuals.jac_q is not None):  # the base whitener is diagonal
             np.einsum("pii->pi", base)[...] *= np.sqrt(weight) * left_out[:, 0]
             return base
         factor = np.linalg.inv(base)
@@ -129,7 +129,7 @@ class RobustFit:
 def unit_distances(res: Residuals, noise: NoiseModel) -> np.ndarray:
     """Squared Mahalanobis distance d^2 (P,C) of each unit against its own block of the noise covariance (so one
     outlier does not colour its pose's other unit). Invalid units: 0."""
-    if not _joint_noise(noise) and type(noise) is NoiseModel:  # C_u = sigma^2 I: no factor to form
+    if not noise.joint_noise and type(noise) is NoiseModel:  # C_u = sigma^2 I: no factor to form
         return np.where(res.valid, (res.r ** 2).sum(axis=2) / noise.sigma ** 2, 0.0)
     n_poses, channels, dims = res.r.shape
     inverse_factor = noise.whitener(res)                       # (P, CD, CD), W^T W = C^-1
@@ -145,17 +145,13 @@ def distances_at(model: MeasurementModel, noise: NoiseModel, x: np.ndarray) -> t
     """unit_distances (P,C) at x, the valid units (P,C) and the values per unit D, block by block of poses
     (problem.pose_blocks): memory does not grow with the poses beyond these (P,C) arrays. Only joint noise
     needs the Jacobian (its whitener); without it the model runs without."""
-    joint = _joint_noise(noise)
+    joint = noise.joint_noise
     d2, valid = [], []
     for index, block in pose_blocks(model):
         res = block.residuals(x, joint)
         d2.append(unit_distances(res, noise.for_poses(index)))
         valid.append(res.valid)
     return np.concatenate(d2), np.concatenate(valid), res.r.shape[2]
-
-
-def _joint_noise(noise: NoiseModel) -> bool:
-    return bool(np.any(np.asarray(noise.joint_sigma) > 0))
 
 
 def _cauchy_a(scale: float, dims: int) -> float:
@@ -189,7 +185,7 @@ def robust_fit(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, pri
     caller has them; options: the damping, step tolerance and progress of the
     IRLS steps."""
     x = np.asarray(x0, float)
-    if start is not None and not _joint_noise(noise):
+    if start is not None and not noise.joint_noise:
         d2, valid, dims = unit_distances(start, noise), start.valid, start.r.shape[2]
     else:
         d2, valid, dims = distances_at(model, noise, x)
@@ -283,7 +279,7 @@ def _irls(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prior_si
     noise (independent units) the rounds are Newton steps once near the minimum:
     ``near`` from the start, else once a round changed no weight by more than
     NEWTON_BELOW. final: the least squares follow (not a subset's rounds)."""
-    independent = not _joint_noise(noise)
+    independent = not noise.joint_noise
     newton = near and independent
     use = valid & ~excluded
     scale = mad_scale(d2, use, dims)
@@ -359,7 +355,7 @@ def _trial_pass(problem: Problem, noise: NoiseModel, x: np.ndarray, whitener: np
     point's (weighted) whitener (P,CD,CD), prior included, and the unit
     distances d^2 (P,C) under its own noise (without the weights). Only joint
     noise needs the Jacobian."""
-    joint = _joint_noise(noise)
+    joint = noise.joint_noise
     cost = problem.prior_cost(x)
     d2 = []
     for index, block in pose_blocks(problem.model, problem.chunk):

@@ -51,6 +51,7 @@ SWAPS = (("l1_* and l2_* swapped (laser 1's spot is in l2_y,l2_z)", [1, 0], [0, 
 # mirror images about y, so the message does not name one cause where there are two.
 MIRRORS = (("y negated (the screen frame's y axis, or the image's, reversed)", [-1, 1]),
            ("z negated (the screen frame's z axis, or the image's, reversed)", [1, -1]))
+MIRROR_LABELS = {label for label, _ in MIRRORS}
 ALIKE = 2.0
 # (label, laser order, coordinate order, coordinate signs) of every assignment compared
 ASSIGNMENTS = ([(label, lasers, coords, [1, 1]) for label, lasers, coords in SWAPS]
@@ -98,11 +99,12 @@ def check_spot_columns(robot: Robot, q: np.ndarray, spots: np.ndarray, source: s
     """One line naming ``source`` when most poses' spots (P,2,2) at the joint readings
     q (P,N) match the nominal model far better with swapped columns (swap_votes)."""
     votes = [v for v in swap_votes(robot, q, spots) if v.votes >= MIN_VOTES and 2 * v.votes > v.judged]
-    found = [v for v in votes if v.label not in dict(MIRRORS)]
+    mirrors = [v for v in votes if v.label in MIRROR_LABELS]
+    found = [v for v in votes if v.label not in MIRROR_LABELS]
     if found:
         worst = max(found, key=lambda v: (v.votes, -v.median_swapped))
-        named = sorted([worst] + [v for v in votes if v.label in dict(MIRRORS)
-                                  and v.median_swapped <= ALIKE * worst.median_swapped], key=lambda v: v.median_swapped)
+        named = sorted([worst] + [v for v in mirrors if v.median_swapped <= ALIKE * worst.median_swapped],
+                       key=lambda v: v.median_swapped)
         best = named[0]
         raise InputError(source, f"the spot columns look assigned wrongly: {', or '.join(v.label for v in named)}. "
                                  f"At {best.votes} of {best.judged} poses the spots lie over {SWAP_MARGIN * 1e3:.0f} mm "

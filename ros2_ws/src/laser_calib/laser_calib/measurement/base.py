@@ -81,6 +81,11 @@ class NoiseModel:
     sigma: float
     joint_sigma: float | np.ndarray = 0.0
 
+    @property
+    def joint_noise(self) -> bool:
+        """Some joint-reading noise: a joint sigma above 0."""
+        return bool(np.any(np.asarray(self.joint_sigma) > 0))
+
     def for_poses(self, index: slice) -> "NoiseModel":
         """The noise model of a block of poses (solvers go by blocks); the same for
         every pose here, per pose where a subclass weighs them (robust.WeightedNoise)."""
@@ -96,7 +101,7 @@ class NoiseModel:
         n_poses, channels, dims = r.shape
         m = channels * dims
         mask = np.repeat(residuals.valid, dims, axis=1)  # (P, CD)
-        if not (np.any(np.asarray(self.joint_sigma) > 0) and residuals.jac_q is not None):
+        if not (self.joint_noise and residuals.jac_q is not None):
             # diagonal: 1 / sigma on the measured values, 1 elsewhere (as the Cholesky
             # factor of the covariance below and its inverse give it, bit for bit)
             out = np.zeros((n_poses, m, m))
