@@ -168,10 +168,10 @@ CASES = {
     "a frame guess in millimetres": (lambda d: _estimate(d, robot=_robot_yaml(
         lambda r: r.__setitem__("frames", {"sensor": {"x": 2200, "y": 700, "z": 1075}}))),
         "robot.yaml: frames.sensor.x: 2200 m is not a plausible length: lengths are in metres "
-        "(this looks like millimetres)"),
+        "(this looks like millimetres or centimetres)"),
     "laser module offset in millimetres": (lambda d: _estimate(d, robot=_robot_yaml(
         lambda r: r["slm"].__setitem__("a", -30))),
-        "robot.yaml: slm.a: -30 m is not a plausible length: lengths are in metres (this looks like millimetres)"),
+        "robot.yaml: slm.a: -30 m is not a plausible length: lengths are in metres (this looks like millimetres or centimetres)"),
     "angles in degrees": (lambda d: _estimate(d, robot=_robot_yaml(
         lambda r: r["joints"][1].__setitem__("alpha", 90.0))), "degrees"),
     "joint limits in degrees": (lambda d: _estimate(d, robot=_robot_yaml(
@@ -179,7 +179,12 @@ CASES = {
         "robot.yaml: joints[0] (joint 1).min: -30 rad is not a plausible angle: angles are in radians "
         "(this looks like degrees)"),
     "spots in millimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(
-        SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q, SESSION.samples.spots * 1e3))), "millimetres"),
+        SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q, SESSION.samples.spots * 1e3))),
+        "(these look like millimetres)"),
+    # 18-70 cm spots on a 1 m screen: centimetres are as likely as millimetres, and the line says both
+    "spots in centimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(
+        SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q, SESSION.samples.spots * 1e2))),
+        "(these look like millimetres or centimetres)"),
     "a fifth joint's readings after the spots": (lambda d: _estimate(d, samples=_appended(",q5", ",0.1")), "column q5"),
     "a third laser's spots": (lambda d: _estimate(d, samples=_appended(",l3_y,l3_z", ",0.1,0.2")), "column l3_y"),
     "a column without a name": (lambda d: _estimate(d, samples=_appended(",", ",3")), "without a name"),

@@ -54,7 +54,7 @@ BAD = {  # change of the two-marker file -> the one line
     "no joint column": (lambda t: t.replace("l_elbow_flex_joint", "elbow"), "no column for joint 'l_elbow_flex_joint'"),
     "millimetres": (lambda t: "\n".join([t.split("\n")[0]] + [",".join(str(float(v) * 1000) if i < 6 else v
                     for i, v in enumerate(line.split(","))) for line in t.split("\n")[1:] if line]),
-                    "positions are in metres (these look like millimetres)"),
+                    "positions are in metres (these look like millimetres or centimetres)"),
     "half a marker": (lambda t: t.replace("x2,y2,z2", "x2,y2,w2"), "missing column z2 (marker 2)"),
     "a bad field": (lambda t: t.replace("\n", "\nbad", 2).replace("\nbad", "\n", 1), "line 3, field x1: not a number"),
 }

@@ -181,5 +181,5 @@ def test_a_guess_in_millimetres_is_refused_at_the_import(run, tmp_path, capsys):
     assert run(["import-positioner", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert ("pose_initial_guesses.yaml: camera_mount_to_camera_guess.x: 2200 m is not a plausible length: lengths "
-            "are in metres (this looks like millimetres)") in err, err
+            "are in metres (this looks like millimetres or centimetres)") in err, err
     assert not (tmp_path / "o").exists()

@@ -23,7 +23,7 @@ import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Laser, Robot
-from laser_calib.io.read import csv_rows, parse_int, parse_number, read_text
+from laser_calib.io.read import csv_rows, length_units, parse_int, parse_number, read_text
 from laser_calib.io.samples import MAX_DISTANCE
 
 COLUMNS = ("laser", "distance", "u", "v")
@@ -76,7 +76,7 @@ def _check_distance(distance: float, where: str) -> None:
         raise InputError(where, f"must be positive, got {distance}")
     if distance > MAX_DISTANCE:
         raise InputError(where, f"{distance:g} m is not a plausible fixture distance: distances are in metres "
-                                "(this looks like millimetres)")
+                                f"(this looks like {length_units(distance, MAX_DISTANCE)})")
 
 
 def load_measurements(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarray]]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from laser_calib.io.read import length_units
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import Residuals
 from laser_calib.model.robot import Robot
@@ -26,8 +27,9 @@ def impossible_spots(robot: Robot, samples: Samples, start: Residuals) -> list[t
     out = []
     outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
     if outside.any() and outside.sum() == seen.sum():
+        units = length_units(float(np.median(np.abs(samples.spots[seen]))), float(half.max()))
         raise ValueError(f"every spot lies outside the screen (half sizes {half[0]:g}, {half[1]:g} m): spot "
-                         "coordinates are in metres (these look like millimetres)")
+                         f"coordinates are in metres (these look like {units})")
     beyond = np.abs(start.predicted) - half * (1 + MISS_MARGIN)
     misses = seen & ~outside & ~(start.valid & (beyond <= 0).all(axis=2))
     for p, j in zip(*np.nonzero(outside)):

@@ -203,6 +203,13 @@ def finite_number(value: Any, where: str) -> float:
     return float(value)
 
 
+def length_units(magnitude: float, bound: float) -> str:
+    """The units a length of ``magnitude`` beyond ``bound`` (m) was likely written in:
+    millimetres, and centimetres as well when the value in cm is within the bound
+    (150 typed for a 1.5 m link could be either; 2000 for a 0.3 m spot is not cm)."""
+    return "millimetres or centimetres" if abs(magnitude) * 1e-2 <= bound else "millimetres"
+
+
 def known_keys(where: str, mapping: Mapping[str, Any], known: Iterable[str]) -> None:
     """One line for the first key not in ``known``, naming the nearest known key."""
     known = list(known)

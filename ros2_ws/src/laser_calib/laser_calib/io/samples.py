@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.io.errors import InputError
-from laser_calib.io.read import (csv_rows, integer_column, number_column, parse_int, parse_number, plain_table,
-                              read_text)
+from laser_calib.io.read import (csv_rows, integer_column, length_units, number_column, parse_int, parse_number,
+                              plain_table, read_text)
 from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.model.robot import Robot
 
@@ -235,11 +235,12 @@ def check_extra_columns(names: list[str], n_q: int, robot: Robot | None, source:
 
 
 def check_distance_units(position: np.ndarray, where: str) -> None:
-    """One line when positions (P,3) are in millimetres: their median distance from the sensor."""
+    """One line when positions (P,3) are in millimetres (or centimetres): their median distance from the sensor."""
     distance = np.linalg.norm(position, axis=1)
-    if np.isfinite(distance).any() and np.nanmedian(distance) > MAX_DISTANCE:
-        raise InputError(where, f"median distance {np.nanmedian(distance):.4g} m from the sensor: positions are in "
-                                "metres (these look like millimetres)")
+    median = np.nanmedian(distance) if np.isfinite(distance).any() else 0.0
+    if median > MAX_DISTANCE:
+        raise InputError(where, f"median distance {median:.4g} m from the sensor: positions are in "
+                                f"metres (these look like {length_units(median, MAX_DISTANCE)})")
 
 
 def check_joint_count(n_q: int, robot: Robot | None, source: str) -> None:

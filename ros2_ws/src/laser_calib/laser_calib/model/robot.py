@@ -21,6 +21,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.read import length_units
 from laser_calib.model.joint_chain import JointChain
 
 PAPER = "paper"        # T_i = Trans(x,a) Trans(z,d) Rot(x,alpha) Rot(z,theta)
@@ -41,11 +42,11 @@ MAX_SLM_OFFSET = 1.0
 
 
 def plausible_length(where: str, value: float, bound: float = MAX_LENGTH) -> float:
-    """``value`` (m), or one line saying it looks like millimetres: the one units
-    rule for every length a robot file, a URDF or a frame guess holds."""
+    """``value`` (m), or one line saying it looks like millimetres (or centimetres):
+    the one units rule for every length a robot file, a URDF or a frame guess holds."""
     if abs(value) > bound:
         raise InputError(where, f"{value:g} m is not a plausible length: lengths are in metres "
-                                "(this looks like millimetres)")
+                                f"(this looks like {length_units(value, bound)})")
     return value
 
 
