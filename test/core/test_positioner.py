@@ -183,3 +183,26 @@ def test_a_guess_in_millimetres_is_refused_at_the_import(run, tmp_path, capsys):
     assert ("pose_initial_guesses.yaml: camera_mount_to_camera_guess.x: 2200 m is not a plausible length: lengths "
             "are in metres (this looks like millimetres or centimetres)") in err, err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("file, old, new, expected", [
+    ("pose_initial_guesses.yaml", "camera_mount_to_camera_guess:", "camera_mount_to_camera_gess:",
+     "pose_initial_guesses.yaml: unknown key 'camera_mount_to_camera_gess'; did you mean 'camera_mount_to_camera_guess'?"),
+    ("pose_initial_guesses.yaml", "  qw: 1.0\n", "  w: 1.0\n  qw: 1.0\n",
+     "pose_initial_guesses.yaml: camera_mount_to_camera_guess: unknown key 'w'"),
+    ("measurements.yaml", "  camera_joints: []\n", "  camera_joints: []\n  target_joint_velocities: [0.0, 0.0]\n",
+     "measurements.yaml: 1593701755: unknown key 'target_joint_velocities'; did you mean 'target_joints'?"),
+])
+def test_an_unknown_key_is_refused_at_the_import(run, tmp_path, capsys, file, old, new, expected):
+    """A misspelt or unexpected key in the source files was dropped without a word (the tester's
+    probe); each is now one line naming the file, the entry and the nearest known key."""
+    for name in ("pose_initial_guesses.yaml", "measurements.yaml"):
+        text = (DATA / name).read_text()
+        if name == file:
+            assert old in text
+            text = text.replace(old, new, 1)
+        (tmp_path / name).write_text(text)
+    assert run(["import-positioner", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert expected in err and "Traceback" not in err, err
+    assert not (tmp_path / "o").exists()

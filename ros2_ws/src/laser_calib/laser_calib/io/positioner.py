@@ -20,7 +20,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from laser_calib.io.errors import InputError
-from laser_calib.io.read import finite_number, load_yaml, read_text
+from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text
 from laser_calib.io.samples import check_joint_range
 from laser_calib.model.robot import STANDARD, Joint, Robot, Slm, plausible_length
 from laser_calib.measurement.frames import POSE_KEYS, Pose, with_frames
@@ -29,6 +29,9 @@ from laser_calib.io.sensor_samples import SensorSamples
 
 MEASUREMENTS = "measurements.yaml"
 GUESSES = "pose_initial_guesses.yaml"
+# The source's keys, checked strictly: a misspelt one would otherwise drop its value unseen.
+GUESS_KEYS = {"camera_mount_to_camera_guess": "sensor", "target_mount_to_target_guess": "target"}
+ENTRY_KEYS = ("target_joints", "pose", "camera_joints")
 
 # Facts of the source's nominal model (README): standard D-H, base in world.
 NOMINAL_JOINTS = (
@@ -47,6 +50,7 @@ def _pose(where: str, mapping: Any) -> np.ndarray:
     """(x, y, z, qw, qx, qy, qz) from a mapping with those keys."""
     if not isinstance(mapping, Mapping):
         raise InputError(where, "expected a pose mapping x, y, z, qw, qx, qy, qz")
+    known_keys(where, mapping, POSE_KEYS)
     values = [finite_number(mapping.get(key), f"{where}.{key}") for key in POSE_KEYS]
     for key, value in zip("xyz", values):
         plausible_length(f"{where}.{key}", value)
@@ -71,8 +75,9 @@ def read_positioner(directory: str | Path) -> tuple[Robot, SensorSamples]:
     guesses = _read_yaml(guesses_path)
     if not isinstance(guesses, Mapping):
         raise InputError(str(guesses_path), "expected a mapping of pose guesses")
+    known_keys(str(guesses_path), guesses, GUESS_KEYS)
     poses = {}
-    for key, frame in (("camera_mount_to_camera_guess", "sensor"), ("target_mount_to_target_guess", "target")):
+    for key, frame in GUESS_KEYS.items():
         if key not in guesses:
             raise InputError(str(guesses_path), f"missing key '{key}'")
         poses[frame] = Pose.from_values(_pose(f"{guesses_path}: {key}", guesses[key]))
@@ -90,6 +95,7 @@ def read_positioner(directory: str | Path) -> tuple[Robot, SensorSamples]:
             raise InputError(where, "key is not a time stamp in seconds") from None
         if not isinstance(entry, Mapping) or "target_joints" not in entry or "pose" not in entry:
             raise InputError(where, "expected target_joints and pose")
+        known_keys(where, entry, ENTRY_KEYS)
         joints = entry["target_joints"]
         if (not isinstance(joints, list) or len(joints) != robot.n_joints
                 or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in joints)):
