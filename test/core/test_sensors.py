@@ -305,3 +305,23 @@ def test_calibrate_poses_says_a_still_joint_once(tmp_path, capsys):
     assert len(lines) == 1 and lines[0].startswith("warning: q3 reads ")
     warnings = json.loads((tmp_path / "out" / "result.json").read_text())["warnings"]
     assert [w for w in warnings if "never moved" in w] == [lines[0].removeprefix("warning: ")]
+
+
+def test_calibrate_poses_does_not_call_the_nominal_reference_a_failed_calibration(tmp_path, capsys):
+    """Link lengths 6 and 5 cm off: the frames-only fit (the 'before' reference) misses the
+    poses by over 10 mm RMS per value, the calibration fits them to the noise. The console
+    said 'nominal (frames-only) fit: NOT A CALIBRATION: the calibrated model still misses...'
+    (the tester's probe); a reference's miss is what calibration corrects, and the in-sample
+    line states it."""
+    robot = rig("standard")
+    names = chain_names(robot)
+    truth = np.zeros(len(names))
+    truth[names.index("a2")], truth[names.index("d3")] = 0.06, -0.05
+    save_sensor_samples(simulate(robot, truth, 40, 1, "pose"), tmp_path / "poses.csv")
+    (tmp_path / "robot.yaml").write_text(dump_robot(robot))
+    assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "poses.csv"),
+                 "--folds", "0", "--out", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["insample"]["nominal_position_mm"]["rms"] > 10.0, result["insample"]
+    assert "NOT A CALIBRATION" not in printed and not any("NOT A CALIBRATION" in w for w in result["warnings"])

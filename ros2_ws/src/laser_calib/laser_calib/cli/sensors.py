@@ -23,7 +23,7 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       out_file, out_folder, positive, positive_int, print_warnings, require_measured,
                                       sigma_angle, sigma_length, staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
-from laser_calib.estimation.failures import first_failure
+from laser_calib.estimation.failures import first_failure, is_failure
 from laser_calib.estimation.identifiability import TooFewValues
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
@@ -274,9 +274,12 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
               "parameters": _parameters(fit, robot), "insample": _summaries(table),
               "rejected_poses": [int(samples.pose[p]) for p, _ in fit.estimate.rejected],
               "robust": fit.estimate.robust,
-              # a warning both fits give (a still joint's: the data's, not a fit's) is said once
+              # a warning both fits give (a still joint's: the data's, not a fit's) is said once; the
+              # nominal fit is the reference, whose missing the data by centimetres is what the
+              # calibration corrects, not a failed calibration (its level is the in-sample line's)
               "warnings": list(samples.warnings) + [f"nominal (frames-only) fit: {w}" for w in fit.nominal.warnings
-                                                    if w not in fit.estimate.warnings] + list(fit.estimate.warnings)
+                                                    if w not in fit.estimate.warnings and not is_failure(w)]
+                          + list(fit.estimate.warnings)
                           + repeat_warnings(samples, test, robot.joint_names,
                                             {"samples": args.samples, "test": args.test})}
     stale = robot.extra.get("effects")
