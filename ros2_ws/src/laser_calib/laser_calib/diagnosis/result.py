@@ -19,6 +19,7 @@ from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import Estimate
 from laser_calib.estimation.failures import first_failure
 from laser_calib.model.robot import Robot
+from laser_calib.model.robot_file import with_held
 from laser_calib.report.statistics import summary
 
 @dataclass(frozen=True)
@@ -143,8 +144,8 @@ class Diagnosis:
         (spot data: the base parameters are the D-H errors)."""
         final = self.final
         geometric, values = final.model.split(final.estimate.values)
-        corrected = self.robot.with_errors(geometric)
-        extra = {k: v for k, v in self.robot.extra.items() if k != "effects"}
+        corrected = with_held(self.robot.with_errors(geometric), self.merged)
+        extra = {k: v for k, v in corrected.extra.items() if k != "effects"}
         if final.effects:
             extra["effects"] = effects_to_yaml(final.effects, values)
         return replace(corrected, extra=extra)

@@ -10,6 +10,8 @@ text from /robot_description gives it to robot_from_dict instead.
 
 from __future__ import annotations
 
+import difflib
+
 import math
 from pathlib import Path
 from dataclasses import replace
@@ -31,7 +33,7 @@ URDF_KEYS = ("name", "urdf", "robot_description", "xacro_args", "base", "tip", "
              "gravity")
 # Keys other modules read: effects/catalog.py, measurement/frames.py, diagnosis/verdict.py (rated noise),
 # effects/bounds.py (what the sensor side can plausibly be off by).
-EXTRA_KEYS = ("effects", "frames", "spot_sigma", "joint_reading_sigma", "sensor_kind", "sensor_limits")
+EXTRA_KEYS = ("effects", "frames", "spot_sigma", "joint_reading_sigma", "sensor_kind", "sensor_limits", "held")
 JOINT_KEYS = ("a", "d", "alpha", "theta0", "min", "max", "type")
 SLM_KEYS = ("a", "d", "alpha", "theta", "beta")
 LASER_KEYS = ("gamma", "beta")
@@ -65,7 +67,35 @@ def robot_from_dict(data: Any, source: str = "<robot>", folder: Path | None = No
     else:
         robot = _dh_robot(data, source)
     robot_frames(robot, source)  # checked here, where the file's name is known (its readers have none)
+    _check_held(robot, source)
     return robot
+
+
+def held(robot: Robot) -> tuple[str, ...]:
+    """The parameters a calibration that wrote this file could not determine and held at
+    nominal (key ``held``): its nominal values are that calibration's, at which those
+    parameters lean on others only weakly (d1 and d2 of nearly parallel axes, a 1.3 deg
+    alpha1 apart, 57 mm std on a 24-pose set), so a calibration from this file holds
+    them too rather than write such a value; deleting the key estimates them."""
+    return tuple(robot.extra.get("held", ()))
+
+
+def with_held(robot: Robot, names) -> Robot:
+    """``robot`` whose file says the parameters ``names`` (and those it held already) are held."""
+    names = tuple(dict.fromkeys((*held(robot), *names)))
+    extra = {k: v for k, v in robot.extra.items() if k != "held"}
+    return replace(robot, extra={**extra, "held": list(names)} if names else extra)
+
+
+def _check_held(robot: Robot, source: str) -> None:
+    value = robot.extra.get("held", [])
+    if not isinstance(value, list) or not all(isinstance(name, str) for name in value):
+        raise InputError(f"{source}: held", "expected a list of parameter names")
+    for i, name in enumerate(value):
+        if name not in robot.param_names:
+            near = difflib.get_close_matches(name, robot.param_names, n=1)
+            raise InputError(f"{source}: held[{i}]", f"'{name}' is no parameter of robot '{robot.name}'"
+                                                      + (f"; did you mean '{near[0]}'?" if near else ""))
 
 
 def _dh_robot(data: Any, source: str) -> Robot:

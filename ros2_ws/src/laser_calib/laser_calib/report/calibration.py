@@ -38,6 +38,7 @@ from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import RobotModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
+from laser_calib.model.robot_file import held, with_held
 from laser_calib.report.plots import display_units
 from laser_calib.report.statistics import iso9283, laser_stats
 
@@ -85,7 +86,7 @@ class Calibration:
     @property
     def calibrated(self) -> Robot:
         """The robot file's model with the estimate: D-H values corrected, effect values refitted."""
-        corrected = self.estimate.corrected(self.robot)
+        corrected = with_held(self.estimate.corrected(self.robot), self.estimate.identifiability.merged)
         if not self.effects:
             return corrected
         values = np.split(self.estimate.values[self.robot.n_params:],
@@ -130,6 +131,8 @@ class Calibration:
                 entry["note"] = est.identifiability.merged[name]
             elif name in est.identifiability.carried:
                 entry["note"] = carried_note(name, est.identifiability.carried[name])
+            elif name in held(self.robot):
+                entry["note"] = "held at nominal: the calibration that wrote the robot file could not determine it"
             errors.append(entry)
         ident = est.identifiability
         options_dict = {k: v for k, v in asdict(options).items() if k not in ("lm", "ekf")}
@@ -217,6 +220,8 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     """Estimate the errors from samples and evaluate the result (no files written): the
     geometric errors, and the robot file's effects and compensator when it has any (module docstring)."""
     sources = dict(sources or {})
+    # what the calibration that wrote the robot file could not determine, this one holds too
+    options = replace(options, fixed=tuple(dict.fromkeys((*options.fixed, *held(robot)))))
     effects, values = effects_from_robot(robot, str(sources.get("robot", "robot")))
     effects = tuple(effects)
     model = spot_model(robot, samples, effects, compensator)
@@ -227,6 +232,9 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
         said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)
         beyond = extrapolation_note([e.label for e in effects if isinstance(e, Surface)], samples.spots, test.spots)
         said += [f"test: {beyond}"] if beyond else []
+    if held(robot):
+        said.append(f"held at nominal, as the calibration that wrote {sources.get('robot', 'the robot file')} held "
+                    f"them (not determined by its data; its key held): {', '.join(held(robot))}")
     est = replace(est, warnings=est.warnings + tuple(said))
     return Calibration(robot, options, est, evaluate(robot, samples, est, test, effects, compensator, start), sources,
                        effects, compensator)
