@@ -40,7 +40,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         with Progress("diagnose", unit="fit") as progress:
             options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                                       folds=args.folds, max_effects=args.max_effects, seed=args.seed,
-                                      compensate=not args.no_compensator, nested=True, progress=progress)
+                                      compensate=not args.no_compensator, nested=True, robust=args.robust,
+                                      progress=progress)
             try:
                 diagnosis = diagnose(robot, samples, test, options=options, sources=sources)
             except TooFewPoses as exc:  # the engine knows the count, the command the file
@@ -86,6 +87,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--folds", type=non_negative_int, default=5, help="cross-validation folds (at least 2)")
     p.add_argument("--max-effects", type=non_negative_int, default=4, help="effects added at most")
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the fold split")
+    p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
+                   help="leave out the measurements estimate's robust rule rejects, listed in the notes (default)")
     p.add_argument("--no-compensator", action="store_true",
                    help="do not keep the learned compensator even when it wins held-out")
     p.add_argument("--out", required=True, type=out_folder, help="output folder")

@@ -309,6 +309,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         lines.append(f"diagnosis: {chosen['model']} (held-out mean {result['diagnosis']['heldout_nested_mean_mm']:.3f}"
                      f" mm with the selection inside the folds, {chosen['heldout_mean_mm']:.3f} mm for this model "
                      f"chosen on all poses); verdict: {result['diagnosis']['verdict']}")
+        lines += [f"diagnosis note: {note}" for note in result["diagnosis"]["notes"]]
     failure = first_failure(fit.estimate.warnings)
     with staged_folder(args.out) as out:
         if robot.chain is not None:

@@ -11,6 +11,7 @@ from laser_calib.diagnosis.structure import Readings, Series, spot_covariates, s
 from laser_calib.effects.base import SPOT, Effect
 from laser_calib.effects.catalog import candidates
 from laser_calib.effects.effect_model import EffectModel
+from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel, Residuals, RobotModel
 from laser_calib.measurement.spot import SpotModel
@@ -27,8 +28,10 @@ class Data(Protocol):
     gives the folds); candidates(): the effects to select from (those the base
     model cannot carry are dropped by the engine); subset(index): the same
     data on the poses ``index``; measured_values(): the
-    number of measured values; series(): the measurement-level responses and
-    covariates of the verdict's structure tests.
+    number of measured values; screen(options): the geometric estimate that
+    `estimate` runs on these samples (its refused units: diagnosis.screening);
+    without(units): the same data with the units (P,C) not seen; series(): the
+    measurement-level responses and covariates of the verdict's structure tests.
     """
 
     robot: Robot
@@ -42,6 +45,10 @@ class Data(Protocol):
     def candidates(self) -> list[Effect]: ...
 
     def measured_values(self) -> int: ...
+
+    def screen(self, options: EstimateOptions) -> Estimate: ...
+
+    def without(self, units: np.ndarray) -> "Data": ...
 
     def series(self, model: EffectModel, x: np.ndarray, res: Residuals, noise: NoiseModel
                ) -> tuple[list[Series], list[Series]]: ...
@@ -67,6 +74,12 @@ class SpotData:
 
     def measured_values(self) -> int:
         return 2 * int(self.samples.seen.sum())
+
+    def screen(self, options: EstimateOptions) -> Estimate:
+        return estimate(self.robot, self.samples, options)
+
+    def without(self, units: np.ndarray) -> "SpotData":
+        return SpotData(self.robot, self.samples.without(units), self.fixed)
 
     def series(self, model: EffectModel, x: np.ndarray, res: Residuals, noise: NoiseModel
                ) -> tuple[list[Series], list[Series]]:

@@ -7,6 +7,8 @@ covariates (the Data protocol; sensors.analysis.SensorData for point and pose
 sensors, which adds the sensor's scale as a candidate); candidates the base
 model cannot carry (screen and lens effects without spots) are dropped. It runs:
 
+0. the units the geometric estimate refuses (gross outliers, impossible
+   spots) are left out of everything below and listed (diagnosis.screening).
 1. the geometric fit (estimation.estimate_model, as every fit here). Noise
    components not given are estimated from its residual by maximum
    likelihood (noise_components) and the fit repeated with them: this is the
@@ -76,6 +78,7 @@ from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
+from laser_calib.diagnosis.screening import screened, screened_again
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
 from laser_calib.diagnosis.specification import covariate_table, drift_covariates, load_table, specification_tests
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
@@ -91,6 +94,7 @@ from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.model.robot import Robot
+from laser_calib.model.robot_file import held
 
 __all__ = ["DiagnoseOptions", "Diagnosis", "diagnose", "run", "supports", "write_outputs"]
 
@@ -116,7 +120,11 @@ def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_s
     if "effects" in robot.extra:
         notes.append("the input robot's effects key was not used: the diagnosis starts from the geometric model")
     notes += repeat_warnings(samples, test, robot.joint_names, sources or {})
-    return run(SpotData(robot, samples), options, None if test is None else SpotData(robot, test), tuple(notes))
+    if held(robot):
+        notes.append(f"held at nominal, as the calibration that wrote the robot file held them (its key held): "
+                     f"{', '.join(held(robot))}")
+    return run(SpotData(robot, samples, held(robot)), options, None if test is None else SpotData(robot, test),
+               tuple(notes))
 
 
 class TooFewPoses(InputError):
@@ -158,6 +166,21 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
                            options.folds)
     if n_poses < needed:
         raise TooFewPoses(n_poses, needed)
+    kept, refused = screened(data, options)
+    if refused is None:
+        return diagnosed(data, options, test, notes, start)
+    diagnosis = diagnosed(kept, options, test, notes + refused.note(data, options), start)
+    again = screened_again(data, diagnosis, refused)
+    if again is None:
+        return diagnosis
+    return diagnosed(data.without(again.units), options, test, notes + again.note(data, options), start)
+
+
+def diagnosed(data: Data, options: DiagnoseOptions, test: Data | None, notes: list[str], start: float) -> Diagnosis:
+    """run() on the data the screening kept."""
+    n_poses = len(data.samples.q)
+    needed = minimum_poses(len(data.base().names) - len(data.fixed), data.measured_values() / max(n_poses, 1),
+                           options.folds)
     fitter, on, fits, rounds, alternatives = selected(data, options, notes, "selection")
     if on is not data:
         notes.append(f"effects selected on {len(on.samples.q)} of the {n_poses} poses ({SELECTION_RUNS} runs of "

@@ -21,7 +21,9 @@ class DiagnoseOptions:
     alpha the significance level of every test; max_effects added at most;
     shortlist fitted per round; seed of the fold split and of LM restarts;
     restarts of LM for the geometric fit (estimation.EstimateOptions);
-    compensate: keep the learned compensator when it wins held-out; nested:
+    compensate: keep the learned compensator when it wins held-out; robust:
+    leave out the units the geometric estimate's robust rule rejects
+    (diagnosis.screening); nested:
     the held-out error of the whole procedure, selection inside the folds
     (folds + 1 selections; the default of the library and the command line); progress:
     called as progress(done, total or None, note) after every fit
@@ -39,6 +41,7 @@ class DiagnoseOptions:
     restarts: int = 6
     compensate: bool = True
     nested: bool = True
+    robust: bool = True
     progress: Callable[[int, int | None, str], None] | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):

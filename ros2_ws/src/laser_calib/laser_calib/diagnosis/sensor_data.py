@@ -35,6 +35,7 @@ from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
 from laser_calib.model.robot import Robot
 from laser_calib.estimation.sensor_fit import (Extend, HeldOut, SensorFit, SensorFitOptions, calibrate, kfold, make_model,
                           pose_errors, sensor_of)
+from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.measurement.sensor import SCALE_NAMES, SCALE_SCALE, PointModel, PoseModel
 from laser_calib.io.sensor_samples import SensorSamples
@@ -185,6 +186,12 @@ class SensorData:
     def measured_values(self) -> int:
         return (6 if self.samples.kind == "pose" else 3) * int(self.samples.seen.sum())
 
+    def screen(self, options: EstimateOptions) -> Estimate:
+        return estimate_model(EffectModel(self.base(), ()), options)
+
+    def without(self, units: np.ndarray) -> "SensorData":
+        return replace(self, samples=self.samples.without(units))
+
     def series(self, model: EffectModel, x: np.ndarray, res: Residuals, noise: NoiseModel
                ) -> tuple[list[Series], list[Series]]:
         """Each residual component in the sensor frame (sensor_residuals:
@@ -217,11 +224,11 @@ def sensor_data(robot: Robot, samples: SensorSamples, options: SensorFitOptions)
 
 def diagnose_options(options: SensorFitOptions, folds: int = 5, seed: int = 0, max_effects: int = 4
                      ) -> DiagnoseOptions:
-    """The engine's options from the sensor fit's: method and (given) sigma; the
+    """The engine's options from the sensor fit's: method, (given) sigma and robust rule; the
     joint-reading noise is estimated. The engine's nested held-out error is
     left out: nested_heldout measures it in the calibration's metric."""
     return DiagnoseOptions(method=options.estimate.method, spot_sigma=options.estimate.spot_sigma, folds=folds,
-                           seed=seed, max_effects=max_effects, nested=False)
+                           seed=seed, max_effects=max_effects, nested=False, robust=options.estimate.robust)
 
 
 def diagnose(robot: Robot, samples: SensorSamples, options: SensorFitOptions,

@@ -96,6 +96,15 @@ class Samples:
             return self.spots.reshape(len(self), -1)
         return self.position if self.quaternion is None else np.hstack([self.position, self.quaternion])
 
+    def without(self, units: np.ndarray) -> "Samples":
+        """The same rows with the measured units (P,C) marked not seen (spots: (P,2);
+        point, pose: (P,1)), as a fit leaves out what it refused."""
+        if self.spots is not None:
+            return replace(self, spots=np.where(units[..., None], np.nan, self.spots))
+        poses = units.any(axis=1)[:, None]
+        return replace(self, position=np.where(poses, np.nan, self.position),
+                       quaternion=None if self.quaternion is None else np.where(poses, np.nan, self.quaternion))
+
     def subset(self, index) -> "Samples":
         """Rows selected by a boolean mask or index array (order preserved)."""
         rows = {f.name: getattr(self, f.name)[index] for f in fields(self)

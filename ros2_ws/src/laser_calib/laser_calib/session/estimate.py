@@ -87,7 +87,8 @@ def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out:
     """
     try:
         diagnosis = diagnose(robot, samples, options=DiagnoseOptions(
-            method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma or None))
+            method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma or None,
+            robust=options.robust))
     except TooFewPoses as exc:
         return {"skipped": f"diagnosis skipped: {exc.n_poses} poses, at least {exc.needed} needed"}
     if out is not None:
