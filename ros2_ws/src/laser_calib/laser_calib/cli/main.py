@@ -26,6 +26,7 @@ from laser_calib.report.progress import Progress
 from laser_calib.estimation.identifiability import STD_FACTOR, TooFewValues, analyse
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
+from laser_calib.report.calibration import shown_mm
 from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
@@ -139,11 +140,18 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def _summary(calibration) -> int:
-    """The spot errors before and after, the warnings; the exit status (print_warnings)."""
-    for set_name, by_model in calibration.spot_error.items():
+    """The spot errors before and after (the calibration set's over the spots fitted, those it did not fit
+    on lines of their own), the warnings; the exit status (print_warnings)."""
+    errors = calibration.spot_error
+    lines = [("calibration", "", errors["calibration"])]
+    lines += [("calibration", f" {status}, not fitted:", by_model)
+              for status, by_model in calibration.spot_error_not_fitted.items()]
+    lines += [(name, "", by_model) for name, by_model in errors.items() if name != "calibration"]
+    for set_name, what, by_model in lines:
         b, a = by_model["before"]["all"], by_model["after"]["all"]
-        print(f"{set_name:12s} mean spot error {b['mean_mm']:.3f} mm -> {a['mean_mm']:.3f} mm "
-              f"(max {b['max_mm']:.3f} -> {a['max_mm']:.3f}; {a['n']} spots)")
+        counted = " fitted" if set_name == "calibration" and not what else ""
+        print(f"{set_name:12s}{what} mean spot error {shown_mm(b['mean_mm'])} mm -> {shown_mm(a['mean_mm'])} mm "
+              f"(max {shown_mm(b['max_mm'])} -> {shown_mm(a['max_mm'])}; {a['n']} spots{counted})")
     return print_warnings(list(calibration.estimate.warnings))
 
 

@@ -38,7 +38,7 @@ from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, cali
                                                make_model, pose_errors, sensor_of)
 from laser_calib.io.errors import InputError
 from laser_calib.measurement.base import MeasurementModel
-from laser_calib.report.pose_table import save_pose_table
+from laser_calib.report.pose_table import NOT_FITTED, fit_status, save_pose_table
 from laser_calib.report.statistics import STATISTICS, iso9283, summary
 from laser_calib.io.samples import Samples
 from laser_calib.io.sensor_samples import load_sensor_samples, save_sensor_samples
@@ -141,27 +141,29 @@ def _evaluate(model: MeasurementModel, fit: SensorFit, prefix: str = "",
     return out
 
 
-def _summaries(columns: dict[str, np.ndarray], prefix: str = "") -> dict:
-    """The error columns '<prefix>[nominal_]position_m' / 'rotation_rad' as summaries in mm / deg."""
+def _summaries(columns: dict[str, np.ndarray], prefix: str = "", rows: np.ndarray | None = None) -> dict:
+    """The error columns '<prefix>[nominal_]position_m' / 'rotation_rad' as summaries in mm / deg,
+    over the poses ``rows`` (bool (P,); default all)."""
     out = {}
     for name in ("nominal_position", "position", "nominal_rotation", "rotation"):
         for unit, (shown, factor) in (("m", ("mm", 1e3)), ("rad", ("deg", 180 / math.pi))):
             values = columns.get(f"{prefix}{name}_{unit}")
             if values is not None:
-                out[f"{name}_{shown}"] = summary(values, factor)
+                out[f"{name}_{shown}"] = summary(values if rows is None else values[rows], factor)
     return out
 
 
-def _accuracy(samples: Samples, model: MeasurementModel, fit: SensorFit) -> dict | None:
+def _accuracy(samples: Samples, model: MeasurementModel, fit: SensorFit, rows: np.ndarray) -> dict | None:
     """ISO 9283 AP / RP (mm, and deg for pose samples) of the poses visited more
-    than once, nominal and calibrated; None without repeats."""
+    than once among ``rows`` (bool (P,)), nominal and calibrated; None without repeats."""
     out = {}
+    position = np.where(rows[:, None], samples.position, np.nan)  # iso9283 leaves out a NaN row
     for name, x in (("nominal", fit.nominal.values), ("calibrated", fit.estimate.values)):
         res = model.residuals(x, False)
         rotation = None
         if samples.kind == "pose":
             rotation = np.where(res.valid, res.r[:, 0, 3:], np.nan) / sensor_of(model).rotation_length
-        out[name] = iso9283(samples.pose, samples.position, res.predicted[:, 0, :3], 1e3, rotation, 180 / math.pi)
+        out[name] = iso9283(samples.pose, position, res.predicted[:, 0, :3], 1e3, rotation, 180 / math.pi)
     return out if out["nominal"] else None
 
 
@@ -245,7 +247,7 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Sample
     outside = test_outside_range(samples.q, test.q)
     result["test"] = {"samples": str(args.test), "poses": len(test), **_summaries(columns),
                       "outside_joint_range": outside.tolist()}
-    accuracy = _accuracy(test, model, fit)
+    accuracy = _accuracy(test, model, fit, test.seen)
     if accuracy:
         result["test"]["iso9283"] = accuracy
     result["warnings"] += list(test.warnings) + range_warnings(outside, f"test {args.test}", robot.joint_names)
@@ -267,11 +269,15 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         fit = calibrate(robot, samples, options)
     except TooFewValues as exc:  # the estimator counts the values, the command knows their file
         raise InputError(str(args.samples), str(exc)) from None
-    table = _evaluate(fit.model, fit, components=True)
+    # the in-sample figures are over the poses the fit used: the rejected ones would report what it did not do
+    status = fit_status(samples.seen[:, None], fit.estimate.rejected, fit.estimate.impossible)[:, 0]
+    used = status == "fitted"
+    table = _evaluate(fit.model, fit, components=True) | {"fit": status}
     result = {"robot": robot.name, "samples": str(args.samples), "kind": samples.kind, "poses": len(samples),
               "rotation_length_m_per_rad": fit.rotation_length, "sigma_m": fit.estimate.sigma,
               "chi2": fit.estimate.fit.chi2, "dof": fit.estimate.fit.dof,
-              "parameters": _parameters(fit, robot), "insample": _summaries(table),
+              "parameters": _parameters(fit, robot), "insample": _summaries(table, rows=used),
+              "insample_not_fitted": {w: _summaries(table, "", status == w) for w in NOT_FITTED if (status == w).any()},
               "rejected_poses": [int(samples.pose[p]) for p, _ in fit.estimate.rejected],
               "robust": fit.estimate.robust,
               # a warning both fits give (a still joint's: the data's, not a fit's) is said once; the
@@ -287,13 +293,15 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         result["warnings"].append(f"{args.robot}: its effects ({len(stale)}) are not fitted by calibrate-poses (the "
                                   "geometric model and the frames only): the calibrated robot is written without "
                                   "them; --diagnose selects effects anew")
-    accuracy = _accuracy(samples, fit.model, fit)
+    accuracy = _accuracy(samples, fit.model, fit, used)
     if accuracy:
         result["insample"]["iso9283"] = accuracy
     fitted = [n for n, free in zip(robot.param_names, fit.estimate.identifiable) if free]
     lines = [f"{robot.name}: {len(samples)} {samples.kind} samples; "
              f"{'joint placements' if robot.chain else 'D-H errors'} fitted: {', '.join(fitted) or 'none'}",
-             _line("in-sample", result["insample"], _nominal_label(fit, robot))]
+             _line(f"in-sample ({used.sum()} poses fitted)", result["insample"], _nominal_label(fit, robot))]
+    lines += [_line(f"in-sample, {word} poses not fitted ({(status == word).sum()})", section,
+                    _nominal_label(fit, robot)) for word, section in result["insample_not_fitted"].items()]
     if accuracy:
         iso = accuracy["calibrated"]
         lines.append(f"ISO 9283 over {iso['poses']} repeated poses: AP mean {iso['AP']['mean']:.3f} mm "

@@ -40,6 +40,7 @@ from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import held, with_held
 from laser_calib.report.plots import display_units
+from laser_calib.report.pose_table import NOT_FITTED, fit_status
 from laser_calib.report.statistics import iso9283, laser_stats
 
 if TYPE_CHECKING:  # scikit-learn (1 s to import): only where a compensator is loaded
@@ -50,18 +51,41 @@ def finite_or_none(value: float):
     return float(value) if math.isfinite(value) else None
 
 
+def shown_mm(value: float | None) -> str:
+    """A figure of laser_stats as printed: None (no spot's distance is finite) as 'n/a'."""
+    return "n/a" if value is None else f"{value:.3f}"
+
+
+MODELS = ("nominal", "calibrated")
+
+
 @dataclass(frozen=True)
 class SetEvaluation:
     """One set of samples and the spots both models predict for it: nominal and
-    calibrated (P,2,2) in m, NaN where the beam misses the screen."""
+    calibrated (P,2,2) in m, NaN where the beam misses the screen; status: the
+    calibration set's fit_status (P,2) per spot, None for a test set (the fit
+    never saw it)."""
 
     samples: Samples
     nominal: np.ndarray
     calibrated: np.ndarray
+    status: np.ndarray | None = None
 
-    def distances(self, model: str) -> np.ndarray:
-        """(P,2) distance in m between measured and predicted spot; NaN where unseen."""
-        return np.linalg.norm(self.samples.spots - getattr(self, model), axis=2)
+    @property
+    def counted(self) -> str | None:
+        """The status of the spots the set's figures are over: 'fitted' on a calibration set (those the
+        fit refused or rejected would report what it did not do), None (every seen spot) on a test set."""
+        return None if self.status is None else "fitted"
+
+    def spots(self, status: str | None = None) -> np.ndarray:
+        """(P,2,2) measured spots in m; NaN where unseen and, given a status, where the spot's is another."""
+        if status is None:
+            return self.samples.spots
+        return np.where((self.status == status)[..., None], self.samples.spots, np.nan)
+
+    def distances(self, model: str, status: str | None = None) -> np.ndarray:
+        """(P,2) distance in m between measured and predicted spot; NaN where spots(status) is."""
+        return np.linalg.norm(self.spots(status) - getattr(self, model), axis=2)
 
 
 @dataclass(frozen=True)
@@ -102,9 +126,16 @@ class Calibration:
 
     @cached_property
     def spot_error(self) -> dict:
-        """{set: {"before": per-laser stats, "after": ...}} against the measured spots (mm)."""
-        return {name: {"before": laser_stats(s.distances("nominal")), "after": laser_stats(s.distances("calibrated"))}
-                for name, s in self.sets.items()}
+        """{set: {"before": per-laser stats, "after": ...}} against the measured spots (mm), over
+        each set's counted spots: the calibration's fitted ones (the others: spot_error_not_fitted)."""
+        return {name: _before_after(s, s.counted) for name, s in self.sets.items()}
+
+    @cached_property
+    def spot_error_not_fitted(self) -> dict:
+        """{status: {"before": ..., "after": ...}} (mm) of the calibration spots the fit did not use, per
+        status some spot has ('rejected', 'refused'): measured, so reported, apart from what the fit achieved."""
+        s = self.sets["calibration"]
+        return {status: _before_after(s, status) for status in NOT_FITTED if (s.status == status).any()}
 
     @cached_property
     def repeatability(self) -> dict:
@@ -112,8 +143,9 @@ class Calibration:
         once, per set, the calibrated model's spot standing for the command."""
         out = {}
         for name, s in self.sets.items():
-            by_laser = {f"laser{j + 1}": iso9283(s.samples.pose, s.samples.spots[:, j], s.calibrated[:, j], 1e3)
-                        for j in range(s.samples.spots.shape[1])}
+            spots = s.spots(s.counted)
+            by_laser = {f"laser{j + 1}": iso9283(s.samples.pose, spots[:, j], s.calibrated[:, j], 1e3)
+                        for j in range(spots.shape[1])}
             if any(v is not None for v in by_laser.values()):
                 out[name] = by_laser
         return out
@@ -153,6 +185,7 @@ class Calibration:
             "chi2": est.fit.chi2,
             "dof": est.fit.dof,
             "spot_error": self.spot_error,
+            "spot_error_not_fitted": self.spot_error_not_fitted,
             "iso9283_spot": self.repeatability,
             "iterations": est.fit.iterations,
             "converged": bool(est.fit.converged),
@@ -177,15 +210,23 @@ class Calibration:
         return first_failure(self.estimate.warnings)
 
     def summary(self) -> str:
-        """One line: the spot error before and after, as the nodes log it."""
+        """One line: the spot error before and after over the spots fitted, as the nodes log it."""
         before, after = self.spot_error["calibration"]["before"]["all"], self.spot_error["calibration"]["after"]["all"]
-
-        def mm(value):
-            return "n/a" if value is None else f"{value:.3f}"
-
-        return (f"{self.options.method} on {len(self.samples)} poses: mean spot error {mm(before['mean_mm'])} mm -> "
-                f"{mm(after['mean_mm'])} mm (max {mm(before['max_mm'])} -> {mm(after['max_mm'])}; {after['n']} spots)"
+        return (f"{self.options.method} on {len(self.samples)} poses: mean spot error {shown_mm(before['mean_mm'])} mm "
+                f"-> {shown_mm(after['mean_mm'])} mm (max {shown_mm(before['max_mm'])} -> {shown_mm(after['max_mm'])}; "
+                f"{after['n']} spots fitted{self.not_fitted_count()})"
                 + ("; " + "; ".join(self.estimate.warnings) if self.estimate.warnings else ""))
+
+    def not_fitted_count(self) -> str:
+        """', 1 rejected, 2 refused': the calibration spots not fitted, per status; '' when none."""
+        status = self.sets["calibration"].status
+        return "".join(f", {n} {word}" for word in NOT_FITTED if (n := int((status == word).sum())))
+
+
+def _before_after(evaluation: SetEvaluation, status: str | None) -> dict:
+    """{"before": ..., "after": ...}: laser_stats of the nominal and calibrated models' distances to spots(status)."""
+    return {label: laser_stats(evaluation.distances(model, status))
+            for label, model in zip(("before", "after"), MODELS)}
 
 
 def spot_model(robot: Robot, samples: Samples, effects: tuple[Effect, ...] = (),
@@ -209,7 +250,8 @@ def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None
         return known if known is not None else residuals_at(spot_model(robot, s, effects, compensator), values).predicted
 
     out = {"calibration": SetEvaluation(samples, predicted(samples, est.predicted_at_start, start),
-                                        predicted(samples, est.fit.predicted, est.values))}
+                                        predicted(samples, est.fit.predicted, est.values),
+                                        fit_status(samples.seen, est.rejected, est.impossible))}
     if test is not None:
         out["test"] = SetEvaluation(test, predicted(test, None, start), predicted(test, None, est.values))
     return out

@@ -21,7 +21,7 @@ from laser_calib.estimation.identifiability import carried_note
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import dump_robot
-from laser_calib.report.calibration import Calibration, calibrate
+from laser_calib.report.calibration import MODELS, Calibration, calibrate
 from laser_calib.report.pose_table import save_pose_table, spot_columns, spot_status
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.report.plots import plot_convergence, plot_histogram, plot_screen, stats_table
@@ -96,9 +96,8 @@ def _write_tables(calibration: Calibration, out: Path) -> None:
         save_calibrated_urdf(calibration.calibrated, calibration.robot, calibration.estimate.identifiable, out,
                              str(calibration.sources.get("robot", "")), calibration.failure)
     (out / "result.json").write_text(result_json(calibration))
-    est = calibration.estimate
     save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal)
-                            | (spot_status(s.samples, est.rejected, est.impossible) if name == "calibration" else {}))
+                            | (spot_status(s.status) if s.status is not None else {}))
                      for name, s in calibration.sets.items()}, out / "residuals.csv")
 
 
@@ -118,8 +117,8 @@ def write_plots(calibration: Calibration, out: Path, truth: np.ndarray | None) -
     calibration_set = calibration.sets["calibration"]
     plot_screen(robot.screen, calibration_set.samples.spots, calibration_set.nominal, calibration_set.calibrated,
                 out / "screen.png")
-    groups = {f"{name}, {model}": s.distances(model) for name, s in calibration.sets.items()
-              for model in ("nominal", "calibrated")}
+    groups = {f"{name}, {model}": s.distances(model, s.counted) for name, s in calibration.sets.items()
+              for model in MODELS}
     plot_histogram(groups, out / "histogram.png")
 
 
@@ -137,6 +136,11 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     if est.warnings:
         lines += ["**Warnings**", ""] + [f"- {w}" for w in est.warnings] + [""]
     lines += ["## Spot error (distance between measured and predicted spot)", ""] + stats_table(calibration.spot_error)
+    not_fitted = calibration.spot_error_not_fitted
+    if not_fitted:  # measured, so reported; apart, as they are not what the calibration achieved
+        lines += ["", f"The calibration set's figures are over the spots fitted; those not fitted "
+                  f"({calibration.not_fitted_count().removeprefix(', ')}; residuals.csv l1_fit, l2_fit):", ""]
+        lines += stats_table({f"calibration, {status}": by_model for status, by_model in not_fitted.items()})
     repeated = calibration.repeatability
     if repeated:
         lines += ["", "ISO 9283 on the spots of poses visited more than once (mm; AP: barycentre to the calibrated "

@@ -4,8 +4,9 @@
 
 one row per measured pose, in measurement order within each set
 ('calibration', 'test'); SI units in the column names (_m, _rad); an empty
-field where the figure does not apply (not seen, not in that split); a
-calibration spot's status in its laser's _fit column (spot_status).
+field where the figure does not apply (not seen, not in that split); what
+the fit did with a calibration spot in its laser's _fit column, with a point
+or pose sample in 'fit' (fit_status).
 """
 
 from __future__ import annotations
@@ -79,14 +80,24 @@ def spot_columns(samples: Samples, calibrated: np.ndarray, nominal: np.ndarray) 
     return columns
 
 
-def spot_status(samples: Samples, rejected, refused) -> dict[str, np.ndarray]:
-    """Per-pose columns (P,) l{j}_fit of a calibration set's laser spots: 'fitted',
-    'rejected' (an outlier of the robust rule; rejected: (pose index, laser) pairs)
-    or 'refused' (physically impossible, before the fit; refused: (pose index,
-    laser, reason)), empty where not seen: what residuals.csv holds of every spot."""
-    status = np.where(samples.seen, "fitted", "").astype("U8")  # room for the longest word
-    for p, j in rejected:
-        status[p, j] = "rejected"
-    for p, j, _ in refused:
-        status[p, j] = "refused"
+NOT_FITTED = ("rejected", "refused")  # the fit_status words of values measured but not fitted
+
+
+def fit_status(seen: np.ndarray, rejected, refused) -> np.ndarray:
+    """(P,C) what the fit did with each measured value of a calibration set (a
+    laser's spot, C = 2; a point or pose sample, C = 1; seen (P,C) bool):
+    'fitted', 'rejected' (an outlier of the robust rule; rejected: (pose index,
+    channel) pairs) or 'refused' (physically impossible, before the fit;
+    refused: (pose index, channel, reason)), empty where not seen."""
+    status = np.where(seen, "fitted", "").astype("U8")  # room for the longest word
+    for p, c in rejected:
+        status[p, c] = "rejected"
+    for p, c, _ in refused:
+        status[p, c] = "refused"
+    return status
+
+
+def spot_status(status: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-pose columns (P,) l{j}_fit of a calibration set's laser spots from
+    their fit_status (P,2): what residuals.csv holds of every spot."""
     return {f"l{j + 1}_fit": status[:, j] for j in range(status.shape[1])}
