@@ -93,6 +93,25 @@ def _no_spots_test(folder: Path) -> list[str]:
     return _estimate(folder) + ["--test", str(folder / "test.csv")]
 
 
+def _millimetres_test(folder: Path) -> list[str]:
+    """estimate with a test file whose spots are in millimetres: the test file meets the calibration file's checks."""
+    test = SESSION.samples.subset(np.arange(6))
+    (folder / "test.csv").write_text(format_samples(type(test)(test.pose, test.stamp, test.q, test.spots * 1e3)))
+    return _estimate(folder) + ["--test", str(folder / "test.csv")]
+
+
+def _ur10e_millimetres_test(folder: Path) -> list[str]:
+    """calibrate-poses with a test file (the UR10e log's first rows) whose positions are in millimetres."""
+    lines = (UR10E / "samples.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    rows = [line.split(",") for line in lines[1:11]]
+    for row in rows:
+        for column in ("x", "y", "z"):
+            row[header.index(column)] = repr(float(row[header.index(column)]) * 1e3)
+    (folder / "test.csv").write_text("\n".join([lines[0]] + [",".join(row) for row in rows]) + "\n")
+    return _ur10e(folder, 23, "--folds", "0", "--test", str(folder / "test.csv"))
+
+
 def _diagnose(folder: Path, *extra: str) -> list[str]:
     return ["diagnose"] + _estimate(folder)[1:] + list(extra)
 
@@ -128,6 +147,11 @@ CASES = {
     "spot 1e300": (lambda d: _estimate(d, samples=_cell(2, "l1_y", "1e300")), "field l1_y"),
     "test file with every spot missing": (_no_spots_test, "test.csv"),
     "diagnose: test file with every spot missing": (_no_spots_diagnose_test, "test.csv"),
+    "test file in millimetres": (_millimetres_test, "test.csv: every spot lies outside the screen"),
+    "diagnose: test file in millimetres": (lambda d: _diagnose(d, "--test", _millimetres_test(d)[-1]),
+                                           "test.csv: every spot lies outside the screen"),
+    "calibrate-poses: test file in millimetres": (_ur10e_millimetres_test,
+                                                  "test.csv: fields x,y,z: median distance"),
     "diagnose --out is a file": (lambda d: (d / "taken").write_text("x") and _diagnose(d)[:-1] + [str(d / "taken")],
                                  "--out"),
     "diagnose --out unwritable": (lambda d: _diagnose(d)[:-1] + ["/proc/x/y"], "/proc"),
@@ -180,6 +204,7 @@ CASES = {
         "(this looks like degrees)"),
     "spots in millimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(
         SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q, SESSION.samples.spots * 1e3))),
+        "samples.csv: every spot lies outside the screen (half sizes 1, 1 m): spot coordinates are in metres "
         "(these look like millimetres)"),
     # 18-70 cm spots on a 1 m screen: centimetres are as likely as millimetres, and the line says both
     "spots in centimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(

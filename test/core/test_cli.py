@@ -31,6 +31,21 @@ def test_simulate_writes_the_papers_sets(simulated):
     assert len((simulated / "case3_cal.csv").read_text().splitlines()) == 61
 
 
+@pytest.mark.parametrize("low, high", [(0.2, 0.3), (-0.3, -0.2)])
+def test_simulate_a_robot_whose_joint_range_lies_beyond_the_small_span(tmp_path, low, high):
+    """A joint range 0.2 .. 0.3 rad misses the small span's +-10 deg about zero: its small-range
+    poses keep to within 10 deg of the range's end nearest zero, inside the range."""
+    robot = bundled_robot("paper-4dof")
+    joints = list(robot.joints)
+    joints[3] = replace(joints[3], min=low, max=high)
+    save_robot(replace(robot, joints=tuple(joints)), tmp_path / "robot.yaml")
+    out = tmp_path / "sim"
+    assert main(["simulate", "--robot", str(tmp_path / "robot.yaml"), "--seed", "1", "--poses-per-span", "10",
+                 "--out", str(out)]) == 0
+    q4 = load_samples(out / "samples.csv").q[:, 3]
+    assert len(q4) == 20 and np.all((q4 >= low) & (q4 <= high))
+
+
 @pytest.mark.parametrize("method", ["lm", "ekf"])
 def test_estimate_writes_calibrated_robot_result_and_report(simulated, tmp_path, method):
     out = tmp_path / "est"

@@ -156,6 +156,32 @@ def test_one_far_point_cannot_move_a_sensor_calibration(size):
     assert np.allclose(np.delete(errors, 11), reference, rtol=0, atol=0.01 * SIGMA_T)
 
 
+def test_a_rejected_spot_is_named_with_its_laser():
+    """A pose has two spots, so a rejected one is named with its laser even when it is the only one."""
+    session = paper_session("paper-7dof", 2)
+    p = int(np.argmax(session.samples.seen.all(axis=1)))
+    spots = session.samples.spots.copy()
+    spots[p, 0] -= 0.2 * np.sign(spots[p, 0])       # 0.28 m off, toward the centre: on the screen
+    est = estimate(session.nominal, replace(session.samples, spots=spots), _options(session))
+    assert est.rejected == ((p, 0),)
+    line = next(w for w in est.warnings if w.startswith("robust: 1 of"))
+    assert line.endswith(f"not fitted: pose {session.samples.pose[p]} laser 1"), line
+
+
+def test_a_rejected_point_is_named_by_its_pose_and_the_hint_speaks_of_measurements():
+    """A point sensor's pose has one measurement: the pose names it, and the hint on joint
+    noise (none given) speaks of measurements, not spots."""
+    robot = rig()
+    samples = simulate(robot, np.zeros(len(chain_names(robot))), 40, 9, "point")
+    position = samples.position.copy()
+    position[11] += np.array([0.6, -0.8, 0.0])
+    fit = calibrate(robot, replace(samples, position=position),
+                    SensorFitOptions(estimate=EstimateOptions(spot_sigma=SIGMA_T)))
+    line = next(w for w in fit.estimate.warnings if w.startswith("robust: 1 of"))
+    assert line.endswith(f"not fitted: pose {samples.pose[11]}{NO_JOINT_NOISE}"), line
+    assert "spot" not in line
+
+
 def test_a_noise_far_from_the_given_one_is_one_warning_line():
     session = paper_session("paper-7dof", 7)
     small = estimate(session.nominal, session.samples, EstimateOptions(

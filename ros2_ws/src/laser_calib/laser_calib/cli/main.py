@@ -31,7 +31,7 @@ from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
 from laser_calib.io.bag import bag_topics, read_samples_checked
-from laser_calib.io.samples import check_joint_range, load_samples, save_samples
+from laser_calib.io.samples import check_joint_range, check_spot_units, load_samples, save_samples
 from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.sim.simulation import CASE_POSES, CASES, NoiseSpec, paper_session, robot_session
 from laser_calib.cli import diagnose as diagnose_cli
@@ -108,6 +108,7 @@ def _bag_samples(path: str, robot) -> object:
     if samples.n_joints != robot.n_joints:
         raise InputError(path, f"{samples.n_joints} joints in the bag but robot '{robot.name}' has {robot.n_joints}")
     check_joint_range(samples.q, robot, path, samples.pose)
+    check_spot_units(samples.spots, robot, path)
     check_spot_columns(robot, samples.q, samples.spots, path)
     return samples
 

@@ -169,17 +169,19 @@ def estimate(robot: Robot, samples: Samples, options: EstimateOptions = Estimate
                    + second.warnings)
 
 
-def pose_ids(model: MeasurementModel) -> np.ndarray:
-    """(P,) the pose ids of the model's samples (effects wrap a base model)."""
+def model_samples(model: MeasurementModel) -> Samples:
+    """The model's samples (effects wrap a base model)."""
     while not hasattr(model, "samples") and hasattr(model, "base"):
         model = model.base
-    return np.asarray(model.samples.pose)
+    return model.samples
 
 
 def listing(model: MeasurementModel, units: list[tuple[int, int]]) -> str:
-    ids = pose_ids(model)
-    many = len(units) > 1 and len({c for _, c in units}) > 1
-    names = [f"pose {ids[p]}" + (f" laser {c + 1}" if many else "") for p, c in units[:LISTED]]
+    """The units (pose index, channel) by pose id: a spot's laser always, since a pose has two;
+    a point's or pose's unit is its pose."""
+    samples = model_samples(model)
+    lasers = samples.kind == "spot"
+    names = [f"pose {samples.pose[p]}" + (f" laser {c + 1}" if lasers else "") for p, c in units[:LISTED]]
     return ", ".join(names) + (f" and {len(units) - LISTED} more" if len(units) > LISTED else "")
 
 
@@ -237,7 +239,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         for p, c, _ in impossible:
             excluded[p, c] = True
         warnings.append(f"{len(impossible)} physically impossible measurements refused, not fitted: "
-                        + "; ".join(f"pose {pose_ids(model)[p]} laser {c + 1}: {why}"
+                        + "; ".join(f"pose {model_samples(model).pose[p]} laser {c + 1}: {why}"
                                     for p, c, why in impossible[:LISTED])
                         + (f" and {len(impossible) - LISTED} more" if len(impossible) > LISTED else ""))
     # With a prior every direction is bounded by its tolerance: the prior, not

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from laser_calib.io.read import length_units
-from laser_calib.io.samples import Samples
+from laser_calib.io.samples import Samples, check_spot_units
 from laser_calib.measurement.base import Residuals
 from laser_calib.model.robot import Robot
 
@@ -21,15 +20,13 @@ def impossible_spots(robot: Robot, samples: Samples, start: Residuals) -> list[t
     spot model's residuals at zero errors (the nominal model: valid where the beam
     meets the screen plane ahead), or at the minimum a first fit reached (which
     judges again the spots the nominal model refused). Every spot outside the
-    screen is a unit error, one line."""
+    screen is a unit error, one line (io.samples.check_spot_units)."""
+    # a file's reader has said so naming the file; samples built in code meet the rule here
+    check_spot_units(samples.spots, robot, "samples")
     half = np.array([robot.screen.half_y, robot.screen.half_z])
     seen = samples.seen
     out = []
     outside = seen & (np.abs(np.nan_to_num(samples.spots)) > half).any(axis=2)
-    if outside.any() and outside.sum() == seen.sum():
-        units = length_units(float(np.median(np.abs(samples.spots[seen]))), float(half.max()))
-        raise ValueError(f"every spot lies outside the screen (half sizes {half[0]:g}, {half[1]:g} m): spot "
-                         f"coordinates are in metres (these look like {units})")
     beyond = np.abs(start.predicted) - half * (1 + MISS_MARGIN)
     misses = seen & ~outside & ~(start.valid & (beyond <= 0).all(axis=2))
     for p, j in zip(*np.nonzero(outside)):

@@ -68,9 +68,10 @@ ROBUST_RULE = ("IRLS with the Cauchy loss (c = 2.385) on each spot's (point's, p
                "fit is least squares on the rest")
 
 # Said with the rejections when the noise model has no joint-reading noise: joints that have some
-# scatter a spot in proportion to its lever, and the longest levers' spots then lie beyond the
-# limit (10,000 clean poses, joint noise 0.06 deg not given: 31 of 20,000 spots; given: none).
-NO_JOINT_NOISE = ("; the noise model has no joint-reading noise: if the joints have some, the spots on long "
+# scatter a measurement in proportion to its lever (a spot's beam, a marker's arm), and the longest
+# levers' then lie beyond the limit (10,000 clean poses, joint noise 0.06 deg not given: 31 of 20,000
+# spots; given: none).
+NO_JOINT_NOISE = ("; the noise model has no joint-reading noise: if the joints have some, measurements on long "
                   "levers scatter more and can be rejected for it (give their sigma)")
 
 # (problem, start x, its normal equations there or None) -> fit: LM, the EKF, ...

@@ -221,6 +221,7 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
     q = values[:, 1:1 + n_q]
     if robot is not None:
         check_joint_range(q, robot, source, pose)
+        check_spot_units(spots, robot, source)
         check_spot_columns(robot, q, spots, source)
     extra = {name: values[:, 5 + n_q + i] for i, name in enumerate(header[6 + n_q:])}
     check_extra_columns(list(extra), n_q, robot, source)
@@ -250,6 +251,18 @@ def check_distance_units(position: np.ndarray, where: str) -> None:
     if median > MAX_DISTANCE:
         raise InputError(where, f"median distance {median:.4g} m from the sensor: positions are in "
                                 f"metres (these look like {length_units(median, MAX_DISTANCE)})")
+
+
+def check_spot_units(spots: np.ndarray, robot: Robot, where: str) -> None:
+    """One line when every measured spot (P,2,2) lies outside the robot's screen: spots in
+    millimetres (or centimetres). A few spots outside are outliers, which the estimator refuses per pose."""
+    half = np.array([robot.screen.half_y, robot.screen.half_z])
+    seen = ~np.isnan(spots).any(axis=2)
+    outside = seen & (np.abs(np.nan_to_num(spots)) > half).any(axis=2)
+    if outside.any() and outside.sum() == seen.sum():
+        units = length_units(float(np.median(np.abs(spots[seen]))), float(half.max()))
+        raise InputError(where, f"every spot lies outside the screen (half sizes {half[0]:g}, {half[1]:g} m): spot "
+                                f"coordinates are in metres (these look like {units})")
 
 
 def check_joint_count(n_q: int, robot: Robot | None, source: str) -> None:

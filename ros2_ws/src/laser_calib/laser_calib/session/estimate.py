@@ -19,7 +19,7 @@ from laser_calib.diagnosis.compensator import Compensator
 from laser_calib.diagnosis.engine import DiagnoseOptions, TooFewPoses, diagnose, write_outputs as write_diagnosis
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.io.errors import InputError
-from laser_calib.io.samples import Samples
+from laser_calib.io.samples import Samples, check_spot_units
 from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.model.robot import Robot
 from laser_calib.report.calibration import Calibration, calibrate
@@ -61,8 +61,10 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
     """calibrate() (what `laser-calib estimate` runs: the robot file's effects, and the
     learned compensator when given), its files into out_dir when given; ValueError
     from the estimate (too few spots, ...) becomes an InputError."""
-    # Samples from a request or a live session are not read from a file: their columns are checked here.
-    check_spot_columns(robot, samples.q, samples.spots, (sources or {}).get("samples") or "samples")
+    # Samples from a request or a live session are not read from a file: their units and columns are checked here.
+    source = (sources or {}).get("samples") or "samples"
+    check_spot_units(samples.spots, robot, source)
+    check_spot_columns(robot, samples.q, samples.spots, source)
     try:
         calibration = calibrate(robot, samples, options, sources=sources, compensator=compensator)
     except ValueError as exc:

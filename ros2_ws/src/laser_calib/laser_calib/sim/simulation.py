@@ -71,12 +71,14 @@ def true_errors(robot: Robot, rng: np.random.Generator | None = None, length: fl
 def sample_poses(robots: list[Robot], n: int, rng: np.random.Generator, span: str = "whole",
                  margin: float = 0.02, max_tries: int = 200) -> np.ndarray:
     """n joint readings (n,N) uniform in the joint ranges (span 'whole') or within
-    +-10 deg of zero (span 'small'), keeping only poses where both beams of every
-    given robot hit the screen at least ``margin`` m inside its edge."""
+    +-10 deg of zero (span 'small'; of its range's end nearest zero for a joint whose
+    range excludes zero), keeping only poses where both beams of every given robot
+    hit the screen at least ``margin`` m inside its edge."""
     robot = robots[0]
     low, high = robot.q_min, robot.q_max
     if span == "small":
-        low, high = np.maximum(low, -SMALL_RANGE), np.minimum(high, SMALL_RANGE)
+        nearest_zero = np.clip(0.0, low, high)
+        low, high = np.maximum(low, nearest_zero - SMALL_RANGE), np.minimum(high, nearest_zero + SMALL_RANGE)
     elif span != "whole":
         raise ValueError(f"unknown span {span!r}")
     chosen: list[np.ndarray] = []
