@@ -156,6 +156,12 @@ def test_calibrate_poses_diagnose_runs_the_diagnosis_engine(run, tmp_path, capsy
     printed = capsys.readouterr().out
     assert diagnosis["verdict"] in ("explained", "structure remains") and "verdict" in printed
     assert f"held-out mean {diagnosis['heldout_nested_mean_mm']:.3f} mm with the selection inside the folds" in printed
+    # The calibrated robot file is the geometric model: it says the effects chosen are not in it (the
+    # tester found it byte-identical to a run without --diagnose, nothing saying so).
+    chosen = diagnosis["stages"][-1]["model"]
+    assert f"the effects --diagnose chose ({chosen}) are in result.json, not here" in \
+        (out / "robot_calibrated.yaml").read_text().replace("\n# ", " ")
+    assert "its effects are in result.json, not in the calibrated robot file" in printed
 
 
 def test_a_reading_in_degrees_is_refused_at_the_import(run, tmp_path, capsys):

@@ -89,38 +89,6 @@ def _options(args: argparse.Namespace) -> SensorFitOptions:
                             rotation_length=args.rotation_length, scale=args.scale)
 
 
-def _diagnosis(robot: Robot, samples: Samples, options: SensorFitOptions, folds: int, seed: int,
-               source: str) -> dict:
-    """The diagnosis engine on the samples (sensors.analysis.diagnose): its
-    selection rounds, verdict and evidence; per stage the k-fold held-out mean
-    position error (mm) of the calibration with its effects (chosen on all the
-    poses), and the held-out error of the whole procedure, the selection nested
-    inside the folds (nested_heldout: the figure the final model is judged by).
-    source: the samples' file, named when they are too few."""
-    # The engine pulls in scikit-learn and scipy.stats (0.8 s): only --diagnose pays for them.
-    from laser_calib.diagnosis.engine import TooFewPoses, minimum_poses_nested
-    from laser_calib.diagnosis.sensor_data import diagnose, diagnose_options, heldout_effects, nested_heldout
-
-    engine = diagnose_options(options, folds, seed)
-    try:
-        diagnosis = diagnose(robot, samples, options, engine)
-        nested, chosen = nested_heldout(robot, samples, options, folds, seed, engine)
-    except TooFewPoses as exc:  # counted on the poses it ran on: all of them or a fold's training part
-        raise InputError(source, f"{len(samples)} poses, at least {minimum_poses_nested(exc.needed, folds)} needed "
-                                 f"for --diagnose (the diagnosis needs {exc.needed}, and its held-out error runs "
-                                 f"it again without each of the {folds} folds)") from None
-    full = diagnosis.to_json()
-    stages = []
-    for stage in diagnosis.stages:
-        held = heldout_effects(robot, samples, options, stage.fitted.effects, folds, seed)
-        stages.append({"model": stage.label, "heldout_mean_mm": float(np.nanmean(held.position)) * 1e3,
-                       "bic": stage.fitted.bic})
-    return {"stages": stages, "heldout_nested_mean_mm": float(np.nanmean(nested)) * 1e3,
-            "nested_choices": list(chosen), "selection": full["selection"], "effects": full["effects"],
-            "verdict": diagnosis.verdict, "evidence": diagnosis.evidence, "noise": full["noise"],
-            "notes": full["notes"], "joints": full["joints"]}
-
-
 def _evaluate(model: MeasurementModel, fit: SensorFit, prefix: str = "",
               components: bool = False) -> dict[str, np.ndarray]:
     """Per-pose columns (P,) of the residual table for ``model``'s poses: the
@@ -311,12 +279,16 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     if test is not None:
         sets["test"] = _test(args, robot, samples, test, fit, options, result, lines)
     if args.diagnose:
-        result["diagnosis"] = _diagnosis(robot, samples, options, args.folds or 5, args.seed,
-                                         str(args.samples))
+        # The engine pulls in scikit-learn and scipy.stats (0.8 s): only --diagnose pays for them.
+        from laser_calib.diagnosis.sensor_data import diagnosis_summary
+
+        result["diagnosis"] = diagnosis_summary(robot, samples, options, args.folds or 5, args.seed, str(args.samples))
         chosen = result["diagnosis"]["stages"][-1]
         lines.append(f"diagnosis: {chosen['model']} (held-out mean {result['diagnosis']['heldout_nested_mean_mm']:.3f}"
                      f" mm with the selection inside the folds, {chosen['heldout_mean_mm']:.3f} mm for this model "
-                     f"chosen on all poses); verdict: {result['diagnosis']['verdict']}")
+                     f"chosen on all poses); verdict: {result['diagnosis']['verdict']}"
+                     + ("; its effects are in result.json, not in the calibrated robot file (the geometric model)"
+                        if len(result["diagnosis"]["stages"]) > 1 else ""))
         lines += [f"diagnosis note: {note}" for note in result["diagnosis"]["notes"]]
     failure = first_failure(fit.estimate.warnings)
     with staged_folder(args.out) as out:
@@ -328,7 +300,10 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
             save_robot(replace(corrected, extra={k: v for k, v in corrected.extra.items() if k != "effects"}),
                        out / "robot_calibrated.yaml",
                        header=f"Calibrated from {args.samples} (laser-calib calibrate-poses)."
-                              + (f"\nNO CALIBRATION: {failure}" if failure else ""))
+                              + (f"\nNO CALIBRATION: {failure}" if failure else "")
+                              + (f"\nThe geometric model only: the effects --diagnose chose "
+                                 f"({result['diagnosis']['stages'][-1]['model']}) are in result.json, not here."
+                                 if args.diagnose and len(result["diagnosis"]["stages"]) > 1 else ""))
             written = ("robot_calibrated.yaml",)
         (out / "result.json").write_text(json.dumps(result, indent=2))
         save_pose_table(sets, out / "residuals.csv")

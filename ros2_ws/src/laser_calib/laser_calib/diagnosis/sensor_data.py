@@ -27,7 +27,7 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from laser_calib.diagnosis.engine import DiagnoseOptions, Diagnosis, run
+from laser_calib.diagnosis.engine import DiagnoseOptions, Diagnosis, TooFewPoses, minimum_poses_nested, run
 from laser_calib.effects import PARAM, Effect, EffectModel, candidates
 from laser_calib.io.errors import InputError
 from laser_calib.diagnosis.structure import SPOT_LEVEL, Series
@@ -296,3 +296,31 @@ def nested_heldout(robot: Robot, samples: SensorSamples, options: SensorFitOptio
                                 fit.estimate.values)[0]
         chosen.append(" + ".join(e.label for e in effects) or "geometric")
     return out, tuple(chosen)
+
+
+def diagnosis_summary(robot: Robot, samples: SensorSamples, options: SensorFitOptions, folds: int, seed: int,
+                      source: str) -> dict:
+    """`calibrate-poses --diagnose`: the diagnosis engine on the samples (diagnose): its
+    selection rounds, verdict and evidence; per stage the k-fold held-out mean
+    position error (mm) of the calibration with its effects (chosen on all the
+    poses), and the held-out error of the whole procedure, the selection nested
+    inside the folds (nested_heldout: the figure the final model is judged by).
+    source: the samples' file, named when they are too few."""
+    engine = diagnose_options(options, folds, seed)
+    try:
+        diagnosis = diagnose(robot, samples, options, engine)
+        nested, chosen = nested_heldout(robot, samples, options, folds, seed, engine)
+    except TooFewPoses as exc:  # counted on the poses it ran on: all of them or a fold's training part
+        raise InputError(source, f"{len(samples)} poses, at least {minimum_poses_nested(exc.needed, folds)} needed "
+                                 f"for --diagnose (the diagnosis needs {exc.needed}, and its held-out error runs "
+                                 f"it again without each of the {folds} folds)") from None
+    full = diagnosis.to_json()
+    stages = []
+    for stage in diagnosis.stages:
+        held = heldout_effects(robot, samples, options, stage.fitted.effects, folds, seed)
+        stages.append({"model": stage.label, "heldout_mean_mm": float(np.nanmean(held.position)) * 1e3,
+                       "bic": stage.fitted.bic})
+    return {"stages": stages, "heldout_nested_mean_mm": float(np.nanmean(nested)) * 1e3,
+            "nested_choices": list(chosen), "selection": full["selection"], "effects": full["effects"],
+            "verdict": diagnosis.verdict, "evidence": diagnosis.evidence, "noise": full["noise"],
+            "notes": full["notes"], "joints": full["joints"]}
