@@ -165,8 +165,11 @@ def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsy
 def test_spots_out_of_step_with_the_joint_readings_are_no_calibration(tmp_path, capsys):
     """Each pose's spots paired with the previous pose's joint readings (a sync fault): the
     fit misses the spots by hundreds of mm, which no camera does (estimation.failures.
-    MAX_RESIDUAL), without moving a beam off the screen. Before, that was exit 0 and a
-    calibration file (this session: every parameter held, the residual 0.4 m)."""
+    MAX_RESIDUAL). Before, that was exit 0 and a calibration file (this session: every
+    parameter held, the residual 0.4 m). No spot here is an outlier of the others (all miss
+    by hundreds of mm), so the robust rule rejects none and the fit is plain least squares's,
+    which also moves some beams off the screen and stops unconverged: more failure lines,
+    each one."""
     sim = tmp_path / "sim"
     assert main(["simulate", "--case", "paper-7dof", "--seed", "1", "--out", str(sim)]) == 0
     samples = load_samples(sim / "case3_cal.csv")
@@ -176,8 +179,8 @@ def test_spots_out_of_step_with_the_joint_readings_are_no_calibration(tmp_path, 
     assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(tmp_path / "lagged.csv"),
                  "--out", str(out)]) == 3
     errors = [line for line in capsys.readouterr().out.splitlines() if line.startswith("error: ")]
-    assert [e for e in errors if "NOT A CALIBRATION: the calibrated model still misses the measurements by" in e] \
-        == errors, errors
+    assert any("NOT A CALIBRATION: the calibrated model still misses the measurements by" in e for e in errors), errors
+    assert all(e.startswith(("error: NOT A CALIBRATION: ", "error: NOT CONVERGED: ")) for e in errors), errors
     assert "NO CALIBRATION: NOT A CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
     # the honest file of the same poses is a calibration
     assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(sim / "case3_cal.csv"),

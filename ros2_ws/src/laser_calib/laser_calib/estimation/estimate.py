@@ -12,12 +12,14 @@ estimate(robot, samples, options) runs, in order:
    of the model gives the residuals at the start (step 0 finds the impossible
    spots in them) and the whitened factor of every spot measured there;
 2. robust (the default, robust.py): IRLS with the Cauchy loss and a MAD scale
-   on the same Jacobians, then gross outliers rejected and listed;
+   on the same Jacobians, then gross outliers rejected and listed where the
+   rest leave residual values to judge them by (never too few: TooFewValues);
 3. if no spot sigma is given, a fit estimates it from the residual
    (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used
    (when the robust rule rejected spots, the fits after it start from its
    final least-squares minimum (by LM), which without a prior is that trial;
    with LM and no joint noise it is also the fit, rescaled to the sigma);
+   from few residual values it is uncertain, said (redundancy.sigma_warnings);
 4. identifiability again with the noise in use: a direction whose standard
    deviation exceeds STD_FACTOR times its tolerance scale is held too (not
    with the prior, which bounds every direction by its tolerance); without
@@ -50,6 +52,7 @@ from laser_calib.estimation.impossible import impossible_spots
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses,
                                             residuals_at, whitened_factor)
+from laser_calib.estimation.redundancy import NOISE_RATIO, sigma_warnings
 from laser_calib.estimation.robust import NO_JOINT_NOISE, ROBUST_RULE, robust_fit
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import is_frame_param
@@ -61,7 +64,6 @@ from laser_calib.io.samples import Samples
 Refusal = Callable[[Residuals], list[tuple[int, int, str]]]
 METHODS = ("lm", "ekf")
 TRIAL_SIGMA = 0.001
-NOISE_RATIO = 2.0  # the residual's noise beyond 2x or below 1/2 the given sigma: a warning
 LISTED = 8         # poses named in one warning line
 MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
 FAR_SCALES = 10.0  # a fitted error beyond 10 tolerance scales (100 mm, 10 deg) is not a manufacturing error
@@ -286,6 +288,10 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
             if prior_sigma is None:
                 least_squares = outcome.fit
         kept = int((seen if excluded is None else seen & ~excluded).sum())
+        # The rule keeps a residual value (robust.py); should a rejection ever leave no more values than
+        # parameters, the exact fit's sigma and stds would be made up: refused as before the fit.
+        if rejected and kept * dims <= free.sum() and prior_sigma is None:
+            raise TooFewValues(kept * dims, int(free.sum()), len(rejected))
         robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
                   "weights_converged": outcome.converged, "rejected": len(rejected), "kept": kept}
         if rejected:
@@ -296,6 +302,11 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
             warnings.append(f"robust: {outcome.overflow} of {kept} measurements lie beyond the outlier limit: "
                             "the model does not fit the data (an unmodelled effect or wrong nominal model); "
                             "none rejected")
+        if outcome.untestable:
+            warnings.append(f"robust: too few values to tell an outlier: without the {outcome.untestable} of {kept} "
+                            f"measurements farthest from the fit, {n_values - outcome.untestable * dims} values "
+                            f"would be left for {int(free.sum())} parameters, fitted exactly with no residual to "
+                            "judge those by; none rejected")
         if not outcome.converged:
             warnings.append(f"robust: the weights did not settle in {outcome.rounds} rounds")
 
@@ -304,6 +315,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         trial = least_squares or levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x,
                                                      options.lm)
         sigma = TRIAL_SIGMA * float(np.sqrt(trial.chi2 / trial.dof))
+        sigma_dof = trial.n_values - int(trial.free.sum())   # the residual values it rests on
         noise = NoiseModel(max(sigma, 1e-9), options.joint_sigma)
         start_x = trial.x
     if sigma_estimated or rejected:
@@ -342,6 +354,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     if sigma_estimated and sigma < MIN_SIGMA:
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")
+    elif sigma_estimated:
+        warnings.extend(sigma_warnings(sigma, sigma_dof))
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
     own = free & np.array([not is_frame_param(name) for name in names])
     size = np.abs(result.x) / model.scales

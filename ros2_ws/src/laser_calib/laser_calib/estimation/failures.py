@@ -1,4 +1,5 @@
-"""The warnings that say an estimate is no calibration (fit_failures). The console
+"""The warnings that say an estimate is no calibration (fit_failures; redundancy.sigma_warnings's
+for a spot sigma estimated from 1 or 2 residual degrees of freedom). The console
 prints them as error lines and the command exits with status 3
 (cli.arguments.print_warnings); the files are still written (they show where the fit
 went) but a script must not take them for a calibration. And the errors of a fit that
@@ -10,7 +11,9 @@ from __future__ import annotations
 from laser_calib.io.errors import InputError
 
 NOT_CONVERGED = "NOT CONVERGED"          # the fit stopped before a minimum
-NOT_A_CALIBRATION = "NOT A CALIBRATION"  # a minimum that dropped measurements or misses them (fit_failures)
+# a minimum that dropped measurements or misses them (fit_failures), or whose spot sigma, estimated from the
+# residual, rests on 1 or 2 residual degrees of freedom (redundancy.sigma_warnings: no std means anything)
+NOT_A_CALIBRATION = "NOT A CALIBRATION"
 FAILURES = (NOT_CONVERGED, NOT_A_CALIBRATION)
 # m: a calibrated model that still misses its measurements by more than this RMS per value
 # describes no sensor's data here. A camera locates a laser spot on the screen to tenths of a

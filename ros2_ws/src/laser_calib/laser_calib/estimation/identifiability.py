@@ -39,12 +39,14 @@ TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed
 
 class TooFewValues(ValueError):
     """As many measured values as free parameters, or fewer: they fit exactly, and nothing
-    tests the fit or estimates the noise. The estimator knows the counts, a command the file."""
+    tests the fit or estimates the noise. The estimator knows the counts, a command the file.
+    rejected: the measurements the robust rule left out, when they made the values too few."""
 
-    def __init__(self, n_values: int, n_free: int):
-        super().__init__(f"{n_values} measured values cannot determine and check {n_free} parameters; "
+    def __init__(self, n_values: int, n_free: int, rejected: int = 0):
+        left = f" left after {rejected} rejected as outliers" if rejected else ""
+        super().__init__(f"{n_values} measured values{left} cannot determine and check {n_free} parameters; "
                          "measure more poses or use the prior")
-        self.n_values, self.n_free = n_values, n_free
+        self.n_values, self.n_free, self.rejected = n_values, n_free, rejected
 
 
 @dataclass(frozen=True)
