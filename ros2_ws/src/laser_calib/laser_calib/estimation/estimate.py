@@ -288,8 +288,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
             if prior_sigma is None:
                 least_squares = outcome.fit
         kept = int((seen if excluded is None else seen & ~excluded).sum())
-        # The rule keeps a residual value (robust.py); should a rejection ever leave no more values than
-        # parameters, the exact fit's sigma and stds would be made up: refused as before the fit.
+        # a rejection leaving no residual value would make up sigma and stds: refused as before the fit
         if rejected and kept * dims <= free.sum() and prior_sigma is None:
             raise TooFewValues(kept * dims, int(free.sum()), len(rejected))
         robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
@@ -304,9 +303,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                             "none rejected")
         if outcome.untestable:
             warnings.append(f"robust: too few values to tell an outlier: without the {outcome.untestable} of {kept} "
-                            f"measurements farthest from the fit, {n_values - outcome.untestable * dims} values "
-                            f"would be left for {int(free.sum())} parameters, fitted exactly with no residual to "
-                            "judge those by; none rejected")
+                            f"measurements farthest from the fit, {n_values - outcome.untestable * dims} values would "
+                            f"be left for {int(free.sum())} parameters (an exact fit); none rejected")
         if not outcome.converged:
             warnings.append(f"robust: the weights did not settle in {outcome.rounds} rounds")
 

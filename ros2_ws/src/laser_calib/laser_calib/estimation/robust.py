@@ -86,10 +86,9 @@ ROBUST_RULE = ("IRLS with the Cauchy loss (c = 2.385) on each spot's (point's, p
                "noise plus the fit's uncertainty at it, is within D F_{D,nu'}(1 - 0.01 / N) (nu' that fit's residual "
                "degrees of freedom) is fitted again")
 
-# Said with the rejections when the noise model has no joint-reading noise: joints that have some
-# scatter a measurement in proportion to its lever (a spot's beam, a marker's arm), and the longest
-# levers' then lie beyond the limit (10,000 clean poses, joint noise 0.06 deg not given: 31 of 20,000
-# spots; given: none).
+# Said with the rejections when the noise model has no joint-reading noise: joints that have some scatter a
+# measurement in proportion to its lever (a spot's beam, a marker's arm), and the longest levers' then lie
+# beyond the limit (10,000 clean poses, joint noise 0.06 deg not given: 31 of 20,000 spots; given: none).
 NO_JOINT_NOISE = ("; the noise model has no joint-reading noise: if the joints have some, measurements on long "
                   "levers scatter more and can be rejected for it (give their sigma)")
 
