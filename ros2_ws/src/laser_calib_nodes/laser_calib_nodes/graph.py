@@ -30,6 +30,7 @@ from pathlib import Path
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
 
 from laser_calib.io.errors import InputError
+from laser_calib.model.robot_file import load_robot
 from laser_calib.session.folder import SessionDir
 from laser_calib.session.lock import SessionLock
 
@@ -143,14 +144,23 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
 _held: list[SessionLock] = []  # the locks this process holds, for its lifetime
 
 
-def take_folder(output_dir: str) -> None:
+def take_folder(output_dir: str, values: dict | None = None) -> None:
     """Create the session folder (nodes write into it from their start) and take its lock;
-    a folder that holds a finished session is refused before any node starts."""
+    a folder that holds a finished session, or a partial one of another robot than the
+    robot file in values (the sequencer checks one completed from a topic), is refused
+    before any node starts."""
     lock = SessionLock(output_dir)
     lock.acquire()
-    if SessionDir(output_dir).state() == "finished":
+    session = SessionDir(output_dir)
+    try:
+        state = session.state()
+        if state == "finished":
+            raise InputError(output_dir, "holds a finished session; choose another output_dir")
+        if state == "partial" and values and values.get("robot") and not values.get("robot_description_topic"):
+            session.check_robot(load_robot(values["robot"]), values["robot"])
+    except BaseException:
         lock.release()
-        raise InputError(output_dir, "holds a finished session; choose another output_dir")
+        raise
     _held.append(lock)
 
 
@@ -203,7 +213,7 @@ def launch_description(spec: dict, make_nodes) -> "LaunchDescription":
     def start(context):
         values = {name: LaunchConfiguration(name).perform(context) for name in spec}
         values["output_dir"] = os.path.abspath(values["output_dir"])
-        take_folder(values["output_dir"])
+        take_folder(values["output_dir"], values)
         return launch_actions(make_nodes(values))
 
     arguments = [DeclareLaunchArgument(name, description=text, **({} if default is None else
@@ -241,7 +251,7 @@ def run_session(values: dict, extra: list[str]) -> int:
     the sequencer's also on stdout; end when the sequencer ends, a node dies, or on a signal."""
     specs = session_nodes(values)
     die_with_parent()  # scripts/run-session killed: this process stops the nodes
-    take_folder(values["output_dir"])
+    take_folder(values["output_dir"], values)
     logs = Path(values["output_dir"]) / "logs"
     logs.mkdir(exist_ok=True)
     stopping = threading.Event()

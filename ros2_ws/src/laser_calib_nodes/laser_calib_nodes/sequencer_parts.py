@@ -64,6 +64,8 @@ def open_session(node):
     if state == "new" and resume == "yes":
         raise common.NodeError(f"{session.path}: no session to resume", 2)
     if state == "partial":
+        if robot_source.path:  # a robot given must be the session's (its poses, samples, report are of it)
+            session.check_robot(*robot_source.load(node))
         robot, poses = session.load_for_resume()
         return session, lock, robot, poses, state
     robot, robot_label = robot_source.load(node)
