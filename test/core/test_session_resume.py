@@ -160,3 +160,23 @@ def test_one_owner_per_folder_and_no_stale_lock_after_sigkill(tmp_path):
         SessionLock(tmp_path).acquire()                    # a second owner in this very process too
     lock.release()
     SessionLock(tmp_path).acquire()
+
+
+def test_resume_with_another_robot_is_refused(tmp_path):
+    robot, _, session = started(tmp_path)
+    session.check_robot(load_robot(ROBOT), str(ROBOT))          # the same model: resumed
+    own = session.path / "robot.yaml"                             # the session's copy, read back: too
+    session.check_robot(load_robot(own), str(own))
+    other = ROBOT.parent / "manipulator_4dof.yaml"
+    with pytest.raises(InputError) as exc:
+        session.check_robot(load_robot(other), str(other))
+    line = str(exc.value)
+    assert "\n" not in line and line.startswith(f"{session.path}: ")
+    assert f"'{robot.name}'" in line and f"'{load_robot(other).name}'" in line and str(other) in line
+    # the same name, one length changed: a different model all the same
+    changed = tmp_path / "changed.yaml"
+    text = ROBOT.read_text()
+    changed.write_text(text.replace("d: 0.", "d: 0.01", 1))
+    assert load_robot(changed).name == robot.name and load_robot(changed) != robot
+    with pytest.raises(InputError, match=r"same name is another model \(its 'joints' differs\)"):
+        session.check_robot(load_robot(changed), str(changed))

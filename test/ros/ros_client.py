@@ -7,7 +7,7 @@
     ros_client.py reset                        call estimator/reset
     ros_client.py estimate-accumulated         Estimate with use_accumulated
     ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
-    ros_client.py estimate-csv SAMPLES.csv      Estimate the samples of a CSV (spot samples, any robot)
+    ros_client.py estimate-csv SAMPLES.csv [OUTPUT_DIR]  Estimate the samples of a CSV (spot samples, any robot)
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
 """
 
@@ -125,13 +125,14 @@ def reset() -> dict:
     return {"success": r.success, "message": r.message}
 
 
-def estimate_csv(path: str) -> dict:
+def estimate_csv(path: str, output_dir: str = "") -> dict:
     from laser_calib.io.samples import load_samples
     samples = load_samples(path)
     node = rclpy.create_node("test_estimate")
     request = Estimate.Request()
     request.samples = [sample(int(samples.pose[k]), samples.q[k], samples.spots[k]) for k in range(len(samples))]
     request.method = "lm"
+    request.output_dir = output_dir
     r = call(node, node.create_client(Estimate, "estimator/estimate"), request)
     return dict(response_dict(r), names=list(r.parameters.names), calibrated_robot_yaml=r.calibrated_robot_yaml)
 
@@ -288,7 +289,7 @@ def main() -> int:
         elif command == "reset":
             result = reset()
         elif command == "estimate-csv":
-            result = estimate_csv(sys.argv[2])
+            result = estimate_csv(*sys.argv[2:4])
         elif command == "estimate-accumulated":
             result = estimate_accumulated()
         elif command == "calibrate":

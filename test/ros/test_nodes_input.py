@@ -132,3 +132,44 @@ def test_segmented_bag_survives_sigkill(tmp_path):
     samples = bag.read_samples(tmp_path / "bag")
     assert list(samples.pose) == [0, 1, 2, 3, 4]
     assert not (tmp_path / ".recording").exists()
+
+
+def test_bad_speed_and_method_are_refused_at_the_start(ros, tmp_path):
+    """A simulated joint speed that is no positive number, and an estimate method that does not
+    exist: one line naming the parameter, exit 2, at the start (never after the poses are measured)."""
+    ros.start("arm_speed", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=-1.0", node="arm_driver")
+    ros.start("arm_tau", "-p", f"robot:={ROBOT}", "-p", "sim.time_constant:=0.0", node="arm_driver")
+    ros.start("arm_fast", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=fast", node="arm_driver")
+    ros.start("seq_method", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={tmp_path / 'o'}",
+              "-p", "estimate.method:=foo", node="sequencer")
+    for name in ros.procs:
+        assert ros.wait_exit(name, 60) == 2, (name, ros.log(name))
+    assert last_line(ros, "arm_speed") == "error: parameter sim.joint_speed: expected > 0, got -1.0"
+    assert last_line(ros, "arm_tau") == "error: parameter sim.time_constant: expected > 0, got 0.0"
+    assert last_line(ros, "arm_fast").startswith("error: parameter sim.joint_speed: ")
+    assert last_line(ros, "seq_method") == "error: parameter estimate.method: expected one of lm, ekf, got 'foo'"
+    assert not (tmp_path / "o" / "session.yaml").exists()
+    # the launch arguments (run-session's graph, as session.launch.py takes them): before any node starts
+    for args, where in ((["speed:=fast"], "speed: expected a positive number, got 'fast'"),
+                        (["speed:=-1"], "speed: expected a positive number, got '-1'"),
+                        (["method:=foo"], "method: expected one of lm, ekf, got 'foo'")):
+        out = tmp_path / args[0].replace(":=", "_")
+        result = ros.run([sys.executable, "-m", "laser_calib_nodes.graph", f"output_dir:={out}", *args])
+        assert result.returncode == 2 and result.stderr == f"run-session: {where}\n", result
+        assert "Traceback" not in result.stderr and not out.exists()
+
+
+def test_launch_refuses_bad_speed_and_method_before_any_node_starts(ros, tmp_path):
+    from ros_harness import ros2_missing
+    if ros2_missing():
+        pytest.skip(ros2_missing())
+    for arg in ("speed:=fast", "speed:=-1", "method:=foo"):
+        name = arg.replace(":=", "_").replace("-", "m")
+        ros.start_command(name, ["ros2", "launch", "laser_calib_nodes", "session.launch.py",
+                                 f"output_dir:={tmp_path / name}", arg])
+    for name in list(ros.procs):
+        assert ros.wait_exit(name, 60) != 0, ros.log(name)
+        log = ros.log(name)
+        errors = [line for line in log.splitlines() if "ERROR" in line]
+        assert "process started" not in log and "Traceback" not in log, log
+        assert len(errors) == 1 and name.split("_")[0] + ": expected" in errors[0], log

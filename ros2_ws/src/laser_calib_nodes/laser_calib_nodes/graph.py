@@ -18,6 +18,7 @@ ROS-free: nothing here imports rclpy (launch only inside launch_actions).
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import signal
 import subprocess
@@ -29,7 +30,9 @@ from pathlib import Path
 
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
 
+from laser_calib.estimation.estimate import METHODS
 from laser_calib.io.errors import InputError
+from laser_calib.model.robot_file import load_robot
 from laser_calib.session.folder import SessionDir
 from laser_calib.session.lock import SessionLock
 
@@ -107,6 +110,16 @@ def integer(values: dict, name: str) -> int:
         raise InputError(name, f"expected an integer, got {values[name]!r}") from None
 
 
+def positive_number(values: dict, name: str) -> float:
+    try:
+        value = float(values[name])
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(name, f"expected a positive number, got {values[name]!r}")
+    return value
+
+
 def robot_params(values: dict) -> dict:
     """The parameters of every node that needs the robot (common.robot_source); the
     topic only when given (an empty `-p name:=` is no string to ROS)."""
@@ -120,7 +133,9 @@ def session_nodes(values: dict) -> list[NodeSpec]:
     robot = robot_params(values)
     arm = dict(robot, **{"sim.true_robot_out": os.path.join(values["output_dir"], "robot_true.yaml")})
     if values["speed"]:
-        arm["sim.joint_speed"] = float(values["speed"])
+        arm["sim.joint_speed"] = positive_number(values, "speed")
+    if values["method"] not in METHODS:  # refused now, not after every pose is measured
+        raise InputError("method", f"expected one of {', '.join(METHODS)}, got {values['method']!r}")
     sequencer = dict(robot, output_dir=values["output_dir"], poses=integer(values, "poses"),
                      test_poses=integer(values, "test_poses"), span=values["span"], seed=integer(values, "seed"),
                      **{"estimate.method": values["method"]})
@@ -143,14 +158,23 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
 _held: list[SessionLock] = []  # the locks this process holds, for its lifetime
 
 
-def take_folder(output_dir: str) -> None:
+def take_folder(output_dir: str, values: dict | None = None) -> None:
     """Create the session folder (nodes write into it from their start) and take its lock;
-    a folder that holds a finished session is refused before any node starts."""
+    a folder that holds a finished session, or a partial one of another robot than the
+    robot file in values (the sequencer checks one completed from a topic), is refused
+    before any node starts."""
     lock = SessionLock(output_dir)
     lock.acquire()
-    if SessionDir(output_dir).state() == "finished":
+    session = SessionDir(output_dir)
+    try:
+        state = session.state()
+        if state == "finished":
+            raise InputError(output_dir, "holds a finished session; choose another output_dir")
+        if state == "partial" and values and values.get("robot") and not values.get("robot_description_topic"):
+            session.check_robot(load_robot(values["robot"]), values["robot"])
+    except BaseException:
         lock.release()
-        raise InputError(output_dir, "holds a finished session; choose another output_dir")
+        raise
     _held.append(lock)
 
 
@@ -203,8 +227,9 @@ def launch_description(spec: dict, make_nodes) -> "LaunchDescription":
     def start(context):
         values = {name: LaunchConfiguration(name).perform(context) for name in spec}
         values["output_dir"] = os.path.abspath(values["output_dir"])
-        take_folder(values["output_dir"])
-        return launch_actions(make_nodes(values))
+        specs = make_nodes(values)  # bad arguments first: refused before the folder is made
+        take_folder(values["output_dir"], values)
+        return launch_actions(specs)
 
     arguments = [DeclareLaunchArgument(name, description=text, **({} if default is None else
                                                                   {"default_value": default}))
@@ -241,7 +266,7 @@ def run_session(values: dict, extra: list[str]) -> int:
     the sequencer's also on stdout; end when the sequencer ends, a node dies, or on a signal."""
     specs = session_nodes(values)
     die_with_parent()  # scripts/run-session killed: this process stops the nodes
-    take_folder(values["output_dir"])
+    take_folder(values["output_dir"], values)
     logs = Path(values["output_dir"]) / "logs"
     logs.mkdir(exist_ok=True)
     stopping = threading.Event()

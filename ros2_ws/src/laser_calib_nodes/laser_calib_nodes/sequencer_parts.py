@@ -64,6 +64,8 @@ def open_session(node):
     if state == "new" and resume == "yes":
         raise common.NodeError(f"{session.path}: no session to resume", 2)
     if state == "partial":
+        if robot_source.path:  # a robot given must be the session's (its poses, samples, report are of it)
+            session.check_robot(*robot_source.load(node))
         robot, poses = session.load_for_resume()
         return session, lock, robot, poses, state
     robot, robot_label = robot_source.load(node)
@@ -91,6 +93,11 @@ def declare(node) -> SimpleNamespace:
                              f"output_dir/{TRUE_ROBOT_FILE} when it exists."))
     if end.mode not in ("service", "local", "none"):
         raise common.NodeError(f"parameter estimate.mode: expected 'service', 'local' or 'none', got {end.mode!r}", 2)
+    from laser_calib.session.estimate import estimate_options  # as the final estimate imports it
+    try:  # at the start, not after every pose is measured
+        estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
+    except InputError as exc:
+        raise common.NodeError(f"parameter estimate.{exc.where}: {exc.problem}", 2) from None
     return end
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,18 +66,32 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
     source = (sources or {}).get("samples") or "samples"
     check_spot_units(samples.spots, robot, source)
     check_spot_columns(robot, samples.q, samples.spots, source)
+    with writing(out_dir):  # a folder that cannot be made: refused before the estimate
+        if out_dir:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
     try:
         calibration = calibrate(robot, samples, options, sources=sources, compensator=compensator)
     except ValueError as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError("estimate", str(exc)) from None
-    if out_dir:
-        write_outputs(calibration, out_dir)
-    diagnosis = ""
-    if diagnose:
-        diagnosis = json.dumps(run_diagnosis(robot, samples, options, Path(out_dir) if out_dir else None))
+    with writing(out_dir):
+        if out_dir:
+            write_outputs(calibration, out_dir)
+        diagnosis = ""
+        if diagnose:
+            diagnosis = json.dumps(run_diagnosis(robot, samples, options, Path(out_dir) if out_dir else None))
     return Outcome(calibration, diagnosis)
+
+
+@contextmanager
+def writing(out_dir: str | Path | None):
+    """An OSError while out_dir is made or written: an InputError naming output_dir."""
+    try:
+        yield
+    except OSError as exc:
+        reason = f"{exc.strerror}: {exc.filename}" if exc.strerror and exc.filename else (exc.strerror or str(exc))
+        raise InputError("output_dir", f"cannot write the report into {out_dir} ({reason})") from None
 
 
 def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out: Path | None) -> dict:

@@ -26,6 +26,7 @@ pose list does not hold (another session's data) is refused.
 from __future__ import annotations
 
 import math
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +38,7 @@ from laser_calib.io import bag
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples, format_samples, load_samples, parse_samples, sample_row
 from laser_calib.model.robot import Robot
-from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.model.robot_file import dump_robot, load_robot, save_robot
 from laser_calib.session.durable import append_durably, write_durably
 from laser_calib.session.poses import PoseSequence, load_poses, save_poses
 
@@ -61,6 +62,23 @@ def concat(parts: list[Samples], n_joints: int) -> Samples:
         return empty_samples(n_joints)
     return Samples(np.concatenate([p.pose for p in parts]), np.concatenate([p.stamp for p in parts]),
                    np.vstack([p.q for p in parts]), np.concatenate([p.spots for p in parts]))
+
+
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def same_model(a, b) -> bool:
+    """Two robot files' contents (parsed YAML) the same model: equal up to the rounding a
+    save and load leave in the numbers (also those of an embedded URDF text)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(same_model(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(same_model(x, y) for x, y in zip(a, b))
+    if isinstance(a, str) and isinstance(b, str):
+        return (_NUMBER.split(a) == _NUMBER.split(b) and
+                same_model([float(x) for x in _NUMBER.findall(a)], [float(x) for x in _NUMBER.findall(b)]))
+    numbers = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (a, b))
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12) if numbers else a == b
 
 
 @dataclass(frozen=True)
@@ -134,6 +152,25 @@ class SessionDir:
         robot = load_robot(self.path / ROBOT_FILE)
         poses = load_poses(self.path / POSES_FILE, robot)
         return robot, poses
+
+    def check_robot(self, robot: Robot, label: str) -> None:
+        """Refuse (InputError naming the folder and both robots) to resume with a robot
+        other than the session's robot.yaml: the models are compared as saved, not their names."""
+        path = self.path / ROBOT_FILE
+        try:
+            saved = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError):
+            raise InputError(str(path), "unreadable robot file of the session") from None
+        given = yaml.safe_load(dump_robot(robot))
+        if same_model(saved, given):
+            return
+        saved = saved if isinstance(saved, dict) else {}
+        key = next(k for k in list(given) + list(saved) if not same_model(given.get(k), saved.get(k)))
+        which = (f"is '{robot.name}'" if key == "name" else
+                 f"of the same name is another model (its '{key}' differs)")
+        raise InputError(str(self.path), f"holds a session of robot '{saved.get('name')}' ({path}), but robot "
+                                         f"{label} {which}; resume with the session's robot file or choose "
+                                         f"another output_dir")
 
     def reconcile(self, robot: Robot, poses: PoseSequence) -> Reconciled:
         """Bag and CSV files made to agree (see the module docstring); call it after the
