@@ -54,16 +54,22 @@ def test_a_zero_weight_is_the_same_as_leaving_the_spot_out():
     assert np.allclose(weighted.x, left_out.x, rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("method", ["lm", "ekf"])
-def test_ten_percent_of_spots_anywhere_on_the_screen_are_all_rejected(method):
-    session = paper_session("paper-7dof", 2)
-    rng = np.random.default_rng(2)
+def scattered(session, seed: int, one_in: int):
+    """The session's samples with one seen spot in ``one_in`` replaced by a point anywhere on the
+    screen, and those spots' (pose index, laser) (K,2)."""
+    rng = np.random.default_rng(seed)
     seen = np.argwhere(session.samples.seen)
-    picks = seen[rng.choice(len(seen), len(seen) // 10, replace=False)]
+    picks = seen[rng.choice(len(seen), len(seen) // one_in, replace=False)]
     spots = session.samples.spots.copy()
     half = np.array([session.nominal.screen.half_y, session.nominal.screen.half_z])
     spots[picks[:, 0], picks[:, 1]] = rng.uniform(-half, half, (len(picks), 2))
-    samples = replace(session.samples, spots=spots)
+    return replace(session.samples, spots=spots), picks
+
+
+@pytest.mark.parametrize("method", ["lm", "ekf"])
+def test_ten_percent_of_spots_anywhere_on_the_screen_are_all_rejected(method):
+    session = paper_session("paper-7dof", 2)
+    samples, picks = scattered(session, 2, 10)
     est = estimate(session.nominal, samples, _options(session, method=method, ekf=EkfOptions(r=None)))
     assert set(est.rejected) == {(int(p), int(j)) for p, j in picks}
     line = next(w for w in est.warnings if w.startswith(f"robust: {len(picks)} of"))

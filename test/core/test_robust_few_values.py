@@ -24,9 +24,11 @@ from laser_calib.estimation import robust
 from laser_calib.estimation.estimate import NOISE_RATIO, EstimateOptions, estimate
 from laser_calib.estimation.failures import NOT_A_CALIBRATION
 from laser_calib.estimation.identifiability import TooFewValues
+from laser_calib.estimation.redundancy import sigma_upper
 from laser_calib.io.samples import load_samples, save_samples
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.sim.simulation import paper_session
+from test_robust import scattered
 
 
 def _first(case: str, seed: int, poses: int):
@@ -151,7 +153,6 @@ def test_a_sigma_from_few_residual_values_is_said_to_be_uncertain():
     est = estimate(session.nominal, five, options)
     assert any(w.startswith(f"{NOT_A_CALIBRATION}: the spot sigma") and "from only 1 residual degree of freedom"
                in w for w in est.warnings)
-    from laser_calib.estimation.redundancy import sigma_upper
     assert sigma_upper(5) == pytest.approx(np.sqrt(5 / chi2.ppf(0.025, 5)))
     assert sigma_upper(7) > NOISE_RATIO > sigma_upper(8)   # the warning from 7 residual degrees of freedom down
 
@@ -160,11 +161,6 @@ def test_many_values_keep_their_rejections():
     """With hundreds of values the F limit is the chi^2 one within a few percent and the confirmation
     keeps every gross outlier: 5 % of the spots anywhere on the screen, all listed, nothing else."""
     session = paper_session("paper-7dof", 3)
-    rng = np.random.default_rng(3)
-    seen = np.argwhere(session.samples.seen)
-    picks = seen[rng.choice(len(seen), len(seen) // 20, replace=False)]
-    spots = session.samples.spots.copy()
-    half = np.array([session.nominal.screen.half_y, session.nominal.screen.half_z])
-    spots[picks[:, 0], picks[:, 1]] = rng.uniform(-half, half, (len(picks), 2))
-    est = estimate(session.nominal, replace(session.samples, spots=spots), EstimateOptions())
+    samples, picks = scattered(session, 3, 20)
+    est = estimate(session.nominal, samples, EstimateOptions())
     assert set(est.rejected) == {(int(p), int(j)) for p, j in picks}
