@@ -224,6 +224,16 @@ def wait_for_description(node: Node, topic: str, timeout: float) -> tuple[str, s
     return texts[0], name
 
 
+def log_warned(logger, warned: bool, message: str) -> None:
+    """``message`` at WARN when ``warned`` (a summary holding an estimate's warnings), else INFO. Two call
+    sites: rclpy pins the severity of each logging line, and one line logging at both raises
+    'Logger severity cannot be changed between calls' (it took the estimator down at its second request)."""
+    if warned:
+        logger.warning(message)
+    else:
+        logger.info(message)
+
+
 def stamp_seconds(stamp) -> float:
     return bag.stamp_seconds(stamp.sec, stamp.nanosec)
 

@@ -189,8 +189,7 @@ class Estimator(Node):
             self.get_logger().error(response.message + "\n" + traceback.format_exc())
             return response
         self.fill(response, outcome, len(samples))
-        log = self.get_logger().warning if outcome.calibration.estimate.warnings else self.get_logger().info
-        log(response.message)
+        common.log_warned(self.get_logger(), bool(outcome.calibration.estimate.warnings), response.message)
         return response
 
     def request_samples(self, request) -> tuple[Samples, str]:

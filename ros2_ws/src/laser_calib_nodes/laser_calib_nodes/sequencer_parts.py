@@ -144,7 +144,7 @@ def finish(node) -> None:
             message, failed, warned = call_service(node, samples)
         if failed:  # estimated but no calibration (NOT CONVERGED ...): its files show where the fit went
             raise common.NodeError(f"estimate failed: {message}; its files are in {session.path}", 4)
-        (log.warning if warned else log.info)(message)  # the summary holds the estimate's warnings
+        common.log_warned(log, warned, message)
         compare_with_truth(node)
         log.info(f"report: {session.path / 'report.md'}; calibrated robot: {session.path / 'robot_calibrated.yaml'}")
     session.set_info(state="finished")
