@@ -194,3 +194,22 @@ def test_parameters_out_of_range_are_refused_at_the_start(ros, tmp_path):
     assert last_line(ros, "est_sync") == "error: parameter sync_tolerance: expected >= 0, got -0.01"
     for name, (_, line) in cases.items():
         assert last_line(ros, name) == f"error: {line}", name
+
+
+def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
+    """A parameter or robot file that does not exist: launch_ros only warned of the parameter file
+    and ran the session on the nodes' defaults; now one line naming the argument, no node started."""
+    from ros_harness import ros2_missing
+    if ros2_missing():
+        pytest.skip(ros2_missing())
+    missing = tmp_path / "missing.yaml"
+    for launch, arg in (("session", "params"), ("session", "robot"), ("hardware", "calibration")):
+        ros.start_command(f"{launch}_{arg}", ["ros2", "launch", "laser_calib_nodes", f"{launch}.launch.py",
+                                              f"output_dir:={tmp_path / arg}", f"robot:={ROBOT}",
+                                              f"calibration:={tmp_path}", f"{arg}:={missing}"])
+    for name in list(ros.procs):
+        assert ros.wait_exit(name, 60) != 0, ros.log(name)
+        log = ros.log(name)
+        errors = [line for line in log.splitlines() if "ERROR" in line]
+        assert "process started" not in log and "Traceback" not in log, log
+        assert len(errors) == 1 and errors[0].endswith(f"{name.split('_')[1]}: no such file: {missing}"), log
