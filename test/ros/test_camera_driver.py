@@ -51,3 +51,19 @@ def test_camera_info_of_another_size_refuses_frames_in_one_line(ros):
     assert got["frames"] == 0
     log = ros.log("spot_detector")
     assert "CameraInfo says 640x1024, the calibration is for 1280x1024" in log and "Traceback" not in log
+
+
+def test_sequencer_records_a_best_effort_camera(ros, tmp_path):
+    """The bag holds camera_info (and the images, record_images) of a best-effort driver, whose
+    frames a reliable subscription never matched (none were recorded), and each frame of a
+    reliable one (camera_sim) once."""
+    from laser_calib.io.bag import bag_topics
+    from ros_harness import ROBOT
+    out = tmp_path / "session"
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "record_images:=true")
+    for qos in ("sensor_data", "reliable"):
+        assert run_camera(ros, "bgr8", "0", "30", qos, "3")["published"] == 3
+    assert ros.stop("sequencer") == 0, ros.log("sequencer")
+    topics = bag_topics(out / "bag")
+    assert topics["/camera/camera_info"][1] == 6, topics
+    assert 4 <= topics["/camera/image_raw"][1] <= 6, topics  # a best-effort 4 MB frame may be lost

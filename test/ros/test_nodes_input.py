@@ -173,3 +173,43 @@ def test_launch_refuses_bad_speed_and_method_before_any_node_starts(ros, tmp_pat
         errors = [line for line in log.splitlines() if "ERROR" in line]
         assert "process started" not in log and "Traceback" not in log, log
         assert len(errors) == 1 and name.split("_")[0] + ": expected" in errors[0], log
+
+
+def test_parameters_out_of_range_are_refused_at_the_start(ros, tmp_path):
+    """A negative tolerance, timeout or seed: one line naming the parameter and exit 2 at the start,
+    not a traceback (the estimator at once; the sequencer once the arm had settled at its first pose)."""
+    ros.start("est_sync", "-p", f"robot:={ROBOT}", "-p", "input:=stream", "-p", "sync_tolerance:=-0.01",
+              node="estimator")
+    cases = {"seq_sync": ("sync_tolerance:=-0.01", "parameter sync_tolerance: expected >= 0, got -0.01"),
+             "seq_wait": ("wait_timeout:=-1.0", "parameter wait_timeout: expected > 0, got -1.0"),
+             "seq_segment": ("bag.max_segment_seconds:=0.0", "parameter bag.max_segment_seconds: expected > 0, "
+                                                             "got 0.0"),
+             "seq_estimate": ("estimate.timeout:=0.0", "parameter estimate.timeout: expected > 0, got 0.0"),
+             "seq_seed": ("seed:=-1", "seed: must be >= 0, got -1")}
+    for name, (param, _) in cases.items():
+        ros.start(name, "-p", f"robot:={ROBOT}", "-p", f"output_dir:={tmp_path / name}", "-p", param,
+                  node="sequencer")
+    for name in ros.procs:
+        assert ros.wait_exit(name, 60) == 2, (name, ros.log(name))
+    assert last_line(ros, "est_sync") == "error: parameter sync_tolerance: expected >= 0, got -0.01"
+    for name, (_, line) in cases.items():
+        assert last_line(ros, name) == f"error: {line}", name
+
+
+def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
+    """A parameter or robot file that does not exist: launch_ros only warned of the parameter file
+    and ran the session on the nodes' defaults; now one line naming the argument, no node started."""
+    from ros_harness import ros2_missing
+    if ros2_missing():
+        pytest.skip(ros2_missing())
+    missing = tmp_path / "missing.yaml"
+    for launch, arg in (("session", "params"), ("session", "robot"), ("hardware", "calibration")):
+        ros.start_command(f"{launch}_{arg}", ["ros2", "launch", "laser_calib_nodes", f"{launch}.launch.py",
+                                              f"output_dir:={tmp_path / arg}", f"robot:={ROBOT}",
+                                              f"calibration:={tmp_path}", f"{arg}:={missing}"])
+    for name in list(ros.procs):
+        assert ros.wait_exit(name, 60) != 0, ros.log(name)
+        log = ros.log(name)
+        errors = [line for line in log.splitlines() if "ERROR" in line]
+        assert "process started" not in log and "Traceback" not in log, log
+        assert len(errors) == 1 and errors[0].endswith(f"{name.split('_')[1]}: no such file: {missing}"), log

@@ -108,9 +108,7 @@ def dynamic(node: Node, rules: dict[str, tuple[str, Callable[[Any], str | None]]
     answered with the reason; an integer for a floating-point parameter is that number.
     The values declared are checked first (NodeError, exit 2)."""
     for name, (attr, check) in rules.items():
-        problem = check(getattr(node, attr))
-        if problem:
-            raise NodeError(f"parameter {name}: {problem}", 2)
+        checked(name, getattr(node, attr), check)
 
     def on_set(params) -> SetParametersResult:
         updates = {}
@@ -131,6 +129,18 @@ def dynamic(node: Node, rules: dict[str, tuple[str, Callable[[Any], str | None]]
         return SetParametersResult(successful=True)
 
     node.add_on_set_parameters_callback(on_set)
+
+
+def checked(name: str, value: Any, check: Callable[[Any], str | None]) -> Any:
+    """value, or a NodeError (exit 2) naming the parameter when check(value) finds a problem."""
+    problem = check(value)
+    if problem:
+        raise NodeError(f"parameter {name}: {problem}", 2)
+    return value
+
+
+def non_negative(value: float) -> str | None:
+    return None if math.isfinite(value) and value >= 0 else f"expected >= 0, got {value}"
 
 
 def non_negative_metres(value: float) -> str | None:

@@ -48,8 +48,8 @@ class Estimator(Node):
         self.compensator, self.compensator_path = common.compensator_param(self)
         self.input = d("input", "samples", "'samples' (synchronized Sample messages) or 'stream' (joint_states "
                                            "and spots paired by stamp).")
-        self.sync_tol = d("sync_tolerance", 0.02, "'stream': max stamp difference of a pair, s (at least half "
-                                                   "the joint_states period).")
+        self.sync_tol = common.checked("sync_tolerance", d("sync_tolerance", 0.02, "'stream': max stamp difference "
+                                       "of a pair, s (at least half the joint_states period)."), common.non_negative)
         self.max_speed = d("stream.max_joint_speed", 0.002, "'stream': a pair counts only when every |joint "
                                                             "velocity| is below this, rad/s.",
                            read_only=False)

@@ -120,6 +120,14 @@ def positive_number(values: dict, name: str) -> float:
     return value
 
 
+def existing_files(values: dict, *names: str) -> None:
+    """Refuse a file argument naming no file: launch_ros only warns of a missing parameter file
+    and starts the nodes with their defaults, a session of other settings than the user's."""
+    for name in names:
+        if values[name] and not os.path.isfile(values[name]):
+            raise InputError(name, f"no such file: {values[name]}")
+
+
 def robot_params(values: dict) -> dict:
     """The parameters of every node that needs the robot (common.robot_source); the
     topic only when given (an empty `-p name:=` is no string to ROS)."""
@@ -129,6 +137,7 @@ def robot_params(values: dict) -> dict:
 
 def session_nodes(values: dict) -> list[NodeSpec]:
     """The simulated session; the sequencer last (the session ends when it ends)."""
+    existing_files(values, "params", "robot")
     files = (values["params"],)
     robot = robot_params(values)
     arm = dict(robot, **{"sim.true_robot_out": os.path.join(values["output_dir"], "robot_true.yaml")})
@@ -145,6 +154,7 @@ def session_nodes(values: dict) -> list[NodeSpec]:
 
 def hardware_nodes(values: dict) -> list[NodeSpec]:
     """A real arm (arm_driver on Dynamixel) and a camera driver of the user's; the sequencer last."""
+    existing_files(values, "params", "robot", "arm_params", "calibration", "poses_file")
     files = (values["params"],)
     robot = robot_params(values)
     sequencer = dict(robot, output_dir=values["output_dir"], poses_file=values["poses_file"],

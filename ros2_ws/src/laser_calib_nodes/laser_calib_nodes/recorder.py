@@ -4,10 +4,12 @@
 from __future__ import annotations
 
 import threading
+from collections import deque
 
 from geometry_msgs.msg import PointStamped
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
@@ -45,17 +47,38 @@ class Recorder:
             node.get_logger().warning(f"bag: adopted segment {name} closed just before a crash")
         for name in self.bag.discarded:
             node.get_logger().warning(f"bag: discarded unfinished segment {name} (the pose in progress at the crash)")
+        self.recent_frames: deque = deque(maxlen=40)
+        quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)  # one of the two never matches
         for name, msg_type, _, qos in recorded:
             topic = node.resolve_topic_name(name)
             # The publisher's reliability and durability, but a deep queue: the recorder must not drop
             # (a latched topic's depth 1 would lose messages published in a burst).
             deep = QoSProfile(depth=max(qos.depth, 200), reliability=qos.reliability, durability=qos.durability)
-            node.create_subscription(msg_type, name, lambda data, t=topic: self.write(t, data), deep, raw=True)
+            if msg_type not in (Image, CameraInfo):
+                node.create_subscription(msg_type, name, lambda data, t=topic: self.write(t, data), deep, raw=True)
+                continue
+            # A camera driver publishes best effort (sensor-data QoS), which a reliable subscription never
+            # matches, and camera_sim reliable: both, as spot_detector subscribes, each frame written once.
+            for reliability in (ReliabilityPolicy.BEST_EFFORT, ReliabilityPolicy.RELIABLE):
+                node.create_subscription(msg_type, name, lambda data, t=topic: self.write_frame(t, data),
+                                         QoSProfile(depth=deep.depth, reliability=reliability), raw=True,
+                                         event_callbacks=quiet)
 
     def write(self, topic: str, data: bytes) -> None:
         with self.lock:
             if self.bag is not None:
                 self.bag.write(topic, common.now_ns(self.node), data)
+
+    def write_frame(self, topic: str, data: bytes) -> None:
+        """A camera message, unless the other subscription delivered it already (same header stamp, the
+        8 bytes after the CDR encapsulation); an unstamped camera's cannot be told apart: all written."""
+        key = (topic, bytes(data[4:12]))
+        if key[1] != bytes(8):
+            with self.lock:
+                if key in self.recent_frames:
+                    return
+                self.recent_frames.append(key)
+        self.write(topic, data)
 
     def publish(self, publisher, name: str, msg, close_segment: bool = False) -> None:
         """Publish and record. close_segment: on disk (segment closed) before it is published."""

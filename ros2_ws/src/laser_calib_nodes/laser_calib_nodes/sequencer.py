@@ -65,9 +65,14 @@ class Sequencer(Node):
         segment_seconds = d("bag.max_segment_seconds", 10.0, "Close a bag segment after this long even "
                                                              "within a pose, s.")
         self.exit_code, self.done = 0, False
-        if self.frames < 1 or not self.joint_speed > 0:
-            raise common.NodeError(f"parameters frames (>= 1) and move.joint_speed (> 0): got {self.frames}, "
-                                   f"{self.joint_speed}", 2)
+        for name, value, check in (
+                ("frames", self.frames, lambda n: None if n >= 1 else f"expected >= 1, got {n}"),
+                ("move.joint_speed", self.joint_speed, common.positive), ("sync_tolerance", self.sync_tol,
+                common.non_negative), ("settle.timeout", self.settle_timeout, common.positive),
+                ("frame_timeout", self.frame_timeout, common.positive),
+                ("wait_timeout", self.wait_timeout, common.positive),
+                ("bag.max_segment_seconds", segment_seconds, common.positive)):
+            common.checked(name, value, check)  # at the start, not when the first pose is reached
 
         self.session, self.lock, self.robot, self.poses, state = sequencer_parts.open_session(self)
         # a URDF arm's joints are named: found by name among joint_states' (which may hold more)

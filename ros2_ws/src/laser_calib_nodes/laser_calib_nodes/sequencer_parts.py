@@ -91,6 +91,7 @@ def declare(node) -> SimpleNamespace:
         timeout=d("estimate.timeout", 600.0, "Final estimate: wait this long for the service, s."),
         truth=d("truth", "", f"True robot model (simulation) for the report's truth comparison; empty: "
                              f"output_dir/{TRUE_ROBOT_FILE} when it exists."))
+    common.checked("estimate.timeout", end.timeout, common.positive)
     if end.mode not in ("service", "local", "none"):
         raise common.NodeError(f"parameter estimate.mode: expected 'service', 'local' or 'none', got {end.mode!r}", 2)
     from laser_calib.session.estimate import estimate_options  # as the final estimate imports it

@@ -127,6 +127,11 @@ def _sample(robot: Robot, count: int, rng: np.random.Generator, span: str, margi
         raise InputError(f"robot '{robot.name}'", str(exc)) from None
 
 
+def _check_seed(seed: int) -> None:
+    if seed < 0:  # numpy's generators take none: a ValueError deep inside them
+        raise InputError("seed", f"must be >= 0, got {seed}")
+
+
 def generate_poses(robot: Robot, count: int, span: str, seed: int, repeats: int = 0,
                    margin: float = 0.02) -> PoseSequence:
     """``count`` poses whose two beams hit the screen (laser_calib.sim.simulation.sample_poses,
@@ -136,6 +141,9 @@ def generate_poses(robot: Robot, count: int, span: str, seed: int, repeats: int 
         raise InputError("poses", f"need at least one pose, got {count}")
     if span not in ("small", "whole"):
         raise InputError("span", f"expected 'small' or 'whole', got {span!r}")
+    if repeats < 0:
+        raise InputError("repeats", f"must be >= 0, got {repeats}")
+    _check_seed(seed)
     q = _sample(robot, count, np.random.default_rng(seed), span, margin)
     ids = np.arange(count)
     if repeats > 0:
@@ -153,6 +161,7 @@ def with_test_poses(poses: PoseSequence, robot: Robot, count: int, seed: int, ma
         raise InputError("test_poses", f"must be >= 0, got {count}")
     if count == 0:
         return poses
+    _check_seed(seed)
     q = _sample(robot, count, np.random.default_rng([seed, 1]), "whole", margin)
     ids = int(poses.pose.max()) + 1 + np.arange(count)
     return PoseSequence(np.concatenate([poses.pose, ids]), np.vstack([poses.q, q]),
