@@ -3,8 +3,9 @@ a Franka Panda (mimic fingers), a PR2 (prismatic torso lift shared by two arms,
 grippers whose fingers mimic a joint off the measured branch), a TALOS (two arms
 on a two-joint torso), a Baxter (two arms on a fixed torso) and a KUKA iiwa as
 xacro whose includes go through $(find pkg). The Panda also carries a laser module:
-laser spots calibrate it to its Cramer-Rao prediction; so does a Kinova Gen3, whose
-right angles are written as 1.5708 (a known defect of the noise estimate, below).
+laser spots calibrate it to its Cramer-Rao prediction. A Kinova Gen3, whose right
+angles are written as 1.5708, has its noise level estimated from the fit it reports
+(the rounding leaves slivers the identifiability analysis holds).
 
 The user's path: simulated samples from a perturbed copy of the same URDF, the
 forward kinematics done by yourdfpy on that copy's text (no code of ours in the
@@ -379,20 +380,14 @@ GEN3_AT_SCREEN = """<link name="screen"/>
   """
 
 
-# Known defect, not fixed here (the identifiability rule would change): analyse keeps
-# parameters greedily while the smallest singular value of the kept set stays above the
-# threshold, so an early sliver blocks later real columns; which set it keeps is not
-# monotone in the threshold (the 4-DOF arm's 6 poses: 13 kept at the 1 mm trial sigma, 16
-# at the 1.54 mm estimated), so applying the noise threshold at the start only moves it.
-@pytest.mark.xfail(strict=True, reason="the sigma trial runs on another free set than the reported fit")
 @pytest.mark.parametrize("seed", [1, 3])
 def test_a_noise_level_not_given_is_estimated_from_the_reported_fit(tmp_path, seed):
     """The Gen3 writes its right angles as 1.5708, 3.7e-6 rad off: joint 2's y then
     differs from joint 1's z by a sliver. Without --spot-sigma the first
-    identifiability analysis (at the trial sigma) took such slivers for parameters
-    and held real ones (22 of 34 kept at seed 3): the outlier screening and the
-    sigma trial ran on a model that cannot fit the data, so clean spots were
-    rejected and sigma came out 2-3 times too large (chi^2/dof 0.25 in the
+    identifiability analysis (no noise threshold yet) took such slivers for
+    parameters and held real ones (22 of 34 kept at seed 3): the outlier screening
+    and the sigma trial ran on a model that cannot fit the data, so clean spots
+    were rejected and sigma came out 2-3 times too large (chi^2/dof 0.25 in the
     reported fit, whose 34 parameters fit them), or, at seed 3, so large that the
     final analysis held a real direction and the fit ran off the screen (NOT A
     CALIBRATION). A clean simulated session: the sigma estimated is that of the
