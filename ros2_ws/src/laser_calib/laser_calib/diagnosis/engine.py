@@ -170,7 +170,12 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
     if refused is None:
         return diagnosed(data, options, test, notes, start)
     diagnosis = diagnosed(kept, options, test, notes + refused.note(data, options), start)
-    again = screened_again(data, diagnosis, refused)
+    again = screened_again(data, diagnosis.final, diagnosis.noise, refused)
+    if again is None:
+        # The kept data may not show the effect whose far end the refused units are (a curved
+        # screen's sag at its corners): the effects selected on every unit judge them too.
+        final = selected(data, options, [], "selection with the refused units")[2][-1]
+        again = screened_again(data, final, diagnosis.noise, refused)
     if again is None:
         return diagnosis
     return diagnosed(data.without(again.units), options, test, notes + again.note(data, options), start)

@@ -48,7 +48,7 @@ from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.failures import NOT_CONVERGED, NoSpotToFit, fit_failures
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse
-from laser_calib.estimation.impossible import impossible_spots
+from laser_calib.estimation.impossible import impossible_spots, judged_again
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses,
                                             residuals_at, whitened_factor)
@@ -158,9 +158,8 @@ def estimate(robot: Robot, samples: Samples, options: EstimateOptions = Estimate
     model = SpotModel(robot, samples) if model is None else model
     fit = partial(estimate_model, model, options, prior_sigmas(model, robot.n_params, options), x0)
     first = fit(impossible=lambda start: impossible_spots(robot, samples, start))
-    # a beam the nominal model missed the screen with by far is judged again by the minimum
-    # reached: where its beam meets the screen, the nominal error was gross, not the spot
-    again = impossible_spots(robot, samples, residuals_at(model, first.values)) if first.impossible else []
+    again = (judged_again(robot, samples, first.impossible, residuals_at(model, first.values))
+             if first.impossible else [])
     if len(again) == len(first.impossible):
         return first
     second = fit(impossible=again)

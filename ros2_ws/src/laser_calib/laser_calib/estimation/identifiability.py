@@ -7,6 +7,10 @@ J is the inverse of the standard deviation, in tolerance units, of the
 estimate along its direction. A direction is not identifiable when
 
 - s < rel_tol * s_max: numerically invisible (exact rank deficiency), or
+- s < SLIVER * s_r, s_r the weakest of the r directions the whole Jacobian
+  determines: a sliver, a near-duplicate of columns that rounding in the
+  robot's description leaves (a URDF's right angle written 1.5708, 3.7e-6 rad
+  off pi/2, makes one joint's y a hair off the previous joint's z), or
 - s < 1 / std_factor (only when the whitening used the real noise): the data
   determines it worse than std_factor times its tolerance, so a fitted value
   would be the noise's, not the robot's (a joint that never moves, a pose set
@@ -27,6 +31,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 REL_TOL = 1e-7
+# Parameters are kept in order while the kept set's weakest direction stays
+# above the threshold, so a sliver kept early spends a slot the real
+# directions need: every later column that brings the sliver's combination
+# back to exact dependence is refused (a Kinova Gen3 kept 22 parameters, its
+# kept set's weakest direction at 4e-5, where the whole Jacobian determines 34
+# directions, the weakest at 0.9). A kept set's weakest direction 1000 times
+# below the weakest the data determine is no direction of the robot.
+SLIVER = 1e-3
 # A direction whose standard deviation exceeds STD_FACTOR times its tolerance
 # scale (10 mm / 1 deg) is not identifiable: its fitted value would be mostly
 # noise: at 10 tolerances (100 mm, 10 deg) it is no measurement of the robot.
@@ -129,6 +141,9 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     singular = np.linalg.svd(r_factor[:, candidates], compute_uv=False)
     top = singular[0] if singular.size and singular[0] > 0 else 1.0
     threshold = rel_tol * top
+    rank = int(np.count_nonzero(singular > threshold))
+    if rank:   # slivers (module docstring)
+        threshold = max(threshold, SLIVER * singular[rank - 1])
     if std_factor is not None:
         threshold = max(threshold, 1.0 / std_factor)
 

@@ -36,3 +36,15 @@ def impossible_spots(robot: Robot, samples: Samples, start: Residuals) -> list[t
     for p, j in zip(*np.nonzero(misses)):
         out.append((int(p), int(j), "the nominal beam misses the screen by far"))
     return sorted(out)
+
+
+def judged_again(robot: Robot, samples: Samples, refused: list[tuple[int, int, str]] | tuple,
+                 at_minimum: Residuals) -> list[tuple[int, int, str]]:
+    """Of the spots ``refused`` at the nominal model, those the minimum a first fit
+    reached still finds impossible (its residuals ``at_minimum``): where its beam
+    meets the screen, the nominal error was gross, not the spot. It only
+    readmits: a beam the minimum moved off the screen, which the nominal one met,
+    is the fit's loss (failures.fit_failures), not the spot's fault; refusing it
+    would leave a wrong model nothing to fit, and blame the data."""
+    units = {(p, c) for p, c, _ in refused}
+    return [unit for unit in impossible_spots(robot, samples, at_minimum) if unit[:2] in units]
