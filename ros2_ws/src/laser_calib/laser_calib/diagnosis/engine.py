@@ -78,7 +78,7 @@ from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
-from laser_calib.diagnosis.screening import screened, screened_again
+from laser_calib.diagnosis.screening import screened, screened_again, taken_back_by_either
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
 from laser_calib.diagnosis.specification import covariate_table, drift_covariates, load_table, specification_tests
 from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
@@ -171,11 +171,11 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
         return diagnosed(data, options, test, notes, start)
     diagnosis = diagnosed(kept, options, test, notes + refused.note(data, options), start)
     again = screened_again(data, diagnosis.final, diagnosis.noise, refused)
-    if again is None:
+    if again is None or again.units.any():
         # The kept data may not show the effect whose far end the refused units are (a curved
         # screen's sag at its corners): the effects selected on every unit judge them too.
         final = selected(data, options, [], "selection with the refused units")[2][-1]
-        again = screened_again(data, final, diagnosis.noise, refused)
+        again = taken_back_by_either(again, screened_again(data, final, diagnosis.noise, refused))
     if again is None:
         return diagnosis
     return diagnosed(data.without(again.units), options, test, notes + again.note(data, options), start)

@@ -108,6 +108,14 @@ def screened_again(data: Data, final: Fitted, verdict_noise: NoiseInfo, refused:
     return Refused(refused.rejected, refused.impossible, back, final.label)
 
 
+def taken_back_by_either(first: Refused | None, second: Refused | None) -> Refused | None:
+    """The units either judgement (screened_again) took back, and the models that fitted them."""
+    if first is None or second is None:
+        return first or second
+    effects = first.effects if first.effects == second.effects else f"{first.effects} or {second.effects}"
+    return Refused(first.rejected, first.impossible, first.taken_back | second.taken_back, effects)
+
+
 def named(data: Data, units: np.ndarray) -> str:
     """'pose 9 laser 1, ...' of the units (P,C) (a point or pose sensor's unit is its pose), at most LISTED."""
     lasers = data.samples.spots is not None
