@@ -9,6 +9,7 @@
     ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
     ros_client.py estimate-csv SAMPLES.csv [OUTPUT_DIR]  Estimate the samples of a CSV (spot samples, any robot)
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
+    ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
 """
 
 from __future__ import annotations
@@ -186,6 +187,33 @@ def calibrate(diagnose: bool, cancel: bool) -> dict:
             "diagnosis_json": result.result.diagnosis_json, "sample_count": result.result.parameters.sample_count}
 
 
+def calibrate_until_diagnosis(robot_path: str) -> dict:
+    """A Calibrate goal with 80 simulated poses and the diagnosis; returns as soon as the
+    'diagnosis' stage starts (it runs for seconds: the test stops the estimator in it)."""
+    from rclpy.action import ActionClient
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.sim.simulation import NoiseSpec, measure, sample_poses, true_errors
+    from laser_calib_interfaces.action import Calibrate
+    robot = load_robot(robot_path)
+    rng = np.random.default_rng(5)
+    true = robot.with_errors(true_errors(robot))
+    measured, _ = measure(true, sample_poses([robot, true], 80, rng, "whole"), rng, NoiseSpec())
+    node = rclpy.create_node("test_calibrate_stopped")
+    client = ActionClient(node, Calibrate, "estimator/calibrate")
+    if not client.wait_for_server(timeout_sec=TIMEOUT):
+        raise SystemExit("no action server estimator/calibrate")
+    stages = []
+    goal = Calibrate.Goal(samples=[sample(k, measured.q[k], measured.spots[k]) for k in range(len(measured))],
+                          method="lm", diagnose=True)
+    client.send_goal_async(goal, feedback_callback=lambda msg: stages.append(msg.feedback.stage))
+    deadline = time.monotonic() + 5 * TIMEOUT
+    while "diagnosis" not in stages:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"no diagnosis stage (feedback: {stages})")
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return {"stages": stages}
+
+
 def sample(pose: int, q, spots) -> Sample:
     msg = Sample()
     msg.header.stamp.sec = 1000 + pose
@@ -294,6 +322,8 @@ def main() -> int:
             result = estimate_accumulated()
         elif command == "calibrate":
             result = calibrate("diagnose" in sys.argv[2:], "cancel" in sys.argv[2:])
+        elif command == "calibrate-until-diagnosis":
+            result = calibrate_until_diagnosis(sys.argv[2])
         elif command == "bad-and-concurrent":
             result = bad_and_concurrent(sys.argv[2])
         else:

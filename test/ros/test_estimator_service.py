@@ -124,3 +124,16 @@ def test_an_output_dir_that_cannot_be_written_is_refused_in_one_line(ros, tmp_pa
     assert (tmp_path / "report" / "report.md").exists()
     assert ros.stop("estimator") == 0
     assert "Traceback" not in ros.log("estimator"), ros.log("estimator")
+
+
+def test_ctrl_c_during_a_calibrate_goal_exits_0_without_a_traceback(ros):
+    """Ctrl-C while a Calibrate goal's diagnosis runs (a stage cannot be stopped): the node's
+    cleanup destroyed it under the running stage, which then published its feedback on a
+    destroyed node (RCLError traceback) and left the goal's state unset. Now the goal is
+    aborted and the server destroyed first: exit 0, no traceback."""
+    ros.start("estimator", "-p", f"robot:={ROBOT}")
+    assert ros.client("calibrate-until-diagnosis", str(ROBOT))["stages"] == ["estimate", "diagnosis"]
+    assert ros.stop("estimator") == 0
+    log = ros.log("estimator")
+    assert "Traceback" not in log and "RCLError" not in log and "Goal state not set" not in log, log[-3000:]
+

@@ -5,7 +5,7 @@ diagnosis, beside the service.
 Feedback when each stage starts ('estimate', 'diagnosis') and at the end
 ('done'). A cancel is honoured between the stages (the result says what was
 done); a stage once started runs to its end (the core's fits have no hook to
-stop them). Goals are served one at a time; bad goals are aborted with a
+stop them; Ctrl-C during one ends the node without a word to the client, close). Goals are served one at a time; bad goals are aborted with a
 one-line message and the node keeps serving. An estimate that is no calibration
 (NOT CONVERGED, NOT A CALIBRATION) is aborted too, its result filled (success
 false) and its files written, as the command line exits 3 for it.
@@ -76,3 +76,10 @@ class CalibrateServer:
             goal.succeed()
             node.get_logger().info(outcome.message)
         return result
+
+    def close(self) -> None:
+        """The node's cleanup (Ctrl-C) while a goal's stage runs, which nothing can stop: by then
+        the signal has shut the context down, so no client can be told; the server is destroyed
+        before the node, so that the stage, once it ends, finds its goal handle gone (rclpy then
+        ignores its feedback and state) rather than the node's publishers (an RCLError traceback)."""
+        self.server.destroy()

@@ -88,6 +88,7 @@ class Estimator(Node):
         self.create_service(Estimate, common.PRIVATE_ESTIMATE, self.on_estimate, callback_group=services)
         self.create_service(Trigger, common.PRIVATE_RESET, self.on_reset, callback_group=services)
         self.calibrate = CalibrateServer(self)
+        self.close = self.calibrate.close  # run()'s cleanup: a goal in progress ends before the node
         self.get_logger().info(f"robot '{self.robot.name}' ({self.robot.n_params} parameters), input "
                                f"'{self.input}'")
 
