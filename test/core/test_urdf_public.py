@@ -321,6 +321,21 @@ SPOT_SIGMA = 5e-4  # m per spot coordinate (a camera)
 SPOT_SEEDS = 100
 
 
+def before_the_screen(tmp_path: Path, urdf: str, base_link: str, placement: str, tip: str):
+    """The robot of the public description ``urdf`` hung before the screen by ``placement``
+    (the `screen` link and a fixed joint to ``base_link``, written before that link), the
+    paper's laser module on ``tip``."""
+    text = (PUBLIC / urdf).read_text()
+    at = text.index(f'<link name="{base_link}"')
+    name = Path(urdf).stem
+    (tmp_path / f"{name}_at_screen.urdf").write_text(text[:at] + placement + text[at:])
+    (tmp_path / f"{name}.yaml").write_text(
+        f"urdf: {name}_at_screen.urdf\nbase: screen\ntip: {tip}\n"
+        "slm: {a: 0.05, d: 0.0, alpha: 0.0, theta: 3.1416, beta: 0.0}\n"
+        "lasers: [{gamma: -0.5236, beta: 0.0}, {gamma: 0.5236, beta: 0.0}]\nscreen: {half_y: 1.0, half_z: 1.0}\n")
+    return load_robot(tmp_path / f"{name}.yaml")
+
+
 def test_laser_spots_calibrate_a_public_urdf_to_its_cramer_rao_prediction(tmp_path):
     """The laser path on a description no one here wrote: the Panda, its SLM on
     panda_link8, spots on the screen. The true errors lie in the identifiable
@@ -333,14 +348,7 @@ def test_laser_spots_calibrate_a_public_urdf_to_its_cramer_rao_prediction(tmp_pa
     it shows: the identifiability analysis, the spot Jacobian through the URDF's
     placements and the fit are efficient here (the forward kinematics against
     yourdfpy's: test_forward_kinematics_and_calibrated_urdf_match_yourdfpy)."""
-    text = (PUBLIC / "panda.urdf").read_text()
-    at = text.index('<link name="panda_link0"')
-    (tmp_path / "panda_at_screen.urdf").write_text(text[:at] + PANDA_AT_SCREEN + text[at:])
-    (tmp_path / "panda.yaml").write_text(
-        "urdf: panda_at_screen.urdf\nbase: screen\ntip: panda_link8\n"
-        "slm: {a: 0.05, d: 0.0, alpha: 0.0, theta: 3.1416, beta: 0.0}\n"
-        "lasers: [{gamma: -0.5236, beta: 0.0}, {gamma: 0.5236, beta: 0.0}]\nscreen: {half_y: 1.0, half_z: 1.0}\n")
-    robot = load_robot(tmp_path / "panda.yaml")
+    robot = before_the_screen(tmp_path, "panda.urdf", "panda_link0", PANDA_AT_SCREEN, "panda_link8")
     rng = np.random.default_rng(0)
     q_cal, q_test = sample_poses([robot], 40, rng), sample_poses([robot], 200, rng)
 
@@ -393,14 +401,7 @@ def test_a_noise_level_not_given_is_estimated_from_the_reported_fit(tmp_path, se
     CALIBRATION). A clean simulated session: the sigma estimated is that of the
     reported fit (chi^2/dof = 1 by definition), with the rank that the given
     sigma finds and no spot rejected."""
-    text = (PUBLIC / "kinova_gen3.urdf").read_text()
-    at = text.index('<link name="base_link"')
-    (tmp_path / "gen3_at_screen.urdf").write_text(text[:at] + GEN3_AT_SCREEN + text[at:])
-    (tmp_path / "gen3.yaml").write_text(
-        "urdf: gen3_at_screen.urdf\nbase: screen\ntip: EndEffector_Link\n"
-        "slm: {a: 0.05, d: 0.0, alpha: 0.0, theta: 3.1416, beta: 0.0}\n"
-        "lasers: [{gamma: -0.5236, beta: 0.0}, {gamma: 0.5236, beta: 0.0}]\nscreen: {half_y: 1.0, half_z: 1.0}\n")
-    nominal = load_robot(tmp_path / "gen3.yaml")
+    nominal = before_the_screen(tmp_path, "kinova_gen3.urdf", "base_link", GEN3_AT_SCREEN, "EndEffector_Link")
     session = robot_session(nominal, seed, 30)
     samples = session.samples.subset(session.cases["case2"][0])
     given = estimate(nominal, samples, EstimateOptions(spot_sigma=session.noise.spot_sigma,
