@@ -15,8 +15,8 @@ model's residual, with the same limit: those it fits within it are taken back
 and the diagnosis is run again with them (screened_again). Without the
 refused units the kept data may not show that effect at all (a curved
 screen's sag, large only at the corners the refused spots lie in, was not
-selected, and its test error stayed 3.2 times the true model's), so when the
-final model takes none back, the effects selected on every unit judge them
+selected, and its test error stayed 3.2 times the true model's), so those the
+final model leaves out are judged by the effects selected on every unit
 too. The samples file keeps every value.
 """
 
