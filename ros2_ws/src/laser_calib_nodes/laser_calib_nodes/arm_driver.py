@@ -37,10 +37,6 @@ from laser_calib.hardware.backends import SimArm, dynamixel_backend
 from laser_calib.hardware.trajectory import TrajectoryPoint, trajectory_goal
 
 
-def non_negative(value: float) -> str | None:
-    return None if math.isfinite(value) and value >= 0 else f"expected >= 0, got {value}"
-
-
 class ArmDriver(Node):
     def __init__(self):
         super().__init__("arm_driver")
@@ -94,11 +90,11 @@ class ArmDriver(Node):
 
         self.sim: SimArm | None = None
         if backend == "sim":
-            for name, value, check in (("sim.joint_speed", speed, common.positive), ("sim.time_constant", tau,
-                                       common.positive), ("sim.joint_disturbance", disturbance, non_negative),
-                                       ("sim.read_noise", read_noise, non_negative)):
-                if check(value):
-                    raise common.NodeError(f"parameter {name}: {check(value)}", 2)
+            for name, value, check in (("sim.joint_speed", speed, common.positive),
+                                       ("sim.time_constant", tau, common.positive),
+                                       ("sim.joint_disturbance", disturbance, common.non_negative),
+                                       ("sim.read_noise", read_noise, common.non_negative)):
+                common.checked(name, value, check)
             rng = np.random.default_rng(seed)
             if true_path:
                 true_robot = load_robot(true_path)

@@ -5,7 +5,8 @@ diagnosis, beside the service.
 Feedback when each stage starts ('estimate', 'diagnosis') and at the end
 ('done'). A cancel is honoured between the stages (the result says what was
 done); a stage once started runs to its end (the core's fits have no hook to
-stop them; Ctrl-C during one ends the node without a word to the client, close). Goals are served one at a time; bad goals are aborted with a
+stop them; Ctrl-C during one ends the node without a word to the client,
+close). Goals are served one at a time; bad goals are aborted with a
 one-line message and the node keeps serving. An estimate that is no calibration
 (NOT CONVERGED, NOT A CALIBRATION) is aborted too, its result filled (success
 false) and its files written, as the command line exits 3 for it.

@@ -67,8 +67,9 @@ class Sequencer(Node):
         self.exit_code, self.done = 0, False
         for name, value, check in (
                 ("frames", self.frames, lambda n: None if n >= 1 else f"expected >= 1, got {n}"),
-                ("move.joint_speed", self.joint_speed, common.positive), ("sync_tolerance", self.sync_tol,
-                common.non_negative), ("settle.timeout", self.settle_timeout, common.positive),
+                ("move.joint_speed", self.joint_speed, common.positive),
+                ("sync_tolerance", self.sync_tol, common.non_negative),
+                ("settle.timeout", self.settle_timeout, common.positive),
                 ("frame_timeout", self.frame_timeout, common.positive),
                 ("wait_timeout", self.wait_timeout, common.positive),
                 ("bag.max_segment_seconds", segment_seconds, common.positive)):
