@@ -198,7 +198,9 @@ def test_parameters_out_of_range_are_refused_at_the_start(ros, tmp_path):
 
 def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
     """A parameter or robot file that does not exist: launch_ros only warned of the parameter file
-    and ran the session on the nodes' defaults; now one line naming the argument, no node started."""
+    and ran the session on the nodes' defaults; now one line naming the argument, no node started.
+    A robot file that does not load: each node refused it after the launch had made the session
+    folder and its lock; now one line naming the file, before the folder is made."""
     from ros_harness import ros2_missing
     if ros2_missing():
         pytest.skip(ros2_missing())
@@ -207,9 +209,16 @@ def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
         ros.start_command(f"{launch}_{arg}", ["ros2", "launch", "laser_calib_nodes", f"{launch}.launch.py",
                                               f"output_dir:={tmp_path / arg}", f"robot:={ROBOT}",
                                               f"calibration:={tmp_path}", f"{arg}:={missing}"])
-    for name in list(ros.procs):
+    malformed = tmp_path / "malformed.yaml"
+    malformed.write_text("name: arm\njoints: [\n")
+    ros.start_command("session_malformed", ["ros2", "launch", "laser_calib_nodes", "session.launch.py",
+                                            f"output_dir:={tmp_path / 'malformed'}", f"robot:={malformed}"])
+    reasons = {name: f"{name.split('_')[1]}: no such file: {missing}" for name in ros.procs}
+    reasons["session_malformed"] = f"{malformed}: line 3: not valid YAML"
+    for name, reason in reasons.items():
         assert ros.wait_exit(name, 60) != 0, ros.log(name)
         log = ros.log(name)
         errors = [line for line in log.splitlines() if "ERROR" in line]
         assert "process started" not in log and "Traceback" not in log, log
-        assert len(errors) == 1 and errors[0].endswith(f"{name.split('_')[1]}: no such file: {missing}"), log
+        assert len(errors) == 1 and reason in errors[0], log
+    assert not (tmp_path / "malformed").exists()  # refused before the session folder (and its lock) is made

@@ -162,8 +162,12 @@ def ros_bin(name: str):
 
 
 def test_replay_bad_bag_is_one_line(session, tmp_path):
-    ros, _ = session
-    result = ros.run([str(ros_bin("replay")), str(tmp_path / "nothing")], timeout=60)
-    assert result.returncode == 2
-    assert result.stderr.strip().count("\n") == 0 and "no such bag" in result.stderr
-    assert "Traceback" not in result.stderr
+    ros, out = session
+    for args, reason in (([str(tmp_path / "nothing")], "no such bag"),
+                         ([str(out / "bag"), "--wait-for", "/nothing"], "no topic /nothing in the bag"),
+                         ([str(out / "bag"), "--exclude", "/samples", "--wait-for", "/samples"],
+                          "/samples: --wait-for names a topic that is not replayed")):
+        result = ros.run([str(ros_bin("replay"))] + args, timeout=60)
+        assert result.returncode == 2, args
+        assert result.stderr.strip().count("\n") == 0 and reason in result.stderr, args
+        assert "Traceback" not in result.stderr

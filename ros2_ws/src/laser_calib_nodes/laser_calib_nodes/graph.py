@@ -128,6 +128,14 @@ def existing_files(values: dict, *names: str) -> None:
             raise InputError(name, f"no such file: {values[name]}")
 
 
+def loadable_robot(values: dict) -> None:
+    """Refuse a robot file that does not load (InputError naming it) before any node starts:
+    each node would refuse it in turn, after the launch had made the session folder and its
+    lock. A file completed by robot_description_topic is checked by the nodes, with the URDF."""
+    if values["robot"] and not values["robot_description_topic"]:
+        load_robot(values["robot"])
+
+
 def robot_params(values: dict) -> dict:
     """The parameters of every node that needs the robot (common.robot_source); the
     topic only when given (an empty `-p name:=` is no string to ROS)."""
@@ -138,6 +146,7 @@ def robot_params(values: dict) -> dict:
 def session_nodes(values: dict) -> list[NodeSpec]:
     """The simulated session; the sequencer last (the session ends when it ends)."""
     existing_files(values, "params", "robot")
+    loadable_robot(values)
     files = (values["params"],)
     robot = robot_params(values)
     arm = dict(robot, **{"sim.true_robot_out": os.path.join(values["output_dir"], "robot_true.yaml")})
@@ -155,6 +164,7 @@ def session_nodes(values: dict) -> list[NodeSpec]:
 def hardware_nodes(values: dict) -> list[NodeSpec]:
     """A real arm (arm_driver on Dynamixel) and a camera driver of the user's; the sequencer last."""
     existing_files(values, "params", "robot", "arm_params", "calibration", "poses_file")
+    loadable_robot(values)
     files = (values["params"],)
     robot = robot_params(values)
     sequencer = dict(robot, output_dir=values["output_dir"], poses_file=values["poses_file"],

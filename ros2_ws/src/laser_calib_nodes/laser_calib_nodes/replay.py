@@ -4,8 +4,8 @@
 
 Messages go out as recorded (raw CDR, same types, same QoS as offered at
 recording, header stamps untouched) at the bag's receive times, scaled by
-1/R. With --wait-for, playback starts once each named topic has a
-subscriber (so nothing is published into the void). An estimator listening to
+1/R. With --wait-for, playback starts once each named topic's publisher has
+matched a subscriber (so nothing is published into the void). An estimator listening to
 the replayed samples computes what it computed live.
 
 ``main(argv)`` is the entry point of the `replay` executable and of
@@ -77,9 +77,12 @@ def main(argv: list[str] | None = None) -> int:
         topics = bag.bag_topics(args.bag)
         chosen = {t: v for t, v in topics.items()
                   if (args.topics is None or t in args.topics) and t not in args.exclude}
-        missing = [t for t in (args.topics or []) if t not in topics]
+        missing = [t for t in (args.topics or []) + args.wait_for if t not in topics]
         if missing:
             raise InputError(args.bag, f"no topic {missing[0]} in the bag (it has {', '.join(sorted(topics))})")
+        unplayed = [t for t in args.wait_for if t not in chosen]
+        if unplayed:
+            raise InputError(unplayed[0], "--wait-for names a topic that is not replayed (--topics, --exclude)")
         classes = {t: message_class(kind) for t, (kind, _, _) in chosen.items()}
     except InputError as exc:
         print(f"replay: {exc}", file=sys.stderr)
@@ -94,7 +97,9 @@ def main(argv: list[str] | None = None) -> int:
                       for t, (_, _, profiles) in chosen.items()}
         deadline = time.monotonic() + args.wait_timeout
         for topic in args.wait_for:
-            while node.count_subscribers(topic) == 0:
+            # Matched, not only discovered: a reliable volatile message published before the
+            # DDS writer and reader match is lost, though the graph already lists the subscriber.
+            while publishers[topic].get_subscription_count() == 0:
                 if time.monotonic() > deadline:
                     raise InputError(topic, f"no subscriber after {args.wait_timeout:g} s")
                 rclpy.spin_once(node, timeout_sec=0.05)
