@@ -231,6 +231,8 @@ CASES = {
     "replay a missing bag": (lambda d: ["replay", str(d / "nobag")], "nobag: no such bag"),
     "--out is a file": (lambda d: (d / "taken").write_text("x") and _estimate(d)[:-1] + [str(d / "taken")], "--out"),
     "--out unwritable": (lambda d: _estimate(d)[:-1] + ["/proc/x/y"], "/proc"),
+    "--out a finished session": (lambda d: _finished(d / "session") and _estimate(d)[:-1] + [str(d / "session")],
+                                 "holds a finished session, whose results this would replace"),
     "plan --out is a folder": (lambda d: _files(d) and ["plan", "--robot", str(d / "robot.yaml"), "--n", "5", "--out",
                                                          str(d)], "--out"),
     "slm --out is a folder": (lambda d: _slm(d, "1,0.5,0,0\n1,1.0,0,0\n2,0.5,0,0\n2,1.0,0,0\n")[:-1] + [str(d)],
@@ -243,6 +245,14 @@ def test_the_widest_catalogue_wrist_limits_load():
     data = robot_to_dict(ROBOT)
     data["joints"][3].update(min=-7.94, max=7.94)
     assert robot_from_dict(data).q_max[3] == 7.94
+
+
+def _finished(folder: Path) -> Path:
+    """A session folder whose session.yaml says finished."""
+    from laser_calib.session.folder import SessionDir
+    folder.mkdir()
+    SessionDir(folder).set_info(state="finished")
+    return folder
 
 
 def _latin1(folder: Path) -> list[str]:

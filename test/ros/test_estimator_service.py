@@ -103,22 +103,37 @@ def test_an_estimate_that_is_no_calibration_answers_success_false(ros, tmp_path)
     assert ros.stop("estimator") == 0
 
 
+def finished_session(folder):
+    """A session folder whose session.yaml says finished, with its (stand-in) result.json."""
+    from laser_calib.session.folder import SessionDir
+    folder.mkdir()
+    SessionDir(folder).set_info(state="finished")
+    (folder / "result.json").write_text("{}")
+    return folder
+
+
 def test_an_output_dir_that_cannot_be_written_is_refused_in_one_line(ros, tmp_path):
-    """An Estimate request whose output_dir cannot be made (under /proc, or an existing file):
-    success false, one line naming output_dir, no traceback; the node serves the next request."""
+    """An Estimate request whose output_dir cannot be made (under /proc, or an existing file), or
+    holds a finished session (whose results it replaced, the folder then disagreeing with itself):
+    success false, one line naming output_dir, no traceback, nothing in the session changed; the
+    node serves the next request."""
     from laser_calib.cli.main import main
 
     sim = tmp_path / "sim"
     assert main(["simulate", "--case", "paper-7dof", "--seed", "0", "--out", str(sim)]) == 0
     a_file = tmp_path / "a_file"
     a_file.write_text("not a folder\n")
+    finished = finished_session(tmp_path / "finished")
     ros.start("estimator", "-p", f"robot:={sim / 'robot_nominal.yaml'}")
-    for name, out_dir in (("proc", "/proc/nope"), ("file", str(a_file)), ("under_file", str(a_file / "report"))):
+    for name, out_dir in (("proc", "/proc/nope"), ("file", str(a_file)), ("under_file", str(a_file / "report")),
+                          ("finished_session", str(finished))):
         out = ros.client("estimate-csv", str(sim / "case3_cal.csv"), out_dir)
         message = out["message"]
         assert out["success"] is False, (name, message)
         assert message.startswith("output_dir: ") and out_dir in message and "\n" not in message, (name, message)
         assert "internal error" not in message, (name, message)
+    assert sorted(p.name for p in finished.iterdir()) == ["result.json", "session.yaml"]
+    assert (finished / "result.json").read_text() == "{}"
     good = ros.client("estimate-csv", str(sim / "case3_cal.csv"), str(tmp_path / "report"))
     assert good["success"], good["message"]
     assert (tmp_path / "report" / "report.md").exists()

@@ -18,6 +18,7 @@ from laser_calib.estimation.failures import is_failure
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import parse_int, parse_number
 from laser_calib.io.sensor_samples import POINT_COLUMNS, QUATERNION_COLUMNS
+from laser_calib.session.folder import refuse_finished
 
 
 # Plausible noise levels: a spot or position noise outside 1 nm .. 1 m, or a
@@ -189,6 +190,7 @@ def staged_folder(out: str) -> Iterator[Path]:
     run left in it); on failure it is removed, so a failed run leaves no
     half-written folder."""
     target = Path(out)
+    refuse_finished(target, "--out")
     try:
         target.absolute().parent.mkdir(parents=True, exist_ok=True)
         stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=target.absolute().parent))

@@ -25,6 +25,7 @@ from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.model.robot import Robot
 from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.files import write_outputs
+from laser_calib.session.folder import refuse_finished
 
 
 def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool) -> EstimateOptions:
@@ -68,6 +69,7 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
     check_spot_columns(robot, samples.q, samples.spots, source)
     with writing(out_dir):  # a folder that cannot be made: refused before the estimate
         if out_dir:
+            refuse_finished(out_dir, "output_dir")
             Path(out_dir).mkdir(parents=True, exist_ok=True)
     try:
         calibration = calibrate(robot, samples, options, sources=sources, compensator=compensator)

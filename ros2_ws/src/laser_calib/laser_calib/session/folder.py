@@ -284,3 +284,14 @@ def _duration(seconds: float) -> str:
     if seconds < 60:
         return f"{seconds} s"
     return f"{seconds // 60} min {seconds % 60:02d} s"
+
+
+def refuse_finished(folder: str | Path, name: str) -> None:
+    """Refuse to write into a finished session's folder (InputError naming the argument
+    ``name``): an estimate there replaced the session's report, result.json and calibrated
+    robot while its truth, diagnosis and session.yaml stayed, a folder that disagreed with
+    itself and had lost the session's own results. The session's own estimate writes there
+    while the session is still running."""
+    if SessionDir(Path(folder)).state() == "finished":
+        raise InputError(name, f"{folder} holds a finished session, whose results this would replace; "
+                               "choose another folder")
