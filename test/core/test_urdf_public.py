@@ -35,6 +35,7 @@ from laser_calib.estimation.identifiability import analyse
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.measurement.spot import SpotModel
+from laser_calib.model.joint_chain import UNLIMITED
 from laser_calib.model.kinematics import forward
 from laser_calib.model.robot_file import load_robot
 from laser_calib.model.urdf import calibrated_urdf, load_urdf_robot, robot_from_urdf, urdf_text
@@ -411,3 +412,22 @@ def test_a_noise_level_not_given_is_estimated_from_the_reported_fit(tmp_path, se
     assert abs(est.fit.chi2 / est.fit.dof - 1) < 1e-9
     assert est.identifiability.rank == given.identifiability.rank == 34
     assert not est.rejected
+
+
+def test_poses_of_joints_that_turn_without_end_stay_within_one_turn(tmp_path):
+    """The Gen3's joints 1, 3, 5 and 7 are continuous: their readings are checked against a
+    stand-in range of +-UNLIMITED, and the poses were drawn from it too, so a session
+    commanded them up to 999 rad (a real arm: 160 turns against its cables). The poses of a
+    session, of the planner and of the truth check now span one turn there, and the limits
+    elsewhere."""
+    from laser_calib.planning import candidate_poses
+    from laser_calib.session.poses import generate_poses
+
+    nominal = before_the_screen(tmp_path, "kinova_gen3.urdf", "base_link", GEN3_AT_SCREEN, "EndEffector_Link")
+    endless = nominal.q_max >= UNLIMITED
+    assert endless.tolist() == [True, False, True, False, True, False, True]
+    session = generate_poses(nominal, 60, "whole", seed=0).q
+    for q in (session, candidate_poses(nominal, 60, np.random.default_rng(0), 0.02)):
+        assert np.all(np.abs(q[:, endless]) <= np.pi), np.abs(q).max(axis=0)
+        assert np.all(q[:, endless].std(axis=0) > 1.0)  # the whole turn, not a corner of it
+        assert np.all((q >= nominal.q_min) & (q <= nominal.q_max))

@@ -91,7 +91,7 @@ def candidate_poses(robot: Robot, count: int, rng: np.random.Generator, margin: 
     chosen: list[np.ndarray] = []
     found = 0
     for _ in range(max_tries):
-        q = rng.uniform(robot.q_min, robot.q_max, (min(max(2 * count, 256), DRAW_BLOCK), robot.n_joints))
+        q = rng.uniform(*robot.pose_range(), (min(max(2 * count, 256), DRAW_BLOCK), robot.n_joints))
         p = predict(robot, q)
         inside = ((np.abs(p.spots[..., 0]) <= robot.screen.half_y - margin)
                   & (np.abs(p.spots[..., 1]) <= robot.screen.half_z - margin))

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 REVOLUTE, PRISMATIC, FIXED_JOINT = "revolute", "prismatic", "fixed"
+UNLIMITED = 1e3  # rad: the limits of a joint that turns without end (URDF continuous), for checking readings
 # The offset first: of an offset and a placement rotation about the same axis
 # (which only act as a sum), identifiability keeps the first, the readable one.
 PLACEMENT_PARAMS = ("offset", "x", "y", "z", "rx", "ry", "rz")

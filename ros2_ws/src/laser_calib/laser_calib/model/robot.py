@@ -22,7 +22,7 @@ import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import length_units
-from laser_calib.model.joint_chain import JointChain
+from laser_calib.model.joint_chain import UNLIMITED, JointChain
 
 PAPER = "paper"        # T_i = Trans(x,a) Trans(z,d) Rot(x,alpha) Rot(z,theta)
 STANDARD = "standard"  # T_i = Trans(z,d) Rot(z,theta) Trans(x,a) Rot(x,alpha)
@@ -156,6 +156,16 @@ class Robot:
     @property
     def q_max(self) -> np.ndarray:
         return np.array([j.max for j in self.joints]) if self.chain is None else self.chain.limits()[1]
+
+    def pose_range(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) lower and upper bounds that poses are drawn from (planning, simulation, the
+        truth check): the joint limits, and one turn [-pi, pi] for a joint that turns without
+        end, every angle it can take. Drawn from its stand-in limits (+-UNLIMITED), a session
+        commanded such a joint hundreds of turns from zero, which a real arm's cables do not survive."""
+        low, high = self.q_min.copy(), self.q_max.copy()
+        endless = (low <= -UNLIMITED) & (high >= UNLIMITED)
+        low[endless], high[endless] = -np.pi, np.pi
+        return low, high
 
     def vector(self) -> np.ndarray:
         """Nominal parameter vector, shape (n_params,)."""

@@ -34,13 +34,12 @@ from laser_calib.io.errors import InputError
 from laser_calib.io.read import read_text
 from laser_calib.measurement.frames import Pose
 from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
-                                           ChainJoint, JointChain)
+                                           UNLIMITED, ChainJoint, JointChain)
 from laser_calib.model.robot import LIMIT_ANGLE, Laser, Robot, Screen, Slm, plausible_angle, plausible_length
 from laser_calib.model.urdf_checks import check_tree
 
 URDF_SUFFIXES = (".urdf", ".xacro", ".xml")  # in any case: ARM.URDF, and older descriptions named .xml
 _KINDS = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC, "fixed": FIXED_JOINT}
-UNLIMITED = 1e3  # rad or m: the range of a continuous joint (no limit in the file)
 _MISSING_PACKAGE = re.compile(r"package '([^']+)' not found")  # ament_index_python's PackageNotFoundError
 
 

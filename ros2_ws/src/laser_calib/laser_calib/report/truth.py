@@ -27,7 +27,7 @@ from laser_calib.report.statistics import laser_stats, spot_distances, summary
 def truth_errors(nominal: Robot, calibrated: Robot, true: Robot, n_poses: int = 2000, seed: int = 0) -> dict:
     """{'end_effector'|'spot': {'before': stats, 'after': stats}, 'poses': n, 'spot_poses': m}."""
     rng = np.random.default_rng(seed)
-    q = rng.uniform(true.q_min, true.q_max, (n_poses, true.n_joints))   # (K,N)
+    q = rng.uniform(*true.pose_range(), (n_poses, true.n_joints))   # (K,N)
     origin = {name: forward(robot, q).origin for name, robot in (("nominal", nominal), ("calibrated", calibrated),
                                                                  ("true", true))}
     truth_spots = predict(true, q)

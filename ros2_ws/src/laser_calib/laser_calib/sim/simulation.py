@@ -75,7 +75,7 @@ def sample_poses(robots: list[Robot], n: int, rng: np.random.Generator, span: st
     range excludes zero), keeping only poses where both beams of every given robot
     hit the screen at least ``margin`` m inside its edge."""
     robot = robots[0]
-    low, high = robot.q_min, robot.q_max
+    low, high = robot.pose_range()
     if span == "small":
         nearest_zero = np.clip(0.0, low, high)
         low, high = np.maximum(low, nearest_zero - SMALL_RANGE), np.minimum(high, nearest_zero + SMALL_RANGE)
