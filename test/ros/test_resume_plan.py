@@ -87,3 +87,20 @@ def test_plan_of_a_session_recorded_before_the_plan_was(tmp_path):
     session.check_plan({"poses": 15, "test_poses": 0, "span": "whole", "seed": 0, "margin": 0.05})
     with pytest.raises(InputError, match=r"test_poses recorded 5, given 3; resume with"):
         session.check_plan({"poses": 15, "test_poses": 3})
+
+
+def test_launch_refuses_a_plan_argument_it_does_not_take(ros, tmp_path):
+    """hardware.launch.py takes no test_poses: `ros2 launch` dropped test_poses:=5 silently and
+    the session ran without held-out poses (what a resume then showed: 0 test poses)."""
+    if ros2_missing():
+        pytest.skip(ros2_missing())
+    ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py",
+                                 f"output_dir:={tmp_path / 'out'}", f"robot:={ROBOT}", f"calibration:={ROBOT}",
+                                 "test_poses:=5"])
+    assert ros.wait_exit("launch", 60) != 0
+    log = ros.log("launch")
+    assert "process started" not in log and "Traceback" not in log, log
+    errors = [line for line in log.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and "test_poses: not an argument of this launch file, it would be ignored" \
+        in errors[0], log
+    assert not (tmp_path / "out").exists()
