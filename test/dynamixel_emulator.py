@@ -10,7 +10,11 @@ is enabled, so motion takes time and settles.
 
 Fault switches, set from the test thread on ``emulator.servos[id]``:
 ``silent`` (the servo never answers), ``corrupt_crc`` (every status packet it
-sends carries a wrong CRC); and ``emulator.set_hardware_error(id, status)``
+sends carries a wrong CRC), ``lost_torque_offs`` (that many of the next
+WRITE instructions of Torque Enable = 0 reaching it, broadcast included, are
+lost before the servo, as on a noisy line: not executed and, as Protocol 2.0
+has it for an instruction never received, not answered); and
+``emulator.set_hardware_error(id, status)``
 (its status packets carry the alert bit 0x80, as a real servo's do after a
 hardware fault).
 
@@ -138,6 +142,7 @@ class EmulatedServo:
     table: bytearray = field(default_factory=lambda: bytearray(TABLE_SIZE))
     silent: bool = False
     corrupt_crc: bool = False
+    lost_torque_offs: int = 0
 
     def get(self, address: int, length: int, signed: bool = False) -> int:
         return int.from_bytes(self.table[address : address + length], "little", signed=signed)
@@ -306,9 +311,19 @@ class DynamixelEmulator:
         if not set(range(address, address + len(data))) <= WRITABLE:
             return self._reply(target, ERR_ACCESS)
         targets = self.servos if target == BROADCAST_ID else [target]
+        lost = [servo_id for servo_id in targets if self._lost(servo_id, address, data)]
         for servo_id in targets:
-            self._store(servo_id, address, data)
-        return [] if target == BROADCAST_ID else self._reply(target, 0)
+            if servo_id not in lost:
+                self._store(servo_id, address, data)
+        return [] if target == BROADCAST_ID or lost else self._reply(target, 0)
+
+    def _lost(self, servo_id: int, address: int, data: bytes) -> bool:
+        """Whether this torque-off write to the servo is one of its ``lost_torque_offs``."""
+        servo = self.servos.get(servo_id)
+        if servo is None or not servo.lost_torque_offs or address != ADDR_TORQUE_ENABLE or data[:1] != b"\x00":
+            return False
+        servo.lost_torque_offs -= 1
+        return True
 
     def _sync_read(self, params: bytes) -> list[bytes]:
         address, length = int.from_bytes(params[:2], "little"), int.from_bytes(params[2:4], "little")

@@ -14,7 +14,9 @@ from dynamixel_emulator import (
     ADDR_GOAL_POSITION,
     ADDR_PRESENT_POSITION,
     ADDR_PROFILE_VELOCITY,
+    ADDR_TORQUE_ENABLE,
     INST_SYNC_READ,
+    INST_WRITE,
     MODEL_NUMBER,
     DynamixelEmulator,
 )
@@ -237,3 +239,42 @@ def test_bus_gone_raises_and_stop_never_raises(emulator: DynamixelEmulator, arm:
     assert isinstance(error, DynamixelError), error
     _, error = run_within(FAULT_DEADLINE, arm.stop)
     assert error is None
+
+
+def torque_off_writes(emulator: DynamixelEmulator, servo_id: int) -> int:
+    """WRITE instructions of Torque Enable = 0 addressed to the servo (not broadcast) on the bus."""
+    return sum(1 for frame in emulator.requests if frame[4] == servo_id and frame[7] == INST_WRITE
+               and int.from_bytes(frame[8:10], "little") == ADDR_TORQUE_ENABLE and frame[10] == 0)
+
+
+def test_emulator_lost_torque_off_is_not_executed_nor_answered(
+    emulator: DynamixelEmulator, sdk: tuple[dxl.PortHandler, Any]
+) -> None:
+    """The fault switch keeps Protocol 2.0's contract: a lost instruction gets no status packet."""
+    port, packet = sdk
+    assert packet.write1ByteTxRx(port, 2, ADDR_TORQUE_ENABLE, 1) == (dxl.COMM_SUCCESS, 0)
+    emulator.servos[2].lost_torque_offs = 1
+    assert packet.write1ByteTxRx(port, 2, ADDR_TORQUE_ENABLE, 0)[0] == dxl.COMM_RX_TIMEOUT
+    assert emulator.torque_enabled(2)
+    assert packet.write1ByteTxRx(port, 2, ADDR_TORQUE_ENABLE, 0) == (dxl.COMM_SUCCESS, 0)
+    assert not emulator.torque_enabled(2)
+
+
+def test_stop_retries_a_torque_off_that_was_lost(emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    """The broadcast and the first write lost: the second write turns servo 2 off, confirmed."""
+    emulator.servos[2].lost_torque_offs = 2
+    emulator.requests.clear()
+    unconfirmed, error = run_within(FAULT_DEADLINE, arm.stop)
+    assert error is None and unconfirmed == []
+    assert not any(emulator.torque_enabled(i) for i in IDS)
+    assert torque_off_writes(emulator, 2) == 2
+
+
+def test_stop_returns_a_servo_that_never_confirms_torque_off(emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    """Every torque-off write to servo 1 lost: after ATTEMPTS writes stop() names it, never raises."""
+    emulator.servos[1].lost_torque_offs = 100
+    emulator.requests.clear()
+    unconfirmed, error = run_within(FAULT_DEADLINE, arm.stop)
+    assert error is None and unconfirmed == [1]
+    assert emulator.torque_enabled(1) and not emulator.torque_enabled(2) and not emulator.torque_enabled(3)
+    assert torque_off_writes(emulator, 1) == ATTEMPTS

@@ -1,6 +1,7 @@
 """arm_driver over the Dynamixel backend, against the Protocol 2.0 servo
 emulator on a pseudo-terminal (test/dynamixel_emulator.py): joint states,
-a goal reached, and a servo fault giving one log line, torque off, exit 1."""
+a goal reached, and a servo fault giving one log line, torque off, exit 1;
+a servo that never confirms torque off on shutdown: one ERROR line, exit 5."""
 
 from __future__ import annotations
 
@@ -12,14 +13,18 @@ from ros_harness import ROOT
 ROBOT_4DOF = ROOT / "config" / "robots" / "manipulator_4dof.yaml"
 
 
+def start_driver(ros, emulator):
+    return ros.start("arm_driver", "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel",
+                     "-p", f"dynamixel.port:={emulator.port}", "-p", "dynamixel.baudrate:=57600",
+                     "-p", "dynamixel.ids:=[1, 2, 3, 4]", "-p", "dynamixel.profile_velocity:=0",
+                     "-p", "rate:=20.0", params=False)
+
+
 def test_dynamixel_arm_driver(ros):
     from dynamixel_emulator import DynamixelEmulator
     tpr = 4096 / (2 * math.pi)
     with DynamixelEmulator(ids=(1, 2, 3, 4)) as emulator:
-        proc = ros.start("arm_driver", "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel",
-                         "-p", f"dynamixel.port:={emulator.port}", "-p", "dynamixel.baudrate:=57600",
-                         "-p", "dynamixel.ids:=[1, 2, 3, 4]", "-p", "dynamixel.profile_velocity:=0",
-                         "-p", "rate:=20.0", params=False)
+        proc = start_driver(ros, emulator)
         moved = ros.client("move", "0.2", "-0.1", "0.3", "0.0")
         assert all(abs(v) < 1e-3 for v in moved["first"])          # 2048 ticks = q 0
         assert abs(moved["reached"][0] - 0.2) < 0.01
@@ -36,3 +41,22 @@ def test_dynamixel_arm_driver(ros):
         errors = [line for line in log.splitlines() if "Dynamixel servo 3" in line]
         assert errors and "arm stopped" in errors[0], log
         assert not emulator.torque_enabled(1) and not emulator.torque_enabled(2)  # safe stop
+
+
+def test_torque_off_not_confirmed_on_shutdown_is_an_error(ros):
+    """Ctrl-C with servo 1 losing every torque-off write: the node retries, then logs one ERROR
+    line through the ROS logger naming servo 1 and exits 5 (it exited 0 with a plain stderr line)."""
+    from dynamixel_emulator import DynamixelEmulator
+    with DynamixelEmulator(ids=(1, 2, 3, 4)) as emulator:
+        proc = start_driver(ros, emulator)
+        deadline = time.monotonic() + 60
+        while "publishing at" not in ros.log("arm_driver"):           # opened: torque on, publishing
+            assert proc.poll() is None and time.monotonic() < deadline, ros.log("arm_driver")
+            time.sleep(0.05)
+        emulator.servos[1].lost_torque_offs = 100
+        assert ros.stop("arm_driver") == 5, ros.log("arm_driver")
+        log = ros.log("arm_driver")
+        errors = [line for line in log.splitlines() if "torque off" in line]
+        assert len(errors) == 1 and "[ERROR]" in errors[0] and "[arm_driver]" in errors[0], log
+        assert "servo 1 did not confirm torque off" in errors[0] and "Traceback" not in log, log
+        assert emulator.torque_enabled(1) and not any(emulator.torque_enabled(i) for i in (2, 3, 4))

@@ -36,6 +36,8 @@ from laser_calib_nodes import common
 from laser_calib.hardware.backends import SimArm, dynamixel_backend
 from laser_calib.hardware.trajectory import TrajectoryPoint, trajectory_goal
 
+TORQUE_NOT_CONFIRMED = 5  # exit code: a servo did not confirm torque off on shutdown
+
 
 class ArmDriver(Node):
     def __init__(self):
@@ -173,10 +175,19 @@ class ArmDriver(Node):
         self.backend.stop()
         raise common.NodeError(f"{message}; arm stopped", 1)
 
-    def close(self) -> None:
+    def close(self) -> int:
+        """Stop and release the arm; TORQUE_NOT_CONFIRMED (the exit code, see common.run) with one
+        ERROR line naming the servos when some did not confirm torque off after the backend's
+        retries: they may still hold torque, which the operator must know before touching the arm,
+        and which a clean exit (launch: "process has finished cleanly") would hide."""
         backend = getattr(self, "backend", None)
-        if backend is not None:
-            backend.close()  # stops first
+        unconfirmed = backend.close() if backend is not None else []  # stops first
+        if not unconfirmed:
+            return 0
+        ids = ", ".join(map(str, unconfirmed))
+        self.get_logger().error(f"servo {ids} did not confirm torque off (write retried): it may still hold "
+                                f"torque; secure the arm before approaching it")
+        return TORQUE_NOT_CONFIRMED
 
 
 def main(args=None) -> int:

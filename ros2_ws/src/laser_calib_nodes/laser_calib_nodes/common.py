@@ -285,7 +285,9 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     """Initialise, spin (until ``until(node)`` when given), clean up in finally.
 
     Exit codes: 0 normal or Ctrl-C/SIGTERM; 2 bad input (one line, no
-    traceback); a NodeError's code; 1 unexpected errors.
+    traceback); a NodeError's code; 1 unexpected errors; the non-zero code a
+    node's close() returns when the exit would otherwise be 0 (a fault found
+    while cleaning up; an earlier fault keeps its own code, the cause).
     """
     graph.die_with_parent()
     watchdog = ExitWatchdog(Path(sys.argv[0]).name)
@@ -344,8 +346,9 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         if node is not None:
             close = getattr(node, "close", None)
             try:
-                if close is not None:
-                    close()
+                closed = close() if close is not None else None
+                if closed and not code:  # a fault the cleanup found (arm_driver: torque off not confirmed)
+                    code = closed
             except Exception as exc:  # cleanup must not hide the exit code
                 print(f"warning: cleanup of {node.get_name()} failed: {exc}", file=sys.stderr, flush=True)
         watchdog.cleanup_done(code)

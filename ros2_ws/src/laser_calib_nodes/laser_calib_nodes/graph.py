@@ -33,7 +33,7 @@ from ament_index_python.packages import get_package_prefix, get_package_share_di
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
-from laser_calib.session.folder import SessionDir
+from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir
 from laser_calib.session.lock import SessionLock
 
 PACKAGE = "laser_calib_nodes"
@@ -175,13 +175,20 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
             NodeSpec("sequencer", files, sequencer)]
 
 
+def given_plan(values: dict) -> dict:
+    """The pose plan arguments among a launch file's values, typed as the sequencer takes them."""
+    return {name: integer(values, name) if isinstance(default, int) else values[name]
+            for name, default in PLAN_DEFAULTS.items() if name in values}
+
+
 _held: list[SessionLock] = []  # the locks this process holds, for its lifetime
 
 
 def take_folder(output_dir: str, values: dict | None = None) -> None:
     """Create the session folder (nodes write into it from their start) and take its lock;
     a folder that holds a finished session, or a partial one of another robot than the
-    robot file in values (the sequencer checks one completed from a topic), is refused
+    robot file in values (the sequencer checks one completed from a topic) or of another
+    pose plan than the plan arguments in values (SessionDir.check_plan), is refused
     before any node starts."""
     lock = SessionLock(output_dir)
     lock.acquire()
@@ -192,6 +199,8 @@ def take_folder(output_dir: str, values: dict | None = None) -> None:
             raise InputError(output_dir, "holds a finished session; choose another output_dir")
         if state == "partial" and values and values.get("robot") and not values.get("robot_description_topic"):
             session.check_robot(load_robot(values["robot"]), values["robot"])
+        if state == "partial" and values:
+            session.check_plan(given_plan(values))
     except BaseException:
         lock.release()
         raise
@@ -237,6 +246,18 @@ def launch_actions(specs: list[NodeSpec]) -> list:
     return actions
 
 
+def refuse_ignored_plan_arguments(argv: list[str], spec: dict) -> None:
+    """Refuse a pose plan argument (name:=value on the command line) that spec does not take:
+    `ros2 launch` drops an undeclared argument silently, so hardware.launch.py test_poses:=5
+    measured a session without the held-out poses asked for. Only plan arguments: argv also
+    holds those of a launch file that includes this one."""
+    for item in argv:
+        name = item.partition(":=")[0]
+        if name in PLAN_DEFAULTS and name not in spec:
+            raise InputError(name, f"not an argument of this launch file, it would be ignored (its arguments: "
+                                   f"{', '.join(spec)})")
+
+
 def launch_description(spec: dict, make_nodes) -> "LaunchDescription":
     """A launch description with spec's arguments whose nodes are make_nodes(values), after
     the session folder has been taken (take_folder)."""
@@ -245,6 +266,7 @@ def launch_description(spec: dict, make_nodes) -> "LaunchDescription":
     from launch.substitutions import LaunchConfiguration
 
     def start(context):
+        refuse_ignored_plan_arguments(context.argv, spec)
         values = {name: LaunchConfiguration(name).perform(context) for name in spec}
         values["output_dir"] = os.path.abspath(values["output_dir"])
         specs = make_nodes(values)  # bad arguments first: refused before the folder is made

@@ -97,8 +97,9 @@ class Sequencer(Node):
             self.get_logger().warning(f"resume repaired: {line}")
         self.done_steps, self.resumed = found.done, found
         if state == "partial":
+            plan = ", ".join(f"{name} {value}" for name, value in self.session.recorded_plan().items() if value != "")
             self.get_logger().info(f"resuming {self.session.path}: {int(found.done.sum())} of {len(self.poses)} "
-                                   f"poses already measured (pose list from {POSES_FILE})")
+                                   f"poses already measured (pose list from {POSES_FILE}; plan: {plan})")
 
         # ---- state shared with the worker thread ----
         self.cond = threading.Condition()

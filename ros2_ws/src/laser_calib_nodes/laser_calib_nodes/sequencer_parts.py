@@ -20,7 +20,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot_file import load_robot
 from laser_calib.report import truth
-from laser_calib.session.folder import SessionDir
+from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, plan_value
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import generate_poses, load_poses, with_test_poses
 
@@ -29,24 +29,31 @@ from laser_calib_nodes import common
 TRUE_ROBOT_FILE = "robot_true.yaml"   # where launch and run-session let the sim arm_driver write the truth
 
 
+PLAN_HELP = {   # the parameters of the pose plan (defaults: folder.PLAN_DEFAULTS)
+    "poses_file": "Pose list (YAML or CSV, rad); empty: generate 'poses' poses.",
+    "poses": "Number of poses to generate when poses_file is empty.",
+    "span": "Generated poses: 'whole' (joint ranges) or 'small' (+-10 deg around zero).",
+    "seed": "Seed of the pose generator.",
+    "repeats": "Generated poses measured a second time at the end (same pose id).",
+    "test_poses": "Held-out poses over the whole workspace, measured after the others and never fitted "
+                  "(test_samples.csv, the report's held-out figures).",
+    "margin": "Generated poses keep both spots this far inside the screen edge, m.",
+}
+
+
 class Stop(Exception):
     """The node is shutting down: leave the sequence."""
 
 
 def open_session(node):
-    """(session, lock, robot, poses, state) from the session parameters; the lock is held."""
+    """(session, lock, robot, poses, state) from the session parameters; the lock is held.
+    A partial session is resumed on its own pose plan: other plan arguments are refused
+    (SessionDir.check_plan), other settings are used with a warning (warn_settings)."""
     d = lambda *a, **k: common.declare(node, *a, **k)  # noqa: E731
     robot_source = common.robot_source(node)
     output_dir = d("output_dir", "", "Session directory: samples.csv, bag/, report (created; resumed "
                                      "when it holds a partial session).")
-    poses_file = d("poses_file", "", "Pose list (YAML or CSV, rad); empty: generate 'poses' poses.")
-    n_poses = d("poses", 60, "Number of poses to generate when poses_file is empty.")
-    span = d("span", "whole", "Generated poses: 'whole' (joint ranges) or 'small' (+-10 deg around zero).")
-    seed = d("seed", 0, "Seed of the pose generator.")
-    repeats = d("repeats", 0, "Generated poses measured a second time at the end (same pose id).")
-    n_test = d("test_poses", 0, "Held-out poses over the whole workspace, measured after the others and "
-                                "never fitted (test_samples.csv, the report's held-out figures).")
-    margin = d("margin", 0.02, "Generated poses keep both spots this far inside the screen edge, m.")
+    plan = {name: d(name, PLAN_DEFAULTS[name], text) for name, text in PLAN_HELP.items()}
     resume = d("resume", "auto", "'auto': resume a partial session in output_dir, else start one; "
                                  "'yes': resume (error if none); 'no': never (error if output_dir holds a session).")
     if not output_dir:
@@ -66,14 +73,38 @@ def open_session(node):
     if state == "partial":
         if robot_source.path:  # a robot given must be the session's (its poses, samples, report are of it)
             session.check_robot(*robot_source.load(node))
+        session.check_plan(plan)
+        warn_settings(node, session)
         robot, poses = session.load_for_resume()
         return session, lock, robot, poses, state
     robot, robot_label = robot_source.load(node)
-    poses = load_poses(poses_file, robot) if poses_file else generate_poses(robot, n_poses, span, seed, repeats, margin)
-    poses = with_test_poses(poses, robot, n_test, seed, margin)
-    source = poses_file or f"generated: {n_poses} poses, span {span}, seed {seed}, repeats {repeats}"
-    session.start(robot, poses, {"robot": robot_label, "poses": source, "test_poses": n_test})
+    poses = (load_poses(plan["poses_file"], robot) if plan["poses_file"] else
+             generate_poses(robot, plan["poses"], plan["span"], plan["seed"], plan["repeats"], plan["margin"]))
+    poses = with_test_poses(poses, robot, plan["test_poses"], plan["seed"], plan["margin"])
+    source = plan["poses_file"] or (f"generated: {plan['poses']} poses, span {plan['span']}, seed {plan['seed']}, "
+                                   f"repeats {plan['repeats']}")
+    session.start(robot, poses, {"robot": robot_label, "poses": source, "test_poses": plan["test_poses"],
+                                 "plan": {name: plan_value(name, value) for name, value in plan.items()},
+                                 "settings": settings(node)})
     return session, lock, robot, poses, state
+
+
+def settings(node) -> dict:
+    """The session's parameters that do not change its pose plan, recorded to say on a resume
+    which differ (a resume may change them)."""
+    return {"estimate.method": node.end.method, "move.joint_speed": node.joint_speed}
+
+
+def warn_settings(node, session: SessionDir) -> None:
+    """One WARN line per setting that differs from the session's record (which then holds
+    this run's value): the user sees which value this run uses."""
+    recorded, current = (session.info() or {}).get("settings") or {}, settings(node)
+    changed = [name for name, value in current.items() if name in recorded and recorded[name] != value]
+    for name in changed:
+        node.get_logger().warning(f"resume: {name} is {current[name]}, the session's previous run used "
+                                  f"{recorded[name]}: this run uses {current[name]}")
+    if changed:
+        session.set_info(settings=current)
 
 
 def declare(node) -> SimpleNamespace:

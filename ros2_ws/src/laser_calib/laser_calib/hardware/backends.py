@@ -2,8 +2,9 @@
 
     command(q)        goal joint positions (N,) in rad; ValueError naming the joint if refused
     read()            -> (q (N,) rad, velocity (N,) rad/s), the joint readings
-    stop()            stop safely (torque off on hardware); never raises
-    close()           stop and release the device; idempotent
+    stop()            stop safely (torque off on hardware); never raises; -> the ids of the
+                      servos that did not confirm it (a safety matter the caller reports)
+    close()           stop and release the device; idempotent; -> as stop()
     joint_names       (N,) names, base to tip
 
 ``SimArm`` is the true robot of the simulator; the Dynamixel backend is
@@ -29,9 +30,9 @@ class ArmBackend(Protocol):
 
     def read(self) -> tuple[np.ndarray, np.ndarray]: ...
 
-    def stop(self) -> None: ...
+    def stop(self) -> list[int]: ...
 
-    def close(self) -> None: ...
+    def close(self) -> list[int]: ...
 
 
 class SimArm:
@@ -117,14 +118,15 @@ class SimArm:
         prediction = predict(self.robot, self.true_joints()[None])
         return prediction.spots[0], prediction.hit[0]
 
-    def stop(self) -> None:
+    def stop(self) -> list[int]:
         self._advance()
         self.goal = self.q.copy()
         self.velocity[:] = 0.0
         self._stopped = True
+        return []
 
-    def close(self) -> None:
-        self.stop()
+    def close(self) -> list[int]:
+        return self.stop()
 
 
 def dynamixel_backend(port: str, baudrate: int, ids: Sequence[int], ticks_per_rad: Sequence[float],

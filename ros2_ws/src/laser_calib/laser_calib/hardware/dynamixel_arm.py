@@ -155,7 +155,10 @@ class DynamixelArm:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        self.close()
+        unconfirmed = self.close()
+        if unconfirmed:  # no caller to hand the ids to: said here
+            logger.error("Dynamixel close: servo(s) %s did not confirm torque off",
+                         ", ".join(map(str, unconfirmed)))
 
     def open(self) -> None:
         """Open the port, ping every servo, set the profile velocity and enable torque."""
@@ -203,34 +206,47 @@ class DynamixelArm:
         q = (ticks - self._zero_ticks) / self._ticks_per_rad
         return q, velocity_units * VELOCITY_UNIT / self._ticks_per_rad
 
-    def stop(self) -> None:
-        """Torque off on every servo, best effort: never raises, returns within about N packet timeouts."""
+    def stop(self) -> list[int]:
+        """Torque off on every servo, best effort: never raises (it runs on error paths and must
+        not mask the fault being reported), returns within about N * ATTEMPTS packet timeouts.
+        Returns the ids of the servos that did not confirm torque off, each after ATTEMPTS writes
+        (all of them when the bus could not be used): the caller reports them, since a servo that
+        may still hold torque is a safety matter, not a detail of the cleanup."""
         if not self._lock.acquire(timeout=STOP_LOCK_TIMEOUT):
             logger.error("Dynamixel stop: bus still busy after %.1f s; torque left as is", STOP_LOCK_TIMEOUT)
-            return
+            return list(self._ids)
         try:
             if not self._port.is_open:
-                return
+                return []
             # The lock means no exchange is in flight; one aborted by an exception may have left the SDK's
             # busy flag set, which would make every packet below fail with "port busy".
             self._port.is_using = False
             # One broadcast first: it reaches every servo that hears the bus, whatever its replies do.
             self._packet.write1ByteTxOnly(self._port, dxl.BROADCAST_ID, ADDR_TORQUE_ENABLE, 0)
-            for servo_id in self._ids:
-                result, _ = self._packet.write1ByteTxRx(self._port, servo_id, ADDR_TORQUE_ENABLE, 0)
-                if result != dxl.COMM_SUCCESS:
-                    logger.warning("Dynamixel stop: servo %d did not confirm torque off", servo_id)
-        except Exception as exc:  # stop() runs on error paths: it must not mask the fault being reported
+            return [servo_id for servo_id in self._ids if not self._torque_off(servo_id)]
+        except Exception as exc:
             logger.warning("Dynamixel stop failed: %s", exc)
+            return list(self._ids)
         finally:
             self._lock.release()
 
-    def close(self) -> None:
-        """Torque off (best effort) and release the port; idempotent."""
-        self.stop()
+    def _torque_off(self, servo_id: int) -> bool:
+        """Whether the servo confirmed torque off (a status packet) within ATTEMPTS writes: a
+        status packet lost to noise must not leave a servo reported as possibly live."""
+        for _ in range(ATTEMPTS):
+            result, _ = self._packet.write1ByteTxRx(self._port, servo_id, ADDR_TORQUE_ENABLE, 0)
+            if result == dxl.COMM_SUCCESS:
+                return True
+        return False
+
+    def close(self) -> list[int]:
+        """Torque off (best effort) and release the port; idempotent. The ids of the servos
+        that did not confirm torque off (stop())."""
+        unconfirmed = self.stop()
         with self._lock:
             if self._port.is_open:
                 self._port.closePort()
+        return unconfirmed
 
     def _require_open(self) -> None:
         if not self._port.is_open:

@@ -50,6 +50,16 @@ ROBOT_FILE = "robot.yaml"
 BAG_DIR = "bag"
 WORK_DIR = ".recording"
 TEST_SAMPLES_TOPIC = "/test_samples"
+# The arguments that define a session's pose plan and the sequencer's defaults of them
+# (session.yaml's ``plan``; see SessionDir.check_plan).
+PLAN_DEFAULTS = {"poses_file": "", "poses": 60, "test_poses": 0, "span": "whole", "seed": 0, "repeats": 0,
+                 "margin": 0.02}
+_GENERATED = re.compile(r"generated: (\d+) poses, span (\w+), seed (\d+), repeats (\d+)")
+
+
+def plan_value(name: str, value):
+    """A plan argument as recorded and compared: a pose file by its absolute path."""
+    return str(Path(value).resolve()) if name == "poses_file" and value else value
 
 
 def empty_samples(n_joints: int) -> Samples:
@@ -152,6 +162,34 @@ class SessionDir:
         robot = load_robot(self.path / ROBOT_FILE)
         poses = load_poses(self.path / POSES_FILE, robot)
         return robot, poses
+
+    def recorded_plan(self) -> dict:
+        """The plan arguments of the session's first start: session.yaml's ``plan``; for a
+        session started before it was recorded, what its pose description and test steps say."""
+        info = self.info() or {}
+        if isinstance(info.get("plan"), dict):
+            return info["plan"]
+        source = str(info.get("poses", ""))
+        generated = _GENERATED.fullmatch(source)
+        plan = ({"poses": int(generated[1]), "span": generated[2], "seed": int(generated[3]),
+                 "repeats": int(generated[4])} if generated else {"poses_file": source} if source else {})
+        return {**plan, "test_poses": int(info.get("test_poses", info.get("test_steps", 0)))}
+
+    def check_plan(self, given: dict) -> None:
+        """Refuse (InputError naming the folder, and each argument with its recorded and given
+        value) to resume with plan arguments other than the session's: its pose list is fixed by
+        what was measured, so another plan would be silently ignored (the held-out poses asked for
+        missing, say). A value equal to the recorded one passes (a resume re-runs the same
+        command), and so does the default: a launch cannot tell a default from an argument left
+        out, and resuming with only output_dir must keep working; the recorded plan is used."""
+        recorded = self.recorded_plan()
+        changed = [name for name in PLAN_DEFAULTS if name in given and name in recorded and
+                   plan_value(name, given[name]) not in (PLAN_DEFAULTS[name], recorded[name])]
+        if changed:
+            differences = "; ".join(f"{name} recorded {recorded[name]}, given {given[name]}" for name in changed)
+            raise InputError(str(self.path), f"holds a partial session whose pose plan is fixed by what was "
+                                             f"measured: {differences}; resume with the recorded values (or "
+                                             f"leave them out) or choose another output_dir")
 
     def check_robot(self, robot: Robot, label: str) -> None:
         """Refuse (InputError naming the folder and both robots) to resume with a robot

@@ -1,0 +1,106 @@
+"""A partial session is resumed on its own pose plan: plan arguments (poses, test_poses, seed,
+span, poses_file, ...) other than the recorded ones are refused in one line naming each with its
+recorded and given value (exit 2; run-session's graph and `ros2 launch` before any node starts),
+where they were silently ignored (a resume asked for 3 held-out poses ran the recorded plan).
+The same command, or the plan arguments left out, resumes; another estimate method is used, with
+a WARN line saying so."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from ros_harness import ROBOT, ros2_missing
+
+FIRST = ("poses:=15", "test_poses:=5", "span:=small")
+CHANGED = ("poses:=25", "test_poses:=3", "seed:=5", "span:=small")
+REFUSAL = ("holds a partial session whose pose plan is fixed by what was measured: poses recorded 15, given 25; "
+           "test_poses recorded 5, given 3; seed recorded 0, given 5; resume with the recorded values (or leave "
+           "them out) or choose another output_dir")
+
+
+def ros_params(*args: str) -> list[str]:
+    return [item for arg in args for item in ("-p", arg)]
+
+
+def partial_session(ros, out) -> None:
+    """A session started by the sequencer with FIRST's plan, nothing measured (no arm: exit 3)."""
+    ros.start("first", *ros_params(f"robot:={ROBOT}", f"output_dir:={out}", "wait_timeout:=1.0", *FIRST),
+              node="sequencer")
+    assert ros.wait_exit("first", 60) == 3, ros.log("first")
+
+
+def test_resume_with_another_plan_is_refused(ros, tmp_path):
+    out = tmp_path / "session"
+    partial_session(ros, out)
+    ros.start("changed", *ros_params(f"robot:={ROBOT}", f"output_dir:={out}", *CHANGED, "estimate.method:=ekf"),
+              node="sequencer")
+    assert ros.wait_exit("changed", 60) == 2, ros.log("changed")
+    log = ros.log("changed")
+    lines = [line for line in log.splitlines() if line.strip()]
+    assert lines[-1] == f"error: {out}: {REFUSAL}" and "Traceback" not in log, log
+    assert "resuming" not in log
+    # run-session's graph: the same line, before any node starts
+    result = ros.run([sys.executable, "-m", "laser_calib_nodes.graph", f"output_dir:={out}", *CHANGED,
+                      "method:=ekf"])
+    assert result.returncode == 2 and result.stderr == f"run-session: {out}: {REFUSAL}\n", result
+    assert not (out / "logs").exists()
+    # the same command, another method: resumed on the recorded plan, the method used said in a WARN;
+    # then the plan arguments left out (at their defaults): resumed on the recorded plan
+    for name, args in (("same", (*FIRST, "estimate.method:=ekf")), ("defaults", ())):
+        ros.start(name, *ros_params(f"robot:={ROBOT}", f"output_dir:={out}", "wait_timeout:=1.0", *args),
+                  node="sequencer")
+        assert ros.wait_exit(name, 60) == 3, ros.log(name)
+        assert f"resuming {out}: 0 of 20 poses already measured" in ros.log(name), ros.log(name)
+        assert "test_poses 5" in ros.log(name)
+    warnings = [line for line in ros.log("same").splitlines() if "WARN" in line]
+    assert len(warnings) == 1 and "estimate.method is ekf, the session's previous run used lm: this run uses ekf" \
+        in warnings[0], ros.log("same")
+
+
+def test_launch_resume_with_another_plan_is_refused_before_any_node_starts(ros, tmp_path):
+    if ros2_missing():
+        pytest.skip(ros2_missing())
+    out = tmp_path / "session"
+    partial_session(ros, out)
+    ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "session.launch.py", f"output_dir:={out}",
+                                 *CHANGED, "method:=ekf"])
+    assert ros.wait_exit("launch", 60) != 0
+    log = ros.log("launch")
+    assert "process started" not in log and "Traceback" not in log, log
+    errors = [line for line in log.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and f"{out}: {REFUSAL}" in errors[0], log
+
+
+def test_plan_of_a_session_recorded_before_the_plan_was(tmp_path):
+    """A session.yaml without 'plan' (older sessions): its pose description and test_poses say it."""
+    from laser_calib.io.errors import InputError
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.session.folder import SessionDir
+    from laser_calib.session.poses import generate_poses, with_test_poses
+    robot = load_robot(ROBOT)
+    session = SessionDir(tmp_path / "old")
+    session.start(robot, with_test_poses(generate_poses(robot, 15, "small", 0), robot, 5, 0),
+                  {"robot": str(ROBOT), "poses": "generated: 15 poses, span small, seed 0, repeats 0", "test_poses": 5})
+    assert session.recorded_plan() == {"poses": 15, "span": "small", "seed": 0, "repeats": 0, "test_poses": 5}
+    session.check_plan({"poses": 15, "test_poses": 0, "span": "whole", "seed": 0, "margin": 0.05})
+    with pytest.raises(InputError, match=r"test_poses recorded 5, given 3; resume with"):
+        session.check_plan({"poses": 15, "test_poses": 3})
+
+
+def test_launch_refuses_a_plan_argument_it_does_not_take(ros, tmp_path):
+    """hardware.launch.py takes no test_poses: `ros2 launch` dropped test_poses:=5 silently and
+    the session ran without held-out poses (what a resume then showed: 0 test poses)."""
+    if ros2_missing():
+        pytest.skip(ros2_missing())
+    ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py",
+                                 f"output_dir:={tmp_path / 'out'}", f"robot:={ROBOT}", f"calibration:={ROBOT}",
+                                 "test_poses:=5"])
+    assert ros.wait_exit("launch", 60) != 0
+    log = ros.log("launch")
+    assert "process started" not in log and "Traceback" not in log, log
+    errors = [line for line in log.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and "test_poses: not an argument of this launch file, it would be ignored" \
+        in errors[0], log
+    assert not (tmp_path / "out").exists()
