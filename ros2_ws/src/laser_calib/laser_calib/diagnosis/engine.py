@@ -48,7 +48,10 @@ model cannot carry (screen and lens effects without spots) are dropped. It runs:
    the specification test of the chosen form (specification.py: does any
    parameter of the final model vary with a covariate). "explained" when no
    test is significant at alpha, "structure remains" otherwise, with the
-   strongest test as evidence.
+   strongest test as evidence; "undetermined" instead of "explained" where the
+   level is untested and the poses are too few for the detector, where the data
+   cannot tell effects apart, or where measurements the geometric calibration
+   refused stay left out (verdict.with_left_out).
    With more than SELECTION_POSES poses the rounds run on that many (runs of
    consecutive poses spread over the session, selection_rows) and each stage
    is then refitted and cross-validated on all poses, warm from its fit there:
@@ -78,10 +81,10 @@ from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
 from laser_calib.diagnosis.result import Diagnosis, Stage
-from laser_calib.diagnosis.screening import screened, screened_again, taken_back_by_either
+from laser_calib.diagnosis.screening import Refused, misfits, screened, screened_again, taken_back_by_either
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
 from laser_calib.diagnosis.specification import covariate_table, drift_covariates, load_table, specification_tests
-from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise
+from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise, with_left_out
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
@@ -177,8 +180,17 @@ def run(data: Data, options: DiagnoseOptions, test: Data | None = None, notes: t
         final = selected(data, options, [], "selection with the refused units")[2][-1]
         again = taken_back_by_either(again, screened_again(data, final, diagnosis.noise, refused))
     if again is None:
-        return diagnosis
-    return diagnosed(data.without(again.units), options, test, notes + again.note(data, options), start)
+        return counted(data, diagnosis, refused)
+    return counted(data, diagnosed(data.without(again.units), options, test, notes + again.note(data, options),
+                                   start), again)
+
+
+def counted(data: Data, diagnosis: Diagnosis, refused: Refused) -> Diagnosis:
+    """The diagnosis whose verdict counts the rejected units its final model does not fit
+    (screening.misfits, verdict.with_left_out)."""
+    verdict, said = with_left_out(diagnosis.verdict, diagnosis.evidence,
+                                  misfits(data, diagnosis.final, diagnosis.noise, refused))
+    return replace(diagnosis, verdict=verdict, evidence=said)
 
 
 def diagnosed(data: Data, options: DiagnoseOptions, test: Data | None, notes: list[str], start: float) -> Diagnosis:

@@ -96,16 +96,30 @@ def screened_again(data: Data, final: Fitted, verdict_noise: NoiseInfo, refused:
     final model has no effect (the geometric model judged them already) or takes none back."""
     if not final.effects:
         return None
+    back = fitted(data, final, verdict_noise, refused)
+    if not back.any():
+        return None
+    return Refused(refused.rejected, refused.impossible, back, final.label)
+
+
+def fitted(data: Data, final: Fitted, verdict_noise: NoiseInfo, refused: Refused) -> np.ndarray:
+    """(P,C) the refused units that ``final`` fits within the robust rule's limit (screened_again)."""
     noise = NoiseModel(verdict_noise.spot_sigma, verdict_noise.joint_sigma)
     d2, valid, dims = distances_at(EffectModel(data.base(), final.effects), noise, final.estimate.values)
     refused_units = refused.rejected | refused.impossible
     kept = valid & ~refused_units
     scale2 = max(1.0, float(d2[kept].mean() / dims)) if kept.any() else 1.0
     limit = chdtri(dims, FAMILY_FALSE_REJECTION / max(int(valid.sum()), 1))
-    back = refused_units & valid & (d2 / scale2 <= limit)
-    if not back.any():
-        return None
-    return Refused(refused.rejected, refused.impossible, back, final.label)
+    return refused_units & valid & (d2 / scale2 <= limit)
+
+
+def misfits(data: Data, final: Fitted, verdict_noise: NoiseInfo, refused: Refused) -> int:
+    """How many units the geometric calibration rejected as gross outliers stay left out and
+    are beyond the limit of ``final`` too, under the verdict's noise model. Not those within
+    it: without a joint-reading sigma given, the geometric calibration's rule takes the joint
+    noise's share of a long lever's spot for an outlier (NO_JOINT_NOISE), which the
+    verdict's noise model holds."""
+    return int((refused.rejected & refused.units & ~fitted(data, final, verdict_noise, refused)).sum())
 
 
 def taken_back_by_either(first: Refused | None, second: Refused | None) -> Refused | None:

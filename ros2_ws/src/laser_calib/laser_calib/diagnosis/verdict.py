@@ -163,3 +163,16 @@ def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, n_poses: i
     return EXPLAINED, " ".join(parts)
 
 
+def with_left_out(verdict: str, evidence: str, left_out: int) -> tuple[str, str]:
+    """The verdict once the measurements left out of the diagnosis are counted: ``left_out``
+    units the geometric calibration rejected as gross outliers, which the final model does
+    not fit either (screening.misfits). "Explained" speaks of the measurements fitted; of those left out
+    the data cannot tell a wrong detection from structure the model lacks where they lie (a
+    link's sag or a leaning screen is largest at grazing beams, whose spots the robust rule
+    rejects), so "explained" becomes "undetermined"."""
+    if verdict != EXPLAINED or not left_out:
+        return verdict, evidence
+    return UNDETERMINED, (f"{evidence} Undetermined: the residual of the measurements fitted is explained, but "
+                          f"{left_out} measurement{'s' * (left_out > 1)} rejected as gross outliers, which the final "
+                          "model does not fit either, may be wrong detections or structure the model lacks where "
+                          "they lie (the notes list them).")
