@@ -4,7 +4,7 @@ effects bench builds its data, not the diagnosis (2026-12-03), run as written.
     .venv/bin/python bench/effects_probe3.py [--kinds ...] [--arms ...] [--seeds 11 12 13]
         [--given both spot] [--visible 400] [--name effects_probe3]
 
-Same diagnosis call as the effects bench (diagnose(..., DiagnoseOptions(nested=False)), spot and
+Same diagnosis call as the effects bench (effects_bench.case_diagnosis: no nested selection; spot and
 joint sigma given per --given). "true" is the test RMS of the geometric fit with the true effect
 known (effects_bench's true_offsets_rms for parameter-level kinds; for the spot-level ones the
 exact displacement is removed from the spots and the geometric model fitted: the same
@@ -40,8 +40,6 @@ import numpy as np
 
 import effects_bench as B
 import laser_calib.sim.effect_truth as ET
-from laser_calib.diagnosis.engine import diagnose
-from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.io.samples import Samples
@@ -272,10 +270,7 @@ def run_case(arm, kind, seed, given, visible):
     start = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        d = diagnose(session.nominal, session.cal, session.test,
-                     spot_sigma=NOISE.spot_sigma if given in ("both", "spot") else None,
-                     joint_sigma=NOISE.joint_sigma if given == "both" else None,
-                     options=DiagnoseOptions(nested=False))
+        d = B.case_diagnosis(session, given)
     elapsed = time.perf_counter() - start
     res = d.to_json()
     st = res["stages"]
