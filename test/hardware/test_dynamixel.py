@@ -278,3 +278,22 @@ def test_stop_returns_a_servo_that_never_confirms_torque_off(emulator: Dynamixel
     assert error is None and unconfirmed == [1]
     assert emulator.torque_enabled(1) and not emulator.torque_enabled(2) and not emulator.torque_enabled(3)
     assert torque_off_writes(emulator, 1) == ATTEMPTS
+
+
+def test_a_ctrl_c_while_torque_is_enabled_leaves_no_servo_on(emulator: DynamixelEmulator,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGINT lands in open() between servo 1's torque on and servo 2's: the caller never gets
+    the arm to close, so open() turns servo 1 off itself before the KeyboardInterrupt goes on."""
+    arm = DynamixelArm(arm_config(emulator.port))
+    write = arm._write
+
+    def interrupted(servo_id: int, address: int, length: int, value: int) -> None:
+        if servo_id == 2 and address == ADDR_TORQUE_ENABLE and value == 1:
+            assert emulator.torque_enabled(1)
+            raise KeyboardInterrupt
+        write(servo_id, address, length, value)
+
+    monkeypatch.setattr(arm, "_write", interrupted)
+    _, error = run_within(FAULT_DEADLINE, arm.open)
+    assert isinstance(error, KeyboardInterrupt)
+    assert not any(emulator.torque_enabled(i) for i in IDS)

@@ -161,7 +161,10 @@ class DynamixelArm:
                          ", ".join(map(str, unconfirmed)))
 
     def open(self) -> None:
-        """Open the port, ping every servo, set the profile velocity and enable torque."""
+        """Open the port, ping every servo, set the profile velocity and enable torque. A fault
+        stops the arm (_fail); anything else that ends it early (a Ctrl-C between two servos'
+        torque on) closes the arm first: the caller never gets it, so nobody else would turn
+        the torque of the servos already enabled off."""
         with self._lock:
             try:
                 # setBaudRate opens (or reopens) the port at that rate; False means an unsupported rate.
@@ -171,6 +174,19 @@ class DynamixelArm:
                     )
             except OSError as exc:
                 raise DynamixelError(f"Dynamixel port {self.config.port}: cannot open ({exc})") from exc
+        try:
+            self._enable()
+        except DynamixelError:
+            raise
+        except BaseException:
+            unconfirmed = self.close()
+            if unconfirmed:
+                logger.error("Dynamixel open interrupted: servo(s) %s did not confirm torque off",
+                             ", ".join(map(str, unconfirmed)))
+            raise
+
+    def _enable(self) -> None:
+        with self._lock:
             with self._io_errors():
                 for servo_id in self._ids:
                     self._ping(servo_id)
