@@ -162,14 +162,15 @@ def test_ctrl_c_twice(tmp_path):
 
 
 def test_a_failing_node_ends_the_launch_with_its_reason(tmp_path):
-    """A robot file the nodes cannot use (no joints): the first node to read it exits 2 with
-    the reason and the launch ends (exit 1) naming that node. (A robot file that does not
-    exist is refused before any node starts: test_nodes_input.py.)"""
+    """A parameter only the node checks (the estimator's sync_tolerance below 0, in the user's
+    parameter file): the node exits 2 with the reason and the launch ends (exit 1) naming it.
+    (A robot file that does not exist or does not load is refused before any node starts:
+    test_nodes_input.py.)"""
     ros = Ros(tmp_path)
-    broken = tmp_path / "broken.yaml"
-    broken.write_text("name: broken\n")
+    params = tmp_path / "params.yaml"
+    params.write_text("estimator:\n  ros__parameters:\n    sync_tolerance: -0.01\n")
     start = time.monotonic()
-    launch_session(ros, "launch", tmp_path / "session", f"robot:={broken}")
+    launch_session(ros, "launch", tmp_path / "session", f"params:={params}")
     try:
         code = ros.wait_exit("launch", 120)
     finally:
@@ -177,9 +178,9 @@ def test_a_failing_node_ends_the_launch_with_its_reason(tmp_path):
     log = ros.log("launch")
     seconds = time.monotonic() - start
     assert code == 1 and seconds < 120, log[-3000:]
-    reasons = [line for line in log.splitlines() if "error:" in line and str(broken) in line]
+    reasons = [line for line in log.splitlines() if "error: parameter sync_tolerance: expected >= 0, got -0.01" in line]
     assert reasons, log[-3000:]
-    assert re.search(r"\[ERROR\] \[launch\]: .*\w+ exited with code 2", log), log[-3000:]
+    assert re.search(r"\[ERROR\] \[launch\]: .*estimator\S* exited with code 2", log), log[-3000:]
     assert "Traceback" not in log, log[-4000:]
 
 
