@@ -155,10 +155,7 @@ class DynamixelArm:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        unconfirmed = self.close()
-        if unconfirmed:  # no caller to hand the ids to: said here
-            logger.error("Dynamixel close: servo(s) %s did not confirm torque off",
-                         ", ".join(map(str, unconfirmed)))
+        log_unconfirmed("close", self.close())
 
     def open(self) -> None:
         """Open the port, ping every servo, set the profile velocity and enable torque. A fault
@@ -179,10 +176,7 @@ class DynamixelArm:
         except DynamixelError:
             raise
         except BaseException:
-            unconfirmed = self.close()
-            if unconfirmed:
-                logger.error("Dynamixel open interrupted: servo(s) %s did not confirm torque off",
-                             ", ".join(map(str, unconfirmed)))
+            log_unconfirmed("open interrupted", self.close())
             raise
 
     def _enable(self) -> None:
@@ -366,3 +360,10 @@ class DynamixelArm:
 def _int32(data: bytes, offset: int) -> int:
     """The signed 4-byte little-endian register at ``offset`` of ``data``."""
     return int.from_bytes(data[offset : offset + 4], "little", signed=True)
+
+
+def log_unconfirmed(where: str, unconfirmed: list[int]) -> None:
+    """An ERROR line naming the servos that did not confirm torque off, where no caller is
+    handed their ids (the end of a with block, an open that never returned the arm)."""
+    if unconfirmed:
+        logger.error("Dynamixel %s: servo(s) %s did not confirm torque off", where, ", ".join(map(str, unconfirmed)))
