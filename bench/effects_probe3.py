@@ -32,7 +32,7 @@ import argparse
 import time
 import traceback
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from _common import write_results
 
@@ -40,12 +40,13 @@ import numpy as np
 
 import effects_bench as B
 import laser_calib.sim.effect_truth as ET
+from laser_calib.effects.base import move_directions
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.measurement.spot import SpotModel
-from laser_calib.model.kinematics import forward, predict
+from laser_calib.model.kinematics import forward, intersect, predict
 from laser_calib.model.robot import Robot
 
 NOISE, N_CAL, PERIOD = B.NOISE, B.N_CAL, B.PERIOD
@@ -54,21 +55,11 @@ _on, _span, _two, ForeignError = B._on, B._span, B._two, ET.ForeignError
 
 
 # ---------------------------------------------------------------- parameter-level kinds
-def _last_move_sign(q: np.ndarray) -> np.ndarray:
-    """Sign of q(row) - q(previous row), rows in order from q = 0; kept when |step| <= 1e-6."""
-    prev, sign, out = 0.0, 0.0, np.zeros(len(q))
-    for k, v in enumerate(q):
-        if abs(v - prev) > 1e-6:
-            sign = float(np.sign(v - prev))
-        out[k], prev = sign, v
-    return out
-
-
 def _lagged_temperature(stamps: np.ndarray, tau: float) -> np.ndarray:
-    """The effect_truth.temperature curve (noise-free) through a first-order lag, from t = 0."""
+    """The effect_truth.warmup curve (the temperature without its sensor noise) through a first-order lag,
+    from t = 0."""
     grid = np.linspace(0, DURATION, 4001)
-    phase = np.pi * grid / DURATION
-    t = 22.0 + 4.0 * np.sin(phase) + 1.0 * np.sin(3.0 * phase + 0.5)
+    t = ET.warmup(grid, DURATION)
     lag = np.empty_like(t)
     lag[0] = t[0]
     dt = grid[1] - grid[0]
@@ -99,7 +90,7 @@ def n_runout2(robot: Robot, rng) -> ForeignError:
 def n_cross_dir(robot: Robot, rng) -> ForeignError:
     i, j = _two(rng, robot.n_joints)
     return ForeignError(f"dq{i + 1} ~ sign(last move of q{j + 1})",
-                        lambda r, s: _on(r, 4 * i + 3, _last_move_sign(s.q[:, j])))
+                        lambda r, s: _on(r, 4 * i + 3, move_directions(s.q)[:, j]))
 
 
 def n_cyclic43(robot: Robot, rng) -> ForeignError:
@@ -142,7 +133,8 @@ class SpotForeign:
 
 
 def _reintersect(origin, beams, n_vec_fn):
-    """Spots (P,L,2) where beams from origin (P,3) meet the plane x = n . (y, z) (small tilt)."""
+    """Spots (P,L,2) where beams from origin (P,3) meet the plane x = n . (y, z) (small tilt;
+    kinematics.intersect for x = 0)."""
     p = origin[:, None, :]
     z = beams
     k = -p[..., 0] / z[..., 0]
@@ -160,7 +152,7 @@ def n_screen_lean(robot: Robot, rng) -> SpotForeign:
     def disp(r, c, spots):
         st = forward(r, c.q)
         theta = (c.stamp / DURATION - 0.5)[:, None]
-        flat = _reintersect(st.origin, st.beams, lambda yz: 0.0 * yz[..., 0])
+        flat = intersect(r, st).yz
         lean = _reintersect(st.origin, st.beams, lambda yz: theta * (np.cos(beta) * yz[..., 0] + np.sin(beta) * yz[..., 1]))
         return lean - flat
     return SpotForeign(f"screen leans in time along {np.degrees(beta):.0f} deg", disp)
@@ -186,9 +178,7 @@ def n_sag(robot: Robot, rng) -> SpotForeign:
         p2 = st.origin + delta + np.cross(omega, st.origin - b)
         z2 = st.beams + np.cross(omega[:, None, :], st.beams)
         z2 = z2 / np.linalg.norm(z2, axis=-1, keepdims=True)
-        flat = _reintersect(st.origin, st.beams, lambda yz: 0.0 * yz[..., 0])
-        bent = _reintersect(p2, z2, lambda yz: 0.0 * yz[..., 0])
-        return bent - flat
+        return intersect(r, replace(st, origin=p2, beams=z2)).yz - intersect(r, st).yz
     return SpotForeign(f"sag of link {i + 1} (after joint {i + 1}, L {lengths[i]:.2f} m)", disp)
 
 

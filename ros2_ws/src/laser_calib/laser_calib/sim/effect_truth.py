@@ -275,11 +275,16 @@ def true_offsets_rms(session: EffectSession, truth: ForeignError | ForeignJointE
     return fitted_test_rms(session, model, options)
 
 
-def temperature(stamps: np.ndarray, duration: float, rng: np.random.Generator) -> np.ndarray:
+def warmup(stamps: np.ndarray, duration: float) -> np.ndarray:
     """A warm-up and cool-down (deg C): rises and falls over the session, so it is
-    not a linear function of time; 0.05 deg C sensor noise."""
+    not a linear function of time."""
     phase = np.pi * stamps / duration
-    return 22.0 + 4.0 * np.sin(phase) + 1.0 * np.sin(3.0 * phase + 0.5) + rng.normal(0.0, 0.05, len(stamps))
+    return 22.0 + 4.0 * np.sin(phase) + 1.0 * np.sin(3.0 * phase + 0.5)
+
+
+def temperature(stamps: np.ndarray, duration: float, rng: np.random.Generator) -> np.ndarray:
+    """The warm-up read by a sensor with 0.05 deg C noise."""
+    return warmup(stamps, duration) + rng.normal(0.0, 0.05, len(stamps))
 
 
 def effect_session(case: str, seed: int,
