@@ -113,10 +113,13 @@ def finished_session(folder):
 
 
 def test_an_output_dir_that_cannot_be_written_is_refused_in_one_line(ros, tmp_path):
-    """An Estimate request whose output_dir cannot be made (under /proc, or an existing file), or
-    holds a finished session (whose results it replaced, the folder then disagreeing with itself):
-    success false, one line naming output_dir, no traceback, nothing in the session changed; the
-    node serves the next request."""
+    """An Estimate request whose output_dir cannot be made (under /proc, or an existing file),
+    holds a finished session (whose results it replaced, the folder then disagreeing with itself),
+    or is relative (it was resolved in the estimator's working directory, not the caller's):
+    success false, one line naming output_dir, no traceback, nothing in the session changed,
+    nothing written; the node serves the next request."""
+    from pathlib import Path
+
     from laser_calib.cli.main import main
 
     sim = tmp_path / "sim"
@@ -124,9 +127,10 @@ def test_an_output_dir_that_cannot_be_written_is_refused_in_one_line(ros, tmp_pa
     a_file = tmp_path / "a_file"
     a_file.write_text("not a folder\n")
     finished = finished_session(tmp_path / "finished")
+    relative = f"relative-{tmp_path.name}"  # the estimator runs in this process's working directory
     ros.start("estimator", "-p", f"robot:={sim / 'robot_nominal.yaml'}")
     for name, out_dir in (("proc", "/proc/nope"), ("file", str(a_file)), ("under_file", str(a_file / "report")),
-                          ("finished_session", str(finished))):
+                          ("finished_session", str(finished)), ("relative", relative)):
         out = ros.client("estimate-csv", str(sim / "case3_cal.csv"), out_dir)
         message = out["message"]
         assert out["success"] is False, (name, message)
@@ -134,6 +138,7 @@ def test_an_output_dir_that_cannot_be_written_is_refused_in_one_line(ros, tmp_pa
         assert "internal error" not in message, (name, message)
     assert sorted(p.name for p in finished.iterdir()) == ["result.json", "session.yaml"]
     assert (finished / "result.json").read_text() == "{}"
+    assert not (Path.cwd() / relative).exists()
     good = ros.client("estimate-csv", str(sim / "case3_cal.csv"), str(tmp_path / "report"))
     assert good["success"], good["message"]
     assert (tmp_path / "report" / "report.md").exists()

@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 import threading
 from dataclasses import replace
-from pathlib import Path
 
 from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -47,10 +46,11 @@ class CalibrateServer:
         with self.busy:
             try:
                 samples, source = node.request_samples(request)
+                output_dir = common.request_output_dir(request.output_dir)
                 options = estimate_options(request.method, request.spot_sigma or node.spot_sigma, request.prior,
                                            request.robust)
                 stage("estimate", 0.0)
-                outcome = run_calibration(node.robot, samples, options, request.output_dir or None,
+                outcome = run_calibration(node.robot, samples, options, output_dir,
                                           sources={"robot": node.robot_path, "samples": source,
                                                    "compensator": node.compensator_path},
                                           compensator=node.compensator)
@@ -60,8 +60,7 @@ class CalibrateServer:
                     return result
                 if request.diagnose:
                     stage("diagnosis", 0.5, outcome.message)
-                    diagnosis = run_diagnosis(node.robot, samples, options,
-                                              Path(request.output_dir) if request.output_dir else None)
+                    diagnosis = run_diagnosis(node.robot, samples, options, output_dir)
                     outcome = replace(outcome, diagnosis_json=json.dumps(diagnosis))
             except InputError as exc:
                 result.message = str(exc)

@@ -234,6 +234,18 @@ def wait_for_description(node: Node, topic: str, timeout: float) -> tuple[str, s
     return texts[0], name
 
 
+def request_output_dir(output_dir: str) -> Path | None:
+    """A request's output_dir (Estimate, Calibrate): None when empty; a relative one is refused
+    (InputError), since the node would resolve it in its own working directory, which the
+    caller, another process and perhaps another host, neither chose nor sees."""
+    if not output_dir:
+        return None
+    if not Path(output_dir).is_absolute():
+        raise InputError("output_dir", f"{output_dir!r} is relative; give an absolute path on a file "
+                                                "system the estimator sees")
+    return Path(output_dir)
+
+
 def log_warned(logger, warned: bool, message: str) -> None:
     """``message`` at WARN when ``warned`` (a summary holding an estimate's warnings), else INFO. Two call
     sites: rclpy pins the severity of each logging line, and one line logging at both raises
