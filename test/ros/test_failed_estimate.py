@@ -35,3 +35,22 @@ def test_a_fit_that_is_no_calibration_ends_the_session_with_status_4(ros, tmp_pa
     assert code == 4, log[-3000:]
     assert "estimate failed: " in log and f"its files are in {out}" in log and "Traceback" not in log, log[-3000:]
     assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
+
+
+def test_poses_whose_spots_are_not_seen_are_warned_of_and_kept(ros, tmp_path):
+    """A detector threshold no spot reaches: each pose's line is a WARN naming the lasers not
+    seen (it was INFO, '0/2 spots seen', easy to miss while the arm moves on), and every pose
+    is still written as measured; the estimate then has no spot to fit and says so."""
+    out = tmp_path / "out"
+    ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
+    ros.start("camera_sim")
+    ros.start("spot_detector", "-p", "min_peak_dn:=1000000.0")
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=3",
+              "-p", "test_poses:=0", "-p", "seed:=5", "-p", "estimate.mode:=local",
+              "-p", "estimate.diagnose:=false")
+    code = ros.wait_exit("sequencer", 240)
+    log = ros.log("sequencer")
+    assert code == 2 and "Traceback" not in log, log[-3000:]
+    warned = [line for line in log.splitlines() if "[WARN]" in line and "0/2 spots seen" in line]
+    assert len(warned) == 3 and all("laser 1 and laser 2 not seen" in line for line in warned), log[-3000:]
+    assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + 3

@@ -211,11 +211,16 @@ class Sequencer(Node):
                               msg, close_segment=True)
         self.session.append_sample(row, test)
         self.progress.step()
-        seen = int(np.sum(~np.isnan(row.spots[0]).any(axis=1)))
+        seen = ~np.isnan(row.spots[0]).any(axis=1)
         kind = ", test" if test else ""
-        self.get_logger().info(f"pose {self.progress.done}/{len(self.poses)} (id {pose_id}{kind}) "
-                               f"measured in {time.monotonic() - started:.1f} s, {collector.frames} frames, "
-                               f"{seen}/2 spots seen; {self.progress.line()}")
+        line = (f"pose {self.progress.done}/{len(self.poses)} (id {pose_id}{kind}) measured in "
+                f"{time.monotonic() - started:.1f} s, {collector.frames} frames, {int(seen.sum())}/2 spots seen")
+        if seen.all():
+            self.get_logger().info(f"{line}; {self.progress.line()}")
+        else:  # a lost spot is a fault of the setup (or a pose off the screen): worth a look while it is on
+            missing = " and ".join(f"laser {j + 1}" for j in np.flatnonzero(~seen))
+            self.get_logger().warning(f"{line}: {missing} not seen (occluded, off the screen, or below the "
+                                      f"spot_detector's min_peak_dn); kept as measured; {self.progress.line()}")
 
     def publish_progress(self, state: str, pose_id: int) -> None:
         msg = self.SessionProgress(state=state, pose=pose_id, total=len(self.poses))

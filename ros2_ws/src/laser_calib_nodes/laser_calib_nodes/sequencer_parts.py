@@ -205,6 +205,9 @@ def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
     end, path = node.end, node.session.path
     name = node.resolve_service_name(common.ESTIMATE_SERVICE)
     deadline = time.monotonic() + end.timeout
+    if not node.estimate_client.service_is_ready():  # else minutes of silence when no estimator runs
+        node.get_logger().info(f"waiting up to {end.timeout:g} s for the Estimate service on {name} "
+                               "(is the estimator running?)")
     while not node.estimate_client.wait_for_service(timeout_sec=0.5):
         if node.stopping.is_set():
             raise Stop()
