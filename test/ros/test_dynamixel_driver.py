@@ -1,7 +1,8 @@
 """arm_driver over the Dynamixel backend, against the Protocol 2.0 servo
 emulator on a pseudo-terminal (test/dynamixel_emulator.py): joint states,
 a goal reached, and a servo fault giving one log line, torque off, exit 1;
-a servo that never confirms torque off on shutdown: one ERROR line, exit 5."""
+a servo that never confirms torque off on shutdown: one ERROR line, exit 5; a Ctrl-C
+while the driver starts, after the servos' torque is on: torque off."""
 
 from __future__ import annotations
 
@@ -60,3 +61,33 @@ def test_torque_off_not_confirmed_on_shutdown_is_an_error(ros):
         assert len(errors) == 1 and "[ERROR]" in errors[0] and "[arm_driver]" in errors[0], log
         assert "servo 1 did not confirm torque off" in errors[0] and "Traceback" not in log, log
         assert emulator.torque_enabled(1) and not any(emulator.torque_enabled(i) for i in (2, 3, 4))
+
+
+
+STARTS_INTERRUPTED = """import sys, rclpy
+from laser_calib_nodes.arm_driver import ArmDriver
+def interrupted(*_args, **_kwargs):
+    raise KeyboardInterrupt
+ArmDriver.create_timer = interrupted  # the signal at that instant
+rclpy.init(args=sys.argv[1:])
+try:
+    ArmDriver()
+except KeyboardInterrupt:
+    print("interrupted")
+finally:
+    rclpy.shutdown()"""
+
+
+def test_a_ctrl_c_while_the_driver_starts_leaves_no_servo_on(ros):
+    """A stop signal between the backend's open (torque on) and the end of ArmDriver's constructor
+    (its publishers, subscription and timer): common.run never gets the node to close it, so the
+    constructor does. The signal is stood in for by the timer's creation raising KeyboardInterrupt."""
+    import sys
+
+    from dynamixel_emulator import DynamixelEmulator
+    with DynamixelEmulator(ids=(1, 2, 3, 4)) as emulator:
+        out = ros.run([sys.executable, "-c", STARTS_INTERRUPTED, "--ros-args", "-p", f"robot:={ROBOT_4DOF}",
+                       "-p", "backend:=dynamixel", "-p", f"dynamixel.port:={emulator.port}",
+                       "-p", "dynamixel.ids:=[1, 2, 3, 4]"], timeout=60)
+        assert out.stdout.strip() == "interrupted", out
+        assert [emulator.torque_enabled(i) for i in (1, 2, 3, 4)] == [False] * 4

@@ -129,11 +129,16 @@ class ArmDriver(Node):
         else:
             raise common.NodeError(f"parameter backend: expected 'sim' or 'dynamixel', got {backend!r}", 2)
 
-        self.state_pub = self.create_publisher(JointState, common.JOINT_STATES, common.STREAM_QOS)
-        self.create_subscription(JointTrajectory, common.JOINT_TRAJECTORY, self.on_trajectory, common.COMMAND_QOS)
-        self.timer = self.create_timer(1.0 / rate, self.on_timer)
-        self.exit_code = 0
-        self.get_logger().info(f"{backend} arm '{self.robot.name}', {n} joints, publishing at {rate:g} Hz")
+        try:
+            self.state_pub = self.create_publisher(JointState, common.JOINT_STATES, common.STREAM_QOS)
+            self.create_subscription(JointTrajectory, common.JOINT_TRAJECTORY, self.on_trajectory,
+                                     common.COMMAND_QOS)
+            self.timer = self.create_timer(1.0 / rate, self.on_timer)
+            self.exit_code = 0
+            self.get_logger().info(f"{backend} arm '{self.robot.name}', {n} joints, publishing at {rate:g} Hz")
+        except BaseException:  # a Ctrl-C included: common.run never gets this node to close the enabled arm
+            self.close()
+            raise
 
     def on_trajectory(self, msg: JointTrajectory) -> None:
         points = [TrajectoryPoint(list(p.positions), common.stamp_seconds(p.time_from_start),
