@@ -90,17 +90,35 @@ def test_plan_of_a_session_recorded_before_the_plan_was(tmp_path):
 
 
 def test_launch_refuses_a_plan_argument_it_does_not_take(ros, tmp_path):
-    """hardware.launch.py takes no test_poses: `ros2 launch` dropped test_poses:=5 silently and
-    the session ran without held-out poses (what a resume then showed: 0 test poses)."""
+    """A plan argument the launch file does not declare (repeats; test_poses on hardware.launch.py
+    until it took it): `ros2 launch` dropped test_poses:=5 silently and the session ran without
+    held-out poses (what a resume then showed: 0 test poses)."""
     if ros2_missing():
         pytest.skip(ros2_missing())
     ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py",
                                  f"output_dir:={tmp_path / 'out'}", f"robot:={ROBOT}", f"calibration:={ROBOT}",
-                                 "test_poses:=5"])
+                                 "repeats:=2"])
     assert ros.wait_exit("launch", 60) != 0
     log = ros.log("launch")
     assert "process started" not in log and "Traceback" not in log, log
     errors = [line for line in log.splitlines() if "ERROR" in line]
-    assert len(errors) == 1 and "test_poses: not an argument of this launch file, it would be ignored" \
+    assert len(errors) == 1 and "repeats: not an argument of this launch file, it would be ignored" \
         in errors[0], log
     assert not (tmp_path / "out").exists()
+
+
+HARDWARE_SEQUENCER = """import json, sys
+from laser_calib_nodes.graph import HARDWARE_ARGS, hardware_nodes
+values = {name: default for name, (default, _) in HARDWARE_ARGS.items()}
+values.update(output_dir=sys.argv[1], robot=sys.argv[2], calibration=sys.argv[2], test_poses="5", seed="3")
+print(json.dumps(hardware_nodes(values)[-1].params))"""
+
+
+def test_the_hardware_launch_takes_held_out_poses(ros, tmp_path):
+    """On a real arm the held-out poses are the report's before/after: hardware.launch.py's
+    test_poses (and the generator's span and seed) reach its sequencer."""
+    import json
+    out = ros.run([sys.executable, "-c", HARDWARE_SEQUENCER, str(tmp_path / "out"), str(ROBOT)])
+    assert out.returncode == 0, out
+    params = json.loads(out.stdout)
+    assert (params["test_poses"], params["seed"], params["span"]) == (5, 3, "whole"), params

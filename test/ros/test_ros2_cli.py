@@ -25,7 +25,7 @@ POSES = 10
 LAUNCH = ["ros2", "launch", "laser_calib_nodes", "session.launch.py"]
 SKIPPED = f"diagnosis skipped: {POSES} poses, at least 12 needed"
 SESSION_SECONDS = 300  # a 10-pose session, seen 30 s on a busy 2-core machine
-STOP_SECONDS = 30      # Ctrl-C to the end of the launch (launch escalates to SIGTERM after 5 s)
+STOP_SECONDS = 30      # Ctrl-C to the end of the launch (launch escalates to SIGTERM after graph.STOP_SECONDS)
 
 
 @pytest.fixture(scope="module", autouse=True)

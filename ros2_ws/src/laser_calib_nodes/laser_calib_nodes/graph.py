@@ -35,10 +35,15 @@ from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
 from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir
 from laser_calib.session.lock import SessionLock
+from laser_calib_nodes.shutdown import GRACE
 
 PACKAGE = "laser_calib_nodes"
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
-STOP_SECONDS = 5.0    # from SIGINT to SIGKILL when stopping the nodes
+# From SIGINT to SIGKILL (run-session), to SIGTERM (launch, then SIGKILL 5 s later) when stopping
+# the nodes: after the nodes' own bound (shutdown.GRACE), so that a node's cleanup (its files) is
+# never cut and a slow middleware teardown ends with the node's code and its warning, not with
+# "process has died [exit code -9]" (launch's default escalates after 5 s).
+STOP_SECONDS = GRACE + 5.0
 
 
 def share(*parts: str) -> str:
@@ -79,6 +84,9 @@ HARDWARE_ARGS = {
     "image": ("/camera/image_raw", "Camera image topic."),
     "poses_file": ("", "Pose list; empty: generate."),
     "poses": ("60", "Poses to generate."),
+    "test_poses": SESSION_ARGS["test_poses"],
+    "span": SESSION_ARGS["span"],
+    "seed": SESSION_ARGS["seed"],
     "params": (share("config", "session.yaml"), "ROS parameter file of the other nodes."),
 }
 
@@ -168,7 +176,8 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
     files = (values["params"],)
     robot = robot_params(values)
     sequencer = dict(robot, output_dir=values["output_dir"], poses_file=values["poses_file"],
-                     poses=integer(values, "poses"))
+                     poses=integer(values, "poses"), test_poses=integer(values, "test_poses"), span=values["span"],
+                     seed=integer(values, "seed"))
     return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", (values["arm_params"],), robot),
             NodeSpec("spot_detector", files, {"calibration": values["calibration"]},
                      (("camera/image_raw", values["image"]),)),
@@ -239,7 +248,7 @@ def launch_actions(specs: list[NodeSpec]) -> list:
     for spec in specs:
         node = Node(package=PACKAGE, executable=spec.executable, name=spec.executable, output="screen",
                     parameters=[*spec.param_files, spec.params], remappings=list(spec.remaps),
-                    additional_env=env)
+                    additional_env=env, sigterm_timeout=str(STOP_SECONDS))
         actions += [node, RegisterEventHandler(OnProcessExit(
             target_action=node, on_exit=lambda event, context, name=spec.executable, last=spec is specs[-1]:
             ended(event, context, name, last)))]
@@ -249,7 +258,7 @@ def launch_actions(specs: list[NodeSpec]) -> list:
 def refuse_ignored_plan_arguments(argv: list[str], spec: dict) -> None:
     """Refuse a pose plan argument (name:=value on the command line) that spec does not take:
     `ros2 launch` drops an undeclared argument silently, so hardware.launch.py test_poses:=5
-    measured a session without the held-out poses asked for. Only plan arguments: argv also
+    (before it took test_poses) measured a session without the held-out poses asked for. Only plan arguments: argv also
     holds those of a launch file that includes this one."""
     for item in argv:
         name = item.partition(":=")[0]

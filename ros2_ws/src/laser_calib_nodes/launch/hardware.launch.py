@@ -1,9 +1,10 @@
 """A calibration session on a real arm: Dynamixel arm_driver, spot_detector on a
-camera driver's image topic, estimator and sequencer.
+camera driver's image topic, estimator and sequencer. ``test_poses`` held-out poses over
+the whole workspace are measured last and never fitted: the report's before/after.
 
     ros2 launch laser_calib_nodes hardware.launch.py robot:=/path/arm.yaml \
         arm_params:=/path/dynamixel_arm.yaml calibration:=/path/screen_calibration.yaml \
-        output_dir:=/data/session image:=/camera/image_raw
+        output_dir:=/data/session image:=/camera/image_raw test_poses:=20
 
 With ``robot_description_topic:=/robot_description`` the arm's URDF comes from
 robot_state_publisher and ``robot`` is the file of base, tip and lasers
