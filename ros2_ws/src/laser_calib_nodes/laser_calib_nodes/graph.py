@@ -33,7 +33,7 @@ from ament_index_python.packages import get_package_prefix, get_package_share_di
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
-from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir
+from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, refuse_finished
 from laser_calib.session.lock import SessionLock
 from laser_calib_nodes.shutdown import GRACE
 
@@ -203,9 +203,8 @@ def take_folder(output_dir: str, values: dict | None = None) -> None:
     lock.acquire()
     session = SessionDir(output_dir)
     try:
+        refuse_finished(output_dir, "output_dir")
         state = session.state()
-        if state == "finished":
-            raise InputError(output_dir, "holds a finished session; choose another output_dir")
         if state == "partial" and values and values.get("robot") and not values.get("robot_description_topic"):
             session.check_robot(load_robot(values["robot"]), values["robot"])
         if state == "partial" and values:

@@ -20,7 +20,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot_file import load_robot
 from laser_calib.report import truth
-from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, plan_value
+from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, plan_value, refuse_finished
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import generate_poses, load_poses, with_test_poses
 
@@ -63,9 +63,8 @@ def open_session(node):
     session = SessionDir(Path(output_dir).resolve())
     lock = SessionLock(session.path)
     lock.acquire()
+    refuse_finished(session.path, "output_dir")
     state = session.state()
-    if state == "finished":
-        raise common.NodeError(f"{session.path} holds a finished session; choose another output_dir", 2)
     if state == "partial" and resume == "no":
         raise common.NodeError(f"{session.path} holds a partial session and resume is 'no'", 2)
     if state == "new" and resume == "yes":
