@@ -39,8 +39,9 @@ def test_a_fit_that_is_no_calibration_ends_the_session_with_status_4(ros, tmp_pa
 
 def test_poses_whose_spots_are_not_seen_are_warned_of_and_kept(ros, tmp_path):
     """A detector threshold no spot reaches: each pose's line is a WARN naming the lasers not
-    seen (it was INFO, '0/2 spots seen', easy to miss while the arm moves on), and every pose
-    is still written as measured; the estimate then has no spot to fit and says so."""
+    seen (it was INFO, '0/2 spots seen', easy to miss while the arm moves on), so is the session's
+    summary line, and every pose is still written as measured; the estimate then has no spot to
+    fit and says so."""
     out = tmp_path / "out"
     ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
     ros.start("camera_sim")
@@ -53,4 +54,6 @@ def test_poses_whose_spots_are_not_seen_are_warned_of_and_kept(ros, tmp_path):
     assert code == 2 and "Traceback" not in log, log[-3000:]
     warned = [line for line in log.splitlines() if "[WARN]" in line and "0/2 spots seen" in line]
     assert len(warned) == 3 and all("laser 1 and laser 2 not seen" in line for line in warned), log[-3000:]
+    assert "[WARN]" in log and "all 3 poses measured;" in log and "; 6 of 6 spots of the poses to fit were not seen" \
+        in log, log[-3000:]
     assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + 3

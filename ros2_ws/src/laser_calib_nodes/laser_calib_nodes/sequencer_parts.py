@@ -161,8 +161,13 @@ def finish(node) -> None:
     node.recorder.rotate()
     session, end, log = node.session, node.end, node.get_logger()
     samples = session.samples(None)
-    log.info(f"all {len(node.poses)} poses measured; samples in {session.path / 'samples.csv'}, "
-             f"bag in {session.bag_dir}")
+    measured = f"all {len(node.poses)} poses measured; samples in {session.path / 'samples.csv'}, bag in " \
+               f"{session.bag_dir}"
+    lost = int(np.isnan(samples.spots).any(axis=2).sum())  # spots (P,2,2) of the poses to fit
+    if lost:
+        log.warning(f"{measured}; {lost} of {2 * len(samples)} spots of the poses to fit were not seen")
+    else:
+        log.info(measured)
     if end.mode != "none":
         node.publish_progress("estimating", -1)
         if end.mode == "local":
