@@ -65,5 +65,7 @@ def test_sequencer_records_a_best_effort_camera(ros, tmp_path):
         assert run_camera(ros, "bgr8", "0", "30", qos, "3")["published"] == 3
     assert ros.stop("sequencer") == 0, ros.log("sequencer")
     topics = bag_topics(out / "bag")
-    assert topics["/camera/camera_info"][1] == 6, topics
+    # the 3 reliable ones, once each, and the best-effort ones, of which one may be lost on a loaded
+    # machine (seen with two other jobs on the 2 cores: 5 camera_info, and that is best effort's contract)
+    assert 4 <= topics["/camera/camera_info"][1] <= 6, topics
     assert 4 <= topics["/camera/image_raw"][1] <= 6, topics  # a best-effort 4 MB frame may be lost
