@@ -71,16 +71,20 @@ def test_ekf_reaches_the_lm_minimum():
     assert ekf.fit.cost == pytest.approx(lm.fit.cost, rel=1e-6)
 
 
-def test_paper_ekf_settings_converge():
-    """Q = R = 1e-4 I, stop below 1e-7: the fixed point is the least-squares one."""
+@pytest.mark.parametrize("given", [{}, {"prior": True}, {"spot_sigma": None}, {"spot_sigma": None, "prior": True}])
+def test_paper_ekf_settings_reach_the_lm_minimum(given):
+    """Q = R = 1e-4 I, stop below 1e-7: the fixed point is LM's, with joint noise, with the prior
+    and with the spot sigma estimated. R scales the whole noise model (ekf.filter_noise): R as
+    the spot sigma alone (10 mm, the joint noise kept) was another weighting of the spots, and,
+    with a prior, of the data against it; its point was LM's at a spot sigma of 10 mm."""
     session = paper_session("paper-4dof", 2)
-    est = estimate(session.nominal, session.samples, _options(session, method="ekf"))
-    # R = 1e-4 I is a spot sigma of 10 mm; the joint noise is kept in both
-    lm = estimate(session.nominal, session.samples,
-                  EstimateOptions(spot_sigma=0.01, joint_sigma=session.noise.joint_sigma))
+    options = replace(_options(session), **given)
+    est = estimate(session.nominal, session.samples, replace(options, method="ekf"))
+    lm = estimate(session.nominal, session.samples, options)
     assert est.fit.converged and est.fit.iterations < 5000
     # Converging linearly, the last 1e-7 step leaves more than 1e-7 to go: compare in std units.
     assert np.all(np.abs(est.errors - lm.errors)[lm.identifiable] < 0.05 * lm.std[lm.identifiable])
+    assert est.fit.chi2 == pytest.approx(lm.fit.chi2, rel=1e-3)
 
 
 def test_prior_adds_its_information():
