@@ -77,11 +77,14 @@ class PlanOptions:
 @dataclass(frozen=True)
 class Plan:
     """q (n,N) the chosen joint readings, rad; log_det of their information
-    (identifiable errors, scaled); free (n_params,) the errors in the criterion."""
+    (identifiable errors, scaled); free (n_params,) the errors in the criterion;
+    determined: how many of those the chosen poses alone determine (the criterion's
+    small prior makes log_det finite with fewer poses than errors)."""
 
     q: np.ndarray
     log_det: float
     free: np.ndarray
+    determined: int
 
 
 def candidate_poses(robot: Robot, count: int, rng: np.random.Generator, margin: float,
@@ -249,4 +252,5 @@ def plan(robot: Robot, options: PlanOptions, progress: ProgressCallback | None =
     factor = np.linalg.qr(g.reshape(-1, robot.n_params), mode="r")
     ident = analyse(factor, np.ones(robot.n_params), robot.param_names)
     index, log_det = d_optimal(np.ascontiguousarray(g[:, :, ident.free]), options.n, options.passes, progress)
-    return Plan(q[index], log_det, ident.free)
+    chosen = analyse(g[index].reshape(-1, robot.n_params), np.ones(robot.n_params), robot.param_names, ~ident.free)
+    return Plan(q[index], log_det, ident.free, chosen.rank)

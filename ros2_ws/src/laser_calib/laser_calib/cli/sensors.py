@@ -320,8 +320,13 @@ def cmd_plan(args: argparse.Namespace) -> int:
     with Progress("plan", unit="pose") as progress:
         result = plan(robot, options, progress)
     Path(args.out).write_text(format_poses(result.q))
+    identifiable = int(result.free.sum())
     print(f"wrote {args.out}: {args.n} poses of {robot.name} (D-optimal, log det {result.log_det:.2f} over "
-          f"{int(result.free.sum())} identifiable errors)")
+          f"{identifiable} identifiable errors; these poses determine {result.determined} of them)")
+    if result.determined < identifiable:
+        print_warnings([f"{args.n} poses give {4 * args.n} values and determine {result.determined} of the "
+                        f"{identifiable} errors: a calibration from them would hold the others at nominal; plan "
+                        f"more poses (beyond {-(-identifiable // 4)}, which would fit them exactly, untested)"])
     return 0
 
 
