@@ -233,6 +233,17 @@ def test_open_with_silent_servo_fails_fast(emulator: DynamixelEmulator) -> None:
     assert isinstance(error, DynamixelError) and "servo 3: ping failed: no answer" in str(error)
 
 
+def test_a_second_driver_on_the_same_port_is_refused(emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    """A second session on the bus wrecked the first (its packets interleaved: 'arm not settled',
+    a serial I/O error); now its open is refused, naming the port, and the first arm goes on."""
+    second = DynamixelArm(arm_config(emulator.port))
+    _, error = run_within(FAULT_DEADLINE, second.__enter__)
+    assert isinstance(error, DynamixelError) and "in use by another process" in str(error), error
+    assert emulator.port in str(error)
+    q, _ = arm.read()
+    assert q.shape == (len(IDS),) and emulator.torque_enabled(1)
+
+
 def test_bus_gone_raises_and_stop_never_raises(emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
     emulator.close()
     _, error = run_within(FAULT_DEADLINE, arm.read)

@@ -17,6 +17,7 @@ dead servo shows up on the next ``read()``, not on ``command()``.
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import termios
 import threading
@@ -171,6 +172,7 @@ class DynamixelArm:
                     )
             except OSError as exc:
                 raise DynamixelError(f"Dynamixel port {self.config.port}: cannot open ({exc})") from exc
+            self._claim_port()
         try:
             self._enable()
         except DynamixelError:
@@ -178,6 +180,18 @@ class DynamixelArm:
         except BaseException:
             log_unconfirmed("open interrupted", self.close())
             raise
+
+    def _claim_port(self) -> None:
+        """An exclusive lock on the open port (flock, as pyserial's exclusive=True takes it): a second
+        driver on the bus interleaved its packets with the first's and both sessions failed, one with
+        'arm not settled', a cause that blamed the arm. The kernel releases it when the process ends."""
+        try:
+            fcntl.flock(self._port.ser.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._port.closePort()
+            raise DynamixelError(f"Dynamixel port {self.config.port}: in use by another process (another "
+                                 "arm_driver or session on this bus?); two drivers on one bus corrupt each other's "
+                                 "packets") from None
 
     def _enable(self) -> None:
         with self._lock:
