@@ -97,7 +97,7 @@ def test_launch_refuses_a_plan_argument_it_does_not_take(ros, tmp_path):
         pytest.skip(ros2_missing())
     ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py",
                                  f"output_dir:={tmp_path / 'out'}", f"robot:={ROBOT}", f"calibration:={ROBOT}",
-                                 "repeats:=2"])
+                                 "repeats:=2"])  # refused before the files are read
     assert ros.wait_exit("launch", 60) != 0
     log = ros.log("launch")
     assert "process started" not in log and "Traceback" not in log, log
@@ -107,18 +107,43 @@ def test_launch_refuses_a_plan_argument_it_does_not_take(ros, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-HARDWARE_SEQUENCER = """import json, sys
+HARDWARE_GRAPH = """import json, sys
+from laser_calib.io.errors import InputError
 from laser_calib_nodes.graph import HARDWARE_ARGS, hardware_nodes
 values = {name: default for name, (default, _) in HARDWARE_ARGS.items()}
-values.update(output_dir=sys.argv[1], robot=sys.argv[2], calibration=sys.argv[2], test_poses="5", seed="3")
-print(json.dumps(hardware_nodes(values)[-1].params))"""
+values.update(dict(item.split("=", 1) for item in sys.argv[1:]), test_poses="5", seed="3")
+try:
+    print(json.dumps({spec.executable: spec.params for spec in hardware_nodes(values)}))
+except InputError as exc:
+    print(f"refused: {exc}")"""
 
 
-def test_the_hardware_launch_takes_held_out_poses(ros, tmp_path):
+def test_the_hardware_graph_takes_held_out_poses_and_refuses_files_it_would_misread(ros, tmp_path):
     """On a real arm the held-out poses are the report's before/after: hardware.launch.py's
-    test_poses (and the generator's span and seed) reach its sequencer."""
+    test_poses (and the generator's span and seed) reach its sequencer. The arm_driver runs the
+    Dynamixel backend whatever its file says: an arm file keyed 'arm:' (which ROS does not give
+    the node) ran the simulated arm, a session measured by nobody; such a file, and a screen
+    calibration that is not YAML (a 9-line parser dump, after the arm's torque was on), are
+    refused in one line before any node starts."""
     import json
-    out = ros.run([sys.executable, "-c", HARDWARE_SEQUENCER, str(tmp_path / "out"), str(ROBOT)])
-    assert out.returncode == 0, out
-    params = json.loads(out.stdout)
-    assert (params["test_poses"], params["seed"], params["span"]) == (5, 3, "whole"), params
+    from laser_calib.vision.camera import default_camera, save_calibration
+    save_calibration(default_camera().ideal_calibration(), tmp_path / "screen.yaml")
+    (tmp_path / "arm.yaml").write_text("arm:\n  ros__parameters:\n    dynamixel.ids: [1, 2, 3, 4]\n")
+    (tmp_path / "broken.yaml").write_text("fx: [1, 2\nfy: 3\n")
+
+    def graph(**files):
+        given = {"output_dir": str(tmp_path / "out"), "robot": str(ROBOT), "calibration": str(tmp_path / "screen.yaml"),
+                 **files}
+        out = ros.run([sys.executable, "-c", HARDWARE_GRAPH, *(f"{k}={v}" for k, v in given.items())])
+        assert out.returncode == 0, out
+        return out.stdout.strip()
+
+    params = json.loads(graph())
+    assert (params["sequencer"]["test_poses"], params["sequencer"]["seed"], params["sequencer"]["span"]) == \
+        (5, 3, "whole"), params
+    assert params["arm_driver"]["backend"] == "dynamixel", params
+    assert graph(arm_params=tmp_path / "arm.yaml") == (
+        f"refused: arm_params: {tmp_path / 'arm.yaml'} has no 'arm_driver: ros__parameters:' section (its top-level "
+        "keys: arm): the arm_driver would take none of it")
+    assert graph(calibration=tmp_path / "broken.yaml") == (
+        f"refused: {tmp_path / 'broken.yaml'}: line 2: not valid YAML (expected ',' or ']', but got ':')")

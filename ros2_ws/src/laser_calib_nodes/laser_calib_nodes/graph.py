@@ -169,16 +169,40 @@ def session_nodes(values: dict) -> list[NodeSpec]:
             NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)]
 
 
+def arm_section(path: str) -> None:
+    """Refuse (InputError naming arm_params) a parameter file with no section the arm_driver
+    reads: ROS takes nothing from it, and the driver ran on its defaults (a file keyed 'arm:'
+    gave a session whose servos never had torque, 'measured' by nobody)."""
+    from laser_calib.io.read import load_yaml
+
+    with open(path, encoding="utf-8") as handle:
+        data = load_yaml(handle.read(), path)
+    sections = [key for key in (data if isinstance(data, dict) else {})
+                if key in ("arm_driver", "/arm_driver", "/**") and isinstance(data[key], dict)
+                and "ros__parameters" in data[key]]
+    if not sections:
+        keys = ", ".join(map(str, data)) if isinstance(data, dict) and data else "none"
+        raise InputError("arm_params", f"{path} has no 'arm_driver: ros__parameters:' section (its top-level keys: "
+                                       f"{keys}): the arm_driver would take none of it")
+
+
 def hardware_nodes(values: dict) -> list[NodeSpec]:
-    """A real arm (arm_driver on Dynamixel) and a camera driver of the user's; the sequencer last."""
+    """A real arm (arm_driver on Dynamixel) and a camera driver of the user's; the sequencer last.
+    The backend is given here, not left to the arm file: with a file the driver does not read,
+    the sim backend's default ran."""
     existing_files(values, "params", "robot", "arm_params", "calibration", "poses_file")
     loadable_robot(values)
+    arm_section(values["arm_params"])
+    from laser_calib.vision.camera import load_calibration  # OpenCV: only for this graph
+
+    load_calibration(values["calibration"])  # bad YAML now, not after the arm's torque is on
     files = (values["params"],)
     robot = robot_params(values)
     sequencer = dict(robot, output_dir=values["output_dir"], poses_file=values["poses_file"],
                      poses=integer(values, "poses"), test_poses=integer(values, "test_poses"), span=values["span"],
                      seed=integer(values, "seed"))
-    return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", (values["arm_params"],), robot),
+    return [NodeSpec("estimator", files, robot),
+            NodeSpec("arm_driver", (values["arm_params"],), dict(robot, backend="dynamixel")),
             NodeSpec("spot_detector", files, {"calibration": values["calibration"]},
                      (("camera/image_raw", values["image"]),)),
             NodeSpec("sequencer", files, sequencer)]

@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.read import load_yaml
 
 
 def _frozen_array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -209,7 +210,8 @@ def save_calibration(calibration: ScreenCalibration, path: str | Path) -> None:
 def load_calibration(path: str | Path) -> ScreenCalibration:
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as error:
+        text = path.read_text()
+    except OSError as error:
         raise InputError(str(path), f"cannot read: {error}") from None
-    return calibration_from_dict(data, str(path))
+    # one line naming the file and line (yaml's own message is a multi-line dump of '<unicode string>')
+    return calibration_from_dict(load_yaml(text, str(path)), str(path))
