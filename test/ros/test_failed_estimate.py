@@ -57,3 +57,28 @@ def test_poses_whose_spots_are_not_seen_are_warned_of_and_kept(ros, tmp_path):
     assert "[WARN]" in log and "all 3 poses measured;" in log and "; 6 of 6 spots of the poses to fit were not seen" \
         in log, log[-3000:]
     assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + 3
+
+
+def test_a_pose_that_fails_is_named_as_its_progress_line_would(ros, tmp_path):
+    """The camera stops after two poses: the third fails with exit 3, named 'pose 3/N (id ...)' as
+    the progress lines count (it said 'pose 2 (step 3)' after 'pose 2/N (id 1) measured', so the
+    user took the second pose for the failed one); the two measured poses are kept."""
+    import re
+    import time
+    out = tmp_path / "out"
+    ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
+    ros.start("camera_sim")
+    ros.start("spot_detector")
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=6",
+              "-p", "test_poses:=0", "-p", "estimate.mode:=none", "-p", "frame_timeout:=3.0")
+    deadline = time.monotonic() + 240
+    while ros.log("sequencer").count(" measured in ") < 2:
+        assert ros.procs["sequencer"].poll() is None and time.monotonic() < deadline, ros.log("sequencer")[-3000:]
+        time.sleep(0.05)
+    ros.stop("camera_sim")
+    assert ros.wait_exit("sequencer", 120) == 3, ros.log("sequencer")[-3000:]
+    log = ros.log("sequencer")
+    measured = re.findall(r"pose (\d+)/6 \(id \d+\) measured in", log)
+    failed = re.findall(r"pose (\d+)/6 \(id \d+\): fewer than 3 spot frames", log)
+    assert failed == [str(len(measured) + 1)], log[-3000:]
+    assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + len(measured)

@@ -189,7 +189,7 @@ class Sequencer(Node):
             self.settle = SettleDetector(goal, self.settle_rule, common.now_ns(self) * 1e-9)
             self.collector = None
         self.recorder.publish(self.traj_pub, common.JOINT_TRAJECTORY, traj)
-        where = f"pose {pose_id} (step {step + 1})"
+        where = f"pose {self.progress.done + 1}/{len(self.poses)} (id {pose_id})"  # as its progress line will say
         try:
             self.wait(lambda: self.collector is not None, self.settle_timeout,
                       lambda: f"{where}: arm not settled after {self.settle_timeout:g} s "
