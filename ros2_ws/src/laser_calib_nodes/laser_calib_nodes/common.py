@@ -246,6 +246,17 @@ def request_output_dir(output_dir: str) -> Path | None:
     return Path(output_dir)
 
 
+def warn_undeclared(node: Node) -> None:
+    """One WARN line naming the parameters given to the node (file, -p) that it does not declare:
+    ROS drops them silently, so a misspelt key ran on the default (dynamixel.zero_tick left every
+    servo's zero at 2048 ticks). rclpy keeps the overrides only privately, hence the attribute."""
+    given = getattr(node, "_parameter_overrides", {})
+    unknown = sorted(name for name in given if not node.has_parameter(name))
+    if unknown:
+        node.get_logger().warning(f"parameters given that {node.get_name()} does not take, ignored (misspelt, or "
+                                  f"another node's?): {', '.join(unknown)}")
+
+
 def log_warned(logger, warned: bool, message: str) -> None:
     """``message`` at WARN when ``warned`` (a summary holding an estimate's warnings), else INFO. Two call
     sites: rclpy pins the severity of each logging line, and one line logging at both raises
@@ -323,6 +334,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     code = 0
     try:
         node = make_node()
+        warn_undeclared(node)
         executor = make_executor() if make_executor else SingleThreadedExecutor()
         executor.add_node(node)
         if until is None:
