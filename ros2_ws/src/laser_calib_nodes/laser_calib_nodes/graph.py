@@ -261,7 +261,12 @@ def launch_actions(specs: list[NodeSpec]) -> list:
     from launch.events import Shutdown
     from launch_ros.actions import Node
 
-    def ended(event, _context, executable: str, last: bool):
+    def ended(event, context, executable: str, last: bool):
+        # A node the Ctrl-C reached inside Python's own start (its entry script's package lookup,
+        # before laser_calib_nodes put its handler in) dies of the SIGINT (-2), having opened
+        # nothing: that is the stop asked for, not a failure (it was "Caught exception", exit 1).
+        if event.returncode == -signal.SIGINT and context.is_shutdown:
+            return None
         if event.returncode != 0:
             raise RuntimeError(f"{executable} exited with code {event.returncode}")
         return [EmitEvent(event=Shutdown(reason="session finished" if last else f"{executable} exited"))]
