@@ -140,3 +140,23 @@ def test_the_warning_reaches_the_console_and_result_json(tmp_path, capsys):
     assert code == 3 and said == [f"{file}: joint columns {columns}" for file in (path, tmp_path / "test.csv")]
     warnings = json.loads((tmp_path / "out" / "result.json").read_text())["warnings"]
     assert [w for w in warnings if "joint column" in w] == said
+
+
+def test_swapped_joint_columns_are_no_calibration(tmp_path, capsys):
+    """The real file with its shoulder_lift_joint and elbow_joint headers swapped, as a user's
+    export could: the fit took it up as a 93-scale (93 degree) shoulder offset and wrote the
+    URDF with exit 0 under an 'implausible' warning (15.8 mm RMS in-sample, under the 10 mm per
+    value of fit_failures). No manufacturing error is that large: NOT A CALIBRATION, exit 3."""
+    lines = (UR10E / "calibration.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    a, b = header.index("shoulder_lift_joint"), header.index("elbow_joint")
+    header[a], header[b] = header[b], header[a]
+    swapped = tmp_path / "swapped.csv"
+    swapped.write_text("\n".join([",".join(header)] + lines[1:]) + "\n")
+    args = ["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
+            "wrist_3_link", "--folds", "0"]
+    assert main(args + ["--samples", str(UR10E / "calibration.csv"), "--out", str(tmp_path / "real")]) == 0
+    assert "NOT A CALIBRATION" not in capsys.readouterr().out
+    assert main(args + ["--samples", str(swapped), "--out", str(tmp_path / "swapped")]) == 3
+    out = capsys.readouterr().out
+    assert "error: NOT A CALIBRATION: shoulder_lift_joint.offset is fitted at 93 times its tolerance scale" in out, out

@@ -218,6 +218,26 @@ def test_sixty_identical_poses_are_loud():
                for w in est.warnings)
 
 
+def test_a_negated_joint_column_is_no_calibration_and_worse_on_the_test_poses():
+    """q7's readings negated in the calibration set only (a sign convention of an export): the
+    fit took it up as a laser-module angle of some hundred tolerance scales, a few mm in-sample,
+    with nothing but an 'implausible' warning and exit 0 (helper probe: 1.5 mm in-sample, 154 mm
+    on the test poses). Now NOT A CALIBRATION, and the test set's figure says it got worse."""
+    from laser_calib.report.calibration import calibrate as calibrate_spots
+    session = paper_session("paper-7dof", 4)
+    cal = session.samples.subset(session.cases["case2"][0])
+    test = session.samples.subset(session.cases["case2"][1])
+    q = cal.q.copy()
+    q[:, 6] = -q[:, 6]
+    result = calibrate_spots(session.nominal, replace(cal, q=q), EstimateOptions(), test)
+    warnings = result.estimate.warnings
+    assert any(w.startswith("NOT A CALIBRATION: slm_") and "times its tolerance scale" in w for w in warnings), warnings
+    assert any(w.startswith("test: the calibrated model misses the held-out spots by more than the nominal one")
+               for w in warnings), warnings
+    honest = calibrate_spots(session.nominal, cal, EstimateOptions(), test).estimate.warnings
+    assert not any(w.startswith(("NOT A CALIBRATION", "implausible", "test: the calibrated")) for w in honest), honest
+
+
 def _five_percent_uniform(seed):
     session = paper_session("paper-7dof", seed)
     rng = np.random.default_rng(seed)

@@ -177,9 +177,8 @@ class Estimator(Node):
             options = estimate_options(request.method, request.spot_sigma or self.spot_sigma, request.prior,
                                        request.robust)
             outcome = run_calibration(self.robot, samples, options, common.request_output_dir(request.output_dir),
-                                      request.diagnose,
-                                      {"robot": self.robot_path, "samples": source,
-                                       "compensator": self.compensator_path}, self.compensator)
+                                      request.diagnose, {"robot": self.robot_path, "samples": source,
+                                                         "compensator": self.compensator_path}, self.compensator)
         except InputError as exc:
             response.success = False
             response.message = str(exc)

@@ -18,7 +18,6 @@ ROS-free: nothing here imports rclpy (launch only inside launch_actions).
 from __future__ import annotations
 
 import ctypes
-import math
 import os
 import signal
 import subprocess
@@ -35,6 +34,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
 from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, refuse_finished
 from laser_calib.session.lock import SessionLock
+from laser_calib_nodes.arguments import arm_section, existing_files, integer, loadable_robot, positive_number
 from laser_calib_nodes.shutdown import GRACE
 
 PACKAGE = "laser_calib_nodes"
@@ -111,39 +111,6 @@ class NodeSpec:
         return args
 
 
-def integer(values: dict, name: str) -> int:
-    try:
-        return int(values[name])
-    except ValueError:
-        raise InputError(name, f"expected an integer, got {values[name]!r}") from None
-
-
-def positive_number(values: dict, name: str) -> float:
-    try:
-        value = float(values[name])
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise InputError(name, f"expected a positive number, got {values[name]!r}")
-    return value
-
-
-def existing_files(values: dict, *names: str) -> None:
-    """Refuse a file argument naming no file: launch_ros only warns of a missing parameter file
-    and starts the nodes with their defaults, a session of other settings than the user's."""
-    for name in names:
-        if values[name] and not os.path.isfile(values[name]):
-            raise InputError(name, f"no such file: {values[name]}")
-
-
-def loadable_robot(values: dict) -> None:
-    """Refuse a robot file that does not load (InputError naming it) before any node starts:
-    each node would refuse it in turn, after the launch had made the session folder and its
-    lock. A file completed by robot_description_topic is checked by the nodes, with the URDF."""
-    if values["robot"] and not values["robot_description_topic"]:
-        load_robot(values["robot"])
-
-
 def robot_params(values: dict) -> dict:
     """The parameters of every node that needs the robot (common.robot_source); the
     topic only when given (an empty `-p name:=` is no string to ROS)."""
@@ -167,23 +134,6 @@ def session_nodes(values: dict) -> list[NodeSpec]:
                      **{"estimate.method": values["method"]})
     return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", files, arm), NodeSpec("camera_sim", files),
             NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)]
-
-
-def arm_section(path: str) -> None:
-    """Refuse (InputError naming arm_params) a parameter file with no section the arm_driver
-    reads: ROS takes nothing from it, and the driver ran on its defaults (a file keyed 'arm:'
-    gave a session whose servos never had torque, 'measured' by nobody)."""
-    from laser_calib.io.read import load_yaml
-
-    with open(path, encoding="utf-8") as handle:
-        data = load_yaml(handle.read(), path)
-    sections = [key for key in (data if isinstance(data, dict) else {})
-                if key in ("arm_driver", "/arm_driver", "/**") and isinstance(data[key], dict)
-                and "ros__parameters" in data[key]]
-    if not sections:
-        keys = ", ".join(map(str, data)) if isinstance(data, dict) and data else "none"
-        raise InputError("arm_params", f"{path} has no 'arm_driver: ros__parameters:' section (its top-level keys: "
-                                       f"{keys}): the arm_driver would take none of it")
 
 
 def hardware_nodes(values: dict) -> list[NodeSpec]:

@@ -45,7 +45,7 @@ from typing import Callable
 import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
-from laser_calib.estimation.failures import NOT_CONVERGED, NoSpotToFit, fit_failures
+from laser_calib.estimation.failures import NOT_CONVERGED, NoSpotToFit, fit_failures, implausible
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse
 from laser_calib.estimation.impossible import impossible_spots, judged_again
@@ -66,7 +66,6 @@ METHODS = ("lm", "ekf")
 TRIAL_SIGMA = 0.001
 LISTED = 8         # poses named in one warning line
 MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
-FAR_SCALES = 10.0  # a fitted error beyond 10 tolerance scales (100 mm, 10 deg) is not a manufacturing error
 
 
 @dataclass(frozen=True)
@@ -355,11 +354,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         warnings.extend(sigma_warnings(sigma, sigma_dof))
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
     own = free & np.array([not is_frame_param(name) for name in names])
-    size = np.abs(result.x) / model.scales
-    if np.any(own & (size > FAR_SCALES)):
-        worst = int(np.argmax(np.where(own, size, 0.0)))
-        warnings.append(f"implausible: {names[worst]} is fitted at {size[worst]:.0f} times its tolerance scale; a "
-                        "wrong minimum, a wrong nominal model or data the model cannot explain")
+    warnings.extend(implausible(names, result.x, model.scales, own,
+                                getattr(getattr(model, "robot", None), "param_names", ())))
     if getattr(model, "robot", None) is not None and getattr(model, "samples", None) is not None:
         warnings.extend(still_joint_warnings(model.samples.q, model.robot.joint_names))
     if not result.converged:

@@ -1,5 +1,6 @@
-"""The warnings that say an estimate is no calibration (fit_failures; redundancy.sigma_warnings's
-for a spot sigma estimated from 1 or 2 residual degrees of freedom). The console
+"""The warnings that say an estimate is no calibration (fit_failures; implausible, for a geometric
+error fitted beyond any manufacturing error; redundancy.sigma_warnings's for a spot sigma estimated
+from 1 or 2 residual degrees of freedom). The console
 prints them as error lines and the command exits with status 3
 (cli.arguments.print_warnings); the files are still written (they show where the fit
 went) but a script must not take them for a calibration. And the errors of a fit that
@@ -7,6 +8,8 @@ has nothing to fit at its start: no spot there (NoSpotToFit), or none because th
 it starts from moved the beams off the screen (FitMovedBeams)."""
 
 from __future__ import annotations
+
+import numpy as np
 
 from laser_calib.io.errors import InputError
 
@@ -23,6 +26,7 @@ FAILURES = (NOT_CONVERGED, NOT_A_CALIBRATION)
 # type, an axis, units), spots out of step with the joint readings or a joint column holding
 # something else leave tens to hundreds of millimetres, and still reach an exit status 0.
 MAX_RESIDUAL = 0.01
+FAR_SCALES = 10.0  # a fitted error beyond 10 tolerance scales (100 mm, 10 deg) is not a manufacturing error
 
 
 def is_failure(warning: str) -> bool:
@@ -70,3 +74,27 @@ def fit_failures(lost: int, level: float) -> list[str]:
                    "describe the data (a wrong robot file: a joint type, an axis, units; measurements out of step "
                    "with the joint readings; a column holding something else)")
     return out
+
+
+def implausible(names: tuple[str, ...], x: np.ndarray, scales: np.ndarray, own: np.ndarray,
+                geometric_names: tuple[str, ...]) -> list[str]:
+    """The line for the largest fitted value x (n,) beyond FAR_SCALES of its tolerance scale among
+    ``own`` (n,) (the free values that have a tolerance): of a geometric error (geometric_names,
+    the robot's own), no calibration, since no manufacturing error is that large (a column of q7's
+    readings negated was taken up as a 181-scale laser-module angle, 1.5 mm in-sample, 154 mm on
+    the test poses; shoulder and elbow columns swapped as a 93-degree offset, exit 0); of an
+    effect's value, a warning."""
+    size = np.abs(x) / scales
+    far = own & (size > FAR_SCALES)
+    geometric = far & np.isin(names, geometric_names)
+    if geometric.any():
+        worst = int(np.argmax(np.where(geometric, size, 0.0)))
+        return [f"{NOT_A_CALIBRATION}: {names[worst]} is fitted at {size[worst]:.0f} times its tolerance scale, "
+                f"beyond the {FAR_SCALES:g} of any manufacturing error: the nominal model is wrong (a joint's zero "
+                "or direction, an axis, the laser module's mounting), joint readings swapped or negated, or the "
+                "minimum is wrong; correct the robot file or the data"]
+    if far.any():
+        worst = int(np.argmax(np.where(far, size, 0.0)))
+        return [f"implausible: {names[worst]} is fitted at {size[worst]:.0f} times its tolerance scale; a wrong "
+                "minimum, a wrong nominal model or data the model cannot explain"]
+    return []
