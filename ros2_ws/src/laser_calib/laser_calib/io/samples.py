@@ -133,7 +133,9 @@ def read_table(text: str, source: str, expected_header: str) -> tuple[list[str],
     while 2 + n_q < len(header) and header[2 + n_q] == f"q{n_q + 1}":
         n_q += 1
     if n_q == 0:
-        raise _header_error(source, "missing joint columns q1..qN after 'stamp'")
+        joints = [name for name in header[2:] if re.fullmatch(r"q\d+", name)]
+        found = f" (found {', '.join(joints)} in that order)" if joints else ""
+        raise _header_error(source, f"missing joint columns q1..qN in order after 'stamp'{found}")
     if len(set(header)) != len(header):
         raise _header_error(source, "duplicate column names")
     return header, rows[1:], n_q
