@@ -77,7 +77,7 @@ def test_plan_of_a_session_recorded_before_the_plan_was(tmp_path):
     """A session.yaml without 'plan' (older sessions): its pose description and test_poses say it."""
     from laser_calib.io.errors import InputError
     from laser_calib.model.robot_file import load_robot
-    from laser_calib.session.folder import SessionDir
+    from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir
     from laser_calib.session.poses import generate_poses, with_test_poses
     robot = load_robot(ROBOT)
     session = SessionDir(tmp_path / "old")
@@ -87,6 +87,10 @@ def test_plan_of_a_session_recorded_before_the_plan_was(tmp_path):
     session.check_plan({"poses": 15, "test_poses": 0, "span": "whole", "seed": 0, "margin": 0.05})
     with pytest.raises(InputError, match=r"test_poses recorded 5, given 3; resume with"):
         session.check_plan({"poses": 15, "test_poses": 3})
+    # a generated session's plan holds no pose file: shown as none (it printed 'poses_file recorded , given ...')
+    session.set_info(plan={**PLAN_DEFAULTS, "poses": 15})
+    with pytest.raises(InputError, match=r"poses_file recorded none, given /x/poses.csv; resume with"):
+        session.check_plan({"poses_file": "/x/poses.csv"})
 
 
 def test_launch_refuses_a_plan_argument_it_does_not_take(ros, tmp_path):

@@ -57,6 +57,11 @@ PLAN_DEFAULTS = {"poses_file": "", "poses": 60, "test_poses": 0, "span": "whole"
 _GENERATED = re.compile(r"generated: (\d+) poses, span (\w+), seed (\d+), repeats (\d+)")
 
 
+def _shown(value) -> str:
+    """A plan value in a message: an empty one (no pose file: generated) as 'none', not as nothing."""
+    return "none" if value == "" else str(value)
+
+
 def plan_value(name: str, value):
     """A plan argument as recorded and compared: a pose file by its absolute path."""
     return str(Path(value).resolve()) if name == "poses_file" and value else value
@@ -186,7 +191,8 @@ class SessionDir:
         changed = [name for name in PLAN_DEFAULTS if name in given and name in recorded and
                    plan_value(name, given[name]) not in (PLAN_DEFAULTS[name], recorded[name])]
         if changed:
-            differences = "; ".join(f"{name} recorded {recorded[name]}, given {given[name]}" for name in changed)
+            differences = "; ".join(f"{name} recorded {_shown(recorded[name])}, given {_shown(given[name])}"
+                                    for name in changed)
             raise InputError(str(self.path), f"holds a partial session whose pose plan is fixed by what was "
                                              f"measured: {differences}; resume with the recorded values (or "
                                              f"leave them out) or choose another output_dir")
