@@ -392,6 +392,20 @@ def test_untested_level_and_too_few_poses_for_the_detector_is_undetermined():
     assert "too few for the detector" in diagnosis.evidence
 
 
+def test_overstated_noise_is_no_test_of_the_level():
+    """Sigmas given ten times the real ones: chi^2 at 1 % of its dof passes whatever remains, so with
+    too few poses for the detector the verdict is undetermined, as with the level untested (it said
+    'explained', helper probe), and the evidence says the sigmas are overstated; given right, the
+    level is tested and the same poses are explained."""
+    session = effect_session("paper-4dof", SEED, lambda r, e, c, rng: [], 20, 10, NOISE)
+    over = diagnose(session.nominal, session.cal, session.test, spot_sigma=10 * NOISE.spot_sigma,
+                    joint_sigma=10 * NOISE.joint_sigma)
+    assert over.verdict == UNDETERMINED and "the sigmas given are overstated" in over.evidence, over.evidence
+    right = diagnose(session.nominal, session.cal, session.test, spot_sigma=NOISE.spot_sigma,
+                     joint_sigma=NOISE.joint_sigma)
+    assert right.verdict == EXPLAINED and "overstated" not in right.evidence, right.evidence
+
+
 def test_a_library_effect_standing_in_for_a_foreign_one_is_not_explained():
     """Issue 13: a stiffness that changes with another joint's angle (a counterbalance
     spring): compliance approximates it, the residual level passes, and the

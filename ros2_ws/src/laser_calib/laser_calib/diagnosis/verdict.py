@@ -18,6 +18,7 @@ from laser_calib.diagnosis.specification import Varying
 from laser_calib.diagnosis.structure import Readings, joined, pose_covariates, pose_responses, structure_tests
 from laser_calib.effects.base import positive_number
 from laser_calib.estimation.problem import pose_blocks, residuals_at
+from laser_calib.estimation.redundancy import NOISE_RATIO
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 from laser_calib.model.robot import Robot
 
@@ -124,6 +125,9 @@ def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, n_poses: i
     tests = after.tests
     structure = bool(tests) and tests[0].p_adjusted < alpha
     level_fail = noise.level_p is not None and noise.level_p < alpha
+    # given sigmas far above the residual (estimation.redundancy's NOISE_RATIO): the chi^2 test
+    # passes whatever remains, so it is no test of the level
+    overstated = noise.level_test == "chi^2" and noise.level_statistic / noise.level_dof[0] < NOISE_RATIO ** -2
     parts = []
     if tests:
         parts.append(("Structure: " if structure else "No covariate explains the residual; strongest: ")
@@ -134,7 +138,10 @@ def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, n_poses: i
     if noise.level_test == "chi^2":
         parts.append(f"Level: chi^2 = {noise.level_statistic:.1f} on {noise.level_dof[0]} dof (ratio "
                      f"{noise.level_statistic / noise.level_dof[0]:.2f}, p = {noise.level_p:.2g}) with {sigma_text}"
-                     + (": the residual exceeds the noise." if level_fail else "."))
+                     + (": the residual exceeds the noise." if level_fail else
+                        f": the residual is far below the given noise (about "
+                        f"{np.sqrt(noise.level_statistic / noise.level_dof[0]):.2g} of it): the sigmas given are "
+                        "overstated, and this test sees nothing." if overstated else "."))
     elif noise.level_test is not None:
         parts.append(f"Level: lack-of-fit F = {noise.level_statistic:.3g} on {noise.level_dof[0]}, "
                      f"{noise.level_dof[1]} dof against the scatter of repeated poses ({noise.repeat_rms * 1e3:.3g} "
@@ -156,7 +163,7 @@ def evidence(after: Analysis, noise: NoiseInfo, detection: Detection, n_poses: i
         parts.append(f"Noise: {excess}.")
     if structure or level_fail or detected or excess or misspecified:
         return STRUCTURE, " ".join(parts)
-    if noise.level_test is None and n_poses < MIN_DETECTOR_POSES:
+    if (noise.level_test is None or overstated) and n_poses < MIN_DETECTOR_POSES:
         parts.append(f"Undetermined: the level is not tested and {n_poses} poses are too few for the detector "
                      f"to see more than large structure (it needs about {MIN_DETECTOR_POSES}).")
         return UNDETERMINED, " ".join(parts)
