@@ -214,3 +214,16 @@ def test_the_report_takes_the_estimates_own_predictions():
     _, _, start = factor_and_residuals(model, NoiseModel(0.001), np.zeros(33), chunk=7)
     nominal = residuals_at(model, np.zeros(33))
     assert np.array_equal(start.r, nominal.r) and np.array_equal(start.valid, nominal.valid)
+
+
+def test_a_parameter_held_for_the_given_sigma_says_so():
+    """A spot sigma given 10x too large holds slm_rz (its std would exceed 10 tolerances): the rank
+    line said 'the data determine 32 of 33' as if the data lacked it (helper probe); it now names the
+    sigma given. The true sigma holds nothing."""
+    session = paper_session("paper-7dof", 4)
+    cal = session.samples.subset(session.cases["case3"][0])
+    over = estimate(session.nominal, cal, EstimateOptions(spot_sigma=0.0115))
+    ranks = [w for w in over.warnings if w.startswith("rank deficient")]
+    assert len(ranks) == 1 and "33 parameters at the spot sigma given (11.5 mm; 1 held for it)" in ranks[0], ranks
+    right = estimate(session.nominal, cal, _options(session))
+    assert not any(w.startswith("rank deficient") for w in right.warnings), right.warnings

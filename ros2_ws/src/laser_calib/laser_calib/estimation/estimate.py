@@ -320,8 +320,10 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         free = ident.free
     held = [name for name, keep, user in zip(names, free, user_fixed) if not keep and not user]
     if held:
+        given = (f" at the spot sigma given ({sigma * 1e3:.3g} mm; {ident.by_noise} held for it)"
+                 if ident.by_noise and not sigma_estimated else "")  # a wrong sigma, not the data, holds those
         warnings.append(f"rank deficient: the data determine {ident.rank} of {n - int(user_fixed.sum())} "
-                        f"parameters; held at nominal, reported as combinations: {', '.join(held)}")
+                        f"parameters{given}; held at nominal, reported as combinations: {', '.join(held)}")
     start_x = np.where(free, start_x, x0)
 
     problem = Problem(model, noise, free, prior_sigma, excluded)

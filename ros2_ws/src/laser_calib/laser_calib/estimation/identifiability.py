@@ -79,6 +79,7 @@ class Identifiability:
     merged: dict[str, str]
     min_singular: float = 0.0
     carriers: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    by_noise: int = 0  # directions held only by the std_factor threshold: the noise level decides them
 
     @property
     def carried(self) -> dict[str, tuple[str, ...]]:
@@ -144,6 +145,7 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     rank = int(np.count_nonzero(singular > threshold))
     if rank:   # slivers (module docstring)
         threshold = max(threshold, SLIVER * singular[rank - 1])
+    numerical = threshold
     if std_factor is not None:
         threshold = max(threshold, 1.0 / std_factor)
 
@@ -170,4 +172,5 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     kept_singular = np.linalg.svd(r_factor[:, kept], compute_uv=False) if kept else np.zeros(0)
     condition = float(kept_singular[0] / kept_singular[-1]) if kept else float("inf")
     return Identifiability(tuple(names), singular, len(kept), condition, free, tuple(combinations), merged,
-                           float(threshold), carriers)
+                           float(threshold), carriers,
+                           int(np.count_nonzero((singular > numerical) & (singular <= threshold))))
