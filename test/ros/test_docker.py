@@ -17,7 +17,7 @@ SRC = ROOT / "ros2_ws" / "src"
 # requirements.txt names that Ubuntu packages under another name
 APT_NAMES = {"pyyaml": "python3-yaml"}
 # what the ROS image provides instead of a wheel (ROS itself, the build tools) and the test tools
-NOT_IN_IMAGE = re.compile(r"^(ros-jazzy-|colcon-|pytest$|hypothesis$)")
+NOT_IN_IMAGE = re.compile(r"^(ros-jazzy-|colcon-|pytest$|pytest-xdist$|hypothesis$)")
 
 
 def packages() -> set[str]:

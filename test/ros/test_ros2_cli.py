@@ -203,7 +203,8 @@ def test_ros2_run_service_param_and_topics(tmp_path):
         assert header.returncode == 0 and "builtin_interfaces/Time stamp" in header.stdout, header
         action = ros2(ros, "interface", "show", "laser_calib_interfaces/action/Calibrate")
         assert action.returncode == 0 and "fraction_done" in action.stdout, action
-        spin = ["--spin-time", "10"]
+        # --timeout: wait for the node until it is seen (--spin-time would spin its whole length, every call)
+        spin = ["--timeout", "30"]
         got = ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin)
         assert got.returncode == 0 and "0.0" in got.stdout, got
         # run-time parameter: validated
