@@ -31,6 +31,7 @@ from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignError, ForeignJointError, draw_truth, effect_session, hooks,
                                       sized, true_offsets_rms)
 from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.session.estimate import estimate_options, run_calibration
 from laser_calib.io.samples import Samples, load_samples, save_samples
 from laser_calib.sim.simulation import NoiseSpec, bundled_robot, measure, sample_poses, true_errors
 
@@ -214,6 +215,31 @@ def test_command_line_writes_diagnosis_robot_and_report(tmp_path):
     res = model.residuals(x, False)
     rms = np.sqrt(np.mean(np.linalg.norm(res.r, axis=-1)[res.valid] ** 2)) * 1e3
     assert rms == pytest.approx(result["stages"][-1]["test"]["rms_mm"], rel=1e-6)
+
+
+def test_the_final_fits_warnings_reach_the_console_the_json_and_the_report(tmp_path, capsys):
+    """A spot sigma given 10x too small: the final fit's chi^2 warning, which `estimate` prints,
+    was in none of the diagnosis's outputs (only a failure was)."""
+    session = library_session("paper-4dof", "backlash", n_cal=40, n_test=5)
+    save_robot(session.nominal, tmp_path / "robot.yaml")
+    save_samples(session.cal, tmp_path / "cal.csv")
+    out = tmp_path / "out"
+    status = diagnose_main(["--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"),
+                            "--spot-sigma", str(NOISE.spot_sigma / 10), "--joint-sigma", str(NOISE.joint_sigma),
+                            "--out", str(out)])
+    assert status == 0
+    warnings = json.loads((out / "diagnosis.json").read_text())["warnings"]
+    assert any(w.startswith("chi^2/dof = ") for w in warnings), warnings
+    printed = [line[len("warning: "):] for line in capsys.readouterr().out.splitlines() if line.startswith("warning: ")]
+    assert printed == warnings
+    report = (out / "report.md").read_text()
+    assert all(f"**Warning:** {w}." in report for w in warnings)
+    # the nodes' estimate with its diagnosis: the line they log names the verdict and those warnings
+    options = estimate_options("lm", NOISE.spot_sigma / 10, False, True)
+    outcome = run_calibration(session.nominal, session.cal, replace(options, joint_sigma=NOISE.joint_sigma), None,
+                              diagnose=True)
+    verdict = json.loads(outcome.diagnosis_json)["verdict"]
+    assert f"; diagnosis: {verdict}; diagnosis's final fit: chi^2/dof = " in outcome.message and outcome.warned
 
 
 @pytest.mark.parametrize("args, text", [

@@ -74,7 +74,7 @@ class CalibrateServer:
             node.get_logger().error(outcome.message)
         else:
             goal.succeed()
-            node.get_logger().info(outcome.message)
+            common.log_warned(node.get_logger(), outcome.warned, outcome.message)
         return result
 
     def close(self) -> None:

@@ -190,7 +190,7 @@ class Estimator(Node):
             self.get_logger().error(response.message + "\n" + traceback.format_exc())
             return response
         self.fill(response, outcome, len(samples))
-        common.log_warned(self.get_logger(), bool(outcome.calibration.estimate.warnings), response.message)
+        common.log_warned(self.get_logger(), outcome.warned, response.message)
         return response
 
     def request_samples(self, request) -> tuple[Samples, str]:

@@ -173,9 +173,9 @@ def finish(node) -> None:
         if end.mode == "local":
             from laser_calib.session.estimate import estimate_options, run_calibration
             options = estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
-            calibration = run_calibration(node.robot, samples, options, session.path, end.diagnose).calibration
-            message, warned = calibration.summary(), bool(calibration.estimate.warnings)
-            failed = calibration.failure is not None
+            outcome = run_calibration(node.robot, samples, options, session.path, end.diagnose)
+            message, warned = outcome.message, outcome.warned
+            failed = outcome.calibration.failure is not None
         else:
             message, failed, warned = call_service(node, samples)
         if failed:  # estimated but no calibration (NOT CONVERGED ...): its files show where the fit went
@@ -242,7 +242,8 @@ def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
             (path / "robot_calibrated.urdf").write_text(load_robot(path / "robot_calibrated.yaml").chain.urdf)
     if response.diagnosis_json:
         (path / "diagnosis.json").write_text(response.diagnosis_json)
-    return response.message, not response.success, bool(json.loads(response.result_json)["warnings"])
+    warned = json.loads(response.result_json)["warnings"] or json.loads(response.diagnosis_json or "{}").get("warnings")
+    return response.message, not response.success, bool(warned)
 
 
 def stamps_from_float(stamp: float) -> tuple[int, int]:

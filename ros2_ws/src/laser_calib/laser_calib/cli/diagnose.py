@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from laser_calib.cli.arguments import (EXIT_NOT_A_CALIBRATION, non_negative, non_negative_int, out_folder, positive,
+from laser_calib.cli.arguments import (non_negative, non_negative_int, out_folder, positive, print_warnings,
                                       require_measured, staged_folder)
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
@@ -66,10 +66,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     for note in result["notes"]:
         print(f"note: {note}")
     print(f"wrote {args.out}/diagnosis.json, robot_calibrated.yaml, report.md" + (", compensator.json" if kept else ""))
-    if result["failure"]:  # the final model's fit: what it wrote shows where the fit went, and is no calibration
-        print(f"error: {result['failure']}")
-        return EXIT_NOT_A_CALIBRATION
-    return 0
+    # the final model's fit: a failure (what it wrote shows where the fit went) is no calibration, exit 3
+    return print_warnings(result["warnings"])
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -90,6 +90,9 @@ def markdown(diagnosis: Diagnosis, result: dict, plots: dict[str, str]) -> str:
     if diagnosis.failure:
         lines += [f"**Error: {diagnosis.failure}.** The calibrated robot written beside this report shows where the "
                   "final fit went; it is no calibration.", ""]
+    warnings = [w for w in result["warnings"] if w != diagnosis.failure]
+    if warnings:
+        lines += [f"**Warning:** {w}." for w in warnings] + [""]
     if diagnosis.notes:
         lines += [f"Note: {n}." for n in diagnosis.notes] + [""]
     if diagnosis.robot.chain is not None:

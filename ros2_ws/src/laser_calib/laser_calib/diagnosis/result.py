@@ -167,6 +167,8 @@ class Diagnosis:
             "verdict": self.verdict,
             "evidence": self.evidence,
             "failure": self.failure,
+            # the final fit's own warnings (held parameters, implausible values, ...), as `estimate` gives them
+            "warnings": list(self.final.estimate.warnings),
             "noise": {"spot_sigma_m": self.noise.spot_sigma, "spot_sigma_source": self.noise.spot_source,
                       "joint_sigma_rad": self.noise.joint_sigma, "joint_sigma_source": self.noise.joint_source,
                       "repeated_pose_dof": self.noise.repeat_dof,

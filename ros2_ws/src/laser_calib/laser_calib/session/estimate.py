@@ -51,10 +51,25 @@ class Outcome:
     diagnosis_json: str
 
     @property
+    def diagnosis(self) -> dict:
+        return json.loads(self.diagnosis_json) if self.diagnosis_json else {}
+
+    @property
     def message(self) -> str:
-        """The calibration's summary line, and why the diagnosis was skipped when it was."""
-        skipped = json.loads(self.diagnosis_json).get("skipped") if self.diagnosis_json else None
-        return f"{self.calibration.summary()}; {skipped}" if skipped else self.calibration.summary()
+        """The calibration's summary line, then the diagnosis's verdict and its final fit's
+        warnings, or why the diagnosis was skipped."""
+        diagnosis = self.diagnosis
+        said = [self.calibration.summary()]
+        if "skipped" in diagnosis:
+            said.append(diagnosis["skipped"])
+        elif diagnosis:
+            said += [f"diagnosis: {diagnosis['verdict']}"] + [f"diagnosis's final fit: {w}" for w in diagnosis["warnings"]]
+        return "; ".join(said)
+
+    @property
+    def warned(self) -> bool:
+        """Whether the estimate or the diagnosis's final fit warned: the nodes then log a WARN."""
+        return bool(self.calibration.estimate.warnings or self.diagnosis.get("warnings"))
 
 
 def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
