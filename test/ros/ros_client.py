@@ -8,6 +8,7 @@
     ros_client.py estimate-accumulated         Estimate with use_accumulated
     ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
     ros_client.py estimate-csv SAMPLES.csv [OUTPUT_DIR]  Estimate the samples of a CSV (spot samples, any robot)
+    ros_client.py estimate-csv-diagnose SAMPLES.csv      the same, with the diagnosis
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
     ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
 """
@@ -126,7 +127,7 @@ def reset() -> dict:
     return {"success": r.success, "message": r.message}
 
 
-def estimate_csv(path: str, output_dir: str = "") -> dict:
+def estimate_csv(path: str, output_dir: str = "", diagnose: bool = False) -> dict:
     from laser_calib.io.samples import load_samples
     samples = load_samples(path)
     node = rclpy.create_node("test_estimate")
@@ -134,6 +135,7 @@ def estimate_csv(path: str, output_dir: str = "") -> dict:
     request.samples = [sample(int(samples.pose[k]), samples.q[k], samples.spots[k]) for k in range(len(samples))]
     request.method = "lm"
     request.output_dir = output_dir
+    request.diagnose = diagnose
     r = call(node, node.create_client(Estimate, "estimator/estimate"), request)
     return dict(response_dict(r), names=list(r.parameters.names), calibrated_robot_yaml=r.calibrated_robot_yaml)
 
@@ -318,6 +320,8 @@ def main() -> int:
             result = reset()
         elif command == "estimate-csv":
             result = estimate_csv(*sys.argv[2:4])
+        elif command == "estimate-csv-diagnose":
+            result = estimate_csv(sys.argv[2], diagnose=True)
         elif command == "estimate-accumulated":
             result = estimate_accumulated()
         elif command == "calibrate":

@@ -4,8 +4,10 @@ several concurrent clients are all served; the node keeps serving."""
 from __future__ import annotations
 
 import json
+import sys
+import time
 
-from ros_harness import ROBOT
+from ros_harness import CLIENT, ROBOT
 
 
 def test_bad_requests_and_concurrent_clients(ros):
@@ -144,6 +146,27 @@ def test_an_output_dir_that_cannot_be_written_is_refused_in_one_line(ros, tmp_pa
     assert (tmp_path / "report" / "report.md").exists()
     assert ros.stop("estimator") == 0
     assert "Traceback" not in ros.log("estimator"), ros.log("estimator")
+
+
+def test_ctrl_c_during_an_estimate_answers_it_and_exits_0(ros, tmp_path):
+    """Ctrl-C while an Estimate request with its diagnosis runs: the node was destroyed between
+    the callback's return and rclpy's send of its response ('exception never retrieved: cannot use
+    Destroyable' on stderr), and the client was never answered. Now the cleanup waits for it."""
+    from laser_calib.io.samples import save_samples
+    from laser_calib.sim.simulation import paper_session
+    save_samples(paper_session("paper-7dof", seed=1).samples, tmp_path / "samples.csv")
+    ros.start("estimator", "-p", f"robot:={ROBOT}")
+    ros.start_command("client", [sys.executable, str(CLIENT), "estimate-csv-diagnose", str(tmp_path / "samples.csv")])
+    deadline = time.monotonic() + 120
+    while "then the diagnosis" not in ros.log("estimator"):
+        assert time.monotonic() < deadline and ros.procs["client"].poll() is None, ros.log("client")
+        time.sleep(0.05)
+    assert ros.stop("estimator") == 0
+    log = ros.log("estimator")
+    assert "Traceback" not in log and "never retrieved" not in log, log[-3000:]
+    assert ros.wait_exit("client", 60) == 0, ros.log("client")
+    answer = json.loads(ros.log("client").strip().splitlines()[-1])
+    assert answer["success"] and json.loads(answer["diagnosis_json"])["verdict"], answer["message"]
 
 
 def test_ctrl_c_during_a_calibrate_goal_exits_0_without_a_traceback(ros):

@@ -24,7 +24,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from laser_calib.io.errors import InputError
 from laser_calib.session.estimate import estimate_options, run_calibration, run_diagnosis
 
-from laser_calib_nodes import common
+from laser_calib_nodes import common, responses
 
 
 class CalibrateServer:
@@ -67,7 +67,7 @@ class CalibrateServer:
                 node.get_logger().warning(f"calibration refused: {exc}")
                 goal.abort()
                 return result
-        node.fill(result, outcome, len(samples))
+        responses.fill(result, outcome, node.robot, len(samples), node.get_clock().now().to_msg())
         stage("done", 1.0, outcome.message)
         if outcome.calibration.failure:  # its files are written, but it is no calibration: the goal failed
             goal.abort()

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 import traceback
 
 import numpy as np
@@ -32,11 +33,10 @@ from laser_calib.io import bag
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 
-from laser_calib_nodes import common
+from laser_calib_nodes import common, responses
 from laser_calib_nodes.calibrate import CalibrateServer
 from laser_calib_nodes.markers import MAX_POINTS, calibration_markers, online_parameters
-from laser_calib.report.files import calibrated_robot_yaml, report_markdown, result_json
-from laser_calib.session.estimate import estimate_options, laser_statistics, online_options, run_calibration
+from laser_calib.session.estimate import estimate_options, online_options, run_calibration
 from laser_calib.session.sync import StampSynchronizer
 
 
@@ -63,9 +63,8 @@ class Estimator(Node):
                               "stream.max_joint_speed": ("max_speed", common.positive),
                               "markers": ("markers_on", lambda value: None)})
 
-        from laser_calib_interfaces.msg import DhParameters, Sample, SpotPair, SpotStatistics
+        from laser_calib_interfaces.msg import DhParameters, Sample, SpotPair
         from laser_calib_interfaces.srv import Estimate
-        self.DhParameters, self.SpotStatistics = DhParameters, SpotStatistics
 
         self.lock = threading.Lock()
         self.rows: list[tuple[int, float, np.ndarray, np.ndarray]] = []
@@ -75,7 +74,7 @@ class Estimator(Node):
         self.param_pub = self.create_publisher(DhParameters, common.DH_PARAMETERS, common.LATCHED_QOS)
         self.marker_pub = self.create_publisher(MarkerArray, common.MARKERS, common.LATCHED_QOS)
         inputs = MutuallyExclusiveCallbackGroup()
-        services = MutuallyExclusiveCallbackGroup()
+        self.service_group = services = MutuallyExclusiveCallbackGroup()
         if self.input == "samples":
             for qos in (common.SAMPLES_QOS, common.SAMPLES_INPUT_QOS):
                 self.create_subscription(Sample, common.SAMPLES, self.on_sample, qos, callback_group=inputs)
@@ -85,12 +84,21 @@ class Estimator(Node):
                                      callback_group=inputs)
             self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.STREAM_QOS,
                                      callback_group=inputs)
-        self.create_service(Estimate, common.PRIVATE_ESTIMATE, self.on_estimate, callback_group=services)
+        self.estimate_service = self.create_service(Estimate, common.PRIVATE_ESTIMATE, self.on_estimate,
+                                                    callback_group=services)
         self.create_service(Trigger, common.PRIVATE_RESET, self.on_reset, callback_group=services)
         self.calibrate = CalibrateServer(self)
-        self.close = self.calibrate.close  # run()'s cleanup: a goal in progress ends before the node
         self.get_logger().info(f"robot '{self.robot.name}' ({self.robot.n_params} parameters), input "
                                f"'{self.input}'")
+
+    def close(self) -> None:
+        """run()'s cleanup: a Calibrate goal in progress ends first (CalibrateServer.close); an
+        Estimate being served is answered first: rclpy sends the response after the callback,
+        before it frees the group, and a node destroyed in between failed the send ('exception
+        never retrieved: cannot use Destroyable'). The process waits for that callback anyway."""
+        self.calibrate.close()
+        while not self.service_group.can_execute(self.estimate_service):  # the executor starts no other
+            time.sleep(0.05)
 
     # ---- online ----
     def make_online(self):
@@ -174,6 +182,8 @@ class Estimator(Node):
     def on_estimate(self, request, response):
         try:
             samples, source = self.request_samples(request)
+            # the request may run for minutes (the diagnosis): say it started
+            self.get_logger().info(f"estimating from {source}" + (", then the diagnosis" if request.diagnose else ""))
             options = estimate_options(request.method, request.spot_sigma or self.spot_sigma, request.prior,
                                        request.robust)
             outcome = run_calibration(self.robot, samples, options, common.request_output_dir(request.output_dir),
@@ -189,7 +199,7 @@ class Estimator(Node):
             response.message = f"internal error: {type(exc).__name__}: {exc}"
             self.get_logger().error(response.message + "\n" + traceback.format_exc())
             return response
-        self.fill(response, outcome, len(samples))
+        responses.fill(response, outcome, self.robot, len(samples), self.get_clock().now().to_msg())
         common.log_warned(self.get_logger(), outcome.warned, response.message)
         return response
 
@@ -211,35 +221,6 @@ class Estimator(Node):
                 rows.append(row)
             source = f"{len(rows)} samples of an Estimate request"
         return bag.samples_from_rows(rows, "request"), source
-
-    def fill(self, response, outcome, count: int) -> None:
-        calibration = outcome.calibration
-        est = calibration.estimate
-        params = self.DhParameters()
-        params.header.stamp = self.get_clock().now().to_msg()
-        params.header.frame_id = common.SCREEN_FRAME
-        params.robot_name = self.robot.name
-        params.method = calibration.options.method
-        params.names = list(est.names)
-        params.values = [float(v) for v in np.r_[calibration.calibrated.vector(), est.values[self.robot.n_params:]]]
-        params.errors = [float(v) for v in est.errors]
-        params.std = [float(v) for v in est.std]
-        params.identifiable = [bool(v) for v in est.identifiable]
-        params.iterations = int(est.fit.iterations)
-        params.sample_count = count
-        response.parameters = params
-        for field in ("before", "after"):
-            values = laser_statistics(calibration.spot_error["calibration"][field])
-            msg = self.SpotStatistics()
-            msg.mean, msg.std, msg.max = values["mean"], values["std"], values["max"]
-            msg.count = values["count"]
-            setattr(response, field, msg)
-        response.diagnosis_json = outcome.diagnosis_json
-        response.report_markdown = report_markdown(calibration)
-        response.result_json = result_json(calibration)
-        response.calibrated_robot_yaml = calibrated_robot_yaml(calibration)
-        response.success = calibration.failure is None  # not converged, or lost measurements: written, not trusted
-        response.message = outcome.message
 
 
 def main(args=None) -> int:
