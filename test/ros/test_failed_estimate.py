@@ -82,3 +82,19 @@ def test_a_pose_that_fails_is_named_as_its_progress_line_would(ros, tmp_path):
     failed = re.findall(r"pose (\d+)/6 \(id \d+\): fewer than 3 spot frames", log)
     assert failed == [str(len(measured) + 1)], log[-3000:]
     assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + len(measured)
+
+
+def test_a_run_whose_first_poses_see_no_spot_ends_early_and_keeps_them(ros, tmp_path):
+    """Lasers off (a threshold no spot reaches): the session measured every pose before it failed.
+    Now this run's first unseen_limit poses without a spot end it, one line, exit 2, the poses kept."""
+    out = tmp_path / "out"
+    ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
+    ros.start("camera_sim")
+    ros.start("spot_detector", "-p", "min_peak_dn:=1000000.0")
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=6",
+              "-p", "test_poses:=0", "-p", "seed:=5", "-p", "estimate.mode:=local", "-p", "unseen_limit:=2")
+    code = ros.wait_exit("sequencer", 240)
+    log = ros.log("sequencer")
+    assert code == 2 and "Traceback" not in log, log[-3000:]
+    assert "no spot seen in this run's first 2 poses" in log and "unseen_limit:=0" in log, log[-3000:]
+    assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + 2  # the header and the 2 poses

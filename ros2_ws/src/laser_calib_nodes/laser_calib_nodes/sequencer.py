@@ -60,6 +60,10 @@ class Sequencer(Node):
         self.sync_tol = d("sync_tolerance", 0.02, "Max stamp difference pairing a frame with a joint state, s "
                                                    "(at least half the joint_states period).")
         self.wait_timeout = d("wait_timeout", 60.0, "Wait this long for the arm's joint states and the spots, s.")
+        self.unseen_limit = d("unseen_limit", 5, "End the session (exit 2, what was measured kept) when this run's "
+                              "first N poses saw no spot at all: lasers off, camera covered, screen out of view, or "
+                              "a min_peak_dn no spot reaches. 0: never.")
+        self.unseen_poses: int | None = 0  # this run's poses so far without a spot; None once one was seen
         self.end = sequencer_parts.declare(self)
         record_images = d("record_images", False, "Also record camera images (large) in the bag.")
         segment_seconds = d("bag.max_segment_seconds", 10.0, "Close a bag segment after this long even "
@@ -67,6 +71,7 @@ class Sequencer(Node):
         self.exit_code, self.done = 0, False
         for name, value, check in (
                 ("frames", self.frames, lambda n: None if n >= 1 else f"expected >= 1, got {n}"),
+                ("unseen_limit", self.unseen_limit, common.non_negative),
                 ("move.joint_speed", self.joint_speed, common.positive),
                 ("sync_tolerance", self.sync_tol, common.non_negative),
                 ("settle.timeout", self.settle_timeout, common.positive),
@@ -211,16 +216,9 @@ class Sequencer(Node):
                               msg, close_segment=True)
         self.session.append_sample(row, test)
         self.progress.step()
-        seen = ~np.isnan(row.spots[0]).any(axis=1)
-        kind = ", test" if test else ""
-        line = (f"pose {self.progress.done}/{len(self.poses)} (id {pose_id}{kind}) measured in "
-                f"{time.monotonic() - started:.1f} s, {collector.frames} frames, {int(seen.sum())}/2 spots seen")
-        if seen.all():
-            self.get_logger().info(f"{line}; {self.progress.line()}")
-        else:  # a lost spot is a fault of the setup (or a pose off the screen): worth a look while it is on
-            missing = " and ".join(f"laser {j + 1}" for j in np.flatnonzero(~seen))
-            self.get_logger().warning(f"{line}: {missing} not seen (occluded, off the screen, or below the "
-                                      f"spot_detector's min_peak_dn); kept as measured; {self.progress.line()}")
+        sequencer_parts.measured(self, f"pose {self.progress.done}/{len(self.poses)} (id {pose_id}"
+                                 f"{', test' if test else ''}) measured in {time.monotonic() - started:.1f} s, "
+                                 f"{collector.frames} frames", row.spots[0])
 
     def publish_progress(self, state: str, pose_id: int) -> None:
         msg = self.SessionProgress(state=state, pose=pose_id, total=len(self.poses))

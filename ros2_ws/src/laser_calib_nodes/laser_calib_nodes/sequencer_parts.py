@@ -132,6 +132,29 @@ def declare(node) -> SimpleNamespace:
     return end
 
 
+def measured(node, line: str, spots: np.ndarray) -> None:
+    """A measured pose's progress line (its spots (2, 2), NaN where unseen), a WARN naming each
+    laser not seen (a fault of the setup, or a pose off the screen: worth a look while the arm
+    moves on); then the unseen rule: this run's first node.unseen_limit poses without any spot end
+    the session, since nothing it would measure calibrates (a whole session measured in vain)."""
+    seen = ~np.isnan(spots).any(axis=1)
+    line = f"{line}, {int(seen.sum())}/2 spots seen"
+    if seen.all():
+        node.get_logger().info(f"{line}; {node.progress.line()}")
+    else:
+        missing = " and ".join(f"laser {j + 1}" for j in np.flatnonzero(~seen))
+        node.get_logger().warning(f"{line}: {missing} not seen (occluded, off the screen, or below the "
+                                  f"spot_detector's min_peak_dn); kept as measured; {node.progress.line()}")
+    if node.unseen_poses is None:
+        return
+    node.unseen_poses = None if seen.any() else node.unseen_poses + 1
+    if node.unseen_poses == node.unseen_limit:
+        raise common.NodeError(f"no spot seen in this run's first {node.unseen_limit} poses: are the lasers on, the "
+                               "screen in the camera's view, the spot_detector's min_peak_dn reachable? Those poses "
+                               f"are kept in {node.session.path}; run again to resume from the next one "
+                               "(unseen_limit:=0 measures on regardless)", 2)
+
+
 def client(node):
     from laser_calib_interfaces.srv import Estimate
     return node.create_client(Estimate, common.ESTIMATE_SERVICE)
