@@ -1,11 +1,12 @@
 """A camera driver as most publish (sensor-data QoS: best effort) for spot_detector, run as a
 subprocess in the workspace environment. Prints one JSON document.
 
-    camera_client.py ENCODING [INFO_WIDTH [SECONDS [QOS [FRAMES]]]]   rendered frames of known
-        spots in ENCODING with CameraInfo (its width INFO_WIDTH, 0: the camera's), published with
-        QoS 'sensor_data' (best effort, default) or 'reliable' until 3 spot pairs came back or
-        SECONDS (60) passed; with FRAMES, exactly FRAMES frames, one per PERIOD s. Prints the
-        spots spot_detector published back, their stamps and the frames published.
+    camera_client.py ENCODING [INFO_WIDTH [SECONDS [QOS [FRAMES [image_first]]]]]   rendered frames
+        of known spots in ENCODING with CameraInfo (its width INFO_WIDTH, 0: the camera's), published
+        with QoS 'sensor_data' (best effort, default) or 'reliable' until 3 spot pairs came back or
+        SECONDS (60) passed; with FRAMES (0: as without), exactly FRAMES frames, one per PERIOD s;
+        each frame's CameraInfo first, or its image first with image_first. Prints the spots
+        spot_detector published back, their stamps and the frames published.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ def main() -> None:
     info_width = int(sys.argv[2]) if len(sys.argv) > 2 and int(sys.argv[2]) else camera.width
     qos = 10 if len(sys.argv) > 4 and sys.argv[4] == "reliable" else qos_profile_sensor_data
     frames = int(sys.argv[5]) if len(sys.argv) > 5 else 0
+    image_first = len(sys.argv) > 6 and sys.argv[6] == "image_first"
     rclpy.init()
     node = rclpy.create_node("test_camera")
     got = []
@@ -62,10 +64,10 @@ def main() -> None:
         info = CameraInfo(width=info_width, height=camera.height, distortion_model="plumb_bob",
                           k=[float(v) for v in camera.K.ravel()])
         info.header.stamp = stamp
-        info_pub.publish(info)
         image = Image(height=camera.height, width=camera.width, encoding=encoding, step=step, data=data)
         image.header.stamp = stamp
-        image_pub.publish(image)
+        for publisher, msg in ((image_pub, image), (info_pub, info))[::1 if image_first else -1]:
+            publisher.publish(msg)
         published += 1
         end = time.monotonic() + PERIOD
         while time.monotonic() < end:

@@ -46,8 +46,10 @@ def test_best_effort_frames_of_4_mb_arrive(ros):
 
 
 def test_camera_info_of_another_size_refuses_frames_in_one_line(ros):
+    """Every frame refused, the first too: a frame whose CameraInfo came second (the image first,
+    or the info's subscription matched later) was used before the size was checked."""
     ros.start("spot_detector")
-    got = run_camera(ros, "bgr8", "640", "8")
+    got = run_camera(ros, "bgr8", "640", "8", "sensor_data", "0", "image_first")
     assert got["frames"] == 0
     log = ros.log("spot_detector")
     assert "CameraInfo says 640x1024, the calibration is for 1280x1024" in log and "Traceback" not in log

@@ -143,6 +143,8 @@ class SpotDetectorNode(Node):
             return  # the same frame through the other subscription
         if key[:2] != (0, 0):  # an unstamped camera's frames cannot be told apart: all are used
             self.recent.append(key)
+        if not self.info_checked and self.count_publishers(common.CAMERA_INFO) > 0:
+            return  # the driver's CameraInfo, sent with each frame, may arrive second: its size is checked first
         if self.info_problem:
             return self.reject(self.info_problem)
         try:
