@@ -333,35 +333,41 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     executor = None
     code = 0
     try:
-        node = make_node()
-        warn_undeclared(node)
-        executor = make_executor() if make_executor else SingleThreadedExecutor()
-        executor.add_node(node)
-        if until is None:
-            executor.spin()
-        else:
-            while rclpy.ok() and not until(node):
-                executor.spin_once(timeout_sec=0.1)
-        code = getattr(node, "exit_code", 0)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        try:
+            node = make_node()
+            warn_undeclared(node)
+            executor = make_executor() if make_executor else SingleThreadedExecutor()
+            executor.add_node(node)
+            if until is None:
+                executor.spin()
+            else:
+                while rclpy.ok() and not until(node):
+                    executor.spin_once(timeout_sec=0.1)
+            code = getattr(node, "exit_code", 0)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            code = 0
+        except InputError as exc:
+            print(f"error: {exc}", file=sys.stderr, flush=True)
+            code = 2
+        except NodeError as exc:
+            print(f"error: {exc}", file=sys.stderr, flush=True)
+            code = exc.code
+        except (ParameterException, InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            print(f"error: parameter: {exc}", file=sys.stderr, flush=True)
+            code = 2
+        except OSError as exc:  # a file the parameters name cannot be read or written
+            print(f"error: {exc}", file=sys.stderr, flush=True)
+            code = 2
+        except Exception:
+            if rclpy.ok() and not stopped.is_set():
+                code = 1
+                raise
+            code = 0  # Ctrl-C/SIGTERM under a running callback (a publish, a message being taken)
+    except KeyboardInterrupt:
+        # The stop signal's own handler ran while an error it caused was handled: rclpy's C handler
+        # shuts the context at once (a node being built then fails, 'context is invalid'), ours runs
+        # at the next Python line, inside the except clause (seen as a traceback under run-session).
         code = 0
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr, flush=True)
-        code = 2
-    except NodeError as exc:
-        print(f"error: {exc}", file=sys.stderr, flush=True)
-        code = exc.code
-    except (ParameterException, InvalidParameterTypeException, InvalidParameterValueException) as exc:
-        print(f"error: parameter: {exc}", file=sys.stderr, flush=True)
-        code = 2
-    except OSError as exc:  # a file the parameters name cannot be read or written
-        print(f"error: {exc}", file=sys.stderr, flush=True)
-        code = 2
-    except Exception:
-        if rclpy.ok() and not stopped.is_set():
-            code = 1
-            raise
-        code = 0  # Ctrl-C/SIGTERM under a running callback (a publish, a message being taken)
     finally:
         # A terminal's Ctrl-C reaches a node under `ros2 launch` twice (from the terminal and from
         # launch); once shutting down, a second one must not break the cleanup with a traceback.
