@@ -185,7 +185,8 @@ def test_parameters_out_of_range_are_refused_at_the_start(ros, tmp_path):
              "seq_segment": ("bag.max_segment_seconds:=0.0", "parameter bag.max_segment_seconds: expected > 0, "
                                                              "got 0.0"),
              "seq_estimate": ("estimate.timeout:=0.0", "parameter estimate.timeout: expected > 0, got 0.0"),
-             "seq_seed": ("seed:=-1", "seed: must be >= 0, got -1")}
+             "seq_seed": ("seed:=-1", "seed: must be >= 0, got -1"),
+             "seq_unseen": ("unseen_limit:=-1", "parameter unseen_limit: expected >= 0, got -1")}
     for name, (param, _) in cases.items():
         ros.start(name, "-p", f"robot:={ROBOT}", "-p", f"output_dir:={tmp_path / name}", "-p", param,
                   node="sequencer")
