@@ -265,8 +265,9 @@ def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
             (path / "robot_calibrated.urdf").write_text(load_robot(path / "robot_calibrated.yaml").chain.urdf)
     if response.diagnosis_json:
         (path / "diagnosis.json").write_text(response.diagnosis_json)
-    warned = json.loads(response.result_json)["warnings"] or json.loads(response.diagnosis_json or "{}").get("warnings")
-    return response.message, not response.success, bool(warned)
+    from laser_calib.session.estimate import warned  # as the local estimate imports it
+    return response.message, not response.success, warned(json.loads(response.result_json)["warnings"],
+                                                           response.diagnosis_json)
 
 
 def stamps_from_float(stamp: float) -> tuple[int, int]:

@@ -68,8 +68,13 @@ class Outcome:
 
     @property
     def warned(self) -> bool:
-        """Whether the estimate or the diagnosis's final fit warned: the nodes then log a WARN."""
-        return bool(self.calibration.estimate.warnings or self.diagnosis.get("warnings"))
+        return warned(self.calibration.estimate.warnings, self.diagnosis_json)
+
+
+def warned(estimate_warnings, diagnosis_json: str) -> bool:
+    """Whether an estimate (its warnings) or its diagnosis's final fit (diagnosis_json's, '' when
+    not run) warned: the nodes then log a WARN. An Outcome's, or an Estimate response's."""
+    return bool(estimate_warnings) or bool(diagnosis_json and json.loads(diagnosis_json).get("warnings"))
 
 
 def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
