@@ -89,10 +89,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     die_with_parent()
+    # From here a Ctrl-C is a KeyboardInterrupt (below), so that the node is destroyed.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     rclpy.init(args=["replay"] + ros_args)
-    node = rclpy.create_node("replay")
+    node = None
     code = 0
     try:
+        node = rclpy.create_node("replay")
         publishers = {t: node.create_publisher(classes[t], t, qos_of(profiles))
                       for t, (_, _, profiles) in chosen.items()}
         deadline = time.monotonic() + args.wait_timeout
@@ -135,7 +138,8 @@ def main(argv: list[str] | None = None) -> int:
         code = 2
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not break the cleanup
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
     return code
 
