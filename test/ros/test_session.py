@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -159,6 +160,19 @@ def test_replay_and_bag_estimate_agree_with_live(session):
 
 def ros_bin(name: str):
     return BIN / name
+
+
+def test_ctrl_c_during_a_replay_exits_0(session):
+    """replay replaces the start-up handler with a KeyboardInterrupt before rclpy.init; a Ctrl-C
+    while it waits between the bag's messages (rate 0.05: 20 times slower) ends it with 0."""
+    ros, out = session
+    ros.start_command("slow_replay", [str(ros_bin("replay")), str(out / "bag"), "--rate", "0.05",
+                                      "--topics", "/samples"])
+    deadline = time.monotonic() + 60
+    while "replaying" not in ros.log("slow_replay") and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert "replaying" in ros.log("slow_replay"), ros.log("slow_replay")
+    assert ros.stop("slow_replay") == 0 and "Traceback" not in ros.log("slow_replay"), ros.log("slow_replay")
 
 
 def test_replay_bad_bag_is_one_line(session, tmp_path):
