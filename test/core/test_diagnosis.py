@@ -118,6 +118,22 @@ def test_library_effect_is_found_and_its_size_recovered(arm, kind):
     assert not_worse_on_test(diagnosis)
 
 
+def test_a_test_set_the_effects_do_not_carry_over_to_is_warned_of():
+    """The calibration poses have a joint scale error, the test poses (the same robot and commanded
+    poses, measured again) do not: the diagnosis finds the scale on the calibration poses, and
+    applying it misses the test poses by more than the geometric model does. That is said in
+    diagnosis.json's warnings (the console's and the report's); on a test set like the calibration
+    set it is not."""
+    scaled = library_session("paper-4dof", "joint_scale")
+    unscaled = effect_session("paper-4dof", SEED, lambda r, e, c, rng: [], 80, 40, NOISE)
+    diagnosis = run(replace(scaled, test=unscaled.test))
+    assert [e.kind for e in diagnosis.final.effects] == ["joint_scale"]
+    warned = [w for w in diagnosis.to_json()["warnings"] if "misses the test poses by more than the geometric" in w]
+    assert len(warned) == 1, diagnosis.to_json()["warnings"]
+    assert not diagnosis.failure
+    assert not run(scaled).warnings
+
+
 @pytest.mark.parametrize("arm", list(LIBRARY))
 def test_data_without_effects_is_explained_and_nothing_is_added(arm):
     session = effect_session(arm, SEED, lambda r, e, c, rng: [], 80, 40, NOISE)

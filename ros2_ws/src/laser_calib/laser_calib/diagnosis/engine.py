@@ -84,7 +84,7 @@ from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.screening import Refused, misfits, screened, screened_again, taken_back_by_either
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
 from laser_calib.diagnosis.specification import covariate_table, drift_covariates, load_table, specification_tests
-from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise, with_left_out
+from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise, with_left_out, worse_on_test
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
@@ -325,7 +325,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
                      noise, before, after, verdict, said, parameters, replace(options, progress=None),
                      time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested,
-                     tuple(varying))
+                     tuple(varying), tuple(worse_on_test(stages)))
 
 
 

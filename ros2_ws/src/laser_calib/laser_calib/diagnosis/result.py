@@ -128,6 +128,7 @@ class Diagnosis:
     compensated_test: np.ndarray | None = None  # (P_test, L) m, the final model with the compensator
     nested: np.ndarray | None = None  # (P, L) m held out with the selection inside the folds (engine.nested_heldout)
     specification: tuple[Varying, ...] = ()  # the chosen form's tests, strongest first (specification.py)
+    warnings: tuple[str, ...] = ()  # the diagnosis's own, beside its final fit's (verdict.worse_on_test)
 
     @property
     def final(self) -> Fitted:
@@ -167,8 +168,9 @@ class Diagnosis:
             "verdict": self.verdict,
             "evidence": self.evidence,
             "failure": self.failure,
-            # the final fit's own warnings (held parameters, implausible values, ...), as `estimate` gives them
-            "warnings": list(self.final.estimate.warnings),
+            # the final fit's own warnings (held parameters, implausible values, ...), as `estimate` gives them,
+            # then the diagnosis's (a test set the effects make worse)
+            "warnings": list(self.final.estimate.warnings) + list(self.warnings),
             "noise": {"spot_sigma_m": self.noise.spot_sigma, "spot_sigma_source": self.noise.spot_source,
                       "joint_sigma_rad": self.noise.joint_sigma, "joint_sigma_source": self.noise.joint_source,
                       "repeated_pose_dof": self.noise.repeat_dof,
