@@ -21,7 +21,9 @@ def write_results(name: str, data: dict, table: str) -> None:
     print(f"wrote {RESULTS / name}.json and .md")
 
 
+
 def warned_worse_on_test(diagnosis_json: dict) -> bool:
     """Whether a diagnosis warned that its final model misses the test poses by more than the
     geometric one (diagnosis.verdict.worse_on_test)."""
-    return any("misses the test poses by more than the geometric one" in w for w in diagnosis_json["warnings"])
+    from laser_calib.diagnosis.verdict import WORSE_ON_TEST
+    return any(w.startswith(WORSE_ON_TEST) for w in diagnosis_json["warnings"])

@@ -21,6 +21,7 @@ from laser_calib.diagnosis.detector import MAX_PERMUTATIONS
 from laser_calib.diagnosis.engine import diagnose, write_outputs
 from laser_calib.diagnosis.compensator import load_compensator
 from laser_calib.diagnosis.options import EXPLAINED, STRUCTURE, UNDETERMINED, DiagnoseOptions
+from laser_calib.diagnosis.verdict import WORSE_ON_TEST
 from laser_calib.diagnosis.writer import robot_header
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.measurement.spot import SpotModel
@@ -128,7 +129,7 @@ def test_a_test_set_the_effects_do_not_carry_over_to_is_warned_of():
     unscaled = effect_session("paper-4dof", SEED, lambda r, e, c, rng: [], 80, 40, NOISE)
     diagnosis = run(replace(scaled, test=unscaled.test))
     assert [e.kind for e in diagnosis.final.effects] == ["joint_scale"]
-    warned = [w for w in diagnosis.to_json()["warnings"] if "misses the test poses by more than the geometric" in w]
+    warned = [w for w in diagnosis.to_json()["warnings"] if w.startswith(WORSE_ON_TEST)]
     assert len(warned) == 1, diagnosis.to_json()["warnings"]
     assert not diagnosis.failure
     assert not run(scaled).warnings

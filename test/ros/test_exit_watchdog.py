@@ -104,4 +104,3 @@ def test_a_ctrl_c_while_an_import_turns_errors_into_import_errors_exits_0():
     result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60,
                             env=workspace_env())
     assert result.returncode == 0 and not result.stdout and not result.stderr, result
-

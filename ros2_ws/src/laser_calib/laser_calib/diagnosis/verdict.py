@@ -21,6 +21,11 @@ from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.estimation.redundancy import NOISE_RATIO
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 from laser_calib.model.robot import Robot
+from laser_calib.report.statistics import rms_where_both
+
+# The start of the warning worse_on_test gives (the benches count the diagnoses that gave it).
+WORSE_ON_TEST = "test: the final model misses the test poses by more than the geometric one"
+
 
 def worse_on_test(stages: list[Stage]) -> list[str]:
     """The warning when the final model misses the test poses by more than the geometric one (RMS
@@ -34,16 +39,14 @@ def worse_on_test(stages: list[Stage]) -> list[str]:
     first, last = stages[0].test, stages[-1].test
     if len(stages) < 2 or first is None or last is None:
         return []
-    both = np.isfinite(first) & np.isfinite(last)
-    if not both.any():
+    compared = rms_where_both(first, last)
+    if compared is None or compared[1] <= compared[0]:
         return []
-    before, after = (float(np.sqrt(np.mean(d[both] ** 2)) * 1e3) for d in (first, last))
-    if after <= before:
-        return []
-    return [f"test: the final model misses the test poses by more than the geometric one (RMS {before:.3g} mm -> "
-            f"{after:.3g} mm over the {int(both.sum())} measurements both predict): the effects chosen on the "
-            "calibration poses do not carry over to them (an effect standing in for another, a surface "
-            "extrapolated beyond the calibration spots, or test poses measured under other conditions)"]
+    before, after, count = compared
+    return [f"{WORSE_ON_TEST} (RMS {before * 1e3:.3g} mm -> {after * 1e3:.3g} mm over the {count} measurements both "
+            "predict): the effects chosen on the calibration poses do not carry over to them (an effect standing in "
+            "for another, a surface extrapolated beyond the calibration spots, or test poses measured under other "
+            "conditions)"]
 
 
 def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions,

@@ -26,6 +26,16 @@ def summary(values: np.ndarray, factor: float = 1.0, suffix: str = "") -> dict:
     return {"n": int(seen.size)} | {name + suffix: float(value) for name, value in figures.items()}
 
 
+def rms_where_both(before: np.ndarray, after: np.ndarray) -> tuple[float, float, int] | None:
+    """RMS (m) of two models' distances (same shape, NaN where a model predicts nothing) over the
+    measurements both predict, and how many those are; None when there are none. A comparison of
+    two models on a test set counts only what both predict."""
+    both = np.isfinite(before) & np.isfinite(after)
+    if not both.any():
+        return None
+    return float(np.sqrt(np.mean(before[both] ** 2))), float(np.sqrt(np.mean(after[both] ** 2))), int(both.sum())
+
+
 def spot_distances(robot: Robot, samples: Samples, errors: np.ndarray | None = None) -> np.ndarray:
     """(P,2) Euclidean distance in m between each seen spot and the model's
     prediction at the joint readings; NaN where the spot was not seen."""
