@@ -119,6 +119,17 @@ class Ros:
     def log(self, name: str) -> str:
         return self.logs[name].read_text(errors="replace")
 
+    def wait_log(self, name: str, text: str, timeout: float, watch: str | None = None) -> None:
+        """Wait until ``text`` is in ``name``'s log; fail when ``timeout`` s pass or the process
+        ``watch`` (``name`` unless given) has exited first."""
+        watch = watch or name
+        deadline = time.monotonic() + timeout
+        while text not in self.log(name):
+            if self.procs[watch].poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"no {text!r} in {name}'s log within {timeout} s, or {watch} exited; {watch}'s log:\n"
+                            f"{self.log(watch)[-3000:]}")
+            time.sleep(0.05)
+
     def wait_exit(self, name: str, timeout: float) -> int:
         try:
             return self.procs[name].wait(timeout=timeout)

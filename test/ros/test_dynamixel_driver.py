@@ -49,11 +49,8 @@ def test_torque_off_not_confirmed_on_shutdown_is_an_error(ros):
     line through the ROS logger naming servo 1 and exits 5 (it exited 0 with a plain stderr line)."""
     from dynamixel_emulator import DynamixelEmulator
     with DynamixelEmulator(ids=(1, 2, 3, 4)) as emulator:
-        proc = start_driver(ros, emulator)
-        deadline = time.monotonic() + 60
-        while "publishing at" not in ros.log("arm_driver"):           # opened: torque on, publishing
-            assert proc.poll() is None and time.monotonic() < deadline, ros.log("arm_driver")
-            time.sleep(0.05)
+        start_driver(ros, emulator)
+        ros.wait_log("arm_driver", "publishing at", 60)           # opened: torque on, publishing
         emulator.servos[1].lost_torque_offs = 100
         assert ros.stop("arm_driver") == 5, ros.log("arm_driver")
         log = ros.log("arm_driver")

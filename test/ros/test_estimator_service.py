@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 
 from ros_harness import CLIENT, ROBOT
 
@@ -157,10 +156,7 @@ def test_ctrl_c_during_an_estimate_answers_it_and_exits_0(ros, tmp_path):
     save_samples(paper_session("paper-7dof", seed=1).samples, tmp_path / "samples.csv")
     ros.start("estimator", "-p", f"robot:={ROBOT}")
     ros.start_command("client", [sys.executable, str(CLIENT), "estimate-csv-diagnose", str(tmp_path / "samples.csv")])
-    deadline = time.monotonic() + 120
-    while "then the diagnosis" not in ros.log("estimator"):
-        assert time.monotonic() < deadline and ros.procs["client"].poll() is None, ros.log("client")
-        time.sleep(0.05)
+    ros.wait_log("estimator", "then the diagnosis", 120, watch="client")
     assert ros.stop("estimator") == 0
     log = ros.log("estimator")
     assert "Traceback" not in log and "never retrieved" not in log, log[-3000:]

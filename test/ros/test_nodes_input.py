@@ -228,12 +228,8 @@ def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
 def test_a_parameter_the_node_does_not_take_is_one_warning(ros):
     """A misspelt key (dynamixel.zero_tick for dynamixel.zero_ticks) was dropped by ROS without a
     word and the driver ran on the default zero; now one WARN line names it."""
-    import time
     ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "dynamixel.zero_tick:=[1, 2]")
-    deadline = time.monotonic() + 60
-    while "publishing at" not in ros.log("arm_driver"):
-        assert ros.procs["arm_driver"].poll() is None and time.monotonic() < deadline, ros.log("arm_driver")
-        time.sleep(0.05)
+    ros.wait_log("arm_driver", "publishing at", 60)
     assert ros.stop("arm_driver") == 0
     warned = [line for line in ros.log("arm_driver").splitlines() if "does not take" in line]
     assert len(warned) == 1 and "[WARN]" in warned[0] and warned[0].endswith(": dynamixel.zero_tick"), warned

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import time
 
 import numpy as np
 import pytest
@@ -168,10 +167,7 @@ def test_ctrl_c_during_a_replay_exits_0(session):
     ros, out = session
     ros.start_command("slow_replay", [str(ros_bin("replay")), str(out / "bag"), "--rate", "0.05",
                                       "--topics", "/samples"])
-    deadline = time.monotonic() + 60
-    while "replaying" not in ros.log("slow_replay") and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert "replaying" in ros.log("slow_replay"), ros.log("slow_replay")
+    ros.wait_log("slow_replay", "replaying", 60)
     assert ros.stop("slow_replay") == 0 and "Traceback" not in ros.log("slow_replay"), ros.log("slow_replay")
 
 
