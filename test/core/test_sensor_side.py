@@ -269,3 +269,58 @@ def test_test_spots_beyond_the_calibration_spots_are_named_where_a_surface_extra
     # spots along one line span no area: every test spot is beyond what they saw
     line = np.array([[[-0.1, 0.0], [0.0, 0.0]], [[0.1, 0.0], [np.nan, np.nan]]])
     assert extrapolation_note(["screen_shape (screen)"], line, test).startswith("5 of 5 ")
+
+
+def test_beyond_the_spots_hull_the_spline_is_its_tangent_plane():
+    """Inside the calibration spots' convex hull the spline is unchanged; beyond
+    it the surface is f(p) + grad f(p) . (x - p), p the nearest point of the
+    hull: linear along each outward normal, continuous across the edge, its
+    gradient exact (against central differences, on edges and at corners, where
+    p slides and where it stays); a robot file keeps the hull (the same surface
+    read back) and one written without it is the plain spline; a bad hull is
+    named."""
+    rng = np.random.default_rng(7)
+    radius = np.sqrt(rng.uniform(0, 1, (60, 2)))
+    angle = rng.uniform(0, 2 * np.pi, (60, 2))
+    spots = 0.4 * radius[..., None] * np.stack([np.cos(angle), np.sin(angle)], axis=-1) + [0.1, 0.3]
+    spline = ScreenSpline.make(spots, 3).variants()[4]
+    plain = replace(spline, hull=None)
+    values = rng.normal(0, 1, len(spline.params)) * np.minimum(spline.prior, 1e-3)
+    height = lambda surface, s: surface.terms(s)[0] @ values  # noqa: E731
+
+    inside = spots.reshape(-1, 2)
+    assert np.abs(height(spline, inside) - height(plain, inside)).max() < 1e-15
+    centre, half = np.array([spline.centre_y, spline.centre_z]), np.array([spline.half_y, spline.half_z])
+    corners = spline.hull * half + centre                               # (h,2) m
+    edges = np.roll(corners, -1, axis=0) - corners
+    normals = np.stack([edges[:, 1], -edges[:, 0]], axis=-1) / np.linalg.norm(edges, axis=-1, keepdims=True)
+    middles = corners + edges / 2
+    steps = np.array([0.0, 0.05, 0.1, 0.2])[:, None, None]              # m outward from each edge's middle
+    outward = height(spline, middles + steps * normals)                 # (4,h)
+    assert np.abs(outward[2] - 2 * outward[1] + outward[0]).max() < 1e-12
+    assert np.abs(outward[3] - 2 * outward[2] + outward[0]).max() < 1e-12
+    assert np.abs(np.diff(height(plain, middles + steps * normals), 2, axis=0)).max() > 1e-5  # the spline bends
+    # C1 across the edge: the slope across it is the spline's own
+    across = (height(spline, middles + 1e-6 * normals) - height(spline, middles - 1e-6 * normals)) / 2e-6
+    slope = np.einsum("hkd,k,hd->h", plain.terms(middles)[1], values, normals)
+    assert np.abs(across - slope).max() < 1e-4 * np.abs(slope).max()
+
+    points = np.concatenate([middles + 0.1 * normals + 0.03 * edges, corners * 1.4 - 0.4 * centre, inside[:10]])
+    _, gradient = spline.terms(points)
+    for axis in range(2):
+        shift = np.zeros(2)
+        shift[axis] = 1e-6
+        numeric = (spline.terms(points + shift)[0] - spline.terms(points - shift)[0]) / 2e-6
+        assert np.abs(gradient[..., axis] - numeric).max() < 1e-5 * np.abs(numeric).max()
+
+    robot = bundled_robot("paper-4dof")
+    entry = spline.to_yaml(values)
+    effects, read = effects_from_robot(replace(robot, extra={"effects": [entry]}))
+    far = corners * 2 - centre
+    assert np.abs(effects[0].terms(far)[0] @ read[0] - height(spline, far)).max() < 1e-12
+    old = {key: value for key, value in entry.items() if key != "hull"}
+    effects, read = effects_from_robot(replace(robot, extra={"effects": [old]}))
+    assert np.abs(effects[0].terms(far)[0] @ read[0] - height(plain, far)).max() < 1e-12
+    for bad in ([[0.1, 0.2], [0.3, 0.4]], [[0.0, 0.0], [0.1, 0.1], [0.2, 0.2]], "all", [[0.1, "a"]] * 3):
+        with pytest.raises(InputError, match=r"effects\[0\]\.hull"):
+            effects_from_robot(replace(robot, extra={"effects": [{**entry, "hull": bad}]}))
