@@ -57,6 +57,7 @@ def test_torque_off_not_confirmed_on_shutdown_is_an_error(ros):
         errors = [line for line in log.splitlines() if "torque off" in line]
         assert len(errors) == 1 and "[ERROR]" in errors[0] and "[arm_driver]" in errors[0], log
         assert "servo 1 did not confirm torque off" in errors[0] and "Traceback" not in log, log
+        assert "Failed to publish log message" not in log, log   # to /rosout, whose context the signal shut
         assert emulator.torque_enabled(1) and not any(emulator.torque_enabled(i) for i in (2, 3, 4))
 
 

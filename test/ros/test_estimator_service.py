@@ -150,7 +150,9 @@ def test_an_output_dir_that_cannot_be_written_is_refused_in_one_line(ros, tmp_pa
 def test_ctrl_c_during_an_estimate_answers_it_and_exits_0(ros, tmp_path):
     """Ctrl-C while an Estimate request with its diagnosis runs: the node was destroyed between
     the callback's return and rclpy's send of its response ('exception never retrieved: cannot use
-    Destroyable' on stderr), and the client was never answered. Now the cleanup waits for it."""
+    Destroyable' on stderr), and the client was never answered. Now the cleanup waits for it. The
+    line the request logs after the stop reaches the console without rcl's complaint that /rosout,
+    whose context the signal shut, could not take it."""
     from laser_calib.io.samples import save_samples
     from laser_calib.sim.simulation import paper_session
     save_samples(paper_session("paper-7dof", seed=1).samples, tmp_path / "samples.csv")
@@ -160,6 +162,8 @@ def test_ctrl_c_during_an_estimate_answers_it_and_exits_0(ros, tmp_path):
     assert ros.stop("estimator") == 0
     log = ros.log("estimator")
     assert "Traceback" not in log and "never retrieved" not in log, log[-3000:]
+    assert "diagnosis: " in log.split("then the diagnosis")[-1], log[-3000:]
+    assert "Failed to publish log message" not in log, log[-3000:]
     assert ros.wait_exit("client", 60) == 0, ros.log("client")
     answer = json.loads(ros.log("client").strip().splitlines()[-1])
     assert answer["success"] and json.loads(answer["diagnosis_json"])["verdict"], answer["message"]

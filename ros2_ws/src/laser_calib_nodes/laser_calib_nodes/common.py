@@ -17,6 +17,7 @@ import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException, Executor, SingleThreadedExecutor
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException, ParameterException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
@@ -372,6 +373,12 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         # A terminal's Ctrl-C reaches a node under `ros2 launch` twice (from the terminal and from
         # launch); once shutting down, a second one must not break the cleanup with a traceback.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if not rclpy.ok():
+            # rclpy's signal handler shut the context but not rcl's logging: each line logged from
+            # here would still go to the node's /rosout publisher, which then fails ('Failed to
+            # publish log message to rosout: publisher's context is invalid'). The cleanup's lines
+            # go to the console (launch's log) only, as they do after rclpy's own shutdown.
+            rclpy_implementation.rclpy_logging_fini()
         watchdog.cleanup_started()
         if node is not None:
             close = getattr(node, "close", None)
