@@ -29,17 +29,6 @@ effective parameters, not its coefficients. A robot file holds the fitted
 surface in its knot form (``to_yaml``): the knots, the polynomial and one
 weight per knot, a_i = sum_k (Z U)_ik g_k, which evaluates the same surface
 without the eigenbasis.
-
-Beyond the convex hull of the calibration spots (``hull``) nothing measured
-the screen, and the spline's own continuation is its null-space polynomial
-plus kernels that grow as r^(2m-2) log r: a quadratic or cubic that follows
-the last bend it saw (at grazing beams the test spots there carried most of
-the test error of the curved-screen bench). There the surface continues
-along its tangent plane at the nearest point p of the hull,
-
-    f(x) = f(p) + grad f(p) . (x - p),
-
-the least curvature that keeps it smooth across the hull's edge (C1).
 """
 
 from __future__ import annotations
@@ -49,8 +38,6 @@ from functools import cached_property
 from typing import Any, ClassVar, Mapping
 
 import numpy as np
-
-from scipy.spatial import ConvexHull, QhullError
 
 from laser_calib.effects.base import Effect
 from laser_calib.effects.screen import BoxSurface
@@ -64,9 +51,6 @@ MODES = 30         # smoothest eigenfunctions kept; rougher ones carry nothing a
 # rho (m) the screening tries (Effect.variants): from a surface barely off its polynomial to bends of
 # millimetres, a factor of about 2 apart (the held-out error changes little within that).
 SMOOTHINGS = tuple(float(v) * 1e-3 for v in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0))
-# Step (normalised units) of the central difference of grad f along a hull edge (the extension's
-# gradient): its error, step^2 times the third derivative, is far below what Newton needs.
-EDGE_STEP = 1e-4
 
 
 def kernel(r2: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
@@ -106,32 +90,6 @@ def spread_knots(points: np.ndarray, count: int) -> np.ndarray:
     return points[taken]
 
 
-def hull_of(points: np.ndarray) -> np.ndarray | None:
-    """The vertices (h,2) of the convex hull of points (n,2), counter-clockwise; None when they span no area."""
-    if len(points) < 3:
-        return None
-    try:
-        return points[ConvexHull(points).vertices]
-    except QhullError:
-        return None
-
-
-def nearest_on_hull(x: np.ndarray, hull: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For points x (n,2): the nearest point p (n,2) of the convex polygon ``hull`` (h,2,
-    counter-clockwise) (x itself inside), and the unit direction (n,2) of the edge p
-    slides along as x moves (0 inside and where p is a vertex: there p stays put)."""
-    start, edge = hull, np.roll(hull, -1, axis=0) - hull                 # (h,2)
-    offset = x[:, None, :] - start                                        # (n,h,2)
-    inside = np.all(edge[:, 0] * offset[..., 1] - edge[:, 1] * offset[..., 0] >= 0, axis=1)
-    along = np.einsum("nhd,hd->nh", offset, edge) / np.einsum("hd,hd->h", edge, edge)
-    foot = start + np.clip(along, 0.0, 1.0)[..., None] * edge            # (n,h,2)
-    best = np.argmin(np.linalg.norm(x[:, None, :] - foot, axis=-1), axis=1)
-    rows = np.arange(len(x))
-    sliding = ~inside & (along[rows, best] > 0) & (along[rows, best] < 1)
-    direction = edge[best] / np.linalg.norm(edge[best], axis=-1, keepdims=True)
-    return (np.where(inside[:, None], x, foot[rows, best]), np.where(sliding[:, None], direction, 0.0))
-
-
 @dataclass(frozen=True, eq=False)
 class ScreenSpline(BoxSurface):
     """A screen of any smooth shape (module docstring). ``penalty_order`` m (the null
@@ -139,10 +97,7 @@ class ScreenSpline(BoxSurface):
     coordinates; ``modes`` (n,K) and ``tails`` (len(exponents(m)),K) the knot
     weights and polynomial of each eigenfunction, ``bending`` (K,) their
     energies, ``smoothing`` rho (m); ``modes`` None is the knot form (one
-    parameter per knot weight, no prior), as a robot file holds it;
-    ``hull`` (h,2) the calibration spots' convex hull in the normalised
-    coordinates, beyond which the surface is its tangent plane (module
-    docstring; None: the spline everywhere, as robot files written before it).
+    parameter per knot weight, no prior), as a robot file holds it.
     Coefficients in m; scale 1 mm."""
 
     kind: ClassVar[str] = "screen_spline"
@@ -154,7 +109,6 @@ class ScreenSpline(BoxSurface):
     tails: np.ndarray | None = None
     bending: np.ndarray | None = None
     smoothing: float | None = None
-    hull: np.ndarray | None = None
 
     @classmethod
     def make(cls, spots: np.ndarray, order: int = ORDERS[0],
@@ -164,9 +118,8 @@ class ScreenSpline(BoxSurface):
         seen = spots.reshape(-1, 2)
         seen = seen[~np.isnan(seen).any(axis=1)]
         centre, half = cls.box(spots)
-        normalised = (seen - centre) / half
         knot_form = cls(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), order,
-                        spread_knots(normalised, MAX_KNOTS), camera=camera, hull=hull_of(normalised))
+                        spread_knots((seen - centre) / half, MAX_KNOTS), camera=camera)
         return knot_form.with_order(order)
 
     def with_order(self, order: int) -> "ScreenSpline":
@@ -212,8 +165,7 @@ class ScreenSpline(BoxSurface):
         return np.concatenate([np.full(len(exponents(self.penalty_order)) - 1, np.inf), modes])
 
     def constants(self) -> dict:
-        constants = {**super().constants(), "penalty_order": self.penalty_order, "knots": self.knots.tolist()}
-        return constants if self.hull is None else {**constants, "hull": self.hull.tolist()}
+        return {**super().constants(), "penalty_order": self.penalty_order, "knots": self.knots.tolist()}
 
     def to_yaml(self, values: np.ndarray) -> dict[str, Any]:
         """The knot form: polynomial coefficients and one weight per knot."""
@@ -234,17 +186,8 @@ class ScreenSpline(BoxSurface):
         if (not isinstance(knots, list) or not knots
                 or not all(isinstance(k, list) and len(k) == 2 for k in knots)):
             raise InputError(f"{where}.knots", "expected a list of [u, v] pairs (normalised knot positions)")
-        hull = entry.get("hull")
-        if hull is not None:
-            # its vertices' own hull: counter-clockwise and convex whatever order the file lists them in
-            corners = (hull_of(points_of(hull, f"{where}.hull").reshape(-1, 2))
-                       if isinstance(hull, list) and all(isinstance(h, list) and len(h) == 2 for h in hull) else None)
-            if corners is None:
-                raise InputError(f"{where}.hull", "expected a list of [u, v] pairs spanning an area (the spots' "
-                                                  "convex hull, normalised)")
-            hull = corners
-        return cls(*cls.box_from_yaml(robot, entry, where), order, points_of(knots, f"{where}.knots"),
-                   camera=robot.screen.camera, hull=hull)
+        points = np.array([[finite_number(value, f"{where}.knots[{n}]") for value in k] for n, k in enumerate(knots)])
+        return cls(*cls.box_from_yaml(robot, entry, where), order, points, camera=robot.screen.camera)
 
     def _in_box(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """phi (...,k) and d phi / d x (...,k,2) at normalised points x (...,2), before the centre's value is removed."""
@@ -265,35 +208,6 @@ class ScreenSpline(BoxSurface):
     def _at_centre(self) -> np.ndarray:
         return self._in_box(np.zeros(2))[0]
 
-    def _extended(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """phi and d phi / d x at normalised points x (n,2) with the tangent plane beyond the hull:
-        phi(p) + d phi(p) (x - p), p the nearest point on the screen (in metres); its gradient
-        is d phi(p), plus, where p slides along an edge of unit direction e (m), (x - p) .
-        (d phi(p) differentiated along e) times d p / d x = diag(1/half) e e^T diag(half)."""
-        half = np.array([self.half_y, self.half_z])
-        p, along = nearest_on_hull(x * half, self.hull * half)
-        p = p / half
-        phi, d_phi = self._in_box(p)
-        offset = x - p
-        phi = phi + np.einsum("nkd,nd->nk", d_phi, offset)
-        sliding = np.flatnonzero(along.any(axis=1))
-        if len(sliding):
-            step = EDGE_STEP * along[sliding] / half
-            bend = (self._in_box(p[sliding] + step)[1] - self._in_box(p[sliding] - step)[1]) / (2 * EDGE_STEP)
-            d_phi[sliding] += (np.einsum("nkd,nd->nk", bend, offset[sliding])[..., None]
-                               * (along[sliding] * half)[:, None, :])
-        return phi, d_phi
-
     def terms(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = self.normalised(s)
-        if self.hull is None:
-            phi, d_phi = self._in_box(x)
-        else:
-            phi, d_phi = self._extended(x.reshape(-1, 2))
-            phi, d_phi = phi.reshape(x.shape[:-1] + phi.shape[-1:]), d_phi.reshape(x.shape[:-1] + d_phi.shape[-2:])
+        phi, d_phi = self._in_box(self.normalised(s))
         return phi - self._at_centre, d_phi / np.array([self.half_y, self.half_z])
-
-
-def points_of(entry: list, where: str) -> np.ndarray:
-    """(n,2) of a robot file's list of [u, v] pairs (checked by the caller), each a finite number."""
-    return np.array([[finite_number(value, f"{where}[{n}]") for value in pair] for n, pair in enumerate(entry)])
