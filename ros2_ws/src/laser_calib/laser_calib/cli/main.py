@@ -194,7 +194,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="laser-calib", description=__doc__.splitlines()[0])
+    # the docstring's first paragraph names every command, its second the exit statuses
+    summary, statuses = (" ".join(part.split()) for part in __doc__.split("\n\n")[:2])
+    parser = argparse.ArgumentParser(prog="laser-calib", description=summary, epilog=statuses)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate the paper's session (section IV / V)")
