@@ -51,13 +51,15 @@ def wait_for(condition, timeout: float, what: str, ros: Ros, name: str) -> None:
 
 
 def assert_clean_stop(log: str) -> None:
-    """Every node of the launch exited 0, without a traceback and without launch's escalation."""
+    """Every node of the launch exited 0, without a traceback, without launch's escalation and
+    without rcl's complaint about lines logged to /rosout after the signal shut the context."""
     started = re.findall(r"\[INFO\] \[([\w-]+)\]: process started", log)
     assert started, log[-3000:]
     for node in started:
         assert re.search(rf"\[{node}\]: process has finished cleanly", log), f"{node} did not exit 0:\n{log[-4000:]}"
     assert "Traceback" not in log and "KeyboardInterrupt" not in log, log[-4000:]
     assert "SIGTERM" not in log, log[-4000:]
+    assert "Failed to publish log message" not in log, log[-4000:]
 
 
 def launch_session(ros: Ros, name: str, out, *args: str):

@@ -102,6 +102,7 @@ def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
     assert not [pid for pid in nodes if alive(pid)]
     logs = {path.name: path.read_text() for path in (out / "logs").glob("*.log")}
     assert len(logs) == 5 and not [name for name, text in logs.items() if "Traceback" in text], logs
+    assert not [name for name, text in logs.items() if "Failed to publish log message" in text], logs
     assert "run again with the same --out to resume" in ros.log("run-session")
 
 
