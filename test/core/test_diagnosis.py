@@ -171,6 +171,24 @@ def test_effect_outside_the_library_leaves_structure(arm, outside):
     assert not_worse_on_test(diagnosis)
 
 
+def test_a_text_column_is_tested_as_categories():
+    """Every other pose measured on a second fixture that turns joint 2 (a text column,
+    conventions.md: offered to residual analysis): the structure analysis names the
+    fixture, and the verdict is not "explained". Without the column, nothing names it."""
+    def make(robot, errors, context, rng):
+        on_b = ForeignJointError("fixture B", 1, lambda s: 1e-3 * (s.pose % 2))
+        return [sized(robot, errors, context, on_b, NOISE, VISIBLE)]
+
+    session = effect_session("paper-4dof", SEED, make, 80, 40, NOISE)
+    fixture = np.where(session.cal.pose % 2, "B", "A")
+    labelled = replace(session, cal=replace(session.cal, labels={"fixture": fixture}))
+    diagnosis = run(labelled)
+    found = [t for t in diagnosis.before.tests if t.covariate == "fixture" and t.p_adjusted < diagnosis.options.alpha]
+    assert found and found[0].covariate_unit == "category", [t.sentence() for t in diagnosis.before.tests[:5]]
+    assert diagnosis.verdict != EXPLAINED
+    assert not [t for t in run(session).before.tests if t.covariate == "fixture"]
+
+
 def repeated_session(arm, truth, seed=SEED, n=40, repeats=2):
     """Poses measured ``repeats`` times in a row (the readings repeat exactly)."""
     rng = np.random.default_rng(seed)

@@ -5,6 +5,7 @@ import pytest
 
 from laser_calib.cli.main import main
 from laser_calib.model.robot_file import dump_robot, load_robot, save_robot
+from laser_calib.io.errors import InputError
 from laser_calib.io.samples import load_samples, save_samples
 from laser_calib.sim.simulation import bundled_robot, paper_session
 
@@ -29,6 +30,36 @@ def test_samples_round_trip_keeps_missing_spots_and_extra_columns(tmp_path):
     assert np.array_equal(back.spots[~np.isnan(back.spots)], samples.spots[~np.isnan(samples.spots)])
     assert np.array_equal(back.extra["temperature_c"], samples.extra["temperature_c"])
     assert not back.seen[3, 1] and back.seen[3, 0]
+
+
+def test_text_columns_are_carried_as_labels(tmp_path):
+    """conventions.md: any further column is a per-pose covariate, carried through every
+    step. A column of text (an operator, a fixture, notes never filled in) was refused
+    ('not a number'); it is read as labels, kept by a subset, written back as it was, and
+    the point and pose files read it alike. A column of numbers with some text is still a
+    covariate with a typo: refused, naming the field."""
+    from laser_calib.io.sensor_samples import parse_sensor_samples
+    session = paper_session("paper-4dof", 1)
+    save_samples(session.samples, tmp_path / "s.csv")
+    lines = (tmp_path / "s.csv").read_text().splitlines()
+    n = len(lines) - 1
+    operators = ["anna" if r % 3 else "Bo, night shift" for r in range(n)]
+    rows = [f"{line},{20 + r * 0.01:.2f},\"{operators[r]}\"," for r, line in enumerate(lines[1:])]
+    (tmp_path / "labelled.csv").write_text("\n".join([lines[0] + ",temperature_c,operator,notes"] + rows) + "\n")
+    samples = load_samples(tmp_path / "labelled.csv", session.nominal)
+    assert list(samples.extra) == ["temperature_c"] and sorted(samples.labels) == ["notes", "operator"]
+    assert samples.labels["operator"].tolist() == operators and set(samples.labels["notes"]) == {""}
+    assert samples.subset(np.arange(1, 4)).labels["operator"].tolist() == operators[1:4]
+    save_samples(samples, tmp_path / "again.csv")
+    back = load_samples(tmp_path / "again.csv", session.nominal)
+    assert back.labels["operator"].tolist() == operators and np.array_equal(back.q, samples.q)
+    point = parse_sensor_samples("pose,stamp,q1,x,y,z,fixture\n0,0.0,0.1,1.0,0.2,0.3,A\n1,1.0,0.2,1.1,0.2,0.3,B\n")
+    assert point.labels["fixture"].tolist() == ["A", "B"] and not point.extra
+
+    logged = [f"{line},{'n/a' if r == 3 else 21.5}" for r, line in enumerate(lines[1:])]
+    (tmp_path / "mixed.csv").write_text("\n".join([lines[0] + ",temperature_c"] + logged) + "\n")
+    with pytest.raises(InputError, match="line 5, field temperature_c: not a number: 'n/a'"):
+        load_samples(tmp_path / "mixed.csv", session.nominal)
 
 
 GOOD_HEADER = "pose,stamp,q1,q2,q3,q4,l1_y,l1_z,l2_y,l2_z"

@@ -5,7 +5,8 @@ robot model derives from it):
 
     pose level: q_i, move_i (sign of the last move of joint i, from the row
                 order, base.move_directions), torque_i (gravity torque,
-                joint.gravity_torques), stamp, every extra column
+                joint.gravity_torques), stamp, every extra column, every
+                text column (labels: an operator, a fixture) as categories
     spot level: spot_y, spot_z (measured), incidence (angle between beam and
                 screen normal, deg), laser
 
@@ -29,7 +30,7 @@ h = t.r / |t|^2, t = (z_y, z_z)/z_x (against the spot covariates).
 
 Test: weighted one-way analysis of variance of the response over bins of the
 covariate (quantile bins; the values themselves when they are few, e.g. the
-move signs): F = [sum_b W_b (m_b - m)^2 / (B-1)] / [sum w (e - m_b)^2 / (n-B)],
+move signs; a text column's categories, when 2 to MAX_BINS): F = [sum_b W_b (m_b - m)^2 / (B-1)] / [sum w (e - m_b)^2 / (n-B)],
 F(B-1, n-B) under "no dependence"; the within-bin scatter estimates the noise,
 so the test does not need the noise level. p-values are Bonferroni-adjusted
 over every test made; eta^2 = between / total sum of squares says how much of
@@ -61,6 +62,7 @@ class Readings(Protocol):
     q: np.ndarray                    # (P,N) rad
     stamp: np.ndarray                # (P,) s
     extra: Mapping[str, np.ndarray]  # name -> (P,)
+    labels: Mapping[str, np.ndarray]  # name -> (P,) str
 
 
 @dataclass(frozen=True)
@@ -68,7 +70,8 @@ class Series:
     """A covariate or response: values (P,) at pose level or (P,L) at spot level;
     weights (same shape, 0 where missing) for responses; unit and display factor;
     joint (0-based) for what belongs to one joint; length marks the responses of
-    a length; own_joint_only a covariate tested only against its joint's response."""
+    a length; own_joint_only a covariate tested only against its joint's response;
+    categories the names of a text column's values (its codes 0..K-1), () for numbers."""
 
     name: str
     values: np.ndarray
@@ -79,6 +82,7 @@ class Series:
     joint: int | None = None
     length: bool = False
     own_joint_only: bool = False
+    categories: tuple[str, ...] = ()
 
 
 def joined(parts: list[list[Series]]) -> list[Series]:
@@ -129,6 +133,10 @@ def pose_covariates(robot: Robot, samples: Readings) -> list[Series]:
                           own_joint_only=True))
     out.append(Series("stamp", samples.stamp, POSE, "s"))
     out += [Series(name, values, POSE, "") for name, values in samples.extra.items()]
+    for name, text in samples.labels.items():
+        categories, codes = np.unique(text, return_inverse=True)
+        if 2 <= len(categories) <= MAX_BINS:  # one label per pose (a time stamp as text) tells nothing
+            out.append(Series(name, codes.astype(float), POSE, "category", categories=tuple(categories)))
     return out
 
 
@@ -236,7 +244,7 @@ def binned_test(response: Series, covariate: Series) -> Test | None:
     x, e, w = x[keep], e[keep], w[keep]
     if len(e) < 6:
         return None
-    bins = _bins(x)
+    bins = x.astype(int) if covariate.categories else _bins(x)
     labels = np.unique(bins)
     if len(labels) < 2 or len(labels) >= len(e):
         return None

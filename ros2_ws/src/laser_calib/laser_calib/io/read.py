@@ -55,6 +55,11 @@ def csv_rows(text: str, source: str) -> list[list[str]]:
         raise InputError(f"{source}: line {reader.line_num}", f"not valid CSV ({exc})") from None
 
 
+def looks_numeric(cell: str) -> bool:
+    """Whether a CSV field is written as a decimal number (what parse_number reads)."""
+    return _DECIMAL.fullmatch(cell.strip()) is not None
+
+
 def parse_number(cell: str, where: str) -> float:
     """A finite number of plausible size from one CSV field, or one line naming ``where``."""
     text = cell.strip()

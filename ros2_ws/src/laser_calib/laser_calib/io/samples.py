@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.io.errors import InputError
-from laser_calib.io.read import (csv_rows, integer_column, length_units, number_column, parse_int, parse_number,
-                              plain_table, read_text)
+from laser_calib.io.read import (csv_rows, integer_column, length_units, looks_numeric, number_column, parse_int,
+                              parse_number, plain_table, read_text)
 from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.model.robot import Robot
 
@@ -33,7 +33,9 @@ class Samples:
     """Measured poses, one row per pose in measurement order, of one kind.
 
     pose (P,) int ids (repeated visits of a pose share its id); stamp (P,) s;
-    q (P,N) joint readings in rad; extra: per-pose covariate columns, each (P,).
+    q (P,N) joint readings in rad; extra: per-pose covariate columns, each (P,);
+    labels: per-pose text columns (an operator, a fixture, a batch), each (P,) str
+    ('' where empty), carried like the covariates and tested as categories.
     The measured block, NaN where not seen:
     - spot: spots (P,2,2) [pose, laser, (y,z)] in m on the screen;
     - point: position (P,3) of the marker in the sensor frame, m;
@@ -50,6 +52,7 @@ class Samples:
     position: np.ndarray | None = None
     quaternion: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
+    labels: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self):
         # The fields of the other kinds stay None, so a mixed-up call fails here, not in a model.
@@ -59,6 +62,8 @@ class Samples:
             raise ValueError("a quaternion needs a position (pose samples)")
         if not isinstance(self.extra, dict):
             raise ValueError(f"extra must be a dict of covariate columns, got {type(self.extra).__name__}")
+        if not isinstance(self.labels, dict):
+            raise ValueError(f"labels must be a dict of text columns, got {type(self.labels).__name__}")
         width = {"spots": (2, 2), "position": (3,), "quaternion": (4,)}
         for name, shape in width.items():
             value = getattr(self, name)
@@ -109,7 +114,27 @@ class Samples:
         """Rows selected by a boolean mask or index array (order preserved)."""
         rows = {f.name: getattr(self, f.name)[index] for f in fields(self)
                 if isinstance(getattr(self, f.name), np.ndarray)}
-        return replace(self, **rows, extra={k: v[index] for k, v in self.extra.items()})
+        return replace(self, **rows, extra={k: v[index] for k, v in self.extra.items()},
+                       labels={k: v[index] for k, v in self.labels.items()})
+
+
+def split_labels(header: list[str], rows: list[list[str]], first: int
+                 ) -> tuple[list[str], list[list[str]], dict[str, np.ndarray]]:
+    """The text columns among the columns from index ``first`` on (the covariates): a
+    column none of whose fields is a number (an operator's name, a fixture's tag, notes
+    never filled in) is a label column (P,) str; the header and rows without them. A column with
+    numbers and text stays a covariate, whose first text field parse_table then names
+    (a temperature logged as 'n/a' is a typo, not a category). Rows of another length
+    are left as they are for parse_table to name."""
+    if any(len(row) != len(header) for row in rows):
+        return header, rows, {}
+    text = [c for c in range(first, len(header))
+            if not any(looks_numeric(row[c]) for row in rows)]
+    if not text:
+        return header, rows, {}
+    keep = [c for c in range(len(header)) if c not in text]
+    labels = {header[c]: np.array([row[c].strip() for row in rows], dtype=str) for c in text}
+    return [header[c] for c in keep], [[row[c] for c in keep] for row in rows], labels
 
 
 def _header_error(source: str, problem: str) -> InputError:
@@ -209,11 +234,13 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
     if robot is not None and not robot.lasers:
         raise InputError(source, f"spot samples need the robot's lasers, but robot '{robot.name}' has no "
                                  "'lasers:' (add the two lasers' gamma, beta to its file)")
+    labels: dict[str, np.ndarray] = {}
     if plain is not None and plain[1].shape[1] == len(header) and np.all(np.diff(plain[1][:, 1]) > 0):
         pose, values = plain[1][:, 0].astype(int), plain[1][:, 1:]
     else:
         if plain is not None:  # the header line alone was read: the whole file, field by field
             header, rows, n_q = read_table(text, source, HEADER)
+        header, rows, labels = split_labels(header, rows, 6 + n_q)
         pose, values = parse_table(header, rows, source, SPOT_COLUMNS)
     n = len(pose)
     spots = values[:, 1 + n_q:5 + n_q].reshape(n, 2, 2)
@@ -226,8 +253,8 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
         check_spot_units(spots, robot, source)
         check_spot_columns(robot, q, spots, source)
     extra = {name: values[:, 5 + n_q + i] for i, name in enumerate(header[6 + n_q:])}
-    check_extra_columns(list(extra), n_q, robot, source)
-    return Samples(pose, values[:, 0], q, spots, extra)
+    check_extra_columns(list(extra) + list(labels), n_q, robot, source)
+    return Samples(pose, values[:, 0], q, spots, extra, labels=labels)
 
 
 def check_extra_columns(names: list[str], n_q: int, robot: Robot | None, source: str) -> None:
@@ -297,7 +324,8 @@ def format_samples(samples: Samples) -> str:
     if samples.kind != "spot":
         raise ValueError(f"the spot samples CSV holds spots, not {samples.kind} samples (io/sensor_samples.py)")
     n_q = samples.n_joints
-    header = ["pose", "stamp"] + [f"q{i + 1}" for i in range(n_q)] + list(SPOT_COLUMNS) + list(samples.extra)
+    header = (["pose", "stamp"] + [f"q{i + 1}" for i in range(n_q)] + list(SPOT_COLUMNS) + list(samples.extra)
+              + list(samples.labels))
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(header)
@@ -311,7 +339,8 @@ def sample_row(samples: Samples, r: int) -> list[str]:
     spots = [("" if math.isnan(v) else repr(float(v))) for v in samples.spots[r].ravel()]
     return ([str(int(samples.pose[r])), repr(float(samples.stamp[r]))]
             + [repr(float(v)) for v in samples.q[r]] + spots
-            + [repr(float(samples.extra[k][r])) for k in samples.extra])
+            + [repr(float(samples.extra[k][r])) for k in samples.extra]
+            + [str(samples.labels[k][r]) for k in samples.labels])
 
 
 def save_samples(samples: Samples, path: str | Path) -> None:

@@ -23,7 +23,7 @@ from laser_calib.io.figaroh import is_figaroh, parse_figaroh
 from laser_calib.io.read import read_text
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import (Samples, check_all_or_none, check_distance_units, check_extra_columns,
-                                    check_joint_count, check_joint_range, parse_table, read_table)
+                                    check_joint_count, check_joint_range, parse_table, read_table, split_labels)
 
 POINT_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
@@ -50,6 +50,7 @@ def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | No
         raise InputError(f"{source}: header", f"{what} (an orientation needs all of qw,qx,qy,qz)")
     measured = _columns(kind)
     check_joint_count(n_q, robot, source)
+    header, rows, labels = split_labels(header, rows, 2 + n_q + len(measured))
     pose, values = parse_table(header, rows, source, measured)
     block = values[:, 1 + n_q:1 + n_q + len(measured)]
     check_all_or_none(block, source, "", f"only some of {','.join(measured)} are given")
@@ -67,8 +68,8 @@ def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | No
     quaternion = values[:, 4 + n_q:8 + n_q] if kind == "pose" else None
     extra = {name: values[:, 1 + n_q + len(measured) + i]
              for i, name in enumerate(header[2 + n_q + len(measured):])}
-    check_extra_columns(list(extra), n_q, robot, source)
-    return Samples(pose, values[:, 0], q, extra=extra, position=position, quaternion=quaternion)
+    check_extra_columns(list(extra) + list(labels), n_q, robot, source)
+    return Samples(pose, values[:, 0], q, extra=extra, position=position, quaternion=quaternion, labels=labels)
 
 
 def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> Samples:
@@ -84,7 +85,7 @@ def format_sensor_samples(samples: Samples) -> str:
     if samples.kind == "spot":
         raise ValueError("the sensor samples CSV holds point or pose samples, not spots (io/samples.py)")
     header = (["pose", "stamp"] + [f"q{i + 1}" for i in range(samples.n_joints)] + list(_columns(samples.kind))
-              + list(samples.extra))
+              + list(samples.extra) + list(samples.labels))
     measured = samples.measured
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
@@ -93,7 +94,8 @@ def format_sensor_samples(samples: Samples) -> str:
         writer.writerow([str(int(samples.pose[r])), repr(float(samples.stamp[r]))]
                         + [repr(float(v)) for v in samples.q[r]]
                         + ["" if math.isnan(v) else repr(float(v)) for v in measured[r]]
-                        + [repr(float(samples.extra[k][r])) for k in samples.extra])
+                        + [repr(float(samples.extra[k][r])) for k in samples.extra]
+                        + [str(samples.labels[k][r]) for k in samples.labels])
     return out.getvalue()
 
 
