@@ -325,7 +325,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
                      noise, before, after, verdict, said, parameters, replace(options, progress=None),
                      time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested,
-                     tuple(varying), tuple(worse_on_test(stages)))
+                     tuple(varying), tuple(worse_on_test(stages, None if test is None else test.samples.pose)))
 
 
 
