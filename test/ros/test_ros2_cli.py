@@ -205,28 +205,32 @@ def test_ros2_run_service_param_and_topics(tmp_path):
         assert header.returncode == 0 and "builtin_interfaces/Time stamp" in header.stdout, header
         action = ros2(ros, "interface", "show", "laser_calib_interfaces/action/Calibrate")
         assert action.returncode == 0 and "fraction_done" in action.stdout, action
-        # --timeout: wait for the node until it is seen (--spin-time would spin its whole length, every call)
+        # --timeout: wait for the node until it is seen (--spin-time would spin its whole length, every call);
+        # each `ros2 param` is a new process that discovers the graph anew, and its default (1 s) is too short
+        # for that on a loaded machine ('Node not found' from a `param set` right after a `param get` worked)
         spin = ["--timeout", "30"]
         got = ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin)
         assert got.returncode == 0 and "0.0" in got.stdout, got
         # run-time parameter: validated
-        assert "Set parameter successful" in ros2(ros, "param", "set", "/estimator", "spot_sigma", "0.001").stdout
+        changed = ros2(ros, "param", "set", "/estimator", "spot_sigma", "0.001", *spin)
+        assert "Set parameter successful" in changed.stdout, changed
         assert "0.001" in ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin).stdout
-        refused = ros2(ros, "param", "set", "/estimator", "spot_sigma", "-1.0")
+        refused = ros2(ros, "param", "set", "/estimator", "spot_sigma", "-1.0", *spin)
         assert "expected >= 0 m" in refused.stdout + refused.stderr, refused
         assert "0.001" in ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin).stdout
-        read_only = ros2(ros, "param", "set", "/estimator", "robot", "x.yaml")
+        read_only = ros2(ros, "param", "set", "/estimator", "robot", "x.yaml", *spin)
         assert "read-only" in (read_only.stdout + read_only.stderr).lower(), read_only
         # the detector's threshold is tuned while the camera runs; a bad value changes nothing
-        assert "Set parameter successful" in ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "30").stdout
-        refused = ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "0.0")
+        changed = ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "30", *spin)
+        assert "Set parameter successful" in changed.stdout, changed
+        refused = ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "0.0", *spin)
         assert "expected > 0" in refused.stdout + refused.stderr, refused
         assert "30" in ros2(ros, "param", "get", "/spot_detector", "min_peak_dn", *spin).stdout
         spots = ["topic", "echo", "--once", "/spots", "laser_calib_interfaces/msg/SpotPair"]
         seen = ros2(ros, *spots, timeout=60)
         assert seen.returncode == 0 and seen.stdout.count("seen: true") == 2, seen
         assert "Set parameter successful" in ros2(ros, "param", "set", "/spot_detector", "min_peak_dn",
-                                                  "1000000.0").stdout
+                                                  "1000000.0", *spin).stdout
         unseen = ros2(ros, *spots, timeout=60)  # a frame after the set: no contrast is that high
         assert unseen.returncode == 0 and unseen.stdout.count("seen: false") == 2, unseen
         # private service names
