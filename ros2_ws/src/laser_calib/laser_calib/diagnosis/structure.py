@@ -30,7 +30,8 @@ h = t.r / |t|^2, t = (z_y, z_z)/z_x (against the spot covariates).
 
 Test: weighted one-way analysis of variance of the response over bins of the
 covariate (quantile bins; the values themselves when they are few, e.g. the
-move signs; a text column's categories, when 2 to MAX_BINS): F = [sum_b W_b (m_b - m)^2 / (B-1)] / [sum w (e - m_b)^2 / (n-B)],
+move signs; a text column's categories, when 2 to MAX_BINS):
+F = [sum_b W_b (m_b - m)^2 / (B-1)] / [sum w (e - m_b)^2 / (n-B)],
 F(B-1, n-B) under "no dependence"; the within-bin scatter estimates the noise,
 so the test does not need the noise level. p-values are Bonferroni-adjusted
 over every test made; eta^2 = between / total sum of squares says how much of

@@ -122,14 +122,13 @@ def split_labels(header: list[str], rows: list[list[str]], first: int
                  ) -> tuple[list[str], list[list[str]], dict[str, np.ndarray]]:
     """The text columns among the columns from index ``first`` on (the covariates): a
     column none of whose fields is a number (an operator's name, a fixture's tag, notes
-    never filled in) is a label column (P,) str; the header and rows without them. A column with
-    numbers and text stays a covariate, whose first text field parse_table then names
-    (a temperature logged as 'n/a' is a typo, not a category). Rows of another length
-    are left as they are for parse_table to name."""
+    never filled in) is a label column (P,) str; the header and rows without them. A
+    column with numbers and text stays a covariate, whose first text field parse_table
+    then names (a temperature logged as 'n/a' is a typo, not a category). Rows of another
+    length are left as they are for parse_table to name."""
     if any(len(row) != len(header) for row in rows):
         return header, rows, {}
-    text = [c for c in range(first, len(header))
-            if not any(looks_numeric(row[c]) for row in rows)]
+    text = [c for c in range(first, len(header)) if not any(looks_numeric(row[c]) for row in rows)]
     if not text:
         return header, rows, {}
     keep = [c for c in range(len(header)) if c not in text]
