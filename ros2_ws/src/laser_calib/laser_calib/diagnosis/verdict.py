@@ -21,13 +21,13 @@ from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.estimation.redundancy import NOISE_RATIO
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 from laser_calib.model.robot import Robot
-from laser_calib.report.statistics import one_pose_decides, rms_where_both
+from laser_calib.report.statistics import worse_on_test_warning
 
 # The start of the warning worse_on_test gives (the benches count the diagnoses that gave it).
 WORSE_ON_TEST = "test: the final model misses the test poses by more than the geometric one"
 
 
-def worse_on_test(stages: list[Stage], poses: np.ndarray | None = None) -> list[str]:
+def worse_on_test(stages: list[Stage], poses: np.ndarray | None) -> list[str]:
     """The warning when the final model misses the test poses by more than the geometric one (RMS
     over the measurements both predict), as `estimate` warns of a calibration worse than the nominal
     model on its test set (report.calibration.worse_on_test). The effects were chosen on the
@@ -35,23 +35,16 @@ def worse_on_test(stages: list[Stage], poses: np.ndarray | None = None) -> list[
     extrapolated beyond the calibration spots, an effect standing in for another, or a test set
     measured under other conditions. A per-pose rank test would miss the usual case: the effects
     help most poses a little and miss a few by much (a joint scale the test poses do not have: RMS
-    1.8 -> 2.5 mm, Wilcoxon p = 0.02). When one test pose (ids ``poses`` (P,)) carries most of the
-    increase, the warning names it (report.statistics.one_pose_decides)."""
+    1.8 -> 2.5 mm, Wilcoxon p = 0.02). When one test pose (ids ``poses`` (P,), None without a test
+    set) carries most of the increase, the warning names it (report.statistics.worse_on_test_warning)."""
     first, last = stages[0].test, stages[-1].test
-    if len(stages) < 2 or first is None or last is None:
+    if len(stages) < 2 or first is None or last is None or poses is None:
         return []
-    compared = rms_where_both(first, last)
-    if compared is None or compared[1] <= compared[0]:
-        return []
-    before, after, count = compared
-    figures = (f"{WORSE_ON_TEST} (RMS {before * 1e3:.3g} mm -> {after * 1e3:.3g} mm over the {count} measurements "
-               "both predict)")
-    decided = one_pose_decides(first, last, np.arange(len(first)) if poses is None else poses)
-    if decided and decided.startswith("without"):  # one pose, not the effects' pattern
-        return [f"{figures}; {decided}"]
-    return [f"{figures}: the effects chosen on the calibration poses do not carry over to them (an effect standing "
-            "in for another, a surface extrapolated beyond the calibration spots, or test poses measured under other "
-            "conditions)" + (f"; {decided}" if decided else "")]
+    return worse_on_test_warning(
+        first, last, poses,
+        WORSE_ON_TEST + " (RMS {before:.3g} mm -> {after:.3g} mm over the {count} measurements both predict)",
+        "the effects chosen on the calibration poses do not carry over to them (an effect standing in for another, "
+        "a surface extrapolated beyond the calibration spots, or test poses measured under other conditions)")
 
 
 def verdict_noise(final: Fitted, samples: Readings, options: DiagnoseOptions,

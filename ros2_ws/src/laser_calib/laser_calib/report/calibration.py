@@ -41,7 +41,7 @@ from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import held, with_held
 from laser_calib.report.plots import display_units
 from laser_calib.report.pose_table import NOT_FITTED, fit_status
-from laser_calib.report.statistics import iso9283, laser_stats, one_pose_decides, rms_where_both
+from laser_calib.report.statistics import iso9283, laser_stats, worse_on_test_warning
 
 if TYPE_CHECKING:  # scikit-learn (1 s to import): only where a compensator is loaded
     from laser_calib.diagnosis.compensator import Compensator
@@ -290,14 +290,9 @@ def worse_on_test(sets: dict[str, SetEvaluation]) -> list[str]:
     if "test" not in sets:
         return []
     nominal, calibrated = (sets["test"].distances(model) for model in MODELS)
-    compared = rms_where_both(nominal, calibrated)
-    if compared is None or compared[1] <= compared[0]:
-        return []
-    before, after, count = compared
-    figures = (f"test: the calibrated model misses the held-out spots by more than the nominal one (RMS "
-               f"{before * 1e3:.3g} mm -> {after * 1e3:.3g} mm, over the {count} spots both predict)")
-    decided = one_pose_decides(nominal, calibrated, sets["test"].samples.pose)
-    if decided and decided.startswith("without"):  # one pose, not the calibration
-        return [f"{figures}; {decided}"]
-    return [f"{figures}: the calibration does not carry over to them (a wrong minimum, samples out of step with the "
-            "joint readings, or sets measured under other conditions)" + (f"; {decided}" if decided else "")]
+    return worse_on_test_warning(
+        nominal, calibrated, sets["test"].samples.pose,
+        "test: the calibrated model misses the held-out spots by more than the nominal one (RMS {before:.3g} mm -> "
+        "{after:.3g} mm, over the {count} spots both predict)",
+        "the calibration does not carry over to them (a wrong minimum, samples out of step with the joint readings, "
+        "or sets measured under other conditions)")

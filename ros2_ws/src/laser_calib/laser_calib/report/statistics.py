@@ -57,6 +57,23 @@ def one_pose_decides(before: np.ndarray, after: np.ndarray, poses: np.ndarray) -
     return f"test pose {int(poses[worst])} alone carries {increase[worst] / increase.sum():.0%} of the increase"
 
 
+def worse_on_test_warning(before: np.ndarray, after: np.ndarray, poses: np.ndarray, figures: str,
+                          causes: str) -> list[str]:
+    """The warning when the model of ``after`` misses a test set by more than that of ``before``
+    (one_pose_decides' distances and pose ids; RMS over what both predict), [] otherwise:
+    ``figures`` (a template of the RMS {before} and {after} in mm and the {count}), then
+    ``causes`` (what makes a model worse on poses it never saw) and the pose that carries most
+    of the increase; when the figure is not worse without that pose, the pose instead of the causes."""
+    compared = rms_where_both(before, after)
+    if compared is None or compared[1] <= compared[0]:
+        return []
+    said = figures.format(before=compared[0] * 1e3, after=compared[1] * 1e3, count=compared[2])
+    decided = one_pose_decides(before, after, poses)
+    if decided is not None and decided.startswith("without"):  # one pose, not the model
+        return [f"{said}; {decided}"]
+    return [f"{said}: {causes}" + (f"; {decided}" if decided else "")]
+
+
 def spot_distances(robot: Robot, samples: Samples, errors: np.ndarray | None = None) -> np.ndarray:
     """(P,2) Euclidean distance in m between each seen spot and the model's
     prediction at the joint readings; NaN where the spot was not seen."""
