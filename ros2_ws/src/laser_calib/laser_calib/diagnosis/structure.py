@@ -72,7 +72,7 @@ class Series:
     weights (same shape, 0 where missing) for responses; unit and display factor;
     joint (0-based) for what belongs to one joint; length marks the responses of
     a length; own_joint_only a covariate tested only against its joint's response;
-    categories the names of a text column's values (its codes 0..K-1), () for numbers."""
+    categorical a text column's codes 0..K-1, each value its own bin."""
 
     name: str
     values: np.ndarray
@@ -83,7 +83,7 @@ class Series:
     joint: int | None = None
     length: bool = False
     own_joint_only: bool = False
-    categories: tuple[str, ...] = ()
+    categorical: bool = False
 
 
 def joined(parts: list[list[Series]]) -> list[Series]:
@@ -137,7 +137,7 @@ def pose_covariates(robot: Robot, samples: Readings) -> list[Series]:
     for name, text in samples.labels.items():
         categories, codes = np.unique(text, return_inverse=True)
         if 2 <= len(categories) <= MAX_BINS:  # one label per pose (a time stamp as text) tells nothing
-            out.append(Series(name, codes.astype(float), POSE, "category", categories=tuple(categories)))
+            out.append(Series(name, codes.astype(float), POSE, "category", categorical=True))
     return out
 
 
@@ -245,7 +245,7 @@ def binned_test(response: Series, covariate: Series) -> Test | None:
     x, e, w = x[keep], e[keep], w[keep]
     if len(e) < 6:
         return None
-    bins = x.astype(int) if covariate.categories else _bins(x)
+    bins = x.astype(int) if covariate.categorical else _bins(x)
     labels = np.unique(bins)
     if len(labels) < 2 or len(labels) >= len(e):
         return None

@@ -337,9 +337,13 @@ def sample_row(samples: Samples, r: int) -> list[str]:
     """One CSV row; full float precision (repr) so files round-trip exactly."""
     spots = [("" if math.isnan(v) else repr(float(v))) for v in samples.spots[r].ravel()]
     return ([str(int(samples.pose[r])), repr(float(samples.stamp[r]))]
-            + [repr(float(v)) for v in samples.q[r]] + spots
-            + [repr(float(samples.extra[k][r])) for k in samples.extra]
-            + [str(samples.labels[k][r]) for k in samples.labels])
+            + [repr(float(v)) for v in samples.q[r]] + spots + covariate_cells(samples, r))
+
+
+def covariate_cells(samples: Samples, r: int) -> list[str]:
+    """Row r's covariate columns (full precision) and then its text columns, as the header lists them."""
+    return ([repr(float(values[r])) for values in samples.extra.values()]
+            + [str(text[r]) for text in samples.labels.values()])
 
 
 def save_samples(samples: Samples, path: str | Path) -> None:

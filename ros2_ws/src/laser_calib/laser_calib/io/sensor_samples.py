@@ -23,7 +23,8 @@ from laser_calib.io.figaroh import is_figaroh, parse_figaroh
 from laser_calib.io.read import read_text
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import (Samples, check_all_or_none, check_distance_units, check_extra_columns,
-                                    check_joint_count, check_joint_range, parse_table, read_table, split_labels)
+                                    check_joint_count, check_joint_range, covariate_cells, parse_table, read_table,
+                                    split_labels)
 
 POINT_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
@@ -94,8 +95,7 @@ def format_sensor_samples(samples: Samples) -> str:
         writer.writerow([str(int(samples.pose[r])), repr(float(samples.stamp[r]))]
                         + [repr(float(v)) for v in samples.q[r]]
                         + ["" if math.isnan(v) else repr(float(v)) for v in measured[r]]
-                        + [repr(float(samples.extra[k][r])) for k in samples.extra]
-                        + [str(samples.labels[k][r]) for k in samples.labels])
+                        + covariate_cells(samples, r))
     return out.getvalue()
 
 
