@@ -21,9 +21,19 @@ def write_results(name: str, data: dict, table: str) -> None:
     print(f"wrote {RESULTS / name}.json and .md")
 
 
-
 def warned_worse_on_test(diagnosis_json: dict) -> bool:
     """Whether a diagnosis warned that its final model misses the test poses by more than the
     geometric one (diagnosis.verdict.worse_on_test)."""
     from laser_calib.diagnosis.verdict import WORSE_ON_TEST
     return any(w.startswith(WORSE_ON_TEST) for w in diagnosis_json["warnings"])
+
+
+def worse_on_test_warned(rows: list[dict]) -> tuple[int, int]:
+    """Of the rows whose final model's test RMS is above the geometric fit's: how many warned so, and how many."""
+    worse = [r for r in rows if r["final_test_rms_mm"] > r["geometric_test_rms_mm"]]
+    return sum(r["warned_worse_on_test"] for r in worse), len(worse)
+
+
+def verdict_cell(row: dict) -> str:
+    """A table's verdict, marked when the diagnosis warned that its test figure got worse."""
+    return row["verdict"] + (" (warned: worse on test)" if row["warned_worse_on_test"] else "")

@@ -62,7 +62,7 @@ import multiprocessing
 import time
 from typing import Callable
 
-from _common import RESULTS, warned_worse_on_test, write_results
+from _common import RESULTS, verdict_cell, warned_worse_on_test, worse_on_test_warned, write_results
 
 import numpy as np
 from scipy import stats
@@ -436,8 +436,7 @@ def summary(rows: list[dict]) -> dict:
             out.update({prefix + key: [sum(r["checks"][key] for r in group), len(group)]
                         for key in ("not_explained", "honest", "compensated_within_25pct")})
     # The diagnosis's warning that the effects it chose miss the test poses by more than the geometric model.
-    worse = [r for r in rows if r["final_test_rms_mm"] > r["geometric_test_rms_mm"]]
-    out["worse_on_test_warned"] = [sum(r["warned_worse_on_test"] for r in worse), len(worse)]
+    out["worse_on_test_warned"] = list(worse_on_test_warned(rows))
     return out
 
 
@@ -457,7 +456,7 @@ def table(rows: list[dict]) -> str:
         true_rms = f"{r['true_model_test_rms_mm']:.3f}" if "true_model_test_rms_mm" in r else "-"
         checks = ", ".join(("" if ok else "FAIL ") + name for name, ok in r["checks"].items())
         lines.append(f"| {r['noise_given']} | {r['arm']} | {truth} | {r['seed']} | {'; '.join(r['chosen']) or 'nothing'} | "
-                     f"{r['verdict']}{' (warned: worse on test)' if r['warned_worse_on_test'] else ''} | "
+                     f"{verdict_cell(r)} | "
                      f"{r['geometric_test_rms_mm']:.3f} | {r['final_test_rms_mm']:.3f} | {true_rms} | "
                      f"{r['time_s']:.1f} | {checks} |")
     passed = sum(all(r["checks"].values()) for r in rows)

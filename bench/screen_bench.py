@@ -28,7 +28,7 @@ import multiprocessing
 import time
 from dataclasses import replace
 
-from _common import warned_worse_on_test, write_results
+from _common import verdict_cell, warned_worse_on_test, worse_on_test_warned, write_results
 
 import numpy as np
 from effects_bench import N_CAL, N_TEST, NOISE, PERIOD, RMS_MARGIN
@@ -104,10 +104,10 @@ def _case(job: tuple) -> dict:
 def counts(rows: list[dict]) -> str:
     within = sum(r["within_15pct"] for r in rows)
     inside = sum(r["ratio_inside_hull"] <= RMS_MARGIN for r in rows)
-    worse = [r for r in rows if r["final_test_rms_mm"] > r["geometric_test_rms_mm"]]
+    warned, worse = worse_on_test_warned(rows)
     return (f"{within} of {len(rows)} within 15 % of the true model's test RMS "
             f"({inside} of {len(rows)} over the test spots inside the calibration spots' hull); "
-            f"{sum(r['warned_worse_on_test'] for r in worse)} of the {len(worse)} whose final model is worse on the "
+            f"{warned} of the {worse} whose final model is worse on the "
             "test poses than the geometric fit warned so")
 
 
@@ -133,8 +133,7 @@ def table(rows: list[dict], camera: str) -> str:
         for r in part:
             lines.append(
                 f"| {r['arm']} | {r['truth']} | {r['seed']} | {r['visibility']:g} | {r['amplitude_mm']:.2f} | "
-                f"{'; '.join(r['chosen']) or 'nothing'} | {r['verdict']}"
-                f"{' (warned: worse on test)' if r['warned_worse_on_test'] else ''} | {r['geometric_test_rms_mm']:.3f} | "
+                f"{'; '.join(r['chosen']) or 'nothing'} | {verdict_cell(r)} | {r['geometric_test_rms_mm']:.3f} | "
                 f"{r['final_test_rms_mm']:.3f} | {r['true_model_test_rms_mm']:.3f} | {r['ratio']:.2f} | "
                 f"{r['ratio_inside_hull']:.2f} ({r['test_spots_outside_hull']}) | {r['nested_heldout_rms_mm']:.3f} | "
                 f"{r['cpu_s']:.0f} | {'yes' if r['within_15pct'] else 'NO'} |")
