@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from laser_calib.estimation.failures import is_failure
+from laser_calib.estimation.failures import NoSpotToFit, is_failure
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import parse_int, parse_number
 from laser_calib.io.sensor_samples import POINT_COLUMNS, QUATERNION_COLUMNS
@@ -136,6 +136,17 @@ def require_measured(samples, source: str, problem: str | None = None) -> None:
     if not samples.seen.any():
         raise InputError(source, f"{problem or 'no measured ' + samples.kind} "
                                  f"(every {MEASURED_FIELDS[samples.kind]} field empty)")
+
+
+def no_spot_to_fit(robot: str, samples: str, compensator: str | None = None) -> InputError:
+    """NoSpotToFit as one line naming the robot file: the samples hold measured spots
+    (require_measured), so the nominal model (with the compensator, if any) put every one
+    out of reach, refused as impossible (its beam misses the screen, or lands far from it)."""
+    return InputError(robot, f"no measured spot of {samples} to fit: at every one the nominal model's beam"
+                             + (f" (compensated by {compensator})" if compensator else "")
+                             + " misses the screen or lands far from the spot, and each was refused as impossible; "
+                               "check the robot file (lengths in metres, joint zeros, the laser module, the screen)"
+                               + (" and the compensator" if compensator else ""))
 
 
 # A fit that did not converge, or whose minimum dropped measurements: its files are written

@@ -10,8 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from laser_calib.cli.arguments import (non_negative, non_negative_int, out_folder, positive, print_warnings,
-                                      require_measured, staged_folder)
+from laser_calib.cli.arguments import (no_spot_to_fit, non_negative, non_negative_int, out_folder, positive,
+                                      print_warnings, require_measured, staged_folder)
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.io.errors import InputError
@@ -23,7 +23,7 @@ from laser_calib.report.progress import Progress
 def cmd_diagnose(args: argparse.Namespace) -> int:
     # The engine pulls in scikit-learn and scipy.stats (0.8 s): only this command pays for them.
     from laser_calib.diagnosis.engine import TooFewPoses, diagnose, write_outputs
-    from laser_calib.estimation.failures import FitMovedBeams
+    from laser_calib.estimation.failures import FitMovedBeams, NoSpotToFit
 
     robot = load_robot(args.robot)
     samples = load_samples(args.samples, robot)
@@ -48,6 +48,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
                 raise InputError(str(args.samples), exc.problem) from None
             except FitMovedBeams as exc:  # a fit knows the beams it moved, the command the robot file
                 raise InputError(str(args.robot), exc.problem) from None
+            except NoSpotToFit:  # every measured spot refused at the nominal model: the robot file's doing
+                raise no_spot_to_fit(str(args.robot), str(args.samples)) from None
         result = write_outputs(diagnosis, out, sources)
     for stage in result["stages"]:
         where = "test" if stage["test"] else "cv"

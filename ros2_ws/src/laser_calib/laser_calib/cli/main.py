@@ -19,6 +19,7 @@ import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
+from laser_calib.estimation.failures import NoSpotToFit
 from laser_calib.estimation.ekf import EkfOptions
 from laser_calib.estimation.lm import LmOptions
 from laser_calib.estimation.problem import whitened_factor
@@ -39,8 +40,8 @@ from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
 from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, noise_angle_deg, noise_length, non_negative_int,
-                                      out_file, out_folder, positive, positive_int, print_warnings, require_measured,
-                                      sigma_angle, sigma_length, staged_folder, tolerance_length)
+                                      no_spot_to_fit, out_file, out_folder, positive, positive_int, print_warnings,
+                                      require_measured, sigma_angle, sigma_length, staged_folder, tolerance_length)
 
 EXIT_BAD_INPUT = 2
 # The reader of the output went away (| head): the status a shell gives a program SIGPIPE ends (128 + 13).
@@ -134,6 +135,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                                        compensator=compensator)
         except TooFewValues as exc:  # the estimator counts the values, the command knows their file
             raise InputError(str(args.samples or args.bag), str(exc)) from None
+        except NoSpotToFit:  # every measured spot refused at the nominal model: the robot file's doing
+            raise no_spot_to_fit(str(args.robot), str(args.samples or args.bag), args.compensator) from None
     status = _summary(calibration)
     urdf = ", robot_calibrated.urdf, urdf_corrections.json" if robot.chain is not None else ""
     print(f"wrote {args.out}/robot_calibrated.yaml{urdf}, result.json, report.md, residuals.csv")

@@ -1,0 +1,52 @@
+"""Bad input a new user met that was not one line naming the file (or was taken silently):
+each case exits 2 with one 'laser-calib' line, the last on stderr, that names the file
+and writes nothing."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+
+from cli_status import exit_status
+from laser_calib.io.samples import format_samples
+from laser_calib.model.robot_file import dump_robot, robot_to_dict
+from laser_calib.sim.simulation import bundled_robot, paper_session
+
+ROBOT = bundled_robot("paper-4dof")
+SESSION = paper_session("paper-4dof", 0, n_per_span=6)
+SAMPLES = format_samples(SESSION.samples)
+
+
+def _robot_yaml(edit=None) -> str:
+    data = robot_to_dict(ROBOT)
+    if edit is not None:
+        edit(data)
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def _files(folder: Path, robot: str | None = None, samples: str | None = None) -> tuple[str, str]:
+    (folder / "robot.yaml").write_text(dump_robot(ROBOT) if robot is None else robot)
+    (folder / "samples.csv").write_text(SAMPLES if samples is None else samples)
+    return str(folder / "robot.yaml"), str(folder / "samples.csv")
+
+
+def _one_line(argv: list[str], capsys) -> str:
+    """The command's exit status is 2 and its last stderr line the only 'laser-calib' one: returned."""
+    code = exit_status(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, err
+    assert not any("Traceback" in line for line in err), err
+    assert [line for line in err if line.startswith("laser-calib")] == err[-1:], err
+    return err[-1]
+
+
+def test_a_robot_whose_beams_miss_every_spot_is_named(tmp_path, capsys):
+    """The last link's length written in millimetres (100, within the plausible lengths): every
+    measured spot is refused as impossible. The line named neither the robot nor the samples."""
+    robot = _robot_yaml(lambda r: r["joints"][3].__setitem__("a", 100.0))
+    r, s = _files(tmp_path, robot)
+    for command in ("estimate", "diagnose"):
+        line = _one_line([command, "--robot", r, "--samples", s, "--out", str(tmp_path / "out")], capsys)
+        assert f"laser-calib: {r}: no measured spot of {s}" in line, line
+        assert not (tmp_path / "out").exists()
