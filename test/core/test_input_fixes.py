@@ -50,3 +50,21 @@ def test_a_robot_whose_beams_miss_every_spot_is_named(tmp_path, capsys):
         line = _one_line([command, "--robot", r, "--samples", s, "--out", str(tmp_path / "out")], capsys)
         assert f"laser-calib: {r}: no measured spot of {s}" in line, line
         assert not (tmp_path / "out").exists()
+
+
+def test_the_keys_only_a_diagnosis_reads_are_checked_when_the_robot_file_is_read(tmp_path, capsys):
+    """A negative or textual rated noise, an unknown sensor kind, limits that are no mapping: every
+    command took them silently (simulate copied them into its robot files), and diagnose refused
+    them only after the whole diagnosis, naming 'robot' instead of the file."""
+    cases = {"spot_sigma": (-0.001, "spot_sigma: must be positive"),
+             "joint_reading_sigma": ("small", "joint_reading_sigma: expected a number"),
+             "sensor_kind": ("laser_tracker_x", "sensor_kind: expected one of"),
+             "sensor_limits": ({"scale": -1.0}, "sensor_limits.scale: must be positive")}
+    for key, (value, expected) in cases.items():
+        r, s = _files(tmp_path, _robot_yaml(lambda data: data.__setitem__(key, value)))
+        line = _one_line(["identify", "--robot", r, "--samples", s], capsys)
+        assert line.startswith(f"laser-calib: {r}: {expected}"), line
+    # valid values load
+    r, s = _files(tmp_path, _robot_yaml(lambda data: data.update(
+        spot_sigma=0.0005, joint_reading_sigma=0.001, sensor_kind="laser_tracker", sensor_limits={"scale": 1e-3})))
+    assert exit_status(["identify", "--robot", r, "--samples", s]) == 0

@@ -69,19 +69,35 @@ def sensor_kind(robot: Robot, source: str = "robot") -> str:
     return kind
 
 
+def _given_limits(robot: Robot, source: str) -> Mapping[str, Any]:
+    """The robot file's sensor_limits: a mapping of known quantities (KIND_LIMITS['unspecified'])."""
+    given: Mapping[str, Any] = robot.extra.get("sensor_limits", {})
+    where = f"{source}: sensor_limits"
+    if not isinstance(given, Mapping):
+        raise InputError(where, f"expected a mapping, got {type(given).__name__}")
+    known_keys(where, given, tuple(KIND_LIMITS["unspecified"]))
+    return given
+
+
+def check_sensor_keys(robot: Robot, source: str) -> None:
+    """The robot file's sensor_kind and sensor_limits, checked when it is read (model/robot_file.py):
+    only a sensor-side effect reads them, after a whole diagnosis, and a typo was taken silently
+    until then."""
+    sensor_kind(robot, source)
+    given = _given_limits(robot, source)
+    for quantity in given:
+        positive_number(f"{source}: sensor_limits", given, quantity)
+
+
 def limit_of(effect: Effect, robot: Robot, source: str = "robot") -> Limit | None:
     """The limit of a sensor-side effect on this robot's sensor, None for the arm's own effects."""
     quantity = LIMITED.get(effect.kind)
     if quantity is None:
         return None
     kind = sensor_kind(robot, source)
-    given: Mapping[str, Any] = robot.extra.get("sensor_limits", {})
-    where = f"{source}: sensor_limits"
-    if not isinstance(given, Mapping):
-        raise InputError(where, f"expected a mapping, got {type(given).__name__}")
-    known_keys(where, given, tuple(KIND_LIMITS["unspecified"]))
+    given = _given_limits(robot, source)
     if quantity in given:
-        return Limit(positive_number(where, given, quantity), "the robot file", quantity)
+        return Limit(positive_number(f"{source}: sensor_limits", given, quantity), "the robot file", quantity)
     limits = {**KIND_LIMITS["unspecified"], **KIND_LIMITS[kind]}
     who = f"the {kind.replace('_', ' ')}" if kind != "unspecified" and quantity in KIND_LIMITS[kind] else \
         "any working sensor"

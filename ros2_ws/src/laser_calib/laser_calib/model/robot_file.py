@@ -68,6 +68,7 @@ def robot_from_dict(data: Any, source: str = "<robot>", folder: Path | None = No
         robot = _dh_robot(data, source)
     robot_frames(robot, source)  # checked here, where the file's name is known (its readers have none)
     _check_held(robot, source)
+    _check_sensor(robot, source)
     return robot
 
 
@@ -85,6 +86,23 @@ def with_held(robot: Robot, names) -> Robot:
     names = tuple(dict.fromkeys((*held(robot), *names)))
     extra = {k: v for k, v in robot.extra.items() if k != "held"}
     return replace(robot, extra={**extra, "held": list(names)} if names else extra)
+
+
+# What the robot file says its camera and encoders can do (diagnosis/verdict.py rated_noise), m and rad.
+RATED_NOISE_KEYS = ("spot_sigma", "joint_reading_sigma")
+
+
+def _check_sensor(robot: Robot, source: str) -> None:
+    """The keys only a diagnosis reads (rated noise, sensor kind and limits), checked here where the
+    file's name is known: their readers run after the work, and some only for some effects."""
+    from laser_calib.effects.bounds import check_sensor_keys  # effects/ reads robots: imported when used
+
+    for key in RATED_NOISE_KEYS:
+        if key in robot.extra:
+            value = finite_number(robot.extra[key], f"{source}: {key}")
+            if value <= 0:
+                raise InputError(f"{source}: {key}", f"must be positive, got {value:g}")
+    check_sensor_keys(robot, source)
 
 
 def _check_held(robot: Robot, source: str) -> None:
