@@ -68,3 +68,18 @@ def test_the_keys_only_a_diagnosis_reads_are_checked_when_the_robot_file_is_read
     r, s = _files(tmp_path, _robot_yaml(lambda data: data.update(
         spot_sigma=0.0005, joint_reading_sigma=0.001, sensor_kind="laser_tracker", sensor_limits={"scale": 1e-3})))
     assert exit_status(["identify", "--robot", r, "--samples", s]) == 0
+
+
+def test_a_tip_column_naming_no_tip_names_the_file(tmp_path, capsys):
+    """calibrate-poses with a 'tip' of 5 for a one-tip robot said 'pose 0: tip 5 is not one of
+    0..0', naming no file."""
+    robot = bundled_robot("paper-4dof")
+    (tmp_path / "robot.yaml").write_text(dump_robot(robot))
+    header = "pose,stamp,q1,q2,q3,q4,x,y,z,tip"
+    rows = [f"{k},{k}.0,{0.1 * (k % 3)},{0.02 * k},{-0.1 * (k % 4)},{0.2},{1.0 + 0.01 * k},0.5,0.2,{5 if k == 3 else 0}"
+            for k in range(12)]
+    (tmp_path / "points.csv").write_text("\n".join([header, *rows]) + "\n")
+    line = _one_line(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples",
+                      str(tmp_path / "points.csv"), "--folds", "0", "--out", str(tmp_path / "out")], capsys)
+    assert line.startswith(f"laser-calib: {tmp_path / 'points.csv'}: pose 3, field tip: 5 is not one of 0..0"), line
+    assert not (tmp_path / "out").exists()

@@ -76,9 +76,27 @@ def parse_sensor_samples(text: str, source: str = "<samples>", robot: Robot | No
 def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> Samples:
     """Our samples CSV, or FIGAROH's calibration CSV (header x1,y1,z1,...: io/figaroh.py)."""
     text, source = read_text(path), str(Path(path))
-    if is_figaroh(text):
-        return parse_figaroh(text, source, robot)
-    return parse_sensor_samples(text, source, robot)
+    samples = parse_figaroh(text, source, robot) if is_figaroh(text) else parse_sensor_samples(text, source, robot)
+    if robot is not None:
+        check_tips(samples, robot, source)
+    return samples
+
+
+def check_tips(samples: Samples, robot: Robot, source: str) -> None:
+    """The ``tip`` column (which of the robot's tips a row measures, 0, 1, ...; required for a
+    tree of several tips) as one line naming the file: the sensor model checks it too, but
+    knows no file."""
+    n_tips = 1 if robot.chain is None else len(robot.chain.tips)
+    if "tip" not in samples.extra:
+        if n_tips > 1:
+            raise InputError(f"{source}: header", f"no column 'tip' (0..{n_tips - 1}): the robot has {n_tips} tips, "
+                                                  "and each row must say which one it measures")
+        return
+    tips = samples.extra["tip"]
+    bad = np.flatnonzero(~np.isin(tips, np.arange(n_tips)))
+    if len(bad):
+        raise InputError(f"{source}: pose {int(samples.pose[bad[0]])}, field tip",
+                         f"{tips[bad[0]]:g} is not one of 0..{n_tips - 1} (the tips in the order of --tip)")
 
 
 def format_sensor_samples(samples: Samples) -> str:
