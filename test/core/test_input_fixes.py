@@ -83,3 +83,21 @@ def test_a_tip_column_naming_no_tip_names_the_file(tmp_path, capsys):
                       str(tmp_path / "points.csv"), "--folds", "0", "--out", str(tmp_path / "out")], capsys)
     assert line.startswith(f"laser-calib: {tmp_path / 'points.csv'}: pose 3, field tip: 5 is not one of 0..0"), line
     assert not (tmp_path / "out").exists()
+
+
+def test_plan_keeps_its_robot_file_and_says_a_failed_write(tmp_path, capsys):
+    """plan --out naming the --robot file replaced the robot with the pose list, exit 0; a write
+    that fails (a full disk) was a traceback, in plan and slm-calibrate alike."""
+    r, _ = _files(tmp_path)
+    before = Path(r).read_text()
+    line = _one_line(["plan", "--robot", r, "--n", "5", "--candidates", "100", "--out", r], capsys)
+    assert line.startswith(f"laser-calib: {r}: is the --robot file"), line
+    assert Path(r).read_text() == before
+    if Path("/dev/full").exists():  # Linux: every write fails with ENOSPC
+        line = _one_line(["plan", "--robot", r, "--n", "5", "--candidates", "100", "--out", "/dev/full"], capsys)
+        assert line == "laser-calib: /dev/full: cannot write (No space left on device)", line
+        (tmp_path / "slm.csv").write_text("laser,distance,u,v\n1,0.5,0,0\n1,1.0,0.01,-0.5\n1,1.5,0.02,-1.0\n"
+                                          "2,0.5,0,0\n2,1.0,0.01,0.5\n2,1.5,0.02,1.0\n")
+        line = _one_line(["slm-calibrate", "--robot", r, "--measurements", str(tmp_path / "slm.csv"),
+                          "--out", "/dev/full"], capsys)
+        assert line == "laser-calib: /dev/full: cannot write (No space left on device)", line

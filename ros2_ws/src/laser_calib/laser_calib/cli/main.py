@@ -181,7 +181,10 @@ def cmd_slm_calibrate(args: argparse.Namespace) -> int:
     for j, a in enumerate(angles):
         print(f"laser {j + 1}: gamma = {np.degrees(a.gamma):+.4f} +- {np.degrees(a.gamma_std):.4f} deg, "
               f"beta = {np.degrees(a.beta):+.4f} +- {np.degrees(a.beta_std):.4f} deg ({a.n} spots)")
-    save_robot(calibrated, args.out, header=f"Laser angles from {args.measurements} (laser-calib slm-calibrate).")
+    try:
+        save_robot(calibrated, args.out, header=f"Laser angles from {args.measurements} (laser-calib slm-calibrate).")
+    except OSError as exc:  # --out was checked at the start: the disk filled or the folder went meanwhile
+        raise InputError(args.out, f"cannot write ({exc.strerror or exc})") from None
     print(f"wrote {args.out}")
     return 0
 

@@ -313,13 +313,25 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     return status
 
 
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return Path(a).samefile(b)
+    except OSError:  # either does not exist (yet)
+        return False
+
+
 def cmd_plan(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
+    if _same_file(args.out, args.robot):  # the pose list would replace the robot file it was planned for
+        raise InputError(args.out, "is the --robot file: the pose list would replace it; give --out another name")
     options = PlanOptions(n=args.n, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                           candidates=args.candidates, margin=args.margin, seed=args.seed)
     with Progress("plan", unit="pose") as progress:
         result = plan(robot, options, progress)
-    Path(args.out).write_text(format_poses(result.q))
+    try:
+        Path(args.out).write_text(format_poses(result.q))
+    except OSError as exc:  # --out was checked at the start: the disk filled or the folder went meanwhile
+        raise InputError(args.out, f"cannot write ({exc.strerror or exc})") from None
     identifiable = int(result.free.sum())
     print(f"wrote {args.out}: {args.n} poses of {robot.name} (D-optimal, log det {result.log_det:.2f} over "
           f"{identifiable} identifiable errors; these poses determine {result.determined} of them)")
