@@ -101,3 +101,29 @@ def test_plan_keeps_its_robot_file_and_says_a_failed_write(tmp_path, capsys):
         line = _one_line(["slm-calibrate", "--robot", r, "--measurements", str(tmp_path / "slm.csv"),
                           "--out", "/dev/full"], capsys)
         assert line == "laser-calib: /dev/full: cannot write (No space left on device)", line
+
+
+def test_a_screen_calibration_that_maps_every_pixel_to_one_point_is_refused(tmp_path):
+    """The spot detector's calibration file: a zero focal length, a last row of K of zeros or a
+    zero homography loaded, and every pixel then mapped to the screen's (0, 0), spots that look
+    measured; a Latin-1 byte escaped as UnicodeDecodeError."""
+    import pytest
+    from laser_calib.io.errors import InputError
+    from laser_calib.vision.camera import calibration_to_dict, default_camera, load_calibration
+
+    good = calibration_to_dict(default_camera().ideal_calibration())
+    path = tmp_path / "calibration.yaml"
+    path.write_text(yaml.safe_dump(good))
+    assert load_calibration(path).width == good["image_width"]
+    edits = {"fx 0": lambda d: d["camera_matrix"][0].__setitem__(0, 0.0),
+             "last row 0": lambda d: d["camera_matrix"][2].__setitem__(2, 0.0),
+             "homography 0": lambda d: d.__setitem__("homography", [[0.0] * 3, [0.0] * 3, [0.0, 0.0, 1.0]])}
+    for name, edit in edits.items():
+        data = yaml.safe_load(yaml.safe_dump(good))
+        edit(data)
+        path.write_text(yaml.safe_dump(data))
+        with pytest.raises(InputError, match=str(path)):
+            load_calibration(path)
+    path.write_bytes(yaml.safe_dump(good).replace("image_width", "# caméra\nimage_width").encode("latin-1"))
+    with pytest.raises(InputError, match="not UTF-8"):
+        load_calibration(path)

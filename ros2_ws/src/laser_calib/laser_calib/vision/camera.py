@@ -22,7 +22,7 @@ import numpy as np
 import yaml
 
 from laser_calib.io.errors import InputError
-from laser_calib.io.read import load_yaml
+from laser_calib.io.read import load_yaml, read_text
 
 
 def _frozen_array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -146,6 +146,13 @@ class ScreenCalibration:
             object.__setattr__(self, name, _frozen_array(getattr(self, name), shape, name))
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width} x {self.height}")
+        # a singular map sends every pixel to one point: spots that look measured, all wrong
+        K, h = self.K, self.homography
+        if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.array_equal(K[2], [0.0, 0.0, 1.0])):
+            raise ValueError(f"camera_matrix is no camera's intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with "
+                             f"fx, fy > 0: got {K.tolist()}")
+        if not abs(np.linalg.det(h)) > 1e-12 * np.prod(np.linalg.norm(h, axis=1)):
+            raise ValueError("homography is singular: it maps the image onto a line or a point, not the screen")
 
     @property
     def centre(self) -> np.ndarray:
@@ -209,9 +216,6 @@ def save_calibration(calibration: ScreenCalibration, path: str | Path) -> None:
 
 def load_calibration(path: str | Path) -> ScreenCalibration:
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise InputError(str(path), f"cannot read: {error}") from None
+    text = read_text(path)  # UTF-8 or one line naming the file
     # one line naming the file and line (yaml's own message is a multi-line dump of '<unicode string>')
     return calibration_from_dict(load_yaml(text, str(path)), str(path))
