@@ -127,3 +127,19 @@ def test_a_screen_calibration_that_maps_every_pixel_to_one_point_is_refused(tmp_
     path.write_bytes(yaml.safe_dump(good).replace("image_width", "# caméra\nimage_width").encode("latin-1"))
     with pytest.raises(InputError, match="not UTF-8"):
         load_calibration(path)
+
+
+def test_screen_calibrate_names_the_folder_without_board_views(tmp_path, capsys):
+    """Blank images (or the two folders swapped) said 'laser-calib screen-calibrate: only 0 usable
+    ChArUco views, need at least 4', naming neither folder."""
+    import cv2
+    import numpy as np
+
+    for folder in ("board", "screen"):
+        (tmp_path / folder).mkdir()
+        for k in range(4):
+            cv2.imwrite(str(tmp_path / folder / f"{k}.png"), np.full((48, 64, 3), 128, np.uint8))
+    line = _one_line(["screen-calibrate", "--board-images", str(tmp_path / "board"), "--screen-images",
+                      str(tmp_path / "screen"), "--out", str(tmp_path / "c.yaml")], capsys)
+    assert line.startswith(f"laser-calib: {tmp_path / 'board'}: only 0 usable ChArUco views"), line
+    assert not (tmp_path / "c.yaml").exists()

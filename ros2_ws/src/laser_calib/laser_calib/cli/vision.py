@@ -20,6 +20,7 @@ import numpy as np
 
 from laser_calib.cli.arguments import non_negative_int, out_file, out_folder, positive_int, staged_folder
 from laser_calib.io.errors import InputError
+from laser_calib.vision.screen_calibration import TooFewBoardViews, TooFewFiducials
 from laser_calib.vision import (RenderOptions, board_poses, calibrate_screen, default_camera, detect_fiducials,
                      render_board_frame, render_fiducial_frame, save_calibration)
 
@@ -50,7 +51,13 @@ def load_images(folder: str) -> list[np.ndarray]:
 
 def cmd_screen_calibrate(args: argparse.Namespace) -> int:
     boards, screens = load_images(args.board_images), load_images(args.screen_images)
-    calibration = calibrate_screen(boards, screens)
+    try:
+        calibration = calibrate_screen(boards, screens)
+    except TooFewBoardViews as exc:  # the calibration counts them, the command knows the folder
+        raise InputError(args.board_images, f"{exc} (ChArUco board views: are these the board images?)") from None
+    except TooFewFiducials as exc:
+        raise InputError(args.screen_images, f"{exc} (views of the screen's fiducials: are these the screen "
+                                             "images?)") from None
     # How well the map puts the fiducial corners (undistorted pixels) where they are on the screen.
     undistorted, known = detect_fiducials(screens[0], calibration.K, calibration.dist)
     mapped = cv2.perspectiveTransform(undistorted.reshape(-1, 1, 2), calibration.homography).reshape(-1, 2)

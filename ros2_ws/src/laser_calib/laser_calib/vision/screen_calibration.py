@@ -159,6 +159,14 @@ def detect_fiducials(image: np.ndarray, K: np.ndarray, dist: np.ndarray, layout:
     return np.concatenate(pixels), np.concatenate(known)
 
 
+class TooFewBoardViews(ValueError):
+    """The board images leave fewer than 4 usable ChArUco views (the command names their folder)."""
+
+
+class TooFewFiducials(ValueError):
+    """The screen images show fewer than 4 fiducials (the command names their folder)."""
+
+
 def _board_points(images: Sequence[np.ndarray], spec: CharucoSpec) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Object (N,3) and image (N,2) points of the ChArUco corners in each usable view."""
     board = spec.board()
@@ -183,7 +191,7 @@ def _mean_fiducials(images: Sequence[np.ndarray], K: np.ndarray, dist: np.ndarra
         for pixel, point in zip(*detect_fiducials(image, K, dist, layout)):
             found.setdefault(tuple(point), []).append(pixel)
     if len(found) < 16:
-        raise ValueError(f"found {len(found) // 4} screen fiducials, need at least 4")
+        raise TooFewFiducials(f"found {len(found) // 4} screen fiducials, need at least 4")
     return np.array([np.mean(p, axis=0) for p in found.values()]), np.array(list(found))
 
 
@@ -219,7 +227,7 @@ def calibrate_screen(board_images: Sequence[np.ndarray], screen_images: Sequence
     height, width = board_images[0].shape[:2]
     object_points, image_points = _board_points(board_images, board)
     if len(object_points) < 4:
-        raise ValueError(f"only {len(object_points)} usable ChArUco views, need at least 4")
+        raise TooFewBoardViews(f"only {len(object_points)} usable ChArUco views, need at least 4")
     _, K, dist, _, _ = cv2.calibrateCamera(object_points, image_points, (width, height), None, None)
     undistorted, known = _mean_fiducials(screen_images, K, dist.ravel()[:5], layout)
     object_points.append(np.column_stack([known, np.zeros(len(known))]).astype(np.float32))
