@@ -11,6 +11,10 @@
     ros_client.py estimate-csv-diagnose SAMPLES.csv      the same, with the diagnosis
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
     ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
+    ros_client.py stream ROBOT LAYOUT N        N exact still poses on joint_states + spots (an estimator with
+                                               input stream); LAYOUT: 'robot' (joint1..jointN in order),
+                                               'reversed' (the same readings, names in reverse order) or
+                                               'gripper' (robot order and one more joint)
 """
 
 from __future__ import annotations
@@ -306,6 +310,52 @@ def bad_and_concurrent(robot_path: str) -> dict:
     return out
 
 
+def stream(robot_path: str, layout: str, count: int) -> dict:
+    """Publish ``count`` still poses, each as a joint_states message and a spots message of one stamp,
+    with the robot's exact spots (nominal model), in the joint layout asked; then the latest
+    dh_parameters (the online EKF: errors ~0 when every reading went to its joint)."""
+    from sensor_msgs.msg import JointState
+    from laser_calib_interfaces.msg import SpotPair
+    from laser_calib.model.kinematics import predict
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.sim.simulation import sample_poses
+    robot = load_robot(robot_path)
+    n = robot.n_joints
+    q = sample_poses([robot], count, np.random.default_rng(3))
+    spots = predict(robot, q).spots
+    node = rclpy.create_node("test_stream")
+    got = []
+    node.create_subscription(DhParameters, "dh_parameters", got.append, latched())
+    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    states = node.create_publisher(JointState, "joint_states", qos)
+    pairs = node.create_publisher(SpotPair, "spots", qos)
+    deadline = time.monotonic() + TIMEOUT
+    while (states.get_subscription_count() == 0 or pairs.get_subscription_count() == 0) \
+            and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    order = list(reversed(range(n))) if layout == "reversed" else list(range(n))
+    extra = ["gripper"] if layout == "gripper" else []
+    for k in range(count):
+        stamp = node.get_clock().now().to_msg()
+        state = JointState(name=[f"joint{i + 1}" for i in order] + extra,
+                           position=[float(q[k, i]) for i in order] + [0.0] * len(extra),
+                           velocity=[0.0] * (n + len(extra)))
+        state.header.stamp = stamp
+        pair = SpotPair(spots=[Spot(y=float(spots[k, j, 0]), z=float(spots[k, j, 1]), seen=True) for j in range(2)])
+        pair.header.stamp, pair.header.frame_id = stamp, "screen"
+        states.publish(state)
+        pairs.publish(pair)
+        until = time.monotonic() + 0.1
+        while time.monotonic() < until:
+            rclpy.spin_once(node, timeout_sec=0.02)
+    until = time.monotonic() + 10.0
+    while time.monotonic() < until and not (got and got[-1].sample_count >= count):
+        rclpy.spin_once(node, timeout_sec=0.1)
+    last = got[-1] if got else None
+    return {"sample_count": last.sample_count if last else 0,
+            "largest_error": float(np.nanmax(np.abs(last.errors))) if last else None}
+
+
 def main() -> int:
     rclpy.init()
     try:
@@ -328,6 +378,8 @@ def main() -> int:
             result = calibrate("diagnose" in sys.argv[2:], "cancel" in sys.argv[2:])
         elif command == "calibrate-until-diagnosis":
             result = calibrate_until_diagnosis(sys.argv[2])
+        elif command == "stream":
+            result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]))
         elif command == "bad-and-concurrent":
             result = bad_and_concurrent(sys.argv[2])
         else:

@@ -4,7 +4,8 @@
 Input 'samples' (Sample, as the sequencer or replay publishes them; subscribed
 with the sequencer's transient-local QoS and with the default one, each (pose,
 stamp) counted once) or 'stream' (joint_states + spots paired by stamp within
-sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed).
+sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed; each
+joint's reading found by its name, ``joint_names``, as the sequencer does).
 Each measurement updates the online EKF, then dh_parameters and
 calibration_markers (markers.py) are published. ~/estimate runs
 laser_calib.session.estimate.run_calibration (the command line's code path: the
@@ -25,10 +26,12 @@ import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from laser_calib.hardware.trajectory import joint_order
 from laser_calib.io import bag
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
@@ -57,6 +60,17 @@ class Estimator(Node):
                                                "EKF (from its next reset); 0: estimate it (batch) / 1 mm (online).",
                             read_only=False)
         self.markers_on = d("markers", True, "Publish calibration_markers.", read_only=False)
+        names = d("joint_names", Parameter.Type.STRING_ARRAY, "'stream': the robot's joints in joint_states, base "
+                  "to tip, found by name (joint_states may list them in any order, and more joints). Default: a "
+                  "URDF arm's joints; for a D-H robot joint1..jointN when joint_states has them, else joint_states' "
+                  "own order when it has exactly the robot's joints.", type_=Parameter.Type.STRING_ARRAY)
+        self.joint_names = list(names) if names else common.default_joint_names(self.robot)
+        # D-H robot, no joint_names given: its joints have no names of their own to insist on
+        self.strict_names = bool(names) or self.robot.chain is not None
+        if len(self.joint_names) != self.robot.n_joints:
+            raise common.NodeError(f"parameter joint_names: {len(self.joint_names)} names, robot "
+                                   f"'{self.robot.name}' has {self.robot.n_joints} joints", 2)
+        self.joint_orders: dict[tuple[str, ...], list[int] | None] = {}  # joint_states' names -> robot order
         if self.input not in ("samples", "stream"):
             raise common.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
         common.dynamic(self, {"spot_sigma": ("spot_sigma", common.non_negative_metres),
@@ -119,9 +133,30 @@ class Estimator(Node):
             self.keys.add(key)
         self.add(row)
 
+    def joint_index(self, names: list[str], count: int) -> list[int] | None:
+        """Index into a joint_states message of each robot joint, base to tip, by name (the sequencer's
+        rule, laser_calib.hardware.trajectory.joint_order); None, with one ERROR line per set of names,
+        when the robot's joints are not there. Message order only for a D-H robot without joint_names
+        whose joint_states has exactly its joints under other names."""
+        key = tuple(names)
+        if key not in self.joint_orders:
+            order, n = None, self.robot.n_joints
+            try:
+                order = joint_order(names, self.joint_names, n)
+            except ValueError as exc:
+                if not self.strict_names and len(names) in (0, n) and count == n:
+                    order = list(range(n))
+                else:
+                    self.get_logger().error(f"joint_states ignored: {exc}")
+            self.joint_orders[key] = order
+        return self.joint_orders[key]
+
     def on_joint_state(self, msg: JointState) -> None:
-        q = np.array(msg.position, dtype=float)
-        v = np.array(msg.velocity, dtype=float) if len(msg.velocity) == len(msg.position) else None
+        index = self.joint_index(list(msg.name), len(msg.position))
+        if index is None or len(msg.position) != len(msg.name) and msg.name:
+            return
+        q = np.array(msg.position, dtype=float)[index]
+        v = np.array(msg.velocity, dtype=float)[index] if len(msg.velocity) == len(msg.position) else None
         for pair in self.sync.add_a(common.stamp_seconds(msg.header.stamp), (q, v)):
             self.add_pair(pair)
 
