@@ -53,9 +53,7 @@ class ArmDriver(Node):
         if len(self.joint_names) != n:
             raise common.NodeError(f"parameter joint_names: {len(self.joint_names)} names, "
                                    f"robot '{self.robot.name}' has {n} joints", 2)
-        rate = declare("rate", 50.0, "Joint state publishing rate, Hz.")
-        if not rate > 0:
-            raise common.NodeError(f"parameter rate: must be positive, got {rate}", 2)
+        rate = common.checked("rate", declare("rate", 50.0, "Joint state publishing rate, Hz."), common.positive)
 
         # simulation
         true_path = declare("sim.true_robot", "", "Sim: true robot model file; empty: nominal + sim.errors.")
@@ -92,7 +90,8 @@ class ArmDriver(Node):
 
         self.sim: SimArm | None = None
         if backend == "sim":
-            for name, value, check in (("sim.joint_speed", speed, common.positive),
+            for name, value, check in (("sim.seed", seed, common.non_negative),  # numpy's seeds are >= 0
+                                       ("sim.joint_speed", speed, common.positive),
                                        ("sim.time_constant", tau, common.positive),
                                        ("sim.joint_disturbance", disturbance, common.non_negative),
                                        ("sim.read_noise", read_noise, common.non_negative)):

@@ -43,8 +43,9 @@ class CameraSim(Node):
         rate = common.declare(self, "rate", 10.0, "Frame rate, Hz.")
         seed = common.declare(self, "seed", 1, "Random seed of the image noise (speckle, shot and read noise).")
         spot_sigma = common.declare(self, "spot_sigma", 0.002, "Gaussian sigma of a laser spot on the screen, m.")
-        if not rate > 0:
-            raise common.NodeError(f"parameter rate: must be positive, got {rate}", 2)
+        for name, value, check in (("rate", rate, common.positive), ("seed", seed, common.non_negative),
+                                   ("spot_sigma", spot_sigma, common.positive)):
+            common.checked(name, value, check)  # a 0 sigma renders no spot, a negative seed is numpy's traceback
         self.camera = default_camera()
         self.options = render.RenderOptions(spot_sigma_m=spot_sigma)
         self.rng = np.random.default_rng(seed)

@@ -64,6 +64,8 @@ class SpotDetectorNode(Node):
         self.capture_dir = d("capture_dir", "", "Save frames here (PNG) for laser-calib screen-calibrate; empty: off.")
         self.capture_left = d("capture_count", 10, "Frames to save in capture_dir.")
         self.capture_period = d("capture_period", 1.0, "Seconds between saved frames (move the board meanwhile).")
+        for name, value in (("screen.half_y", half_y), ("screen.half_z", half_z)):
+            common.checked(name, value, common.positive)  # else no spot is ever inside: every frame 'not seen'
         if path:
             self.calibration = load_calibration(path)
         else:

@@ -1,0 +1,30 @@
+"""Out-of-range parameter values are refused at the start, in one line naming the parameter,
+exit 2, as the nodes' other parameters are. Before: a negative seed of the simulation ended
+arm_driver and camera_sim with numpy's traceback (exit 1); rate:=.inf started a timer of
+period 0 (a busy loop 'publishing at inf Hz'); camera_sim's spot_sigma:=0.0 rendered no spot
+(a divide-by-zero warning, every spot unseen) and spot_detector's screen.half_y:=-1.0 saw no
+spot in any frame, both without a word."""
+
+from __future__ import annotations
+
+from ros_harness import ROBOT
+
+CASES = {  # name: (node, parameters, the reason's start)
+    "arm_seed": ("arm_driver", [f"robot:={ROBOT}", "sim.seed:=-1"], "error: parameter sim.seed: expected >= 0"),
+    "arm_rate": ("arm_driver", [f"robot:={ROBOT}", "rate:=.inf"], "error: parameter rate: expected > 0"),
+    "camera_seed": ("camera_sim", ["seed:=-1"], "error: parameter seed: expected >= 0"),
+    "camera_rate": ("camera_sim", ["rate:=.inf"], "error: parameter rate: expected > 0"),
+    "camera_sigma": ("camera_sim", ["spot_sigma:=0.0"], "error: parameter spot_sigma: expected > 0"),
+    "detector_half": ("spot_detector", ["screen.half_y:=-1.0"], "error: parameter screen.half_y: expected > 0"),
+}
+
+
+def test_out_of_range_parameters_give_one_line(ros):
+    for name, (node, params, _) in CASES.items():
+        ros.start(name, *[arg for p in params for arg in ("-p", p)], node=node, params=False)
+    for name, (node, _, reason) in CASES.items():
+        code = ros.wait_exit(name, 60)
+        log = ros.log(name)
+        lines = [line for line in log.splitlines() if line.strip()]
+        assert code == 2 and "Traceback" not in log, (name, code, log[-2000:])
+        assert lines[-1].startswith(reason), (name, lines[-1])
