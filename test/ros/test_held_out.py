@@ -36,6 +36,11 @@ def test_test_poses_are_measured_and_held_out(ros, tmp_path):
     assert "## Held-out poses and the truth" in report and "end-effector position" in report
     log = ros.log("sequencer")
     assert "Test poses (measured, never fitted)" in log and "Traceback" not in log
+    # the truth table's rows in the log come with its header (what each number is, and its unit)
+    table = [line.split("]: ", 1)[1] for line in log.splitlines() if "[sequencer]: |" in line]
+    assert table[0] == "| error | model | mean mm | rms mm | max mm |", table
+    assert any(line.startswith("| end-effector position | calibrated |") for line in table), table
+    assert any("Against the true robot over the whole workspace" in line for line in log.splitlines())
     # the summary holds the estimate's warnings, and is logged at WARN when there are any
     summary = next(line for line in log.splitlines() if f"lm on {FIT} poses: mean spot error" in line)
     assert summary.startswith("[WARN]" if json.loads((out / "result.json").read_text())["warnings"] else "[INFO]")
