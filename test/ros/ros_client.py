@@ -11,6 +11,8 @@
     ros_client.py estimate-csv-diagnose SAMPLES.csv      the same, with the diagnosis
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
     ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
+    ros_client.py set-param NODE NAME JSON     set a parameter to a JSON value (its type: int, float, ...)
+                                               through the node's set_parameters service, then get it back
     ros_client.py stream ROBOT LAYOUT N        N exact still poses on joint_states + spots (an estimator with
                                                input stream); LAYOUT: 'robot' (joint1..jointN in order),
                                                'reversed' (the same readings, names in reverse order) or
@@ -310,6 +312,20 @@ def bad_and_concurrent(robot_path: str) -> dict:
     return out
 
 
+def set_param(node_name: str, name: str, value) -> dict:
+    """As `ros2 param set NODE NAME VALUE` does (an integer stays an integer), then as `ros2 param get`."""
+    from rcl_interfaces.srv import GetParameters, SetParameters
+    from rclpy.parameter import Parameter
+    node = rclpy.create_node("test_set_param")
+    request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+    result = call(node, node.create_client(SetParameters, f"{node_name}/set_parameters"), request).results[0]
+    got = call(node, node.create_client(GetParameters, f"{node_name}/get_parameters"),
+               GetParameters.Request(names=[name])).values[0]
+    stored = Parameter.from_parameter_msg(type("P", (), {"name": name, "value": got})())
+    return {"successful": result.successful, "reason": result.reason, "type": stored.type_.name,
+            "value": stored.value}
+
+
 def stream(robot_path: str, layout: str, count: int) -> dict:
     """Publish ``count`` still poses, each as a joint_states message and a spots message of one stamp,
     with the robot's exact spots (nominal model), in the joint layout asked; then the latest
@@ -378,6 +394,8 @@ def main() -> int:
             result = calibrate("diagnose" in sys.argv[2:], "cancel" in sys.argv[2:])
         elif command == "calibrate-until-diagnosis":
             result = calibrate_until_diagnosis(sys.argv[2])
+        elif command == "set-param":
+            result = set_param(sys.argv[2], sys.argv[3], json.loads(sys.argv[4]))
         elif command == "stream":
             result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]))
         elif command == "bad-and-concurrent":

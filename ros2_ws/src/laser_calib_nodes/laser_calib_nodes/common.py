@@ -19,6 +19,7 @@ from rclpy.executors import ExternalShutdownException, Executor, SingleThreadedE
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException, ParameterException
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 from laser_calib.io.errors import InputError
@@ -129,6 +130,19 @@ def dynamic(node: Node, rules: dict[str, tuple[str, Callable[[Any], str | None]]
             setattr(node, attr, value)
         return SetParametersResult(successful=True)
 
+    def as_declared(params):
+        # `ros2 param set NODE spot_sigma 2` sends an integer: stored as given, the parameter turned
+        # integer (`param get`: 'Integer value is: 2', `param dump`: 2) while `param describe` still said
+        # double. The number is taken as the floating-point value it means, and stored as one.
+        out = []
+        for param in params:
+            if (param.name in rules and param.type_ == Parameter.Type.INTEGER
+                    and isinstance(getattr(node, rules[param.name][0]), float)):
+                param = Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+            out.append(param)
+        return out
+
+    node.add_pre_set_parameters_callback(as_declared)
     node.add_on_set_parameters_callback(on_set)
 
 
