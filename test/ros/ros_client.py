@@ -13,6 +13,7 @@
     ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
     ros_client.py set-param NODE NAME JSON     set a parameter to a JSON value (its type: int, float, ...)
                                                through the node's set_parameters service, then get it back
+    ros_client.py parameters-of NODE          every parameter of NODE with its value, as `ros2 param dump` gets them
     ros_client.py stream ROBOT LAYOUT N        N exact still poses on joint_states + spots (an estimator with
                                                input stream); LAYOUT: 'robot' (joint1..jointN in order),
                                                'reversed' (the same readings, names in reverse order) or
@@ -326,6 +327,18 @@ def set_param(node_name: str, name: str, value) -> dict:
             "value": stored.value}
 
 
+def parameters_of(node_name: str) -> dict:
+    """As `ros2 param dump` does: list_parameters, then get_parameters of all the names at once."""
+    from rcl_interfaces.srv import GetParameters, ListParameters
+    from rclpy.parameter import parameter_value_to_python
+    node = rclpy.create_node("test_parameters_of")
+    names = sorted(call(node, node.create_client(ListParameters, f"{node_name}/list_parameters"),
+                        ListParameters.Request()).result.names)
+    values = call(node, node.create_client(GetParameters, f"{node_name}/get_parameters"),
+                  GetParameters.Request(names=names)).values
+    return {"names": names, "values": {name: parameter_value_to_python(v) for name, v in zip(names, values)}}
+
+
 def stream(robot_path: str, layout: str, count: int) -> dict:
     """Publish ``count`` still poses, each as a joint_states message and a spots message of one stamp,
     with the robot's exact spots (nominal model), in the joint layout asked; then the latest
@@ -396,6 +409,8 @@ def main() -> int:
             result = calibrate_until_diagnosis(sys.argv[2])
         elif command == "set-param":
             result = set_param(sys.argv[2], sys.argv[3], json.loads(sys.argv[4]))
+        elif command == "parameters-of":
+            result = parameters_of(sys.argv[2])
         elif command == "stream":
             result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]))
         elif command == "bad-and-concurrent":

@@ -92,7 +92,7 @@ def declare(node: Node, name: str, default: Any, description: str, read_only: bo
     """
     descriptor = ParameterDescriptor(description=description, read_only=read_only)
     if type_ is not None:
-        return node.declare_parameter(name, type_, descriptor).value
+        return declare_list(node, name, type_, descriptor)
     descriptor.dynamic_typing = True
     value = node.declare_parameter(name, default, descriptor).value
     if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
@@ -101,6 +101,27 @@ def declare(node: Node, name: str, default: Any, description: str, read_only: bo
         raise NodeError(f"parameter {name}: expected {type(default).__name__}, got {type(value).__name__} "
                         f"{value!r}", 2)
     return value
+
+
+LIST_ELEMENTS = {Parameter.Type.STRING_ARRAY: str, Parameter.Type.INTEGER_ARRAY: int,
+                 Parameter.Type.DOUBLE_ARRAY: float}
+
+
+def declare_list(node: Node, name: str, type_: Parameter.Type, descriptor: ParameterDescriptor) -> list:
+    """A list parameter whose default is empty, its elements checked (NodeError, exit 2; an integer
+    is taken for a floating-point element). Declared with a value, an empty list, not as a typed
+    parameter without one: rclpy's get_parameters service answers no value at all when one asked
+    for has none, so `ros2 param dump` printed `ros__parameters: {}` for the whole node
+    (ros2/ros2cli#936). rclpy types an empty list as a byte array, hence dynamic typing, and a
+    parameter file's `[]` arrives unset (None)."""
+    element = LIST_ELEMENTS[type_]
+    descriptor.dynamic_typing = True
+    value = node.declare_parameter(name, [], descriptor).value
+    value = [] if value is None else list(value)
+    for item in value:
+        if isinstance(item, bool) or not isinstance(item, (int, float) if element is float else element):
+            raise NodeError(f"parameter {name}: expected a list of {element.__name__}, got {value!r}", 2)
+    return [float(item) for item in value] if element is float else value
 
 
 def dynamic(node: Node, rules: dict[str, tuple[str, Callable[[Any], str | None]]]) -> None:
