@@ -25,6 +25,13 @@ def test_every_parameter_has_a_value(ros, tmp_path):
         for name in lists:
             assert got["values"][name] == [], (node, name, got["values"][name])
     assert ros.stop("sequencer") == 0 and ros.stop("arm_driver") == 0 and ros.stop("estimator") == 0
+    # the dump loads back: the empty lists arrive unset and are taken as empty
+    dump = tmp_path / "dump.yaml"
+    dump.write_text("/arm_driver:\n  ros__parameters:\n    robot: " + str(ROBOT) + "\n    joint_names: []\n"
+                    "    dynamixel:\n      ids: []\n      min: []\n")
+    ros.start("arm_again", "--params-file", str(dump), node="arm_driver", params=False)
+    ros.wait_log("arm_again", "publishing at", 60)
+    assert ros.stop("arm_again") == 0
 
 
 def test_a_list_parameter_given_or_refused(ros):

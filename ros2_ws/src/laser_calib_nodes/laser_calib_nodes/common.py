@@ -116,6 +116,8 @@ def declare_list(node: Node, name: str, type_: Parameter.Type, descriptor: Param
     parameter file's `[]` arrives unset (None)."""
     element = LIST_ELEMENTS[type_]
     descriptor.dynamic_typing = True
+    # `ros2 param describe` says 'byte array' for the empty default (rclpy's type of []): say what it takes
+    descriptor.additional_constraints = f"a list of {element.__name__} ({type_.name.lower().replace('_', ' ')})"
     value = node.declare_parameter(name, [], descriptor).value
     value = [] if value is None else list(value)
     for item in value:
