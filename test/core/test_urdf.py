@@ -235,3 +235,13 @@ def test_a_urdf_robot_without_base_and_tip_is_exit_2(capsys):
     code = main(["calibrate-poses", "--robot", str(path), "--samples", "x.csv", "--out", "o"])
     assert code == 2
     assert "needs --base LINK and --tip LINK" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["column_arm.urdf", "column_arm.urdf.xacro"])
+def test_a_urdf_robot_without_base_and_tip_names_the_links_to_choose_from(name, capsys):
+    """A new user does not know the description's link names: the line names its root
+    (a base) and its leaves (the tips a chain can end at), also of an expanded xacro."""
+    code = main(["calibrate-poses", "--robot", str(DATA / name), "--samples", "x.csv", "--out", "o"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "(root link: base_link; leaf links: marker)" in err

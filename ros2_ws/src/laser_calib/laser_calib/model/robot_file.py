@@ -24,8 +24,8 @@ from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text,
 from laser_calib.measurement.frames import robot_frames
 from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, MAX_SLM_OFFSET, PAPER, Joint,
                                      Laser, Robot, Screen, Slm, plausible_angle, plausible_length)
-from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, load_urdf_robot, robot_from_urdf,
-                                    urdf_text)
+from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, link_ends, load_urdf_robot,
+                                    robot_from_urdf, urdf_text)
 
 _KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "convention")
 # A URDF robot: the arm from the URDF text (a file, the text itself, or the node's topic).
@@ -272,7 +272,9 @@ def load_robot_description(path: str | Path, base: str | None = None, tip: Seque
     """--robot: a robot YAML, or a URDF / xacro file with its base and tip link(s) (no lasers)."""
     if is_urdf(path):
         if not base or not tip:
-            raise InputError(str(path), "a URDF robot needs --base LINK and --tip LINK")
+            ends = link_ends(urdf_text(path))  # which links to choose from (the file's own errors first)
+            raise InputError(str(path), "a URDF robot needs --base LINK and --tip LINK"
+                                        + (f" ({ends})" if ends else ""))
         return load_urdf_robot(path, base, tip)
     if base or tip:
         raise InputError(str(path), "--base / --tip apply to a URDF or xacro robot only (a robot YAML names them "

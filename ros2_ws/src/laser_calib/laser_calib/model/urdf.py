@@ -222,6 +222,35 @@ def load_urdf_robot(path: str | Path, base: str, tip: str | Sequence[str]) -> Ro
     return robot_from_urdf(urdf_text(path), base, tip, str(path))
 
 
+def link_ends(text: str, listed: int = 12) -> str:
+    """The root and leaf links of URDF text, for a message that asks for --base / --tip
+    ("root link: world; leaf links: tool0, ..."); empty if the text is not XML."""
+    from lxml import etree
+
+    try:
+        root = etree.fromstring(text.encode())
+    except etree.XMLSyntaxError:
+        return ""
+    links = [link.get("name") for link in root.iter("link") if link.get("name")]
+    parents, children = set(), set()
+    for joint in root.iter("joint"):
+        parent, child = joint.find("parent"), joint.find("child")
+        if parent is not None and child is not None:  # a transmission's <joint> has neither
+            parents.add(parent.get("link"))
+            children.add(child.get("link"))
+    roots = [link for link in links if link not in children]
+    leaves = [link for link in links if link not in parents and link in children]
+    if not roots:
+        return ""
+
+    def names(found: list[str]) -> str:
+        more = f" and {len(found) - listed} more" if len(found) > listed else ""
+        return ", ".join(found[:listed]) + more
+
+    text = f"root link{'s' if len(roots) > 1 else ''}: {names(roots)}"
+    return text + (f"; leaf links: {names(leaves)}" if leaves else "")
+
+
 def check_tips(tips: Sequence[str], source: str) -> tuple[str, ...]:
     """The tip links: at least one, each once (a tip twice would be measured as two)."""
     if not tips or len(set(tips)) != len(tips):
