@@ -171,7 +171,7 @@ def test_parameters_of_a_urdf_chain():
 
 @pytest.mark.parametrize("base, tip, message", [("base_link", "nowhere", "no link 'nowhere'"),
                                                 ("marker", "base_link", "'base_link' is not below link 'marker'"),
-                                                ("flange", "marker", "no movable joint")])
+                                                ("flange", "marker", "no movable joint between 'flange' and 'marker'")])
 def test_bad_chains_are_one_line_errors(base, tip, message):
     with pytest.raises(InputError, match=message):
         load_urdf_robot(DATA / "column_arm.urdf", base, tip)

@@ -195,7 +195,7 @@ def chain_from_urdf(urdf, text: str, base: str, tips: Sequence[str], source: str
             joint = replace(joint, reading=readings.index(name))
         joints.append(joint)
     if not readings:
-        raise InputError(source, f"no movable joint between '{base}' and {', '.join(tips)}")
+        raise InputError(source, f"no movable joint between '{base}' and " + ", ".join(f"'{tip}'" for tip in tips))
     return JointChain(tuple(joints), base, tuple(tips), tuple(tip_paths), tuple(readings), urdf=text,
                       sources=sources)
 
