@@ -32,7 +32,7 @@ from trajectory_msgs.msg import JointTrajectory
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.sim.simulation import NoiseSpec, true_errors
 
-from laser_calib_nodes import common
+from laser_calib_nodes import common, parameters
 from laser_calib.hardware.backends import SimArm, dynamixel_backend
 from laser_calib.hardware.trajectory import TrajectoryPoint, trajectory_goal
 
@@ -42,7 +42,7 @@ TORQUE_NOT_CONFIRMED = 5  # exit code: a servo did not confirm torque off on shu
 class ArmDriver(Node):
     def __init__(self):
         super().__init__("arm_driver")
-        declare = lambda *a, **k: common.declare(self, *a, **k)  # noqa: E731
+        declare = lambda *a, **k: parameters.declare(self, *a, **k)  # noqa: E731
         backend = declare("backend", "sim", "Arm backend: 'sim' (simulated true robot) or 'dynamixel'.")
         self.robot, robot_path = common.robot_param(self)
         n = self.robot.n_joints
@@ -51,9 +51,9 @@ class ArmDriver(Node):
                         type_=Parameter.Type.STRING_ARRAY)
         self.joint_names = list(names) if names else common.default_joint_names(self.robot)
         if len(self.joint_names) != n:
-            raise common.NodeError(f"parameter joint_names: {len(self.joint_names)} names, "
+            raise parameters.NodeError(f"parameter joint_names: {len(self.joint_names)} names, "
                                    f"robot '{self.robot.name}' has {n} joints", 2)
-        rate = common.checked("rate", declare("rate", 50.0, "Joint state publishing rate, Hz."), common.positive)
+        rate = parameters.checked("rate", declare("rate", 50.0, "Joint state publishing rate, Hz."), parameters.positive)
 
         # simulation
         true_path = declare("sim.true_robot", "", "Sim: true robot model file; empty: nominal + sim.errors.")
@@ -90,22 +90,22 @@ class ArmDriver(Node):
 
         self.sim: SimArm | None = None
         if backend == "sim":
-            for name, value, check in (("sim.seed", seed, common.non_negative),  # numpy's seeds are >= 0
-                                       ("sim.joint_speed", speed, common.positive),
-                                       ("sim.time_constant", tau, common.positive),
-                                       ("sim.joint_disturbance", disturbance, common.non_negative),
-                                       ("sim.read_noise", read_noise, common.non_negative)):
-                common.checked(name, value, check)
+            for name, value, check in (("sim.seed", seed, parameters.non_negative),  # numpy's seeds are >= 0
+                                       ("sim.joint_speed", speed, parameters.positive),
+                                       ("sim.time_constant", tau, parameters.positive),
+                                       ("sim.joint_disturbance", disturbance, parameters.non_negative),
+                                       ("sim.read_noise", read_noise, parameters.non_negative)):
+                parameters.checked(name, value, check)
             rng = np.random.default_rng(seed)
             if true_path:
                 true_robot = load_robot(true_path)
                 if true_robot.n_joints != n:
-                    raise common.NodeError(f"sim.true_robot {true_path}: {true_robot.n_joints} joints, "
+                    raise parameters.NodeError(f"sim.true_robot {true_path}: {true_robot.n_joints} joints, "
                                            f"robot {robot_path} has {n}", 2)
             elif errors_kind in ("paper", "random"):
                 true_robot = self.robot.with_errors(true_errors(self.robot, rng if errors_kind == "random" else None))
             else:
-                raise common.NodeError(f"parameter sim.errors: expected 'paper' or 'random', got {errors_kind!r}", 2)
+                raise parameters.NodeError(f"parameter sim.errors: expected 'paper' or 'random', got {errors_kind!r}", 2)
             if true_out:
                 save_robot(true_robot, true_out, header=f"True robot of the simulation: {robot_path} + "
                                                         f"sim.errors={errors_kind}, seed {seed}")
@@ -116,17 +116,17 @@ class ArmDriver(Node):
         elif backend == "dynamixel":
             ids = list(ids or [])
             if not ids:
-                raise common.NodeError("parameter dynamixel.ids: give one servo id per joint", 2)
+                raise parameters.NodeError("parameter dynamixel.ids: give one servo id per joint", 2)
             try:
                 self.backend = dynamixel_backend(
                     port, baud, ids, list(tpr or [4096 / (2 * math.pi)] * n), list(zero or [2048] * n),
                     list(q_min or self.robot.q_min), list(q_max or self.robot.q_max), profile, self.joint_names)
             except ValueError as exc:
-                raise common.NodeError(f"dynamixel parameters: {exc}", 2) from None
+                raise parameters.NodeError(f"dynamixel parameters: {exc}", 2) from None
             except RuntimeError as exc:  # DynamixelError: one line naming the servo
-                raise common.NodeError(str(exc), 1) from None
+                raise parameters.NodeError(str(exc), 1) from None
         else:
-            raise common.NodeError(f"parameter backend: expected 'sim' or 'dynamixel', got {backend!r}", 2)
+            raise parameters.NodeError(f"parameter backend: expected 'sim' or 'dynamixel', got {backend!r}", 2)
 
         try:
             self.state_pub = self.create_publisher(JointState, common.JOINT_STATES, common.STREAM_QOS)
@@ -177,7 +177,7 @@ class ArmDriver(Node):
     def fail(self, message: str) -> None:
         """Hardware fault: the arm stopped, then one line and exit code 1."""
         self.backend.stop()
-        raise common.NodeError(f"{message}; arm stopped", 1)
+        raise parameters.NodeError(f"{message}; arm stopped", 1)
 
     def close(self) -> int:
         """Stop and release the arm; TORQUE_NOT_CONFIRMED (the exit code, see common.run) with one

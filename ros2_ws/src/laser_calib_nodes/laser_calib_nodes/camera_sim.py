@@ -19,7 +19,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from laser_calib.vision import render
 from laser_calib.vision.camera import CameraModel, default_camera
 
-from laser_calib_nodes import common
+from laser_calib_nodes import common, parameters
 
 CAMERA_FRAME = "camera_optical"
 
@@ -40,12 +40,12 @@ def camera_info(camera: CameraModel, stamp, frame_id: str = CAMERA_FRAME) -> Cam
 class CameraSim(Node):
     def __init__(self):
         super().__init__("camera_sim")
-        rate = common.declare(self, "rate", 10.0, "Frame rate, Hz.")
-        seed = common.declare(self, "seed", 1, "Random seed of the image noise (speckle, shot and read noise).")
-        spot_sigma = common.declare(self, "spot_sigma", 0.002, "Gaussian sigma of a laser spot on the screen, m.")
-        for name, value, check in (("rate", rate, common.positive), ("seed", seed, common.non_negative),
-                                   ("spot_sigma", spot_sigma, common.positive)):
-            common.checked(name, value, check)  # a 0 sigma renders no spot, a negative seed is numpy's traceback
+        rate = parameters.declare(self, "rate", 10.0, "Frame rate, Hz.")
+        seed = parameters.declare(self, "seed", 1, "Random seed of the image noise (speckle, shot and read noise).")
+        spot_sigma = parameters.declare(self, "spot_sigma", 0.002, "Gaussian sigma of a laser spot on the screen, m.")
+        for name, value, check in (("rate", rate, parameters.positive), ("seed", seed, parameters.non_negative),
+                                   ("spot_sigma", spot_sigma, parameters.positive)):
+            parameters.checked(name, value, check)  # a 0 sigma renders no spot, a negative seed is numpy's traceback
         self.camera = default_camera()
         self.options = render.RenderOptions(spot_sigma_m=spot_sigma)
         self.rng = np.random.default_rng(seed)

@@ -36,7 +36,7 @@ from laser_calib.io import bag
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 
-from laser_calib_nodes import common, responses
+from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
 from laser_calib_nodes.markers import MAX_POINTS, calibration_markers, online_parameters
 from laser_calib.session.estimate import estimate_options, online_options, run_calibration
@@ -46,13 +46,13 @@ from laser_calib.session.sync import StampSynchronizer
 class Estimator(Node):
     def __init__(self):
         super().__init__("estimator")
-        d = lambda *a, **k: common.declare(self, *a, **k)  # noqa: E731
+        d = lambda *a, **k: parameters.declare(self, *a, **k)  # noqa: E731
         self.robot, self.robot_path = common.robot_param(self)
         self.compensator, self.compensator_path = common.compensator_param(self)
         self.input = d("input", "samples", "'samples' (synchronized Sample messages) or 'stream' (joint_states "
                                            "and spots paired by stamp).")
-        self.sync_tol = common.checked("sync_tolerance", d("sync_tolerance", 0.02, "'stream': max stamp difference "
-                                       "of a pair, s (at least half the joint_states period)."), common.non_negative)
+        self.sync_tol = parameters.checked("sync_tolerance", d("sync_tolerance", 0.02, "'stream': max stamp difference "
+                                       "of a pair, s (at least half the joint_states period)."), parameters.non_negative)
         self.max_speed = d("stream.max_joint_speed", 0.002, "'stream': a pair counts only when every |joint "
                                                             "velocity| is below this, rad/s.",
                            read_only=False)
@@ -68,13 +68,13 @@ class Estimator(Node):
         # D-H robot, no joint_names given: its joints have no names of their own to insist on
         self.strict_names = bool(names) or self.robot.chain is not None
         if len(self.joint_names) != self.robot.n_joints:
-            raise common.NodeError(f"parameter joint_names: {len(self.joint_names)} names, robot "
+            raise parameters.NodeError(f"parameter joint_names: {len(self.joint_names)} names, robot "
                                    f"'{self.robot.name}' has {self.robot.n_joints} joints", 2)
         self.joint_orders: dict[tuple[str, ...], list[int] | None] = {}  # joint_states' names -> robot order
         if self.input not in ("samples", "stream"):
-            raise common.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
-        common.dynamic(self, {"spot_sigma": ("spot_sigma", common.non_negative_metres),
-                              "stream.max_joint_speed": ("max_speed", common.positive),
+            raise parameters.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
+        parameters.dynamic(self, {"spot_sigma": ("spot_sigma", parameters.non_negative_metres),
+                              "stream.max_joint_speed": ("max_speed", parameters.positive),
                               "markers": ("markers_on", lambda value: None)})
 
         from laser_calib_interfaces.msg import DhParameters, Sample, SpotPair

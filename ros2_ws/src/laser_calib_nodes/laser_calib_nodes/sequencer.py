@@ -34,14 +34,14 @@ from laser_calib.session.average import FrameCollector
 from laser_calib.session.folder import POSES_FILE, Progress
 from laser_calib.session.settle import SettleDetector, SettleRule
 
-from laser_calib_nodes import common, sequencer_parts
+from laser_calib_nodes import common, parameters, sequencer_parts
 from laser_calib_nodes.recorder import TEST_SAMPLES, Recorder
 
 
 class Sequencer(Node):
     def __init__(self):
         super().__init__("sequencer")
-        d = lambda *a, **k: common.declare(self, *a, **k)  # noqa: E731
+        d = lambda *a, **k: parameters.declare(self, *a, **k)  # noqa: E731
         names = d("joint_names", Parameter.Type.STRING_ARRAY, "The robot's joints, base to tip, as the arm's "
                   "joint_states and controller name them (default: joint_states' names when it has exactly the "
                   "robot's joints).", type_=Parameter.Type.STRING_ARRAY)
@@ -53,7 +53,7 @@ class Sequencer(Node):
                                             "below this, rad/s."),
                                           d("settle.hold_time", 0.2, "Settled: both tolerances held this long, s."))
         except ValueError as exc:
-            raise common.NodeError(f"parameter {exc}", 2) from None
+            raise parameters.NodeError(f"parameter {exc}", 2) from None
         self.settle_timeout = d("settle.timeout", 30.0, "Give up on a pose not settled after this long, s.")
         self.frames = d("frames", 3, "Spot frames averaged per pose.")
         self.frame_timeout = d("frame_timeout", 10.0, "Give up when the frames of a pose take longer, s.")
@@ -71,14 +71,14 @@ class Sequencer(Node):
         self.exit_code, self.done = 0, False
         for name, value, check in (
                 ("frames", self.frames, lambda n: None if n >= 1 else f"expected >= 1, got {n}"),
-                ("unseen_limit", self.unseen_limit, common.non_negative),
-                ("move.joint_speed", self.joint_speed, common.positive),
-                ("sync_tolerance", self.sync_tol, common.non_negative),
-                ("settle.timeout", self.settle_timeout, common.positive),
-                ("frame_timeout", self.frame_timeout, common.positive),
-                ("wait_timeout", self.wait_timeout, common.positive),
-                ("bag.max_segment_seconds", segment_seconds, common.positive)):
-            common.checked(name, value, check)  # at the start, not when the first pose is reached
+                ("unseen_limit", self.unseen_limit, parameters.non_negative),
+                ("move.joint_speed", self.joint_speed, parameters.positive),
+                ("sync_tolerance", self.sync_tol, parameters.non_negative),
+                ("settle.timeout", self.settle_timeout, parameters.positive),
+                ("frame_timeout", self.frame_timeout, parameters.positive),
+                ("wait_timeout", self.wait_timeout, parameters.positive),
+                ("bag.max_segment_seconds", segment_seconds, parameters.positive)):
+            parameters.checked(name, value, check)  # at the start, not when the first pose is reached
 
         self.session, self.lock, self.robot, self.poses, state = sequencer_parts.open_session(self)
         # a URDF arm's joints are named: found by name among joint_states' (which may hold more)
@@ -124,7 +124,7 @@ class Sequencer(Node):
                 try:
                     self.index = joint_order(list(msg.name), self.joint_names, self.robot.n_joints)
                 except ValueError as exc:
-                    raise common.NodeError(str(exc), 2) from None
+                    raise parameters.NodeError(str(exc), 2) from None
                 self.joint_names = [msg.name[i] for i in self.index]
             stamp = common.stamp_seconds(msg.header.stamp)
             q = np.array(msg.position, dtype=float)[self.index]
@@ -153,7 +153,7 @@ class Sequencer(Node):
                 if self.stopping.is_set():
                     raise sequencer_parts.Stop()
                 if time.monotonic() > deadline:
-                    raise common.NodeError(what() if callable(what) else what, 3)
+                    raise parameters.NodeError(what() if callable(what) else what, 3)
                 self.cond.wait(0.1)
 
     def work(self) -> None:

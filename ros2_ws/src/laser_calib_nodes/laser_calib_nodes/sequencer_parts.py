@@ -24,7 +24,7 @@ from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, plan_value, re
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import generate_poses, load_poses, with_test_poses
 
-from laser_calib_nodes import common
+from laser_calib_nodes import common, parameters
 
 TRUE_ROBOT_FILE = "robot_true.yaml"   # where launch and run-session let the sim arm_driver write the truth
 
@@ -49,7 +49,7 @@ def open_session(node):
     """(session, lock, robot, poses, state) from the session parameters; the lock is held.
     A partial session is resumed on its own pose plan: other plan arguments are refused
     (SessionDir.check_plan), other settings are used with a warning (warn_settings)."""
-    d = lambda *a, **k: common.declare(node, *a, **k)  # noqa: E731
+    d = lambda *a, **k: parameters.declare(node, *a, **k)  # noqa: E731
     robot_source = common.robot_source(node)
     output_dir = d("output_dir", "", "Session directory: samples.csv, bag/, report (created; resumed "
                                      "when it holds a partial session).")
@@ -57,18 +57,18 @@ def open_session(node):
     resume = d("resume", "auto", "'auto': resume a partial session in output_dir, else start one; "
                                  "'yes': resume (error if none); 'no': never (error if output_dir holds a session).")
     if not output_dir:
-        raise common.NodeError("parameter output_dir is empty: give the session directory", 2)
+        raise parameters.NodeError("parameter output_dir is empty: give the session directory", 2)
     if resume not in ("auto", "yes", "no"):
-        raise common.NodeError(f"parameter resume: expected 'auto', 'yes' or 'no', got {resume!r}", 2)
+        raise parameters.NodeError(f"parameter resume: expected 'auto', 'yes' or 'no', got {resume!r}", 2)
     session = SessionDir(Path(output_dir).resolve())
     lock = SessionLock(session.path)
     lock.acquire()
     refuse_finished(session.path, "output_dir")
     state = session.state()
     if state == "partial" and resume == "no":
-        raise common.NodeError(f"{session.path} holds a partial session and resume is 'no'", 2)
+        raise parameters.NodeError(f"{session.path} holds a partial session and resume is 'no'", 2)
     if state == "new" and resume == "yes":
-        raise common.NodeError(f"{session.path}: no session to resume", 2)
+        raise parameters.NodeError(f"{session.path}: no session to resume", 2)
     if state == "partial":
         if robot_source.path:  # a robot given must be the session's (its poses, samples, report are of it)
             session.check_robot(*robot_source.load(node))
@@ -107,7 +107,7 @@ def warn_settings(node, session: SessionDir) -> None:
 
 
 def declare(node) -> SimpleNamespace:
-    d = lambda *a, **k: common.declare(node, *a, **k)  # noqa: E731
+    d = lambda *a, **k: parameters.declare(node, *a, **k)  # noqa: E731
     end = SimpleNamespace(
         method=d("estimate.method", "lm", "Final estimate: 'lm' or 'ekf'."),
         spot_sigma=d("estimate.spot_sigma", 0.0, "Final estimate: spot sigma, m (0: estimate it)."),
@@ -121,14 +121,14 @@ def declare(node) -> SimpleNamespace:
         timeout=d("estimate.timeout", 600.0, "Final estimate: wait this long for the service, s."),
         truth=d("truth", "", f"True robot model (simulation) for the report's truth comparison; empty: "
                              f"output_dir/{TRUE_ROBOT_FILE} when it exists."))
-    common.checked("estimate.timeout", end.timeout, common.positive)
+    parameters.checked("estimate.timeout", end.timeout, parameters.positive)
     if end.mode not in ("service", "local", "none"):
-        raise common.NodeError(f"parameter estimate.mode: expected 'service', 'local' or 'none', got {end.mode!r}", 2)
+        raise parameters.NodeError(f"parameter estimate.mode: expected 'service', 'local' or 'none', got {end.mode!r}", 2)
     from laser_calib.session.estimate import estimate_options  # as the final estimate imports it
     try:  # at the start, not after every pose is measured
         estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
     except InputError as exc:
-        raise common.NodeError(f"parameter estimate.{exc.where}: {exc.problem}", 2) from None
+        raise parameters.NodeError(f"parameter estimate.{exc.where}: {exc.problem}", 2) from None
     return end
 
 
@@ -149,7 +149,7 @@ def measured(node, line: str, spots: np.ndarray) -> None:
         return
     node.unseen_poses = None if seen.any() else node.unseen_poses + 1
     if node.unseen_poses == node.unseen_limit:
-        raise common.NodeError(f"no spot seen in this run's first {node.unseen_limit} poses: are the lasers on, the "
+        raise parameters.NodeError(f"no spot seen in this run's first {node.unseen_limit} poses: are the lasers on, the "
                                "screen in the camera's view, the spot_detector's min_peak_dn reachable? Those poses "
                                f"are kept in {node.session.path}; run again to resume from the next one "
                                "(unseen_limit:=0 measures on regardless)", 2)
@@ -166,10 +166,10 @@ def guard(node, run) -> None:
         run()
     except Stop:
         pass
-    except (InputError, common.NodeError) as exc:
+    except (InputError, parameters.NodeError) as exc:
         node.get_logger().error(str(exc))
         node.publish_progress("failed", -1)
-        node.exit_code = exc.code if isinstance(exc, common.NodeError) else 2
+        node.exit_code = exc.code if isinstance(exc, parameters.NodeError) else 2
     except Exception as exc:  # a bug: say it in one line, keep the data, exit non-zero
         if node.stopping.is_set() or not rclpy.ok():
             return  # shutting down (Ctrl-C): a publish after the context went away
@@ -202,7 +202,7 @@ def finish(node) -> None:
         else:
             message, failed, warned = call_service(node, samples)
         if failed:  # estimated but no calibration (NOT CONVERGED ...): its files show where the fit went
-            raise common.NodeError(f"estimate failed: {message}; its files are in {session.path}", 4)
+            raise parameters.NodeError(f"estimate failed: {message}; its files are in {session.path}", 4)
         common.log_warned(log, warned, message)
         compare_with_truth(node)
         log.info(f"report: {session.path / 'report.md'}; calibrated robot: {session.path / 'robot_calibrated.yaml'}")
@@ -240,7 +240,7 @@ def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
         if node.stopping.is_set():
             raise Stop()
         if time.monotonic() > deadline:
-            raise common.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; the data are in "
+            raise parameters.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; the data are in "
                                    f"{path}: estimate offline with laser-calib estimate", 3)
     request = node.estimate_client.srv_type.Request(
         samples=[sample_msg(node, samples, r) for r in range(len(samples))], method=end.method,
@@ -254,10 +254,10 @@ def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
         if node.stopping.is_set():
             raise Stop()
         if time.monotonic() > deadline:
-            raise common.NodeError(f"the Estimate service did not answer within {end.timeout:g} s", 3)
+            raise parameters.NodeError(f"the Estimate service did not answer within {end.timeout:g} s", 3)
     response = future.result()
     if not response.result_json:  # refused: nothing was estimated
-        raise common.NodeError(f"estimate failed: {response.message}", 4)
+        raise parameters.NodeError(f"estimate failed: {response.message}", 4)
     if not end.shared_fs:
         for file, text in (("report.md", response.report_markdown), ("result.json", response.result_json),
                            ("robot_calibrated.yaml", response.calibrated_robot_yaml)):

@@ -43,13 +43,13 @@ from laser_calib.vision.camera import default_camera, load_calibration
 from laser_calib.vision.detect import DetectorOptions, SpotDetector
 from laser_calib.vision.encodings import pattern_of, to_bgr8
 
-from laser_calib_nodes import common
+from laser_calib_nodes import common, parameters
 
 
 class SpotDetectorNode(Node):
     def __init__(self):
         super().__init__("spot_detector")
-        d = lambda *a, **k: common.declare(self, *a, **k)  # noqa: E731
+        d = lambda *a, **k: parameters.declare(self, *a, **k)  # noqa: E731
         path = d("calibration", "", "Screen calibration file (laser_calib.vision, YAML); "
                                     "empty: the exact calibration of the simulated camera.")
         half_y = d("screen.half_y", 1.0, "Measuring area half width, m (robot file 'screen').")
@@ -65,7 +65,7 @@ class SpotDetectorNode(Node):
         self.capture_left = d("capture_count", 10, "Frames to save in capture_dir.")
         self.capture_period = d("capture_period", 1.0, "Seconds between saved frames (move the board meanwhile).")
         for name, value in (("screen.half_y", half_y), ("screen.half_z", half_z)):
-            common.checked(name, value, common.positive)  # else no spot is ever inside: every frame 'not seen'
+            parameters.checked(name, value, parameters.positive)  # else no spot is ever inside: every frame 'not seen'
         if path:
             self.calibration = load_calibration(path)
         else:
@@ -76,8 +76,8 @@ class SpotDetectorNode(Node):
         try:
             self.detectors = {None: SpotDetector(self.calibration, self.options)}
         except ValueError as exc:
-            raise common.NodeError(f"parameter bayer_pattern: {exc}", 2) from None
-        common.dynamic(self, {"min_peak_dn": ("min_peak_dn", common.positive)})
+            raise parameters.NodeError(f"parameter bayer_pattern: {exc}", 2) from None
+        parameters.dynamic(self, {"min_peak_dn": ("min_peak_dn", parameters.positive)})
         if self.capture_dir:
             Path(self.capture_dir).mkdir(parents=True, exist_ok=True)
         self.captured, self.last_capture = 0, -np.inf

@@ -1,0 +1,124 @@
+"""Parameter declaration: every parameter with its description, checked when declared
+(one line, exit 2), the run-time ones validated when set."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+
+class NodeError(RuntimeError):
+    """A fatal condition a node reports in one line before exiting non-zero."""
+
+    def __init__(self, message: str, code: int = 1):
+        super().__init__(message)
+        self.code = code
+
+
+def declare(node: Node, name: str, default: Any, description: str, read_only: bool = True, type_=None) -> Any:
+    """Declare a parameter with its description; return its value.
+
+    An integer given for a floating-point parameter is taken as that number
+    (``rate:=10`` works); any other type mismatch is a NodeError in one line.
+    """
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if type_ is not None:
+        return declare_list(node, name, type_, descriptor)
+    descriptor.dynamic_typing = True
+    value = node.declare_parameter(name, default, descriptor).value
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if type(value) is not type(default):
+        raise NodeError(f"parameter {name}: expected {type(default).__name__}, got {type(value).__name__} "
+                        f"{value!r}", 2)
+    return value
+
+
+LIST_ELEMENTS = {Parameter.Type.STRING_ARRAY: str, Parameter.Type.INTEGER_ARRAY: int,
+                 Parameter.Type.DOUBLE_ARRAY: float}
+
+
+def declare_list(node: Node, name: str, type_: Parameter.Type, descriptor: ParameterDescriptor) -> list:
+    """A list parameter whose default is empty, its elements checked (NodeError, exit 2; an integer
+    is taken for a floating-point element). Declared with a value, an empty list, not as a typed
+    parameter without one: rclpy's get_parameters service answers no value at all when one asked
+    for has none, so `ros2 param dump` printed `ros__parameters: {}` for the whole node
+    (ros2/ros2cli#936). rclpy types an empty list as a byte array, hence dynamic typing, and a
+    parameter file's `[]` arrives unset (None)."""
+    element = LIST_ELEMENTS[type_]
+    descriptor.dynamic_typing = True
+    # `ros2 param describe` says 'byte array' for the empty default (rclpy's type of []): say what it takes
+    descriptor.additional_constraints = f"a list of {element.__name__} ({type_.name.lower().replace('_', ' ')})"
+    value = node.declare_parameter(name, [], descriptor).value
+    value = [] if value is None else list(value)
+    for item in value:
+        if isinstance(item, bool) or not isinstance(item, (int, float) if element is float else element):
+            raise NodeError(f"parameter {name}: expected a list of {element.__name__}, got {value!r}", 2)
+    return [float(item) for item in value] if element is float else value
+
+
+def dynamic(node: Node, rules: dict[str, tuple[str, Callable[[Any], str | None]]]) -> None:
+    """Make parameters settable at run time (declared with read_only=False): rules maps a
+    parameter to (the node attribute holding its value, check(value) -> problem or None).
+    A set request with a wrong type or a value its check refuses changes nothing and is
+    answered with the reason; an integer for a floating-point parameter is that number.
+    The values declared are checked first (NodeError, exit 2)."""
+    for name, (attr, check) in rules.items():
+        checked(name, getattr(node, attr), check)
+
+    def on_set(params) -> SetParametersResult:
+        updates = {}
+        for param in params:
+            if param.name not in rules:
+                continue  # the read-only ones rclpy refuses itself
+            attr, check = rules[param.name]
+            value, current = param.value, getattr(node, attr)
+            if isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            problem = (f"expected {type(current).__name__}, got {type(value).__name__}"
+                       if type(value) is not type(current) else check(value))
+            if problem:
+                return SetParametersResult(successful=False, reason=f"{param.name}: {problem}")
+            updates[attr] = value
+        for attr, value in updates.items():
+            setattr(node, attr, value)
+        return SetParametersResult(successful=True)
+
+    def as_declared(params):
+        # `ros2 param set NODE spot_sigma 2` sends an integer: stored as given, the parameter turned
+        # integer (`param get`: 'Integer value is: 2', `param dump`: 2) while `param describe` still said
+        # double. The number is taken as the floating-point value it means, and stored as one.
+        out = []
+        for param in params:
+            if (param.name in rules and param.type_ == Parameter.Type.INTEGER
+                    and isinstance(getattr(node, rules[param.name][0]), float)):
+                param = Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+            out.append(param)
+        return out
+
+    node.add_pre_set_parameters_callback(as_declared)
+    node.add_on_set_parameters_callback(on_set)
+
+
+def checked(name: str, value: Any, check: Callable[[Any], str | None]) -> Any:
+    """value, or a NodeError (exit 2) naming the parameter when check(value) finds a problem."""
+    problem = check(value)
+    if problem:
+        raise NodeError(f"parameter {name}: {problem}", 2)
+    return value
+
+
+def non_negative(value: float) -> str | None:
+    return None if math.isfinite(value) and value >= 0 else f"expected >= 0, got {value}"
+
+
+def non_negative_metres(value: float) -> str | None:
+    return None if math.isfinite(value) and value >= 0 else f"expected >= 0 m, got {value}"
+
+
+def positive(value: float) -> str | None:
+    return None if math.isfinite(value) and value > 0 else f"expected > 0, got {value}"
