@@ -6,11 +6,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import yaml
 
 from cli_status import exit_status
 from laser_calib.io.samples import format_samples
-from laser_calib.model.robot_file import dump_robot, robot_to_dict
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot_file import dump_robot, load_robot, robot_to_dict, save_robot
 from laser_calib.sim.simulation import bundled_robot, paper_session
 
 ROBOT = bundled_robot("paper-4dof")
@@ -143,3 +145,16 @@ def test_screen_calibrate_names_the_folder_without_board_views(tmp_path, capsys)
                       str(tmp_path / "screen"), "--out", str(tmp_path / "c.yaml")], capsys)
     assert line.startswith(f"laser-calib: {tmp_path / 'board'}: only 0 usable ChArUco views"), line
     assert not (tmp_path / "c.yaml").exists()
+
+
+def test_a_robot_file_written_by_a_failed_fit_is_refused(tmp_path):
+    # The failed fit's robot_calibrated.yaml carries its failure only as a comment: read back as a
+    # nominal model by estimate, plan or simulate, it passed the failure on with exit 0.
+    robot_file = tmp_path / "robot_calibrated.yaml"
+    save_robot(ROBOT, robot_file, header="Calibrated by laser_calib (lm) from 60 poses.\n"
+                                         "NO CALIBRATION: NOT CONVERGED after 50 iterations")
+    with pytest.raises(InputError, match=r"robot_calibrated.yaml: line 2: written by a fit that is no "
+                                         r"calibration \(NOT CONVERGED after 50 iterations\)"):
+        load_robot(robot_file)
+    save_robot(ROBOT, robot_file, header="Calibrated by laser_calib (lm) from 60 poses.")
+    assert load_robot(robot_file).name == ROBOT.name

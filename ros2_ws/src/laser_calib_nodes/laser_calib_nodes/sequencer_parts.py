@@ -217,7 +217,7 @@ def compare_with_truth(node) -> None:
     true = load_robot(path) if node.end.truth or (session.path / TRUE_ROBOT_FILE).exists() else None
     if test is None and true is None:
         return
-    calibrated = load_robot(session.path / "robot_calibrated.yaml")
+    calibrated = load_robot(session.path / "robot_calibrated.yaml", failed_fit=True)  # a failed fit too
     comparison = truth.compare(node.robot, calibrated, test, true)
     (session.path / "truth.json").write_text(json.dumps(comparison, indent=2))
     truth.append_to_report(session.path / "report.md", comparison)
@@ -263,7 +263,8 @@ def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
                            ("robot_calibrated.yaml", response.calibrated_robot_yaml)):
             (path / file).write_text(text)
         if node.robot.chain is not None:  # the URDF to apply: the calibrated robot's own text
-            (path / "robot_calibrated.urdf").write_text(load_robot(path / "robot_calibrated.yaml").chain.urdf)
+            calibrated = load_robot(path / "robot_calibrated.yaml", failed_fit=True)  # a failed fit's too
+            (path / "robot_calibrated.urdf").write_text(calibrated.chain.urdf)
     if response.diagnosis_json:
         (path / "diagnosis.json").write_text(response.diagnosis_json)
     from laser_calib.session.estimate import warned  # as the local estimate imports it

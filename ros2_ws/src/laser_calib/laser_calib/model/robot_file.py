@@ -260,12 +260,31 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
     return replace(robot, gravity=parts["gravity"], extra=extra)
 
 
-def load_robot(path: str | Path, description: str | None = None) -> Robot:
-    """A robot YAML; ``description``: the URDF text of a URDF robot whose YAML names none."""
+def load_robot(path: str | Path, description: str | None = None, failed_fit: bool = False) -> Robot:
+    """A robot YAML; ``description``: the URDF text of a URDF robot whose YAML names none.
+    failed_fit: read a fit's output even when it says it is no calibration (to compare it with the truth)."""
     if is_urdf(path):
         raise InputError(str(path), "a URDF has no lasers: give a robot YAML with 'urdf: FILE', 'base:', 'tip:' "
                                     "and 'slm:' / 'lasers:' / 'screen:' (docs/urdf.md)")
-    return robot_from_dict(load_yaml(read_text(path), str(path)), str(path), Path(path).parent, description)
+    text = read_text(path)
+    if not failed_fit:
+        refuse_failed_fit(text, str(path))
+    return robot_from_dict(load_yaml(text, str(path)), str(path), Path(path).parent, description)
+
+
+# The header line a fit writes into robot_calibrated.yaml when it is no calibration (report.files)
+FAILED_FIT = "# NO CALIBRATION:"
+
+
+def refuse_failed_fit(text: str, where: str) -> None:
+    """A robot file written by a fit that failed is no robot model: the comment saying so is the
+    only mark it carries, and read as a nominal model it would pass the failure on silently."""
+    for number, line in enumerate(text.splitlines(), 1):
+        if not line.startswith("#"):
+            return
+        if line.startswith(FAILED_FIT):
+            raise InputError(where, f"line {number}: written by a fit that is no calibration "
+                                    f"({line[len(FAILED_FIT):].strip()[:120]}); give the nominal model")
 
 
 def load_robot_description(path: str | Path, base: str | None = None, tip: Sequence[str] | str | None = None) -> Robot:
