@@ -31,13 +31,13 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from laser_calib.hardware.trajectory import joint_order
 from laser_calib.io import bag
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples
 
 from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
+from laser_calib_nodes.joint_states import JointStateReader
 from laser_calib_nodes.markers import MAX_POINTS, calibration_markers, online_parameters
 from laser_calib.session.estimate import estimate_options, online_options, run_calibration
 from laser_calib.session.sync import StampSynchronizer
@@ -64,13 +64,7 @@ class Estimator(Node):
                   "to tip, found by name (joint_states may list them in any order, and more joints). Default: a "
                   "URDF arm's joints; for a D-H robot joint1..jointN when joint_states has them, else joint_states' "
                   "own order when it has exactly the robot's joints.", type_=Parameter.Type.STRING_ARRAY)
-        self.joint_names = list(names) if names else common.default_joint_names(self.robot)
-        # D-H robot, no joint_names given: its joints have no names of their own to insist on
-        self.strict_names = bool(names) or self.robot.chain is not None
-        if len(self.joint_names) != self.robot.n_joints:
-            raise parameters.NodeError(f"parameter joint_names: {len(self.joint_names)} names, robot "
-                                   f"'{self.robot.name}' has {self.robot.n_joints} joints", 2)
-        self.joint_orders: dict[tuple[str, ...], list[int] | None] = {}  # joint_states' names -> robot order
+        self.joints = JointStateReader(self.robot, names, self.get_logger())
         if self.input not in ("samples", "stream"):
             raise parameters.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
         parameters.dynamic(self, {"spot_sigma": ("spot_sigma", parameters.non_negative_metres),
@@ -133,31 +127,11 @@ class Estimator(Node):
             self.keys.add(key)
         self.add(row)
 
-    def joint_index(self, names: list[str], count: int) -> list[int] | None:
-        """Index into a joint_states message of each robot joint, base to tip, by name (the sequencer's
-        rule, laser_calib.hardware.trajectory.joint_order); None, with one ERROR line per set of names,
-        when the robot's joints are not there. Message order only for a D-H robot without joint_names
-        whose joint_states has exactly its joints under other names."""
-        key = tuple(names)
-        if key not in self.joint_orders:
-            order, n = None, self.robot.n_joints
-            try:
-                order = joint_order(names, self.joint_names, n)
-            except ValueError as exc:
-                if not self.strict_names and len(names) in (0, n) and count == n:
-                    order = list(range(n))
-                else:
-                    self.get_logger().error(f"joint_states ignored: {exc}")
-            self.joint_orders[key] = order
-        return self.joint_orders[key]
-
     def on_joint_state(self, msg: JointState) -> None:
-        index = self.joint_index(list(msg.name), len(msg.position))
-        if index is None or len(msg.position) != len(msg.name) and msg.name:
+        reading = self.joints.read(msg)
+        if reading is None:
             return
-        q = np.array(msg.position, dtype=float)[index]
-        v = np.array(msg.velocity, dtype=float)[index] if len(msg.velocity) == len(msg.position) else None
-        for pair in self.sync.add_a(common.stamp_seconds(msg.header.stamp), (q, v)):
+        for pair in self.sync.add_a(common.stamp_seconds(msg.header.stamp), reading):
             self.add_pair(pair)
 
     def on_spots(self, msg) -> None:
