@@ -181,3 +181,15 @@ def test_replay_bad_bag_is_one_line(session, tmp_path):
         assert result.returncode == 2, args
         assert result.stderr.strip().count("\n") == 0 and reason in result.stderr, args
         assert "Traceback" not in result.stderr
+
+
+def test_replay_leaves_out_motion_commands(session):
+    """A replayed joint_trajectory would move a live arm on the same domain: left out, and said so,
+    unless named in --topics."""
+    ros, out = session
+    result = ros.run([str(ros_bin("replay")), str(out / "bag"), "--rate", "1000", "--quiet"], timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "replay: not replaying /joint_trajectory, a motion command" in result.stderr, result.stderr
+    named = ros.run([str(ros_bin("replay")), str(out / "bag"), "--rate", "1000", "--topics", "/joint_trajectory"],
+                    timeout=120)
+    assert named.returncode == 0 and "not replaying" not in named.stderr, named.stderr

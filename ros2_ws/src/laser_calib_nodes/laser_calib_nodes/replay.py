@@ -2,8 +2,10 @@
 
     replay BAG [--rate R] [--topics T ...] [--exclude T ...] [--wait-for T ...]
 
-Messages go out as recorded (raw CDR, same types, same QoS as offered at
-recording, header stamps untouched) at the bag's receive times, scaled by
+Motion commands (joint_trajectory) are left out unless named in --topics:
+replayed, they would move a live arm on the same domain. Messages go out as
+recorded (raw CDR, same types, same QoS as offered at recording, header stamps
+untouched) at the bag's receive times, scaled by
 1/R. With --wait-for, playback starts once each named topic's publisher has
 matched a subscriber (so nothing is published into the void). An estimator listening to
 the replayed samples computes what it computed live.
@@ -50,11 +52,15 @@ def qos_of(profiles) -> QoSProfile:
         DurabilityPolicy.VOLATILE)
 
 
+# Message types that move hardware: left out unless named in --topics
+COMMANDS = ("trajectory_msgs/msg/JointTrajectory",)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="replay", description="Republish a recorded calibration session.")
     parser.add_argument("bag", help="session bag directory (rosbag2, MCAP)")
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1)")
-    parser.add_argument("--topics", nargs="+", help="only these topics")
+    parser.add_argument("--topics", nargs="+", help="only these topics (default: all but motion commands)")
     parser.add_argument("--exclude", nargs="+", default=[], help="not these topics")
     parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
                         help="start once each of these topics has a subscriber")
@@ -76,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         topics = bag.bag_topics(args.bag)
         chosen = {t: v for t, v in topics.items()
-                  if (args.topics is None or t in args.topics) and t not in args.exclude}
+                  if (t in args.topics if args.topics else v[0] not in COMMANDS) and t not in args.exclude}
+        commands = [t for t, v in topics.items() if v[0] in COMMANDS and t not in chosen and t not in args.exclude]
         missing = [t for t in (args.topics or []) + args.wait_for if t not in topics]
         if missing:
             raise InputError(args.bag, f"no topic {missing[0]} in the bag (it has {', '.join(sorted(topics))})")
@@ -87,6 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"replay: {exc}", file=sys.stderr)
         return 2
+    for topic in commands:
+        print(f"replay: not replaying {topic}, a motion command: a live arm on this ROS domain would move "
+              "(name it in --topics to replay it)", file=sys.stderr, flush=True)
 
     die_with_parent()
     # From here a Ctrl-C is a KeyboardInterrupt (below), so that the node is destroyed.
