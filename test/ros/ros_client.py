@@ -313,6 +313,41 @@ def bad_and_concurrent(robot_path: str) -> dict:
     return out
 
 
+def samples_by_name(robot_path: str) -> dict:
+    """Estimate requests of one noisy set, its samples' joint_positions in the robot's order with
+    and without joint_names, and in reversed order with their names; then two mislabelled sets."""
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.sim.simulation import NoiseSpec, measure, sample_poses, true_errors
+    robot = load_robot(robot_path)
+    rng = np.random.default_rng(5)
+    true = robot.with_errors(true_errors(robot))
+    q = sample_poses([robot, true], 30, rng, "whole")
+    measured, _ = measure(true, q, rng, NoiseSpec())
+    names = [f"joint{i + 1}" for i in range(robot.n_joints)]
+
+    def samples(order, labels):
+        msgs = [sample(k, measured.q[k][order], measured.spots[k]) for k in range(len(measured))]
+        for msg in msgs:
+            msg.joint_names = labels
+        return msgs
+
+    forward, backward = list(range(robot.n_joints)), list(reversed(range(robot.n_joints)))
+    cases = {"unnamed": samples(forward, []), "named": samples(forward, names),
+             "reversed": samples(backward, [names[i] for i in backward]),
+             "one_unknown": samples(forward, names[:-1] + ["gripper"]),
+             "count_mismatch": samples(forward, names[:-1])}
+    node = rclpy.create_node("test_samples_by_name")
+    client = node.create_client(Estimate, "estimator/estimate")
+    out = {}
+    for name, msgs in cases.items():
+        request = Estimate.Request()
+        request.samples, request.method = msgs, "lm"
+        out[name] = response_dict(call(node, client, request))
+        out[name].pop("report", None)
+    node.destroy_node()
+    return out
+
+
 def set_param(node_name: str, name: str, value) -> dict:
     """As `ros2 param set NODE NAME VALUE` does (an integer stays an integer), then as `ros2 param get`."""
     from rcl_interfaces.srv import GetParameters, SetParameters
@@ -413,6 +448,8 @@ def main() -> int:
             result = parameters_of(sys.argv[2])
         elif command == "stream":
             result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]))
+        elif command == "samples-by-name":
+            result = samples_by_name(sys.argv[2])
         elif command == "bad-and-concurrent":
             result = bad_and_concurrent(sys.argv[2])
         else:

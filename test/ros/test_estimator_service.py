@@ -180,3 +180,22 @@ def test_ctrl_c_during_a_calibrate_goal_exits_0_without_a_traceback(ros):
     log = ros.log("estimator")
     assert "Traceback" not in log and "RCLError" not in log and "Goal state not set" not in log, log[-3000:]
 
+
+
+def test_request_samples_are_read_by_joint_name(ros):
+    """A Sample's joint_positions follow its joint_names: a client filling it from joint_states
+    keeps the driver's order (a UR driver lists shoulder_pan_joint last). Before, the positions
+    were taken in the message's order whatever the names said: the reversed set was fitted as
+    readings of other joints (mean spot error 870 mm, refused as not a calibration)."""
+    ros.start("estimator", "-p", f"robot:={ROBOT}", "-p", "markers:=false")
+    out = ros.client("samples-by-name", str(ROBOT))
+    for name in ("unnamed", "named", "reversed"):
+        assert out[name]["success"], (name, out[name]["message"])
+    assert out["named"]["errors"] == out["unnamed"]["errors"]
+    assert out["reversed"]["errors"] == out["unnamed"]["errors"]  # the same numbers, reordered exactly
+    assert not out["one_unknown"]["success"]
+    assert "sample 1 (pose 0)" in out["one_unknown"]["message"]
+    assert "joint 'joint7' (parameter joint_names) is not in the sample's joint_names" in out["one_unknown"]["message"]
+    assert not out["count_mismatch"]["success"]
+    assert "6 joint_names but 7 joint_positions" in out["count_mismatch"]["message"]
+    assert ros.stop("estimator") == 0

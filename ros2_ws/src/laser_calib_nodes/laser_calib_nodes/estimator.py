@@ -4,8 +4,9 @@
 Input 'samples' (Sample, as the sequencer or replay publishes them; subscribed
 with the sequencer's transient-local QoS and with the default one, each (pose,
 stamp) counted once) or 'stream' (joint_states + spots paired by stamp within
-sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed; each
-joint's reading found by its name, ``joint_names``, as the sequencer does).
+sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed). In
+both, and in the ~/estimate request's samples, each joint's reading is found by its
+name, ``joint_names``, as the sequencer does (joint_states.py).
 Each measurement updates the online EKF, then dh_parameters and
 calibration_markers (markers.py) are published. ~/estimate runs
 laser_calib.session.estimate.run_calibration (the command line's code path: the
@@ -60,10 +61,11 @@ class Estimator(Node):
                                                "EKF (from its next reset); 0: estimate it (batch) / 1 mm (online).",
                             read_only=False)
         self.markers_on = d("markers", True, "Publish calibration_markers.", read_only=False)
-        names = d("joint_names", Parameter.Type.STRING_ARRAY, "'stream': the robot's joints in joint_states, base "
-                  "to tip, found by name (joint_states may list them in any order, and more joints). Default: a "
-                  "URDF arm's joints; for a D-H robot joint1..jointN when joint_states has them, else joint_states' "
-                  "own order when it has exactly the robot's joints.", type_=Parameter.Type.STRING_ARRAY)
+        names = d("joint_names", Parameter.Type.STRING_ARRAY, "The robot's joints, base to tip, found by name in "
+                  "joint_states ('stream') and in each Sample's joint_names (either may list them in any order, and "
+                  "more joints). Default: a URDF arm's joints; for a D-H robot joint1..jointN when the message has "
+                  "them, else its own order when it has exactly the robot's joints.",
+                  type_=Parameter.Type.STRING_ARRAY)
         self.joints = JointStateReader(self.robot, names, self.get_logger())
         if self.input not in ("samples", "stream"):
             raise parameters.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
@@ -115,7 +117,7 @@ class Estimator(Node):
 
     def on_sample(self, msg) -> None:
         try:
-            row = bag.sample_row_from_msg(msg, f"sample (pose {msg.pose})")
+            row = self.joints.sample_row(msg, f"sample (pose {msg.pose})")
             self.check_row(row, f"sample (pose {msg.pose})")
         except InputError as exc:
             self.get_logger().error(f"ignored: {exc}")
@@ -225,7 +227,7 @@ class Estimator(Node):
             rows = []
             for k, msg in enumerate(request.samples):
                 where = f"request: sample {k + 1} (pose {msg.pose})"
-                row = bag.sample_row_from_msg(msg, where)
+                row = self.joints.sample_row(msg, where)
                 self.check_row(row, where)
                 rows.append(row)
             source = f"{len(rows)} samples of an Estimate request"

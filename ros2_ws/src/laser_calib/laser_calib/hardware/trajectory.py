@@ -74,21 +74,23 @@ def trajectory_goal(names: Sequence[str], points: Sequence[TrajectoryPoint], joi
     return goal
 
 
-def joint_order(available: Sequence[str], wanted: Sequence[str] | None, n_joints: int) -> list[int]:
-    """Index into a joint_states message's joints (``available``) of each robot joint, base to
-    tip. ``wanted``: the robot's joint names; None: ``available`` as it is, which must then
-    hold exactly ``n_joints`` joints. ValueError in one line naming what is missing."""
+def joint_order(available: Sequence[str], wanted: Sequence[str] | None, n_joints: int,
+                source: str = "joint_states") -> list[int]:
+    """Index into a message's joints (``available``: a joint_states message's, or a Sample's
+    joint_names, named ``source`` in errors) of each robot joint, base to tip. ``wanted``: the
+    robot's joint names; None: ``available`` as it is, which must then hold exactly ``n_joints``
+    joints. ValueError in one line naming what is missing."""
     available = list(available)
     if wanted is None:
         if len(available) != n_joints:
-            raise ValueError(f"joint_states has {len(available)} joints ({', '.join(available)}), the robot "
+            raise ValueError(f"{source} has {len(available)} joints ({', '.join(available)}), the robot "
                              f"{n_joints}: give parameter joint_names (the robot's joints, base to tip)")
         return list(range(n_joints))
     if len(wanted) != n_joints:
         raise ValueError(f"parameter joint_names: {len(wanted)} names, the robot has {n_joints} joints")
     missing = [name for name in wanted if name not in available]
     if missing:
-        raise ValueError(f"joint '{missing[0]}' (parameter joint_names) is not in joint_states "
+        raise ValueError(f"joint '{missing[0]}' (parameter joint_names) is not in {source} "
                          f"({', '.join(available)})")
     return [available.index(name) for name in wanted]
 
