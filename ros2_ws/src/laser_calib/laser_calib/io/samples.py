@@ -301,18 +301,29 @@ def check_joint_count(n_q: int, robot: Robot | None, source: str) -> None:
                                     + names)
 
 
+# A measured reading may lie a little beyond its joint's limit: the arm settled against the stop,
+# the encoder's last count, or a limit written rounded in the robot file. The check is there to
+# catch readings that are not this robot's (degrees, another arm's file), which miss the range by
+# far; refusing a whole session for a reading 0.1 deg past a limit would lose what was measured.
+READING_SLACK = 0.01  # fraction of the joint's travel
+
+
 def check_joint_range(q: np.ndarray, robot: Robot, source: str, pose: np.ndarray | None = None,
-                      slack: float = 1e-9) -> None:
-    """One line for the first joint reading outside [min, max] of its joint."""
+                      measured: bool = True) -> None:
+    """One line for the first joint value outside [min, max] of its joint: beyond it by more
+    than READING_SLACK of the joint's travel for measured readings, at all for commanded poses
+    (measured=False: a pose list the arm is sent to)."""
+    slack = (READING_SLACK * (robot.q_max - robot.q_min) if measured else 0.0) + 1e-9
     outside = (q < robot.q_min - slack) | (q > robot.q_max + slack)
     if outside.any():
         r, i = np.argwhere(outside)[0]
         label = f"pose {pose[r]}" if pose is not None else f"row {r}"
         hint = " (readings are in radians; this looks like degrees)" if abs(q[r, i]) > 2 * math.pi + 0.5 else ""
         joint = f" ({robot.joint_names[i]})" if robot.chain is not None else ""
+        beyond = f" by more than {READING_SLACK * 100:g} % of its travel" if measured else ""
         raise InputError(f"{source}: {label}, field q{i + 1}{joint}",
                          f"{q[r, i]:.6g} rad outside the joint range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]"
-                         + hint)
+                         + beyond + hint)
 
 
 def load_samples(path: str | Path, robot: Robot | None = None) -> Samples:

@@ -53,7 +53,7 @@ def load_poses(path: str | Path, robot: Robot) -> PoseSequence:
     if not rows:
         raise InputError(str(path), "no poses")
     q = np.array(rows, dtype=float)
-    check_joint_range(q, robot, str(path), np.array(ids))
+    check_joint_range(q, robot, str(path), np.array(ids), measured=False)
     return PoseSequence(np.array(ids, dtype=int), q, np.array(test, dtype=bool) if test else None)
 
 
