@@ -98,18 +98,34 @@ def test_simulate_identify_and_estimate_a_urdf_robot(tmp_path, capsys):
     assert errors["after"]["all"]["rms_mm"] < 3 * noise
 
 
-def test_xacro_arguments_reach_the_xacro(tmp_path):
+def _write_arm_xacro(folder: Path) -> None:
+    """The paper's arm as arm.urdf.xacro, its first joint's x the argument x1 (default 0)."""
     text = (DATA / "paper_arm_7dof.urdf").read_text()
     xacro = text.replace('<robot name="humanoid_arm_7dof_urdf">',
                          '<robot name="humanoid_arm_7dof_urdf" xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
                          '  <xacro:arg name="x1" default="0.0"/>')
     xacro = xacro.replace('<origin xyz="-0.5 0.0 0.0"', '<origin xyz="$(arg x1) 0.0 0.0"', 1)
     assert xacro.count("$(arg x1)") == 1
-    (tmp_path / "arm.urdf.xacro").write_text(xacro)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "arm.urdf.xacro").write_text(xacro)
+
+
+def test_xacro_arguments_reach_the_xacro(tmp_path):
+    _write_arm_xacro(tmp_path)
     from_xacro = load_robot(_urdf_robot_yaml(tmp_path, "arm.urdf.xacro", xacro_args={"x1": -0.5}))
     from_urdf = load_robot(_urdf_robot_yaml(tmp_path / "plain"))
     q = np.random.default_rng(2).uniform(from_urdf.q_min, from_urdf.q_max, (20, 7))
     assert np.abs(predict(from_xacro, q).spots - predict(from_urdf, q).spots).max() < 1e-12
+
+
+def test_a_misspelt_xacro_argument_is_refused(tmp_path, capsys):
+    """xacro ignores an argument the file does not declare: 'X1' built the arm with x1's
+    default, silently. One line naming the robot file, the key, the argument and the ones declared."""
+    _write_arm_xacro(tmp_path)
+    robot = _urdf_robot_yaml(tmp_path, "arm.urdf.xacro", xacro_args={"X1": -0.5})
+    assert main(["identify", "--robot", str(robot), "--samples", str(tmp_path / "none.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"laser-calib: {robot}: xacro_args: unknown xacro argument 'X1': arm.urdf.xacro declares x1", err
 
 
 BAD = {  # change of the robot YAML -> what the one line says

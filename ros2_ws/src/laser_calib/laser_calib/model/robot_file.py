@@ -242,7 +242,8 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
         args = data.get("xacro_args", {})
         if not isinstance(args, Mapping) or not all(isinstance(v, (str, int, float)) for v in args.values()):
             raise InputError(f"{source}: xacro_args", "expected a mapping of argument names to values")
-        text, where = urdf_text(path, {str(k): str(v) for k, v in args.items()}), str(path)
+        text = urdf_text(path, {str(k): str(v) for k, v in args.items()}, f"{source}: xacro_args")
+        where = str(path)
     else:
         text = description if description is not None else _string(f"{source}: robot_description",
                                                                     data["robot_description"])

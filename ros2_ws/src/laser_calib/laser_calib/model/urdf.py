@@ -43,17 +43,38 @@ _KINDS = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC, 
 _MISSING_PACKAGE = re.compile(r"package '([^']+)' not found")  # ament_index_python's PackageNotFoundError
 
 
-def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None) -> str:
+class _ArgsRead(dict):
+    """The xacro arguments given, noting each name xacro asks for: it looks up every <xacro:arg>
+    it meets (in the includes too, as it resolves them) and every $(arg) / xacro.arg() it reads
+    in this mapping, so a given name it never asked for is one the file ignores."""
+
+    def __init__(self, given: dict[str, str]):
+        super().__init__(given)
+        self.asked: set[str] = set()
+
+    def __contains__(self, name) -> bool:
+        self.asked.add(name)
+        return super().__contains__(name)
+
+    def __getitem__(self, name):
+        self.asked.add(name)
+        return super().__getitem__(name)
+
+
+def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None, args_where: str | None = None) -> str:
     """The URDF text of a .urdf file, or of a .xacro file after expansion with
-    ``xacro_args`` (name -> value, as ``xacro file.xacro name:=value``)."""
+    ``xacro_args`` (name -> value, as ``xacro file.xacro name:=value``). An argument the
+    xacro neither declares nor reads is refused (xacro ignores it: the default variant
+    would be built), named at ``args_where`` (the robot file's key)."""
     path = Path(path)
     if path.suffix.lower() != ".xacro":
         return read_text(path)
     try:
         import xacro  # only for xacro input
 
+        args = _ArgsRead(xacro_args or {})
         with package_index():  # $(find pkg): installed packages, then ROS_PACKAGE_PATH's
-            return xacro.process_file(str(path), mappings=dict(xacro_args or {})).toxml()
+            text = xacro.process_file(str(path), mappings=args).toxml()
     except OSError as exc:
         raise InputError(str(path), f"cannot read ({exc.strerror})") from None
     except Exception as exc:  # xacro raises its own XacroException and XML errors
@@ -63,6 +84,13 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None) -> str
                                         "AMENT_PREFIX_PATH or ROS_PACKAGE_PATH: source the workspace that installs "
                                         "it, or add its source folder to ROS_PACKAGE_PATH") from None
         raise InputError(str(path), f"xacro failed ({' '.join(str(exc).split())})") from None
+    unknown = sorted(set(xacro_args or {}) - args.asked)
+    if unknown:
+        declared = sorted(args.asked)
+        raise InputError(args_where or str(path), f"unknown xacro argument{'s' * (len(unknown) > 1)} "
+                                                  f"{', '.join(map(repr, unknown))}: {path.name} declares "
+                                                  + (', '.join(declared) if declared else "no arguments"))
+    return text
 
 
 def _parse(text: str, source: str):
