@@ -212,6 +212,11 @@ CASES = {
         lambda r: r["joints"][0].update(min=-30.0, max=30.0))),
         "robot.yaml: joints[0] (joint 1).min: -30 rad is not a plausible angle: angles are in radians "
         "(this looks like degrees)"),
+    # 10-100 cm typed as metres was within the 100 m of lengths
+    "prismatic limits in centimetres": (lambda d: _estimate(d, robot=_robot_yaml(
+        lambda r: r["joints"][0].update(type="prismatic", min=0.0, max=50.0))),
+        "robot.yaml: joints[0] (joint 1).max: 50 m is not a plausible prismatic limit (over 20 m): lengths are in "
+        "metres (this looks like millimetres or centimetres)"),
     "spots in millimetres": (lambda d: _estimate(d, samples=format_samples(type(SESSION.samples)(
         SESSION.samples.pose, SESSION.samples.stamp, SESSION.samples.q, SESSION.samples.spots * 1e3))),
         "samples.csv: every spot lies outside the screen (half sizes 1, 1 m): spot coordinates are in metres "

@@ -137,6 +137,10 @@ BAD = {  # (text replaced, by) in ARM -> the one line
     "revolute limits in degrees": (('lower="-2" upper="2"', 'lower="-30" upper="30"'),
                                    "arm.urdf: joint 'j2': limit lower: -30 rad is not a plausible angle: angles are "
                                    "in radians (this looks like degrees)"),
+    "prismatic limit in centimetres": (('lower="0" upper="0.2"', 'lower="0" upper="50"'),
+                                       "arm.urdf: joint 'j3': limit upper: 50 m is not a plausible prismatic limit "
+                                       "(over 20 m): lengths are in metres (this looks like millimetres or "
+                                       "centimetres)"),
     "infinite mimic multiplier": (('<limit lower="0" upper="0.2" effort="9" velocity="1"/>',
                                    '<limit lower="0" upper="0.2" effort="9" velocity="1"/>'
                                    '<mimic joint="j2" multiplier="inf"/>'),

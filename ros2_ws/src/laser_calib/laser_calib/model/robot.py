@@ -36,16 +36,23 @@ MAX_ANGLE = 4 * np.pi
 # T axis; FANUC's J6 +-450, ABB's axis 6 +-400), 7.9 rad. Beyond 3 pi (540 deg) a limit is in
 # degrees (+-30 typed for +-30 deg); a joint that turns without end is a URDF continuous joint.
 LIMIT_ANGLE = 3 * np.pi
+# Prismatic joint limits: an arm's prismatic joints are lifts, torsos and fingers (PR2's torso
+# 0.31 m, the Panda's fingers 0.04 m) or a floor track carrying it, a few metres. Beyond 20 m a
+# limit is taken for cm or mm (50 typed for 50 cm), which MAX_LENGTH let through as metres; the
+# price is that a track longer than 20 m is refused too.
+LIMIT_TRAVEL = 20.0
 # The laser module sits on the last link's flange, a few cm off it (paper: 5 cm): an offset
 # of a metre is no module on a flange, and MAX_LENGTH would let -30 (mm) through as 30 m.
 MAX_SLM_OFFSET = 1.0
 
 
-def plausible_length(where: str, value: float, bound: float = MAX_LENGTH) -> float:
+def plausible_length(where: str, value: float, bound: float = MAX_LENGTH, what: str = "") -> float:
     """``value`` (m), or one line saying it looks like millimetres (or centimetres):
-    the one units rule for every length a robot file, a URDF or a frame guess holds."""
+    the one units rule for every length a robot file, a URDF or a frame guess holds.
+    ``what``: the quantity whose own bound ``bound`` is, named with it in the line."""
     if abs(value) > bound:
-        raise InputError(where, f"{value:g} m is not a plausible length: lengths are in metres "
+        quantity = f"{what} (over {bound:g} m)" if what else "length"
+        raise InputError(where, f"{value:g} m is not a plausible {quantity}: lengths are in metres "
                                 f"(this looks like {length_units(value, bound)})")
     return value
 

@@ -22,8 +22,8 @@ import yaml
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.measurement.frames import robot_frames
-from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, MAX_ANGLE, MAX_LENGTH, MAX_SLM_OFFSET, PAPER, Joint,
-                                     Laser, Robot, Screen, Slm, plausible_angle, plausible_length)
+from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, LIMIT_TRAVEL, MAX_ANGLE, MAX_LENGTH, MAX_SLM_OFFSET,
+                                     PAPER, Joint, Laser, Robot, Screen, Slm, plausible_angle, plausible_length)
 from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, link_ends, load_urdf_robot,
                                     robot_from_urdf, urdf_text)
 
@@ -48,8 +48,8 @@ def _mapping(where: str, value: Any, known: tuple[str, ...]) -> Mapping[str, Any
 
 
 def _length(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None,
-            bound: float = MAX_LENGTH) -> float:
-    return plausible_length(f"{where}.{key}", yaml_number(where, mapping, key, default), bound)
+            bound: float = MAX_LENGTH, what: str = "") -> float:
+    return plausible_length(f"{where}.{key}", yaml_number(where, mapping, key, default), bound, what)
 
 
 def _angle(where: str, mapping: Mapping[str, Any], key: str, default: float | None = None,
@@ -135,7 +135,7 @@ def _dh_robot(data: Any, source: str) -> Robot:
             raise InputError(f"{where}.type", f"expected revolute or prismatic, got {kind!r}")
         prismatic = kind == "prismatic"
         # a prismatic joint's limits are lengths
-        limit = (lambda key: _length(where, entry, key)) if prismatic else \
+        limit = (lambda key: _length(where, entry, key, bound=LIMIT_TRAVEL, what="prismatic limit")) if prismatic else \
             (lambda key: _angle(where, entry, key, bound=LIMIT_ANGLE))
         joint = Joint(_length(where, entry, "a"), _length(where, entry, "d"), _angle(where, entry, "alpha"),
                       _angle(where, entry, "theta0"), limit("min"), limit("max"), prismatic=prismatic)

@@ -35,7 +35,8 @@ from laser_calib.io.read import read_text
 from laser_calib.measurement.frames import Pose
 from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
                                            UNLIMITED, ChainJoint, JointChain)
-from laser_calib.model.robot import LIMIT_ANGLE, Laser, Robot, Screen, Slm, plausible_angle, plausible_length
+from laser_calib.model.robot import (LIMIT_ANGLE, LIMIT_TRAVEL, Laser, Robot, Screen, Slm, plausible_angle,
+                                     plausible_length)
 from laser_calib.model.urdf_checks import check_tree
 
 URDF_SUFFIXES = (".urdf", ".xacro", ".xml")  # in any case: ARM.URDF, and older descriptions named .xml
@@ -157,7 +158,7 @@ def _check_units(where: str, joint, origin: np.ndarray, rpy: float, limits: tupl
     plausible_angle(f"{where}: origin rpy", rpy)
     for side, bound in zip(("lower", "upper"), limits):
         if joint.type == "prismatic":
-            plausible_length(f"{where}: limit {side}", bound)
+            plausible_length(f"{where}: limit {side}", bound, LIMIT_TRAVEL, "prismatic limit")
         else:
             plausible_angle(f"{where}: limit {side}", bound, LIMIT_ANGLE)
 
