@@ -65,9 +65,9 @@ def diagnose_main(argv: list[str]) -> int:
     return cli_main(["diagnose", *argv])
 
 
-def library_session(arm, kind, n_cal=80, n_test=40, seed=SEED):
+def library_session(arm, kind, n_cal=80, n_test=40, seed=SEED, visible=VISIBLE):
     def make(robot, errors, context, rng):
-        return [sized(robot, errors, context, draw_truth(LIBRARY[arm][kind](robot, context), rng), NOISE, VISIBLE)]
+        return [sized(robot, errors, context, draw_truth(LIBRARY[arm][kind](robot, context), rng), NOISE, visible)]
 
     return effect_session(arm, seed, make, n_cal, n_test, NOISE)
 
@@ -275,6 +275,24 @@ def test_the_final_fits_warnings_reach_the_console_the_json_and_the_report(tmp_p
                               diagnose=True)
     verdict = json.loads(outcome.diagnosis_json)["verdict"]
     assert f"; diagnosis: {verdict}; diagnosis's final fit: chi^2/dof = " in outcome.message and outcome.warned
+
+
+@pytest.mark.parametrize("given", [False, True])
+def test_the_final_fits_warnings_say_where_its_spot_sigma_came_from(given, tmp_path, capsys):
+    """A large periodic error: the geometric fit's residual, 4x the spot noise, is the sigma every
+    later fit runs with. Without --spot-sigma, the final fit's warnings called it 'given'."""
+    session = library_session("paper-4dof", "periodic", n_cal=40, n_test=5, visible=5000.0)
+    save_robot(session.nominal, tmp_path / "robot.yaml")
+    save_samples(session.cal, tmp_path / "cal.csv")
+    sigma = ["--spot-sigma", "0.002"] if given else []
+    assert diagnose_main(["--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"), *sigma,
+                          "--out", str(tmp_path / "out")]) == 0
+    printed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("warning: ")]
+    source = "given" if given else "the diagnosis estimated from the geometric fit's residual"
+    held = [line for line in printed if "rank deficient" in line]
+    assert len(held) == 1 and f"parameters at the spot sigma {source} (" in held[0], printed
+    assert any(f"far below the spot sigma {source}, " in line for line in printed), printed
+    assert given or not any("given" in line for line in printed), printed
 
 
 @pytest.mark.parametrize("args, text", [

@@ -22,6 +22,8 @@ from laser_calib.estimation.identifiability import TooFewValues
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.measurement.base import NoiseModel, count_values, whiten
 
+ESTIMATED_SIGMA = "the diagnosis estimated from the geometric fit's residual"  # no spot sigma given (Fitter.start)
+
 def distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
     res = model.residuals(x, False)
     return np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
@@ -87,6 +89,8 @@ class Fitter:
         scale = math.sqrt(m / max(m - int(first.identifiable.sum()), 1))
         spot, joint = noise_components(res, scale, self.options.spot_sigma, self.options.joint_sigma)
         self.fit_options = replace(self.fit_options, spot_sigma=spot, joint_sigma=joint)
+        if self.options.spot_sigma is None:  # every later fit's warnings would call it given
+            self.fit_options = replace(self.fit_options, spot_sigma_source=ESTIMATED_SIGMA)
         self.reference = NoiseModel(spot, joint)
         return self.fit((), first.values)
 

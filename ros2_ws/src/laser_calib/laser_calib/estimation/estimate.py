@@ -79,6 +79,7 @@ class EstimateOptions:
 
     method: str = "lm"
     spot_sigma: float | None = None
+    spot_sigma_source: str = "given"  # where spot_sigma came from, as the warnings name it (a caller may estimate it)
     joint_sigma: float = 0.0
     prior: bool = False
     prior_length: float = LENGTH_SCALE
@@ -319,9 +320,9 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         model.scales, names, user_fixed, std_factor=factor)
         free = ident.free
     held = [name for name, keep, user in zip(names, free, user_fixed) if not keep and not user]
-    if held:
-        given = (f" at the spot sigma given ({sigma * 1e3:.3g} mm; {ident.by_noise} held for it)"
-                 if ident.by_noise and not sigma_estimated else "")  # a wrong sigma, not the data, holds those
+    if held:  # a wrong sigma, not the data, holds those by_noise
+        given = (f" at the spot sigma {options.spot_sigma_source} ({sigma * 1e3:.3g} mm; {ident.by_noise} held "
+                 "for it)" if ident.by_noise and not sigma_estimated else "")
         warnings.append(f"rank deficient: the data determine {ident.rank} of {n - int(user_fixed.sum())} "
                         f"parameters{given}; held at nominal, reported as combinations: {', '.join(held)}")
     start_x = np.where(free, start_x, x0)
@@ -345,8 +346,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
             warnings.append(f"the first minimum was suspect; restart {restarts} found a lower one")
     elif not sigma_estimated and result.chi2 / result.dof < NOISE_RATIO ** -2:
         warnings.append(f"noise: the residual says {sigma * np.sqrt(result.chi2 / result.dof) * 1e3:.3g} mm per "
-                        f"value, far below the given spot sigma {sigma * 1e3:.3g} mm (standard deviations are "
-                        "overstated)")
+                        f"value, far below the spot sigma {options.spot_sigma_source}, {sigma * 1e3:.3g} mm (standard "
+                        "deviations are overstated)")
     lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
     warnings.extend(fit_failures(lost, sigma * float(np.sqrt(result.chi2 / max(result.dof, 1)))))
     if sigma_estimated and sigma < MIN_SIGMA:
