@@ -159,4 +159,6 @@ def test_swapped_joint_columns_are_no_calibration(tmp_path, capsys):
     assert "NOT A CALIBRATION" not in capsys.readouterr().out
     assert main(args + ["--samples", str(swapped), "--out", str(tmp_path / "swapped")]) == 3
     out = capsys.readouterr().out
-    assert "error: NOT A CALIBRATION: shoulder_lift_joint.offset is fitted at 93 times its tolerance scale" in out, out
+    # 94 since near-duplicate columns are deferred (identifiability.py): the fit at that offset held
+    # 9 of 30 directions (7 of the frames) where it now holds the elbow and wrist_1 offsets, near-duplicates there
+    assert "error: NOT A CALIBRATION: shoulder_lift_joint.offset is fitted at 94 times its tolerance scale" in out, out
