@@ -64,6 +64,19 @@ def test_combinations_do_not_depend_on_the_basis_the_factorisation_returns():
         assert a.merged == b.merged and a.null_combinations == b.null_combinations
 
 
+def test_each_held_parameter_is_named_in_its_own_combination():
+    """p1 is p0 plus 0.03 of a direction (kept: above identifiability.NEAR_DUPLICATE,
+    nothing else carries it first); p2 and p3 are that direction, so each is carried by
+    p0 and p1 at 33 and 333 times its own weight. Their texts were the same, '+1.00 p0
+    -1.00 p1', naming neither (the report printed it once per held parameter)."""
+    u = np.linalg.qr(np.random.default_rng(0).normal(size=(6, 2)))[0].T
+    jac = np.column_stack([u[0], u[0] + 0.03 * u[1], u[1], 10 * u[1]])
+    ident = analyse(jac, np.ones(4), ("p0", "p1", "p2", "p3"))
+    assert ident.free.tolist() == [True, True, False, False]
+    texts = dict(zip(("p2", "p3"), ident.null_combinations))
+    assert texts == {"p2": "+1.00 p0 -1.00 p1 +0.03 p2", "p3": "+1.00 p0 -1.00 p1 +3.0e-03 p3"}
+
+
 def test_a_joint_that_never_moves_is_held_and_not_written():
     """Joint 1 jitters by +-0.06 deg only: its directions are seen far worse than the
     tolerances. The noise threshold holds them; nothing kept is worse than

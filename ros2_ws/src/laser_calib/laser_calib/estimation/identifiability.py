@@ -68,7 +68,7 @@ STD_FACTOR = 10.0
 # last column, so deferring it changes nothing), and a deferred column that no later
 # one replaces is kept all the same.
 NEAR_DUPLICATE = 0.01
-TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed
+TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed, but the held parameter's own
 
 
 class TooFewValues(ValueError):
@@ -135,10 +135,19 @@ def carried_note(name: str, held: tuple[str, ...]) -> str:
             f"not {name}'s own error alone")
 
 
-def describe(vector: np.ndarray, names: tuple[str, ...], threshold: float = TERM_THRESHOLD) -> str:
+def describe(vector: np.ndarray, names: tuple[str, ...], threshold: float = TERM_THRESHOLD,
+             held: int | None = None) -> str:
+    """The terms above threshold of the largest, and always the held parameter's own:
+    where its carriers weigh hundreds of times more (a near-duplicate kept), its term
+    falls below the threshold, and held parameters carried by the same pair would
+    read as one text that names none of them."""
     v = vector / np.abs(vector).max()
     v = v * np.sign(v[np.flatnonzero(np.abs(v) > threshold)[0]])  # first term positive: one canonical text
-    terms = [f"{c:+.2f} {names[i]}" for i, c in enumerate(v) if abs(c) > threshold]
+    shown = np.abs(v) > threshold
+    if held is not None:
+        shown[held] = True
+    terms = [f"{c:+.2f} {names[i]}" if abs(c) >= 0.005 else f"{c:+.1e} {names[i]}"
+             for i, c in enumerate(v) if shown[i]]
     return " ".join(terms)
 
 
@@ -202,7 +211,7 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
         direction[j] = 1.0
         if kept:
             direction[kept] = -np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0]
-        combinations.append(describe(direction, names))
+        combinations.append(describe(direction, names, held=j))
         weight = np.abs(direction) / np.abs(direction).max()
         partners = [names[i] for i in kept if weight[i] > TERM_THRESHOLD]
         carriers[names[j]] = tuple(partners)
