@@ -315,8 +315,9 @@ def test_slm_calibrate_recovers_the_laser_angles(tmp_path, capsys):
     out = tmp_path / "robot_slm.yaml"
     assert main(["slm-calibrate", "--robot", str(robot_path), "--measurements", str(tmp_path / "slm.csv"),
                  "--spot-sigma", str(sigma), "--out", str(out)]) == 0
+    assert capsys.readouterr().err == ""  # no spot rejected, no warning
     from laser_calib.slm import calibrate, load_measurements
-    _, angles = calibrate(bundled_robot("paper-4dof"), load_measurements(tmp_path / "slm.csv"), sigma)
+    angles = calibrate(bundled_robot("paper-4dof"), load_measurements(tmp_path / "slm.csv"), sigma).angles
     lasers = load_robot(out).lasers
     for (gamma, beta), fitted, laser in zip(truth, angles, lasers):
         assert abs(fitted.gamma - gamma) < 4 * fitted.gamma_std and abs(fitted.beta - beta) < 4 * fitted.beta_std

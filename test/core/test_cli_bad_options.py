@@ -20,7 +20,8 @@ from laser_calib.sim.simulation import bundled_robot, paper_session
 
 ROBOT = bundled_robot("paper-4dof")
 SESSION = paper_session("paper-4dof", 0, n_per_span=6)
-SLM_ROWS = "1,0.5,0.01,0.02\n1,1.0,0.02,0.04\n1,1.5,0.03,0.06\n2,0.5,-0.01,0.02\n2,1.0,-0.02,0.04\n2,1.5,-0.03,0.06\n"
+# the bundled robot's lasers (gamma -27.8 and 31.1 deg, beta about 1 deg) within a degree or two
+SLM_ROWS = "1,0.5,0.01,0.25\n1,1.0,0.02,0.5\n1,1.5,0.03,0.75\n2,0.5,0.01,-0.3\n2,1.0,0.02,-0.6\n2,1.5,0.03,-0.9\n"
 
 
 def _files(folder: Path, spots: np.ndarray | None = None) -> tuple[str, str]:

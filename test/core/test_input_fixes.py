@@ -98,8 +98,8 @@ def test_plan_keeps_its_robot_file_and_says_a_failed_write(tmp_path, capsys):
     if Path("/dev/full").exists():  # Linux: every write fails with ENOSPC
         line = _one_line(["plan", "--robot", r, "--n", "5", "--candidates", "100", "--out", "/dev/full"], capsys)
         assert line == "laser-calib: /dev/full: cannot write (No space left on device)", line
-        (tmp_path / "slm.csv").write_text("laser,distance,u,v\n1,0.5,0,0\n1,1.0,0.01,-0.5\n1,1.5,0.02,-1.0\n"
-                                          "2,0.5,0,0\n2,1.0,0.01,0.5\n2,1.5,0.02,1.0\n")
+        (tmp_path / "slm.csv").write_text("laser,distance,u,v\n1,0.5,0,0\n1,1.0,0.01,0.25\n1,1.5,0.02,0.5\n"
+                                          "2,0.5,0,0\n2,1.0,0.01,-0.3\n2,1.5,0.02,-0.6\n")
         line = _one_line(["slm-calibrate", "--robot", r, "--measurements", str(tmp_path / "slm.csv"),
                           "--out", "/dev/full"], capsys)
         assert line == "laser-calib: /dev/full: cannot write (No space left on device)", line

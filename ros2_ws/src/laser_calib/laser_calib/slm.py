@@ -11,6 +11,35 @@ the distance as
 The offsets u0, v0 (where the fixture puts the laser) are unknown; straight-
 line fits over two or more distances give the slopes, hence gamma and beta,
 and their standard deviations by first-order propagation.
+
+Nothing is taken on trust (docs: README, slm-calibrate):
+- outliers: a spot (u, v) is one unit of two values. Each laser's lines are
+  first fitted robustly (repeated medians, scipy.stats.siegelslopes: half the
+  spots may be wrong); the scale s is the --spot-sigma, or, without one or
+  when it is larger, s^2 = median(d^2) / median(chi^2_2) of the spots' squared
+  distances d^2 off those lines, both lasers pooled (one screen measures both):
+  a sigma too small must not reject good spots. A spot with
+  d^2 / s^2 > chi^2_2(1 - 0.01 / N) (N spots in the file) is a candidate;
+  least squares on the others then judges it as estimation/robust.py does: by
+  its residual there against the noise plus the line's uncertainty at its
+  distance, beyond chi^2_2's limit at the --spot-sigma, or 2 F_{2,nu}'s at
+  those lines' residual (nu degrees of freedom) without one or when the
+  residual is larger; a spot within is fitted again;
+- a rejection leaves three spots on the laser or more: two fit a line exactly
+  and nothing would check it. A laser with fewer to spare is judged whole
+  (chi^2 against the --spot-sigma, or F against the other laser's residual):
+  off one line, it is refused (exit 2), the wrong spot among three being
+  indistinguishable from the others; else its candidates were the robust
+  scale's doing and are kept. A laser with more than a third of its spots off
+  the line is refused too (then the spots, not one of them, are wrong). A
+  laser measured at two distances only (allowed with --spot-sigma) is written
+  with a warning that nothing checked it;
+- with --spot-sigma, each laser's residual is tested against it (chi^2 on
+  2 (K - 2) degrees of freedom): far above what the sigma allows, a warning;
+- each fitted angle is compared with the robot file's: a change beyond
+  MOUNTING_BOUND_DEG and CHANGE_SIGMAS standard deviations is no mounting
+  error but a misread file (u and v swapped, a sign, the lasers' numbering):
+  refused naming the likely cause, unless accept_large_change.
 """
 
 from __future__ import annotations
@@ -20,13 +49,42 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+# chi^2 and F quantiles and tails as scipy.stats computes them, without importing scipy.stats (seconds)
+from scipy.special import chdtrc, chdtri, fdtrc
 
+from laser_calib.estimation.redundancy import FAMILY_FALSE_REJECTION, outlier_limit
+from laser_calib.estimation.robust import MAX_REJECTED
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Laser, Robot
 from laser_calib.io.read import csv_rows, length_units, parse_int, parse_number, read_text
 from laser_calib.io.samples import MAX_DISTANCE
 
 COLUMNS = ("laser", "distance", "u", "v")
+SPOT_VALUES = 2  # u and v: a wrong spot is wrong as a whole, whichever coordinate shows it
+# A laser diode sits in a machined bore: the paper found its angles 1 to 2.2 deg off the drawing's 30 deg and
+# 0 deg. Five degrees is more than twice that; beyond it the module was rebuilt (a new robot file) or the
+# measurements were read wrong.
+MOUNTING_BOUND_DEG = 5.0
+CHANGE_SIGMAS = 5.0  # ... and a change is only implausible when the data determine it this well
+# A robust scale below a nanometre is rounding of exact (hand-made, simulated) spots, not noise: without
+# this floor their last digits would look like outliers.
+SCALE_FLOOR = 1e-9
+MEDIAN_CHI2_2 = 2.0 * math.log(2.0)  # median of chi^2 with 2 degrees of freedom
+
+
+@dataclass(frozen=True)
+class Spots:
+    """One laser's spots: the measurements file's line of each, the fixture distance (m), u and v (m)."""
+
+    line: np.ndarray
+    distance: np.ndarray
+    uv: np.ndarray
+
+
+@dataclass(frozen=True)
+class Measurements:
+    path: str
+    lasers: dict[int, Spots]  # laser 1 and 2
 
 
 @dataclass(frozen=True)
@@ -38,32 +96,57 @@ class LaserAngles:
     n: int
 
 
-def _slope(distance: np.ndarray, value: np.ndarray, sigma: float | None) -> tuple[float, float]:
-    """Least-squares slope of value against distance and its std (from sigma, or
-    from the residual when there are more than two distances)."""
+@dataclass(frozen=True)
+class Rejected:
+    """A spot left out: its line, laser and distance, and its (u, v) residual (m) at the line fitted without it."""
+
+    line: int
+    laser: int
+    distance: float
+    residual: np.ndarray
+
+
+@dataclass(frozen=True)
+class SlmCalibration:
+    robot: Robot                 # with the fitted angles
+    angles: list[LaserAngles]
+    rejected: list[Rejected]
+    rule: str                    # the outlier rule at the scale used (said with the rejections)
+    warnings: list[str]
+
+
+def _line_fit(distance: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares lines of u and v against the distance: coefficients (2,2) (slope, offset per column),
+    the residual (K,2) and (A^T A)^-1 (2,2) of the design A = [D, 1]."""
     design = np.column_stack([distance, np.ones_like(distance)])
-    coef, *_ = np.linalg.lstsq(design, value, rcond=None)
-    cov_unit = np.linalg.inv(design.T @ design)
+    coef, *_ = np.linalg.lstsq(design, uv, rcond=None)
+    return coef, uv - design @ coef, np.linalg.inv(design.T @ design)
+
+
+def _angles(s_u: float, s_v: float) -> tuple[float, float]:
+    """(gamma, beta) from the slopes of u and v (the module docstring's lines)."""
+    gamma = -math.atan(s_v)
+    return gamma, math.atan(s_u * math.cos(gamma))
+
+
+def fit_laser(distance: np.ndarray, uv: np.ndarray, sigma: float | None = None) -> LaserAngles:
+    """Angles of one laser from spots uv (K,2) in m at distances (K,) in m; the slopes' std from sigma, or
+    from each coordinate's residual when there are more than two spots."""
+    if len(np.unique(distance)) < 2:
+        raise ValueError("the spots must be measured at two or more different distances")
+    coef, resid, cov_unit = _line_fit(distance, uv)
     if sigma is None:
         dof = len(distance) - 2
         if dof < 1:
             raise ValueError("with spots at only two distances the slope's error is unknown: give --spot-sigma "
                              "or measure at three or more distances")
-        resid = value - design @ coef
-        sigma = float(np.sqrt(resid @ resid / dof))
-    return float(coef[0]), float(sigma * np.sqrt(cov_unit[0, 0]))
-
-
-def fit_laser(distance: np.ndarray, uv: np.ndarray, sigma: float | None = None) -> LaserAngles:
-    """Angles of one laser from spots uv (K,2) in m at distances (K,) in m."""
-    if len(np.unique(distance)) < 2:
-        raise ValueError("the spots must be measured at two or more different distances")
-    s_u, s_u_std = _slope(distance, uv[:, 0], sigma)
-    s_v, s_v_std = _slope(distance, uv[:, 1], sigma)
-    gamma = -math.atan(s_v)
+        sigma_uv = np.sqrt((resid ** 2).sum(axis=0) / dof)
+    else:
+        sigma_uv = np.full(2, sigma)
+    (s_u, s_v), (s_u_std, s_v_std) = coef[0], sigma_uv * np.sqrt(cov_unit[0, 0])
+    gamma, beta = _angles(s_u, s_v)
     gamma_std = s_v_std / (1 + s_v ** 2)
-    t = s_u * math.cos(gamma)                          # tan(beta)
-    beta = math.atan(t)
+    t = math.tan(beta)
     # d t = cos(gamma) d s_u - s_u sin(gamma) d gamma
     t_std = math.hypot(math.cos(gamma) * s_u_std, s_u * math.sin(gamma) * gamma_std)
     return LaserAngles(gamma, beta, gamma_std, t_std / (1 + t ** 2), len(distance))
@@ -79,13 +162,13 @@ def _check_distance(distance: float, where: str) -> None:
                                 f"(this looks like {length_units(distance, MAX_DISTANCE)})")
 
 
-def load_measurements(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """CSV with header laser,distance,u,v (laser 1 or 2; metres) -> {laser: (D (K,), uv (K,2))}."""
+def load_measurements(path: str | Path) -> Measurements:
+    """CSV with header laser,distance,u,v (laser 1 or 2; metres)."""
     path = Path(path)
     rows = csv_rows(read_text(path), str(path))
     if not rows or tuple(c.strip() for c in rows[0]) != COLUMNS:
         raise InputError(f"{path}: header", f"expected {','.join(COLUMNS)}")
-    data: dict[int, list[tuple[float, float, float]]] = {1: [], 2: []}
+    data: dict[int, list[tuple[float, ...]]] = {1: [], 2: []}
     for line, row in enumerate(rows[1:], start=2):
         if not any(cell.strip() for cell in row):
             continue
@@ -96,19 +179,192 @@ def load_measurements(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarra
             raise InputError(f"{path}: line {line}, field laser", f"expected 1 or 2, got {laser}")
         values = [parse_number(cell, f"{path}: line {line}, field {name}") for name, cell in zip(COLUMNS[1:], row[1:])]
         _check_distance(values[0], f"{path}: line {line}, field distance")
-        data[laser].append(tuple(values))
-    out = {}
+        data[laser].append((line, *values))
+    lasers = {}
     for laser, entries in data.items():
-        if len({e[0] for e in entries}) < 2:
+        if len({e[1] for e in entries}) < 2:
             raise InputError(str(path), f"laser {laser} needs spots at two or more different distances")
         arr = np.array(entries)
-        out[laser] = (arr[:, 0], arr[:, 1:])
-    return out
+        lasers[laser] = Spots(arr[:, 0].astype(int), arr[:, 1], arr[:, 2:])
+    return Measurements(str(path), lasers)
 
 
-def calibrate(robot: Robot, measurements: dict[int, tuple[np.ndarray, np.ndarray]],
-              sigma: float | None = None) -> tuple[Robot, list[LaserAngles]]:
-    """The robot with its laser angles replaced by the fitted ones."""
-    angles = [fit_laser(*measurements[j + 1], sigma) for j in range(2)]
+def _robust_distances(spots: Spots) -> np.ndarray:
+    """Squared distances (K,) of the spots off repeated-median lines of u and v."""
+    from scipy.stats import siegelslopes  # here: scipy.stats takes seconds to import, and only this needs it
+
+    fits = [siegelslopes(spots.uv[:, c], spots.distance) for c in range(SPOT_VALUES)]
+    resid = spots.uv - np.column_stack([f.intercept + f.slope * spots.distance for f in fits])
+    return (resid ** 2).sum(axis=1)
+
+
+def _deletion(spots: Spots, out: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Least squares on the spots not ``out``: the residual (K,2) of every spot there, the variance factor
+    1 + a (A^T A)^-1 a^T of each left-out spot's residual (1 elsewhere), the fitted spots' sum of squares
+    and residual degrees of freedom."""
+    kept = ~out
+    coef, resid, cov_unit = _line_fit(spots.distance[kept], spots.uv[kept])
+    design = np.column_stack([spots.distance, np.ones_like(spots.distance)])
+    factor = np.where(out, 1.0 + np.einsum("ki,ij,kj->k", design, cov_unit, design), 1.0)
+    return spots.uv - design @ coef, factor, float((resid ** 2).sum()), SPOT_VALUES * (int(kept.sum()) - 2)
+
+
+def _testable(spots: Spots, out: np.ndarray) -> bool:
+    """Whether the spots not ``out`` both fit a line and leave a value to check it: three or more, at two or
+    more distances."""
+    kept = ~out
+    return int(kept.sum()) >= 3 and len(np.unique(spots.distance[kept])) >= 2
+
+
+def _judge_whole(measurements: Measurements, laser: int, out: dict[int, np.ndarray], sigma: float | None) -> None:
+    """A laser whose candidates would leave too few spots to check the others (three): its spots are judged as a
+    whole, against the --spot-sigma (chi^2) or the other laser's residual (F; its candidates left out when
+    it can spare them). On one line as far as that
+    tells (or nothing tells), its candidates were the robust scale's doing (a repeated-median line through
+    two of three spots leaves those no residual); off it, a wrong spot is there and cannot be told."""
+    spots = measurements.lasers[laser]
+    _, _, own, own_dof = _deletion(spots, np.zeros(len(spots.distance), bool))
+    if sigma is not None:
+        p, against = float(chdtrc(own_dof, own / sigma ** 2)), f"the --spot-sigma {sigma * 1e3:.3g} mm"
+    else:
+        others = [_deletion(s, out[j] if _testable(s, out[j]) else np.zeros_like(out[j]))
+                  for j, s in measurements.lasers.items() if j != laser]
+        dof = sum(o[3] for o in others)
+        if dof < 1:
+            return
+        variance = sum(o[2] for o in others) / dof
+        p = float(fdtrc(own_dof, dof, (own / own_dof) / max(variance, SCALE_FLOOR ** 2)))
+        against = f"the other laser's residual {math.sqrt(variance) * 1e3:.3g} mm"
+    if p >= FAMILY_FALSE_REJECTION:
+        return
+    raise InputError(f"{measurements.path}: laser {laser}",
+                     f"its spots (lines {', '.join(str(n) for n in spots.line)}) lie "
+                     f"{math.sqrt(own / own_dof) * 1e3:.3g} mm RMS off one line, beyond what {against} allows "
+                     f"(p = {p:.2g}), and with {len(spots.distance)} spots the wrong one cannot be told (the others "
+                     "would fit a line exactly and nothing would check them): correct the spot or measure at more "
+                     "distances")
+
+
+def _outliers(measurements: Measurements, sigma: float | None) -> tuple[dict[int, np.ndarray], str]:
+    """The spots rejected per laser (bool (K,)) and the rule said with them (module docstring)."""
+    lasers = measurements.lasers
+    n_spots = sum(len(s.distance) for s in lasers.values())
+    known_limit = float(chdtri(SPOT_VALUES, FAMILY_FALSE_REJECTION / n_spots))
+    start = {j: _robust_distances(s) for j, s in lasers.items()}
+    robust = max(math.sqrt(float(np.median(np.concatenate(list(start.values())))) / MEDIAN_CHI2_2), SCALE_FLOOR)
+    if sigma is not None and sigma >= robust:
+        scale, said = sigma, f"the --spot-sigma {sigma * 1e3:.3g} mm"
+    else:  # a given sigma the spots exceed would reject good spots: the chi^2 test says it is too small
+        scale = robust
+        said = (f"the spot sigma {robust * 1e3:.3g} mm estimated robustly (the median distance off "
+                "repeated-median lines; " + ("no --spot-sigma)" if sigma is None else
+                                             f"above the --spot-sigma {sigma * 1e3:.3g} mm)"))
+    out = {j: d2 / scale ** 2 > known_limit for j, d2 in start.items()}
+    for j, spots in lasers.items():
+        if not out[j].any():
+            continue
+        # at most the farthest K - 3 stay candidates: the least deviant are readmitted for the others' check
+        farthest = np.zeros_like(out[j])
+        farthest[np.argsort(-start[j])[:max(len(farthest) - 3, 0)]] = True
+        out[j] &= farthest
+        if not (out[j].any() and _testable(spots, out[j])):
+            _judge_whole(measurements, j, out, sigma)
+            out[j] = np.zeros_like(out[j])
+    limit, judged = known_limit, ""
+    while any(o.any() for o in out.values()):  # each laser with candidates keeps three spots or more
+        deleted = {j: _deletion(s, out[j]) for j, s in lasers.items()}
+        dof = sum(d[3] for d in deleted.values())
+        residual = sum(d[2] for d in deleted.values()) / dof
+        if sigma is not None and residual <= sigma ** 2:
+            variance, limit = sigma ** 2, known_limit
+            judged = f"chi^2_2(1 - {FAMILY_FALSE_REJECTION:g} / {n_spots}) at the --spot-sigma {sigma * 1e3:.3g} mm"
+        else:
+            variance, limit = max(residual, SCALE_FLOOR ** 2), outlier_limit(SPOT_VALUES, dof, n_spots)
+            judged = (f"2 F_2,{dof}(1 - {FAMILY_FALSE_REJECTION:g} / {n_spots}) at the others' residual "
+                      f"{math.sqrt(variance) * 1e3:.3g} mm ({dof} degrees of freedom)")
+        within = {j: out[j] & ((resid ** 2).sum(axis=1) / (variance * factor) <= limit)
+                  for j, (resid, factor, _, _) in deleted.items()}
+        if not any(w.any() for w in within.values()):  # the rejections only shrink: this ends
+            break
+        out = {j: out[j] & ~within[j] for j in out}
+    for j, spots in lasers.items():
+        if out[j].sum() > MAX_REJECTED * len(out[j]):
+            raise InputError(f"{measurements.path}: laser {j}",
+                             f"{int(out[j].sum())} of its {len(out[j])} spots lie off the line through the others "
+                             f"(beyond {math.sqrt(limit):.3g} times the noise, {judged}): the spots do not follow "
+                             "one line (the fixture moved, spots of the other laser?)")
+    rule = (f"a spot off its laser's lines fitted without it by more than {math.sqrt(limit):.3g} times the noise "
+            f"(plus the lines' uncertainty there) is rejected: the limit {judged}; candidates at {said}")
+    return out, rule
+
+
+def _level_warning(laser: int, spots: Spots, sigma: float) -> list[str]:
+    """The chi^2 test of a laser's residual against the given spot sigma."""
+    _, resid, _ = _line_fit(spots.distance, spots.uv)
+    dof = SPOT_VALUES * (len(spots.distance) - 2)
+    if dof < 1:
+        return [f"laser {laser}: spots at only two distances: the lines fit them exactly and nothing checks them "
+                "(a wrong spot goes unseen); measure at three or more distances"]
+    chi2 = float((resid ** 2).sum()) / sigma ** 2
+    p = float(chdtrc(dof, chi2))
+    if p >= FAMILY_FALSE_REJECTION / 2:  # both lasers: a clean file warns with probability 1 %
+        return []
+    rms = sigma * math.sqrt(chi2 / dof)
+    return [f"laser {laser}: the spots lie {rms * 1e3:.3g} mm RMS off their lines, {rms / sigma:.2g} times the "
+            f"--spot-sigma {sigma * 1e3:.3g} mm (chi^2 = {chi2:.3g} on {dof} degrees of freedom, p = {p:.2g}): "
+            "the sigma is too small, or the spots or the fixture moved; the angles' standard deviations, from "
+            "the sigma, are too small"]
+
+
+def _likely_causes(robot: Robot, laser: int, angles: LaserAngles) -> str:
+    """What misreading of the file turns the robot file's angles into the fitted ones, if one does."""
+    s_u, s_v = math.tan(angles.beta) / math.cos(angles.gamma), -math.tan(angles.gamma)
+    bound = math.radians(MOUNTING_BOUND_DEG)
+    own, other = robot.lasers[laser - 1], robot.lasers[2 - laser]
+    readings = {"the u and v columns swapped": ((s_v, s_u), own),
+                "u of the opposite sign": ((-s_u, s_v), own),
+                "v of the opposite sign (v = v0 - D tan gamma)": ((s_u, -s_v), own),
+                "lasers 1 and 2 numbered the other way round": ((s_u, s_v), other)}
+    causes = [cause for cause, (slopes, nominal) in readings.items()
+              if max(abs(a - b) for a, b in zip(_angles(*slopes), (nominal.gamma, nominal.beta))) < bound]
+    return (f"likely {' or '.join(causes)}" if causes else
+            "check the u and v columns, their signs and the lasers' numbering")
+
+
+def _nominal_check(robot: Robot, angles: list[LaserAngles], path: str, accept: bool) -> list[str]:
+    """A fitted angle implausibly far from the robot file's: refused, or a warning when accepted."""
+    warnings = []
+    for laser, fitted in enumerate(angles, start=1):
+        nominal = robot.lasers[laser - 1]
+        for name, value, std, was in (("gamma", fitted.gamma, fitted.gamma_std, nominal.gamma),
+                                      ("beta", fitted.beta, fitted.beta_std, nominal.beta)):
+            change = abs(value - was)
+            if change <= math.radians(MOUNTING_BOUND_DEG) or change <= CHANGE_SIGMAS * std:
+                continue
+            sigmas = f"{change / std:.0f} standard deviations" if std > 0 else "fitted exactly"
+            problem = (f"{name} = {math.degrees(value):+.2f} deg is {math.degrees(change):.1f} deg from the robot "
+                       f"file's {math.degrees(was):+.2f} deg ({sigmas}), more than a laser's mounting error "
+                       f"({MOUNTING_BOUND_DEG:g} deg): {_likely_causes(robot, laser, fitted)}")
+            if not accept:
+                raise InputError(f"{path}: laser {laser}, {name}",
+                                 problem + "; if the laser was remounted, give --accept-large-change")
+            warnings.append(f"laser {laser}: {problem} (accepted: --accept-large-change)")
+    return warnings
+
+
+def calibrate(robot: Robot, measurements: Measurements, sigma: float | None = None,
+              accept_large_change: bool = False) -> SlmCalibration:
+    """The robot with its laser angles replaced by those fitted to the spots not rejected."""
+    out, rule = _outliers(measurements, sigma)
+    angles, rejected, warnings = [], [], []
+    for laser, spots in sorted(measurements.lasers.items()):
+        kept = Spots(spots.line[~out[laser]], spots.distance[~out[laser]], spots.uv[~out[laser]])
+        angles.append(fit_laser(kept.distance, kept.uv, sigma))
+        resid = _deletion(spots, out[laser])[0]
+        rejected.extend(Rejected(int(spots.line[k]), laser, float(spots.distance[k]), resid[k])
+                        for k in np.flatnonzero(out[laser]))
+        if sigma is not None:
+            warnings.extend(_level_warning(laser, kept, sigma))
+    warnings.extend(_nominal_check(robot, angles, measurements.path, accept_large_change))
     lasers = tuple(Laser(a.gamma, a.beta) for a in angles)
-    return replace(robot, lasers=lasers), angles
+    return SlmCalibration(replace(robot, lasers=lasers), angles, rejected, rule, warnings)

@@ -177,12 +177,25 @@ def cmd_slm_calibrate(args: argparse.Namespace) -> int:
         raise InputError(args.robot, "has no laser module ('slm:' and 'lasers:'): slm-calibrate writes the "
                                      "robot file with its lasers' angles; give the robot with its SLM")
     measurements = slm_calibration.load_measurements(args.measurements)
-    calibrated, angles = slm_calibration.calibrate(robot, measurements, args.spot_sigma)
-    for j, a in enumerate(angles):
+    result = slm_calibration.calibrate(robot, measurements, args.spot_sigma, args.accept_large_change)
+    for item in result.rejected:
+        print(f"rejected: {args.measurements} line {item.line}: laser {item.laser}, distance {item.distance:g} m, "
+              f"residual u {item.residual[0] * 1e3:+.3g} mm, v {item.residual[1] * 1e3:+.3g} mm", file=sys.stderr)
+    if result.rejected:
+        print(f"outliers: {result.rule}", file=sys.stderr)
+    for warning in result.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    for j, a in enumerate(result.angles):
+        left_out = sum(item.laser == j + 1 for item in result.rejected)
         print(f"laser {j + 1}: gamma = {np.degrees(a.gamma):+.4f} +- {np.degrees(a.gamma_std):.4f} deg, "
-              f"beta = {np.degrees(a.beta):+.4f} +- {np.degrees(a.beta_std):.4f} deg ({a.n} spots)")
+              f"beta = {np.degrees(a.beta):+.4f} +- {np.degrees(a.beta_std):.4f} deg ({a.n} spots"
+              f"{f', {left_out} rejected' if left_out else ''})")
+    rejected_lines = ", ".join(str(item.line) for item in result.rejected)
+    plural = "s" * (len(result.rejected) > 1)
+    header = f"Laser angles from {args.measurements} (laser-calib slm-calibrate)" + (
+        f"; its line{plural} {rejected_lines} rejected as outlier{plural}." if rejected_lines else ".")
     try:
-        save_robot(calibrated, args.out, header=f"Laser angles from {args.measurements} (laser-calib slm-calibrate).")
+        save_robot(result.robot, args.out, header=header)
     except OSError as exc:  # --out was checked at the start: the disk filled or the folder went meanwhile
         raise InputError(args.out, f"cannot write ({exc.strerror or exc})") from None
     print(f"wrote {args.out}")
@@ -255,7 +268,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("slm-calibrate", help="laser angles from spots at known fixture distances (eq. 16)")
     p.add_argument("--robot", required=True)
     p.add_argument("--measurements", required=True, help="CSV laser,distance,u,v (m)")
-    p.add_argument("--spot-sigma", type=sigma_length, default=None)
+    p.add_argument("--spot-sigma", type=sigma_length, default=None,
+                   help="spot noise std per coordinate, m (default: estimated from the residual; outliers are "
+                        "judged robustly)")
+    p.add_argument("--accept-large-change", action="store_true",
+                   help=f"write angles more than {slm_calibration.MOUNTING_BOUND_DEG:g} deg from the robot file's "
+                        "(a remounted laser), which are otherwise refused as a misread file")
     p.add_argument("--out", required=True, type=out_file, help="robot file to write")
     p.set_defaults(func=cmd_slm_calibrate)
 

@@ -1,0 +1,130 @@
+"""slm-calibrate does not trust its spots: a wrong spot is rejected and listed, a residual
+beyond the given sigma is said, and angles far from the robot file's (a misread file) are
+refused."""
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from cli_status import exit_status
+from laser_calib.model.kinematics import rot_x, rot_y
+from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.sim.simulation import bundled_robot
+
+ROBOT = bundled_robot("paper-4dof")  # its lasers' angles are the paper's eq. 16
+DISTANCES = (0.5, 0.75, 1.0, 1.25)
+SIGMA = 1e-4
+
+
+def _spots(seed: int, noise: float = SIGMA, distances: tuple[float, ...] = DISTANCES) -> list[list]:
+    """[laser, distance, u, v] rows of the robot's two beams on a fixture, with Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for j, (gamma, beta) in enumerate(ROBOT.laser_angles()):
+        direction = rot_x(gamma) @ rot_y(beta) @ np.array([0.0, 0.0, 1.0])
+        offset = rng.uniform(-0.05, 0.05, 2)
+        for distance in distances:
+            u, v = offset + distance * direction[:2] / direction[2] + rng.normal(0, noise, 2)
+            rows.append([j + 1, distance, float(u), float(v)])
+    return rows
+
+
+def _run(folder, rows: list[list], *options: str) -> tuple[list[str], int]:
+    """slm-calibrate on the rows (line k + 2 of the file is rows[k]): its exit status, with the files."""
+    save_robot(ROBOT, folder / "robot.yaml")
+    (folder / "slm.csv").write_text("laser,distance,u,v\n" + "".join(f"{j},{d},{u!r},{v!r}\n" for j, d, u, v in rows))
+    return exit_status(["slm-calibrate", "--robot", str(folder / "robot.yaml"), "--measurements",
+                        str(folder / "slm.csv"), "--out", str(folder / "out.yaml"), *options])
+
+
+def _angle_tolerance(distances: tuple[float, ...]) -> float:
+    """4 standard deviations of a slope fitted to spots of noise SIGMA at the distances, sigma / sqrt(Sxx):
+    the angles' are smaller (d gamma = d s_v / (1 + s_v^2), d beta = cos(gamma) d s_u for a small beta)."""
+    spread = np.asarray(distances) - np.mean(distances)
+    return 4 * SIGMA / math.sqrt(spread @ spread)
+
+
+def _prediction_tolerance(distances: tuple[float, ...], at: float) -> float:
+    """4 standard deviations of a spot at ``at`` less its line fitted to the others at the distances."""
+    spread = np.asarray(distances) - np.mean(distances)
+    return 4 * SIGMA * math.sqrt(1 + 1 / len(distances) + (at - np.mean(distances)) ** 2 / (spread @ spread))
+
+
+@pytest.mark.parametrize("sigma", [None, SIGMA])
+def test_a_wrong_spot_is_rejected_and_listed(tmp_path, capsys, sigma):
+    """A typo of 50 mm in u of laser 1 at 1 m (line 4) moved beta from 1.27 deg to 2.3 +- 2.7 deg and was
+    written: now it is listed (file, line, laser, distance, residual) with the rule, and beta is back."""
+    rows = _spots(0)
+    rows[2][2] += 0.05
+    options = () if sigma is None else ("--spot-sigma", str(sigma))
+    assert _run(tmp_path, rows, *options) == 0
+    err = capsys.readouterr().err.splitlines()
+    rejected = [line for line in err if line.startswith("rejected:")]
+    assert len(rejected) == 1, err
+    match = re.fullmatch(rf"rejected: {re.escape(str(tmp_path / 'slm.csv'))} line 4: laser 1, distance 1 m, "
+                         r"residual u ([-+.\d]+) mm, v ([-+.\d]+) mm", rejected[0])
+    assert match, rejected
+    kept = tuple(d for d in DISTANCES if d != 1.0)
+    # its residual at the line through the other three: the typo, give or take the noise (mm)
+    tolerance = 1e3 * _prediction_tolerance(kept, 1.0)
+    assert abs(float(match[1]) - 50) < tolerance and abs(float(match[2])) < tolerance, rejected
+    rule = [line for line in err if line.startswith("outliers:")]
+    assert len(rule) == 1 and ("--spot-sigma" if sigma else "estimated robustly") in rule[0], err
+    assert not any(line.startswith("warning") for line in err), err
+    written = load_robot(tmp_path / "out.yaml").lasers
+    for fitted, nominal, tolerance in zip(written, ROBOT.lasers, (_angle_tolerance(kept), _angle_tolerance(DISTANCES))):
+        assert abs(fitted.beta - nominal.beta) < tolerance and abs(fitted.gamma - nominal.gamma) < tolerance
+    assert "line 4 rejected as outlier" in (tmp_path / "out.yaml").read_text().splitlines()[0]
+
+
+@pytest.mark.parametrize("sigma", [None, SIGMA])
+def test_a_wrong_spot_among_three_is_refused(tmp_path, capsys, sigma):
+    """Three distances: the other two fit a line exactly, so which spot is wrong cannot be told; the
+    laser's spots are off one line by far more than the --spot-sigma or the other laser's residual allow."""
+    rows = _spots(0, distances=DISTANCES[:3])
+    rows[1][2] += 0.05
+    assert _run(tmp_path, rows, *(() if sigma is None else ("--spot-sigma", str(sigma)))) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"laser-calib: {tmp_path / 'slm.csv'}: laser 1: "), err
+    assert "cannot be told" in err[0] and not (tmp_path / "out.yaml").exists()
+
+
+def test_a_residual_beyond_the_spot_sigma_is_said(tmp_path, capsys):
+    """Spots ten times noisier than --spot-sigma: no spot stands out, each laser's chi^2 does."""
+    assert _run(tmp_path, _spots(1, noise=10 * SIGMA), "--spot-sigma", str(SIGMA)) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert not any(line.startswith("rejected") for line in err), err
+    for laser in (1, 2):
+        said = [line for line in err if line.startswith(f"warning: laser {laser}: the spots lie")]
+        assert len(said) == 1 and "times the --spot-sigma 0.1 mm" in said[0], err
+
+
+def _swapped_columns(rows):
+    return [[j, d, v, u] for j, d, u, v in rows]
+
+
+def _v_sign(rows):
+    return [[j, d, u, -v] for j, d, u, v in rows]
+
+
+def _renumbered(rows):
+    return [[3 - j, d, u, v] for j, d, u, v in rows]
+
+
+@pytest.mark.parametrize("misread, cause", [(_swapped_columns, "the u and v columns swapped"),
+                                            (_v_sign, "v of the opposite sign"),
+                                            (_renumbered, "lasers 1 and 2 numbered the other way round")])
+def test_angles_far_from_the_robot_files_are_refused(tmp_path, capsys, misread, cause):
+    """u and v swapped gave beta = 27.8 deg, written: now one line names the laser, the angle and the
+    likely cause, exit 2; --accept-large-change writes it with a warning."""
+    assert _run(tmp_path, misread(_spots(0))) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"laser-calib: {tmp_path / 'slm.csv'}: laser 1, "), err
+    assert cause in err[0] and "--accept-large-change" in err[0] and not (tmp_path / "out.yaml").exists()
+    assert _run(tmp_path, misread(_spots(0)), "--accept-large-change") == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err and all(line.startswith("warning: laser ") and cause in line for line in err), err
+    assert (tmp_path / "out.yaml").exists()
+
