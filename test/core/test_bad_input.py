@@ -302,7 +302,7 @@ def test_an_unconverged_fit_exits_3_and_the_still_joint_is_named(tmp_path, capsy
     code = exit_status(["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
                  "wrist_3_link", "--samples", str(tmp_path / "still.csv"), "--out", str(tmp_path / "out"),
                  "--folds", "0"])
-    out = capsys.readouterr().out
+    out = capsys.readouterr().err
     assert code == 3, out
     assert "warning: elbow_joint reads 0.3 in all" in out and "error: NOT CONVERGED" in out
     assert (tmp_path / "out" / "result.json").exists()

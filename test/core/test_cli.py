@@ -84,7 +84,7 @@ def test_test_poses_beyond_the_calibrated_joint_ranges_are_named(simulated, tmp_
     out = tmp_path / "case1"
     assert main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"), "--samples",
                  str(simulated / "case1_cal.csv"), "--test", str(simulated / "case1_test.csv"), "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
+    printed = capsys.readouterr().err
     said = [w for w in json.loads((out / "result.json").read_text())["warnings"]
             if "outside the range the calibration covered" in w]
     assert [w.split(" of the test poses have ")[1].split()[0] for w in said] == [f"q{i + 1}" for i in range(7)]
@@ -92,7 +92,7 @@ def test_test_poses_beyond_the_calibrated_joint_ranges_are_named(simulated, tmp_
     assert main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"), "--samples",
                  str(simulated / "case1_cal.csv"), "--test", str(simulated / "case1_cal.csv"),
                  "--out", str(tmp_path / "same")]) == 0
-    assert "outside the range the calibration covered" not in capsys.readouterr().out
+    assert "outside the range the calibration covered" not in capsys.readouterr().err
 
 
 def test_a_plot_failing_in_the_drawing_child_is_raised_by_the_command(simulated, tmp_path, monkeypatch):
@@ -154,7 +154,7 @@ def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsy
     sim, wrong = prismatic_mismatch(tmp_path)
     out = tmp_path / "out"
     assert main(["estimate", "--robot", str(wrong), "--samples", str(sim / "samples.csv"), "--out", str(out)]) == 3
-    assert any(line.startswith("error: NOT A CALIBRATION: the fit lost") for line in capsys.readouterr().out.splitlines())
+    assert any(line.startswith("error: NOT A CALIBRATION: the fit lost") for line in capsys.readouterr().err.splitlines())
     assert "NO CALIBRATION: NOT A CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
     assert (out / "result.json").exists()
     # The nodes' path (the Estimate service, the Calibrate action, the sequencer) says it as success false.
@@ -179,7 +179,7 @@ def test_spots_out_of_step_with_the_joint_readings_are_no_calibration(tmp_path, 
     out = tmp_path / "out"
     assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(tmp_path / "lagged.csv"),
                  "--out", str(out)]) == 3
-    errors = [line for line in capsys.readouterr().out.splitlines() if line.startswith("error: ")]
+    errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error: ")]
     assert any("NOT A CALIBRATION: the calibrated model still misses the measurements by" in e for e in errors), errors
     assert all(e.startswith(("error: NOT A CALIBRATION: ", "error: NOT CONVERGED: ")) for e in errors), errors
     assert "NO CALIBRATION: NOT A CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
@@ -198,7 +198,7 @@ def test_calibrate_poses_with_a_wrong_joint_type_is_no_calibration(tmp_path, cap
                                                                      'name="elbow_joint" type="prismatic"'))
     assert main(["calibrate-poses", "--robot", str(urdf), "--base", "base_link", "--tip", "wrist_3_link",
                  "--samples", str(real / "calibration.csv"), "--out", str(tmp_path / "out")]) == 3
-    assert "error: NOT A CALIBRATION: the calibrated model still misses" in capsys.readouterr().out
+    assert "error: NOT A CALIBRATION: the calibrated model still misses" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("poses_per_span", [25, 10, 8])
@@ -237,7 +237,7 @@ def test_estimate_on_a_wrong_robot_file_is_no_calibration_not_missing_spots(tmp_
                  "--out", str(tmp_path / "out")]) == 3
     captured = capsys.readouterr()
     assert "no measured spot" not in captured.err
-    assert "error: NOT A CALIBRATION: " in captured.out and (tmp_path / "out" / "result.json").exists()
+    assert "error: NOT A CALIBRATION: " in captured.err and (tmp_path / "out" / "result.json").exists()
 
 
 def test_diagnose_with_every_spot_missing_says_so(simulated, tmp_path, capsys):
@@ -283,10 +283,10 @@ def test_estimate_names_test_spots_where_the_robot_files_screen_surface_extrapol
                            "1.0, half_z: 1.0, u: 0.0, v: 0.0, uu: 0.0, uv: 0.0, vv: 0.0}\n")
     args = ["estimate", "--samples", str(sim / "case1_cal.csv"), "--test", str(sim / "case1_test.csv")]
     assert main(args + ["--robot", str(with_screen), "--out", str(tmp_path / "surface")]) == 0
-    said = [line for line in capsys.readouterr().out.splitlines() if "outside the convex hull" in line]
+    said = [line for line in capsys.readouterr().err.splitlines() if "outside the convex hull" in line]
     assert len(said) == 1 and said[0].startswith("warning: test: ") and "screen_shape" in said[0]
     assert main(args + ["--robot", str(sim / "robot_nominal.yaml"), "--out", str(tmp_path / "flat")]) == 0
-    assert "outside the convex hull" not in capsys.readouterr().out  # a flat screen is known everywhere
+    assert "outside the convex hull" not in capsys.readouterr().err  # a flat screen is known everywhere
 
 
 def test_identify_prints_the_table(simulated, capsys):

@@ -265,7 +265,7 @@ def test_the_final_fits_warnings_reach_the_console_the_json_and_the_report(tmp_p
     assert status == 0
     warnings = json.loads((out / "diagnosis.json").read_text())["warnings"]
     assert any(w.startswith("chi^2/dof = ") for w in warnings), warnings
-    printed = [line[len("warning: "):] for line in capsys.readouterr().out.splitlines() if line.startswith("warning: ")]
+    printed = [line[len("warning: "):] for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ")]
     assert printed == warnings
     report = (out / "report.md").read_text()
     assert all(f"**Warning:** {w}." in report for w in warnings)
@@ -287,7 +287,7 @@ def test_the_final_fits_warnings_say_where_its_spot_sigma_came_from(given, tmp_p
     sigma = ["--spot-sigma", "0.002"] if given else []
     assert diagnose_main(["--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"), *sigma,
                           "--out", str(tmp_path / "out")]) == 0
-    printed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("warning: ")]
+    printed = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ")]
     source = "given" if given else "the diagnosis estimated from the geometric fit's residual"
     held = [line for line in printed if "rank deficient" in line]
     assert len(held) == 1 and f"parameters at the spot sigma {source} (" in held[0], printed

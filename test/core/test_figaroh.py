@@ -132,7 +132,7 @@ def test_the_warning_reaches_the_console_and_result_json(tmp_path, capsys):
     code = main(["calibrate-poses", "--robot", str(tmp_path / "ur10.urdf"), "--base", "base_link", "--tip",
                  "wrist_2_link", "--samples", str(path), "--test", str(tmp_path / "test.csv"), "--folds", "0",
                  "--out", str(tmp_path / "out")])
-    said = [line.removeprefix("warning: ") for line in capsys.readouterr().out.splitlines() if "joint column" in line]
+    said = [line.removeprefix("warning: ") for line in capsys.readouterr().err.splitlines() if "joint column" in line]
     columns = ("elbow_joint (reads -1.72 .. 1.66; the URDF marks it fixed), wrist_3_joint (reads -2.49 .. 2.5; off "
                "the chain: check --tip), gripper_joint (reads 0 .. 0.04; off the chain: check --tip) move in these "
                "data but the chain base_link -> wrist_2_link does not read them: their motion is not modelled")
@@ -156,9 +156,9 @@ def test_swapped_joint_columns_are_no_calibration(tmp_path, capsys):
     args = ["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
             "wrist_3_link", "--folds", "0"]
     assert main(args + ["--samples", str(UR10E / "calibration.csv"), "--out", str(tmp_path / "real")]) == 0
-    assert "NOT A CALIBRATION" not in capsys.readouterr().out
+    assert "NOT A CALIBRATION" not in capsys.readouterr().err
     assert main(args + ["--samples", str(swapped), "--out", str(tmp_path / "swapped")]) == 3
-    out = capsys.readouterr().out
+    out = capsys.readouterr().err
     # 94 since near-duplicate columns are deferred (identifiability.py): the fit at that offset held
     # 9 of 30 directions (7 of the frames) where it now holds the elbow and wrist_1 offsets, near-duplicates there
     assert "error: NOT A CALIBRATION: shoulder_lift_joint.offset is fitted at 94 times its tolerance scale" in out, out

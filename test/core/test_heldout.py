@@ -185,7 +185,7 @@ def test_a_chronological_split_warns_when_the_test_poses_leave_the_calibrated_ra
     chronological = result["chronological"]
     assert (chronological["calibration_poses"], chronological["test_poses"]) == (35, 15)
     assert chronological["outside_joint_range"] == [1.0, 0.0, 0.0, 0.0]
-    out = capsys.readouterr().out
+    out = capsys.readouterr().err
     warnings = [line for line in out.splitlines() if line.startswith("warning: chronological")]
     assert len(warnings) == 1 and "100% of the test poses have q1 outside" in warnings[0]
     assert any(w.startswith("chronological test: 100%") for w in result["warnings"])

@@ -81,9 +81,9 @@ def test_plan_command_writes_the_pose_list(run, tmp_path, capsys):
     assert "over 19 identifiable errors; these poses determine 19 of them)" in capsys.readouterr().out
     # one pose: 4 values; the criterion's prior gave a log det "over 19 identifiable errors" and no more
     assert run(["plan", "--robot", str(robot_file), "--n", "1", "--candidates", "300", "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
-    assert "these poses determine 4 of them)" in printed, printed
-    assert "warning: 1 poses give 4 values and determine 4 of the 19 errors" in printed, printed
+    printed = capsys.readouterr()
+    assert "these poses determine 4 of them)" in printed.out, printed
+    assert "warning: 1 poses give 4 values and determine 4 of the 19 errors" in printed.err, printed
     assert run(["plan", "--robot", str(robot_file), "--n", "0", "--out", str(out)]) == 2
     assert run(["plan", "--robot", str(robot_file), "--n", "4", "--margin", "0.99", "--candidates", "50",
                 "--out", str(out)]) == 2

@@ -133,7 +133,7 @@ def test_calibrate_poses_writes_no_stale_effects(run, tmp_path, capsys):
     out = tmp_path / "out"
     assert run(["calibrate-poses", "--robot", str(robot_file), "--samples", str(tmp_path / "samples.csv"),
                 "--folds", "0", "--out", str(out)]) == 0
-    assert f"warning: {robot_file}: its effects (1) are not fitted by calibrate-poses" in capsys.readouterr().out
+    assert f"warning: {robot_file}: its effects (1) are not fitted by calibrate-poses" in capsys.readouterr().err
     assert "effects" not in yaml.safe_load((out / "robot_calibrated.yaml").read_text())
 
 

@@ -48,7 +48,7 @@ def test_estimate_prints_the_warning_and_still_fits(tmp_path, capsys):
     save_samples(type(samples)(pose, samples.stamp, samples.q, samples.spots), tmp_path / "reused.csv")
     assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(tmp_path / "reused.csv"),
                  "--out", str(tmp_path / "out")]) == 0
-    lines = [line for line in capsys.readouterr().out.splitlines() if "pose id" in line]
+    lines = [line for line in capsys.readouterr().err.splitlines() if "pose id" in line]
     assert len(lines) == 1 and lines[0].startswith(f"warning: {tmp_path / 'reused.csv'}: a pose id repeated with "
                                                    "different joint readings: pose 3 (q")
 
@@ -77,7 +77,7 @@ def test_calibrate_poses_prints_the_warning_for_the_samples_and_the_test_file(tm
         save_sensor_samples(replace(samples, pose=pose), tmp_path / name)
     assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"),
                  "--test", str(tmp_path / "test.csv"), "--folds", "0", "--out", str(tmp_path / "out")]) == 0
-    lines = [line for line in capsys.readouterr().out.splitlines() if "pose id" in line]
+    lines = [line for line in capsys.readouterr().err.splitlines() if "pose id" in line]
     assert [line.split(" (")[0] for line in lines] == [
         f"warning: {tmp_path / 'cal.csv'}: a pose id repeated with different joint readings: pose 3",
         f"warning: {tmp_path / 'test.csv'}: a pose id repeated with different joint readings: pose 6"]
@@ -176,7 +176,7 @@ def test_estimate_says_when_the_test_set_repeats_the_calibration(sim, tmp_path, 
     samples = sim / "samples.csv"
     assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(samples),
                  "--test", str(sim / test), "--out", str(tmp_path / "out")]) == 0
-    lines = _warnings(capsys.readouterr().out.splitlines(), "warning: ")
+    lines = _warnings(capsys.readouterr().err.splitlines(), "warning: ")
     assert len(lines) == 1 and lines[0].startswith(f"{sim / test}: " + said.format(samples=samples))
     assert lines == _warnings(json.loads((tmp_path / "out" / "result.json").read_text())["warnings"], "")
 
@@ -185,7 +185,7 @@ def test_estimate_says_the_rows_a_logger_wrote_twice(sim, tmp_path, capsys):
     doubled = sim / "doubled.csv"
     assert main(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(doubled),
                  "--out", str(tmp_path / "out")]) == 0
-    lines = _warnings(capsys.readouterr().out.splitlines(), "warning: ")
+    lines = _warnings(capsys.readouterr().err.splitlines(), "warning: ")
     assert len(lines) == 1 and lines[0].startswith(
         f"{doubled}: 16 of 32 rows repeat an earlier row's joint readings and spots exactly: row 2 = row 1 (pose 0), "
         "row 4 = row 3 (pose 1)")
@@ -214,7 +214,7 @@ def test_calibrate_poses_says_copies_and_a_test_set_of_calibration_poses(tmp_pat
                         tmp_path / "cal.csv")
     assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"),
                  "--test", str(tmp_path / "samples.csv"), "--folds", "0", "--out", str(tmp_path / "out")]) == 0
-    lines = _warnings(capsys.readouterr().out.splitlines(), "warning: ")
+    lines = _warnings(capsys.readouterr().err.splitlines(), "warning: ")
     assert [line.split("; ")[0] for line in lines] == [
         f"{tmp_path / 'cal.csv'}: 1 of 206 rows repeat an earlier row's joint readings and measured poses exactly: "
         f"row 206 = row 8 (pose {samples.pose[7]})",

@@ -203,7 +203,7 @@ def test_an_unconverged_fit_is_an_error_line(capsys):
     est = estimate(session.nominal, session.samples, _options(session, lm=LmOptions(max_iter=1)))
     assert not est.fit.converged
     print_warnings(list(est.warnings))
-    assert any(line.startswith("error: NOT CONVERGED") for line in capsys.readouterr().out.splitlines())
+    assert any(line.startswith("error: NOT CONVERGED") for line in capsys.readouterr().err.splitlines())
 
 
 def test_sixty_identical_poses_are_loud():

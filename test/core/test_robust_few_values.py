@@ -59,7 +59,7 @@ def test_the_testers_six_poses_lose_no_clean_spot_and_are_no_calibration(tmp_pat
     code = exit_status(["estimate", "--robot", str(sim / "robot_nominal.yaml"), "--samples",
                         str(tmp_path / "few6.csv"), "--test", str(sim / "case2_test.csv"), "--out",
                         str(tmp_path / "out")])
-    out = capsys.readouterr().out
+    out = capsys.readouterr().err
     assert "rejected as outliers" not in out
     assert "warning: robust: too few values to tell an outlier: without the 3 of 12 measurements" in out
     assert "the data are fitted exactly" not in out and "chi^2/dof = 5" not in out

@@ -37,7 +37,7 @@ def test_the_calibrated_file_fed_back_needs_no_correction_and_holds_what_was_hel
     capsys.readouterr()
     assert main(["estimate", "--robot", str(first / "first" / "robot_calibrated.yaml"), "--samples",
                  str(first / "sim" / "case2_cal.csv"), "--out", str(first / "second")]) == 0
-    printed = capsys.readouterr().out
+    printed = capsys.readouterr().err
     assert f"held at nominal, as the calibration that wrote {first / 'first' / 'robot_calibrated.yaml'} held them" \
            in printed
     second = errors(first / "second")

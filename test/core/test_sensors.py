@@ -301,7 +301,7 @@ def test_calibrate_poses_says_a_still_joint_once(tmp_path, capsys):
     (tmp_path / "robot.yaml").write_text(dump_robot(robot))
     assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "poses.csv"),
                  "--folds", "0", "--out", str(tmp_path / "out")]) == 0
-    lines = [line for line in capsys.readouterr().out.splitlines() if "never moved" in line]
+    lines = [line for line in capsys.readouterr().err.splitlines() if "never moved" in line]
     assert len(lines) == 1 and lines[0].startswith("warning: q3 reads ")
     warnings = json.loads((tmp_path / "out" / "result.json").read_text())["warnings"]
     assert [w for w in warnings if "never moved" in w] == [lines[0].removeprefix("warning: ")]

@@ -222,7 +222,7 @@ def test_a_joint_that_never_moves_leaves_no_value_it_cannot_see(tmp_path, capsys
     notes = {p["name"]: p.get("note", "") for p in result["parameters"]}
     assert held and all("not separable from" in notes[name] for name in held)
     assert not any(notes[name].startswith("carried by the frames") for name in held)  # other joints carry them
-    warnings = capsys.readouterr().out
+    warnings = capsys.readouterr().err
     assert "arm_left_4_joint outside the range the calibration covered" in warnings
     assert "arm_left_4_joint reads" in warnings and "the joint never moved in these data" in warnings
 

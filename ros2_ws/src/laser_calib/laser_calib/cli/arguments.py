@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import shutil
 import tempfile
 from contextlib import contextmanager
@@ -156,10 +157,11 @@ EXIT_NOT_A_CALIBRATION = 3
 
 
 def print_warnings(warnings: list[str]) -> int:
-    """One line each on the console, a failed fit's an error line; the command's exit
-    status: EXIT_NOT_A_CALIBRATION after such a fit, else 0."""
+    """One line each on stderr, a failed fit's an error line: on the console even when the
+    command's results (stdout) go to a file or a pipe. The command's exit status:
+    EXIT_NOT_A_CALIBRATION after such a fit, else 0."""
     for warning in warnings:
-        print(f"{'error' if is_failure(warning) else 'warning'}: {warning}")
+        print(f"{'error' if is_failure(warning) else 'warning'}: {warning}", file=sys.stderr)
     return EXIT_NOT_A_CALIBRATION if any(map(is_failure, warnings)) else 0
 
 
