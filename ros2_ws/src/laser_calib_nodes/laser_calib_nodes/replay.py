@@ -101,51 +101,62 @@ def main(argv: list[str] | None = None) -> int:
     die_with_parent()
     # From here a Ctrl-C is a KeyboardInterrupt (below), so that the node is destroyed.
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    rclpy.init(args=["replay"] + ros_args)
     node = None
     code = 0
+    initialised = False
     try:
-        node = rclpy.create_node("replay")
-        publishers = {t: node.create_publisher(classes[t], t, qos_of(profiles))
-                      for t, (_, _, profiles) in chosen.items()}
-        deadline = time.monotonic() + args.wait_timeout
-        for topic in args.wait_for:
-            # Matched, not only discovered: a reliable volatile message published before the
-            # DDS writer and reader match is lost, though the graph already lists the subscriber.
-            while publishers[topic].get_subscription_count() == 0:
-                if time.monotonic() > deadline:
-                    raise InputError(topic, f"no subscriber after {args.wait_timeout:g} s")
-                rclpy.spin_once(node, timeout_sec=0.05)
-        total = sum(count for t, (_, count, _) in chosen.items())
-        if not args.quiet:
-            print(f"replaying {total} messages on {len(chosen)} topics from {args.bag} at rate {args.rate:g}",
-                  flush=True)
-        start_wall = None
-        first = None
-        sent = 0
-        for topic, _, timestamp, raw in bag.read_messages(args.bag, list(chosen)):
-            if first is None:
-                first, start_wall = timestamp, time.monotonic()
-            target = start_wall + (timestamp - first) * 1e-9 / args.rate
-            while rclpy.ok():
-                left = target - time.monotonic()
-                if left <= 0:
+        try:
+            rclpy.init(args=["replay"] + ros_args)
+            initialised = True
+            node = rclpy.create_node("replay")
+            publishers = {t: node.create_publisher(classes[t], t, qos_of(profiles))
+                          for t, (_, _, profiles) in chosen.items()}
+            deadline = time.monotonic() + args.wait_timeout
+            for topic in args.wait_for:
+                # Matched, not only discovered: a reliable volatile message published before the
+                # DDS writer and reader match is lost, though the graph already lists the subscriber.
+                while publishers[topic].get_subscription_count() == 0:
+                    if time.monotonic() > deadline:
+                        raise InputError(topic, f"no subscriber after {args.wait_timeout:g} s")
+                    rclpy.spin_once(node, timeout_sec=0.05)
+            total = sum(count for t, (_, count, _) in chosen.items())
+            if not args.quiet:
+                print(f"replaying {total} messages on {len(chosen)} topics from {args.bag} at rate {args.rate:g}",
+                      flush=True)
+            start_wall = None
+            first = None
+            sent = 0
+            for topic, _, timestamp, raw in bag.read_messages(args.bag, list(chosen)):
+                if first is None:
+                    first, start_wall = timestamp, time.monotonic()
+                target = start_wall + (timestamp - first) * 1e-9 / args.rate
+                while rclpy.ok():
+                    left = target - time.monotonic()
+                    if left <= 0:
+                        break
+                    time.sleep(min(left, 0.05))
+                if not rclpy.ok():  # Ctrl-C / SIGTERM
                     break
-                time.sleep(min(left, 0.05))
-            if not rclpy.ok():  # Ctrl-C / SIGTERM
-                break
-            publishers[topic].publish(raw)
-            sent += 1
-        for publisher in publishers.values():
-            if rclpy.ok() and publisher.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
-                publisher.wait_for_all_acked(Duration(seconds=5))
-        if not args.quiet:
-            print(f"replayed {sent} messages", flush=True)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        code = 0
-    except InputError as exc:
-        print(f"replay: {exc}", file=sys.stderr)
-        code = 2
+                publishers[topic].publish(raw)
+                sent += 1
+            for publisher in publishers.values():
+                if rclpy.ok() and publisher.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
+                    publisher.wait_for_all_acked(Duration(seconds=5))
+            if not args.quiet:
+                print(f"replayed {sent} messages", flush=True)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            code = 0
+        except InputError as exc:
+            print(f"replay: {exc}", file=sys.stderr)
+            code = 2
+        except Exception:
+            if not initialised or rclpy.ok():
+                raise
+            # rclpy's C handler shuts the context on a Ctrl-C before the Python one raises: a node or
+            # publisher being built on it then fails ('the given context is not valid')
+            code = 0
+    except KeyboardInterrupt:
+        code = 0  # the Ctrl-C's Python handler ran while the error the shut context caused was handled
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not break the cleanup
         if node is not None:
