@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 import shutil
+import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path

@@ -24,6 +24,7 @@ from laser_calib.measurement.base import NoiseModel, count_values, whiten
 
 ESTIMATED_SIGMA = "the diagnosis estimated from the geometric fit's residual"  # no spot sigma given (Fitter.start)
 
+
 def distances(model: EffectModel, x: np.ndarray) -> np.ndarray:
     res = model.residuals(x, False)
     return np.where(res.valid, np.linalg.norm(res.r, axis=-1), np.nan)
@@ -88,9 +89,9 @@ class Fitter:
         m = int(res.valid.sum()) * res.r.shape[2]
         scale = math.sqrt(m / max(m - int(first.identifiable.sum()), 1))
         spot, joint = noise_components(res, scale, self.options.spot_sigma, self.options.joint_sigma)
-        self.fit_options = replace(self.fit_options, spot_sigma=spot, joint_sigma=joint)
-        if self.options.spot_sigma is None:  # every later fit's warnings would call it given
-            self.fit_options = replace(self.fit_options, spot_sigma_source=ESTIMATED_SIGMA)
+        # with no spot sigma given, every later fit's warnings would call this estimate given
+        source = self.fit_options.spot_sigma_source if self.options.spot_sigma is not None else ESTIMATED_SIGMA
+        self.fit_options = replace(self.fit_options, spot_sigma=spot, joint_sigma=joint, spot_sigma_source=source)
         self.reference = NoiseModel(spot, joint)
         return self.fit((), first.values)
 

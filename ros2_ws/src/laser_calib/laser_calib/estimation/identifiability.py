@@ -68,7 +68,7 @@ STD_FACTOR = 10.0
 # last column, so deferring it changes nothing), and a deferred column that no later
 # one replaces is kept all the same.
 NEAR_DUPLICATE = 0.01
-TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed, but the held parameter's own
+TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed, except the held parameter's own (describe)
 
 
 class TooFewValues(ValueError):
