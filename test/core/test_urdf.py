@@ -161,6 +161,32 @@ def test_xacro_and_robot_description_text_give_the_same_robot():
         assert np.abs(forward(other, q).origin - forward(from_urdf, q).origin).max() < 1e-12
 
 
+def test_xacro_includes_found_through_dirname(tmp_path, monkeypatch):
+    """$(dirname) is the folder of the file it is written in, as ROS's xacro resolves it: the top
+    file includes parts/arm.xacro by it, and that file its macro from parts/macros/ the same way.
+    The xacro on PyPI never told $(dirname) the file: every such description failed to load."""
+    text = (DATA / "column_arm.urdf.xacro").read_text()
+    macro = text[text.index("  <xacro:macro"):text.index("</xacro:macro>") + len("</xacro:macro>")]
+    body = text[text.index("</xacro:macro>") + len("</xacro:macro>"):text.index("</robot>")]
+    header = '<robot xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
+    (tmp_path / "parts" / "macros").mkdir(parents=True)
+    (tmp_path / "parts" / "macros" / "joints.xacro").write_text(f"{header}{macro}\n</robot>\n")
+    (tmp_path / "parts" / "arm.xacro").write_text(
+        f'{header}  <xacro:include filename="$(dirname)/macros/joints.xacro"/>\n{body}</robot>\n')
+    (tmp_path / "arm.urdf.xacro").write_text(
+        '<robot name="column_arm" xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
+        '  <xacro:property name="upper_length" value="0.4"/>\n'
+        '  <xacro:include filename="$(dirname)/parts/arm.xacro"/>\n</robot>\n')
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # not found relative to the working folder
+    from_urdf = load_urdf_robot(DATA / "column_arm.urdf", "base_link", "marker")
+    from_xacro = load_urdf_robot(tmp_path / "arm.urdf.xacro", "base_link", "marker")
+    q = _poses(from_urdf, 10, 8)
+    assert from_xacro.param_names == from_urdf.param_names
+    assert np.abs(forward(from_xacro, q).origin - forward(from_urdf, q).origin).max() < 1e-12
+
+
 def test_parameters_of_a_urdf_chain():
     robot, *_ = _robot("column (prismatic, continuous, tilted axis, fixed frames)")
     assert robot.chain.readings == ("lift", "shoulder_yaw", "shoulder_pitch", "elbow")

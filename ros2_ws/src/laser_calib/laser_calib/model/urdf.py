@@ -62,6 +62,23 @@ class _ArgsRead(dict):
         return super().__getitem__(name)
 
 
+class _FileContext(dict):
+    """xacro's substitution context, whose ``filename`` is the file xacro is reading at the moment
+    (the top of its include stack). $(dirname) reads it there, but the xacro on PyPI (2.1.1) never
+    sets it: every $(dirname) failed ('no file/directory information available'), in the top file
+    and in includes, while the ROS build of xacro resolves it to the folder of the file it is in."""
+
+    def get(self, key, default=None):
+        if key == "filename":
+            import xacro
+
+            return (xacro.filestack or [default])[-1]
+        return super().get(key, default)
+
+    def __getitem__(self, key):
+        return self.get(key) if key == "filename" else super().__getitem__(key)
+
+
 def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None, args_where: str | None = None) -> str:
     """The URDF text of a .urdf file, or of a .xacro file after expansion with
     ``xacro_args`` (name -> value, as ``xacro file.xacro name:=value``). An argument the
@@ -74,6 +91,8 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None, args_w
         import xacro  # only for xacro input
 
         args = _ArgsRead(xacro_args or {})
+        if not isinstance(xacro.substitution_args_context, _FileContext):
+            xacro.substitution_args_context = _FileContext(xacro.substitution_args_context)
         with package_index():  # $(find pkg): installed packages, then ROS_PACKAGE_PATH's
             text = xacro.process_file(str(path), mappings=args).toxml()
     except OSError as exc:
