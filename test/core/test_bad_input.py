@@ -428,6 +428,6 @@ def test_a_bag_with_one_damaged_segment_keeps_the_intact_ones(tmp_path):
     damaged = tmp_path / "bag" / "bag_2.mcap"
     damaged.write_bytes(damaged.read_bytes()[:-40])
     with pytest.raises(InputError):
-        bag._sample_rows(tmp_path / "bag", bag.SAMPLES_TOPIC)    # the bag as a whole cannot be read
+        bag._sample_msgs(tmp_path / "bag", bag.SAMPLES_TOPIC)    # the bag as a whole cannot be read
     samples, lost = bag.read_samples_checked(tmp_path / "bag")
     assert list(samples.pose) == [0, 1, 3, 4] and len(lost) == 1 and lost[0].startswith("bag_2.mcap")

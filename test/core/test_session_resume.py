@@ -50,13 +50,15 @@ class Journal:
         topics = {t: (SAMPLE, [bag.qos(True, True, 100)]) for t in (bag.SAMPLES_TOPIC, TEST_SAMPLES_TOPIC)}
         self.writer = SegmentedBagWriter(session.bag_dir, session.work_dir, topics, self.store)
 
-    def write(self, s: Samples, topic: str = bag.SAMPLES_TOPIC, close: bool = True) -> None:
+    def write(self, s: Samples, topic: str = bag.SAMPLES_TOPIC, close: bool = True, reverse: bool = False) -> None:
+        """reverse: joint_names and joint_positions listed tip to base (another tool's order)."""
         T = self.store.types
+        order = slice(None, None, -1 if reverse else 1)
+        names, q = [f"joint{i + 1}" for i in range(s.n_joints)][order], np.ascontiguousarray(s.q[0][order])
         spots = [T["laser_calib_interfaces/msg/Spot"](float(y), float(z), bool(np.isfinite(y)))
                  for y, z in s.spots[0]]
         stamp = T["builtin_interfaces/msg/Time"](int(s.stamp[0]), int(round((s.stamp[0] % 1) * 1e9)))
-        msg = T[SAMPLE](T["std_msgs/msg/Header"](stamp, "screen"), int(s.pose[0]),
-                        [f"joint{i + 1}" for i in range(s.n_joints)], s.q[0], spots, 3)
+        msg = T[SAMPLE](T["std_msgs/msg/Header"](stamp, "screen"), int(s.pose[0]), names, q, spots, 3)
         self.writer.write(topic, int(s.stamp[0] * 1e9), self.store.serialize_cdr(msg, SAMPLE))
         if close:
             self.writer.rotate()
@@ -82,6 +84,19 @@ def test_bag_ahead_of_the_csv_restores_the_row(tmp_path):
     csv = load_samples(session.path / SAMPLES_FILE)
     np.testing.assert_array_equal(csv.pose, poses.pose[:4])
     np.testing.assert_array_equal(csv.stamp, bag.read_samples(session.bag_dir).stamp)
+
+
+def test_the_bags_samples_are_read_by_joint_name(tmp_path):
+    """A resume reads the bag by each sample's joint_names, as estimate --bag and the estimator
+    do (io/joint_names.py): samples listed tip to base are restored in the robot's order."""
+    robot, poses, session = started(tmp_path)
+    journal = Journal(session)
+    for step in range(3):
+        journal.write(sample(poses, step), reverse=True)     # bag only: the CSV rows come from it
+    journal.writer.close()
+    found = session.reconcile(robot, poses)
+    np.testing.assert_array_equal(found.fit.q, poses.q[:3])
+    np.testing.assert_array_equal(load_samples(session.path / SAMPLES_FILE).q, poses.q[:3])
 
 
 def test_csv_ahead_of_the_bag_gives_the_sample_back_to_the_bag(tmp_path):

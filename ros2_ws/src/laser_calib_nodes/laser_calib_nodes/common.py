@@ -219,13 +219,6 @@ def spots_from_msg(spots) -> np.ndarray:
     return out
 
 
-def default_joint_names(robot: Robot) -> list[str]:
-    """A URDF robot's read joints by their URDF names; a D-H robot's joint1..jointN."""
-    if robot.chain is not None:
-        return list(robot.chain.readings)
-    return [f"joint{i + 1}" for i in range(robot.n_joints)]
-
-
 def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         make_executor: Callable[[], Executor] | None = None,
         until: Callable[[Node], bool] | None = None) -> int:

@@ -6,7 +6,8 @@ with the sequencer's transient-local QoS and with the default one, each (pose,
 stamp) counted once) or 'stream' (joint_states + spots paired by stamp within
 sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed). In
 both, and in the ~/estimate request's samples, each joint's reading is found by its
-name, ``joint_names``, as the sequencer does (joint_states.py).
+name, ``joint_names``, as the sequencer does (joint_states.py; a Sample's by
+laser_calib.io.joint_names, as estimate --bag reads a bag's).
 Each measurement updates the online EKF, then dh_parameters and
 calibration_markers (markers.py) are published. ~/estimate runs
 laser_calib.session.estimate.run_calibration (the command line's code path: the
@@ -117,7 +118,7 @@ class Estimator(Node):
 
     def on_sample(self, msg) -> None:
         try:
-            row = self.joints.sample_row(msg, f"sample (pose {msg.pose})")
+            row = bag.sample_row_from_msg(msg, f"sample (pose {msg.pose})", self.joints)
             self.check_row(row, f"sample (pose {msg.pose})")
         except InputError as exc:
             self.get_logger().error(f"ignored: {exc}")
@@ -227,7 +228,7 @@ class Estimator(Node):
             rows = []
             for k, msg in enumerate(request.samples):
                 where = f"request: sample {k + 1} (pose {msg.pose})"
-                row = self.joints.sample_row(msg, where)
+                row = bag.sample_row_from_msg(msg, where, self.joints)
                 self.check_row(row, where)
                 rows.append(row)
             source = f"{len(rows)} samples of an Estimate request"

@@ -1,6 +1,7 @@
-"""A robot's joint readings out of joint_states and Sample messages, each joint found by its name
-(the sequencer's rule, laser_calib.hardware.trajectory.joint_order): a driver may list the joints
-in any order, and more joints (a gripper)."""
+"""A robot's joint readings out of joint_states, each joint found by its name (the sequencer's
+rule, laser_calib.hardware.trajectory.joint_order): a driver may list the joints in any order,
+and more joints (a gripper). A Sample's joint_positions follow its joint_names by the core's
+rule (laser_calib.io.joint_names, which the bag reader applies too)."""
 
 from __future__ import annotations
 
@@ -8,24 +9,14 @@ import numpy as np
 from sensor_msgs.msg import JointState
 
 from laser_calib.hardware.trajectory import joint_order
-from laser_calib.io import bag
-from laser_calib.io.errors import InputError
+from laser_calib.io.joint_names import RobotJoints
 from laser_calib.model.robot import Robot
 
-from laser_calib_nodes import common
-from laser_calib_nodes.parameters import NodeError
 
-
-class JointStateReader:
+class JointStateReader(RobotJoints):
     def __init__(self, robot: Robot, names: list[str], logger):
         """names: the joint_names parameter (empty: the robot's default names)."""
-        self.n = robot.n_joints
-        self.names = list(names) if names else common.default_joint_names(robot)
-        # D-H robot, no joint_names given: its joints have no names of their own to insist on
-        self.strict = bool(names) or robot.chain is not None
-        if len(self.names) != self.n:
-            raise NodeError(f"parameter joint_names: {len(self.names)} names, robot '{robot.name}' has "
-                            f"{self.n} joints", 2)
+        super().__init__(robot, names, "parameter joint_names")
         self.logger = logger
         self.orders: dict[tuple[str, ...], list[int] | None] = {}  # a message's names -> robot order
 
@@ -54,25 +45,3 @@ class JointStateReader:
         q = np.array(msg.position, dtype=float)[index]
         v = np.array(msg.velocity, dtype=float)[index] if len(msg.velocity) == len(msg.position) else None
         return q, v
-
-    def sample_row(self, msg, where: str) -> tuple[int, float, np.ndarray, np.ndarray]:
-        """(pose, stamp, q (N,) base to tip, spots (2,2)) of a Sample message, its joint_positions
-        put in the robot's order by its joint_names: a client filling a Sample from joint_states
-        keeps the driver's order (a UR driver lists shoulder_pan_joint last), and taken as they
-        came those readings would calibrate a different arm without any error. No joint_names:
-        the positions are the robot's joints, base to tip (conventions.md)."""
-        pose, stamp, q, spots = bag.sample_row_from_msg(msg, where)
-        names = list(msg.joint_names)
-        if not names:
-            return pose, stamp, q, spots
-        if len(names) != len(q):
-            raise InputError(where, f"{len(names)} joint_names but {len(q)} joint_positions")
-        try:
-            order = joint_order(names, self.names, self.n, "the sample's joint_names")
-        except ValueError as exc:
-            # a D-H robot's joints under the arm's own names are taken in their order; some of the
-            # robot's names among others is a mix-up, not another naming
-            if self.strict or len(names) != self.n or not set(names).isdisjoint(self.names):
-                raise InputError(where, str(exc)) from None
-            order = list(range(self.n))
-        return pose, stamp, q[order], spots

@@ -30,6 +30,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from laser_calib.hardware.trajectory import joint_order, move_time
 from laser_calib.io import bag
+from laser_calib.io.joint_names import RobotJoints, default_joint_names
 from laser_calib.session.average import FrameCollector
 from laser_calib.session.folder import POSES_FILE, Progress
 from laser_calib.session.settle import SettleDetector, SettleRule
@@ -83,7 +84,7 @@ class Sequencer(Node):
         self.session, self.lock, self.robot, self.poses, state = sequencer_parts.open_session(self)
         # a URDF arm's joints are named: found by name among joint_states' (which may hold more)
         self.joint_names = (list(names) if names else
-                            common.default_joint_names(self.robot) if self.robot.chain else None)
+                            default_joint_names(self.robot) if self.robot.chain else None)
 
         # ---- topics and recording ----
         from laser_calib_interfaces.msg import Sample, SessionProgress, SpotPair
@@ -97,7 +98,8 @@ class Sequencer(Node):
         self.estimate_client = sequencer_parts.client(self)
         self.recorder = Recorder(self, self.session.bag_dir, self.session.work_dir, self.robot.name, record_images,
                                  segment_seconds)
-        found = self.session.reconcile(self.robot, self.poses)  # after the recorder adopted closed segments
+        joints = RobotJoints(self.robot, self.joint_names or (), "parameter joint_names")  # as estimate --bag
+        found = self.session.reconcile(self.robot, self.poses, joints)  # after the recorder adopted closed segments
         for line in found.repairs:
             self.get_logger().warning(f"resume repaired: {line}")
         self.done_steps, self.resumed = found.done, found

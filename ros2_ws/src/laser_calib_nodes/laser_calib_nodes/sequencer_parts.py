@@ -17,6 +17,7 @@ import rclpy
 from builtin_interfaces.msg import Duration
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.joint_names import default_joint_names
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot_file import load_robot
 from laser_calib.report import truth
@@ -290,7 +291,7 @@ def sample_msg(node, samples: Samples, r: int):
     msg.header.stamp.sec, msg.header.stamp.nanosec = stamps_from_float(samples.stamp[r])
     msg.header.frame_id = common.SCREEN_FRAME
     msg.pose = int(samples.pose[r])
-    msg.joint_names = node.joint_names or common.default_joint_names(node.robot)
+    msg.joint_names = node.joint_names or default_joint_names(node.robot)
     msg.joint_positions = [float(v) for v in samples.q[r]]
     msg.spots = common.spots_to_msg(samples.spots[r], ~np.isnan(samples.spots[r]).any(axis=1))
     msg.frames = int(node.frames)

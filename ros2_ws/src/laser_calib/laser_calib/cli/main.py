@@ -32,6 +32,7 @@ from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
 from laser_calib.io.bag import bag_topics, read_samples_checked
+from laser_calib.io.joint_names import RobotJoints
 from laser_calib.io.samples import check_joint_range, check_spot_units, load_samples, save_samples
 from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.sim.simulation import CASE_POSES, CASES, NoiseSpec, paper_session, robot_session
@@ -101,8 +102,9 @@ def _options(args: argparse.Namespace, progress: Progress | None = None) -> Esti
 
 
 def _bag_samples(path: str, robot) -> object:
-    """Samples of a recorded session bag (rosbags: no ROS runtime)."""
-    samples, lost = read_samples_checked(path)
+    """Samples of a recorded session bag (rosbags: no ROS runtime), each sample's joint_positions
+    put in the robot's order by its joint_names."""
+    samples, lost = read_samples_checked(path, joints=RobotJoints(robot))
     for segment in lost:
         print(f"warning: {path}: segment {segment} is damaged and was skipped; its samples are lost, the other "
               "segments were read", file=sys.stderr)

@@ -75,11 +75,12 @@ def trajectory_goal(names: Sequence[str], points: Sequence[TrajectoryPoint], joi
 
 
 def joint_order(available: Sequence[str], wanted: Sequence[str] | None, n_joints: int,
-                source: str = "joint_states") -> list[int]:
+                source: str = "joint_states", wanted_by: str = "parameter joint_names") -> list[int]:
     """Index into a message's joints (``available``: a joint_states message's, or a Sample's
     joint_names, named ``source`` in errors) of each robot joint, base to tip. ``wanted``: the
-    robot's joint names; None: ``available`` as it is, which must then hold exactly ``n_joints``
-    joints. ValueError in one line naming what is missing."""
+    robot's joint names (given by ``wanted_by``: a node's parameter, or the robot file for a
+    command); None: ``available`` as it is, which must then hold exactly ``n_joints`` joints.
+    ValueError in one line naming what is missing."""
     available = list(available)
     if wanted is None:
         if len(available) != n_joints:
@@ -90,7 +91,7 @@ def joint_order(available: Sequence[str], wanted: Sequence[str] | None, n_joints
         raise ValueError(f"parameter joint_names: {len(wanted)} names, the robot has {n_joints} joints")
     missing = [name for name in wanted if name not in available]
     if missing:
-        raise ValueError(f"joint '{missing[0]}' (parameter joint_names) is not in {source} "
+        raise ValueError(f"joint '{missing[0]}' ({wanted_by}) is not in {source} "
                          f"({', '.join(available)})")
     return [available.index(name) for name in wanted]
 

@@ -18,6 +18,7 @@ from rosbags.typesys.store import Typestore
 
 from laser_calib.io.ament import installed
 from laser_calib.io.errors import InputError
+from laser_calib.io.joint_names import RobotJoints
 from laser_calib.io.samples import Samples
 
 INTERFACES = "laser_calib_interfaces"
@@ -110,55 +111,58 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int, list[Qos]]]:
         reader.close()
 
 
-def read_samples(path: str | Path, topic: str = SAMPLES_TOPIC) -> Samples:
+def read_samples(path: str | Path, topic: str = SAMPLES_TOPIC, joints: RobotJoints | None = None) -> Samples:
     """The measured samples of a session bag (its /samples messages, in order), as the core's Samples."""
-    return read_samples_checked(path, topic)[0]
+    return read_samples_checked(path, topic, joints)[0]
 
 
-def read_samples_checked(path: str | Path, topic: str = SAMPLES_TOPIC) -> tuple[Samples, list[str]]:
+def read_samples_checked(path: str | Path, topic: str = SAMPLES_TOPIC,
+                         joints: RobotJoints | None = None) -> tuple[Samples, list[str]]:
     """Samples and the damaged segments lost, one text each. If the bag cannot
-    be read whole, each segment is read on its own and the intact ones kept."""
+    be read whole, each segment is read on its own and the intact ones kept.
+    ``joints``: the robot's, each sample's joint_positions put in its order by the
+    sample's joint_names; None: the positions as recorded."""
     path = Path(path)
     try:
-        rows = _sample_rows(path, topic)
+        msgs = _sample_msgs(path, topic)
         lost: list[str] = []
     except InputError as whole:
         with tempfile.TemporaryDirectory(prefix="bag-segments-") as root:
             segments = _segments(path, Path(root))
             if len(segments) < 2:
                 raise whole from None
-            rows, lost = [], []
+            msgs, lost = [], []
             for name, single in segments:
                 try:
-                    rows += _sample_rows(single, topic, str(path / name))
+                    msgs += _sample_msgs(single, topic, str(path / name))
                 except InputError as exc:
                     lost.append(f"{name} ({exc.problem})")
         if len(lost) == len(segments):
             raise whole from None
-    if not rows:
+    if not msgs:
         raise InputError(str(path), f"topic {topic} holds no samples")
+    # a sample that was read but is wrong is bad input, not a damaged segment: it refuses the bag
+    rows = [sample_row_from_msg(msg, where, joints) for where, msg in msgs]
     return samples_from_rows(rows, str(path)), lost
 
 
-def _sample_rows(path: Path, topic: str, label: str | None = None) -> list:
+def _sample_msgs(path: Path, topic: str, label: str | None = None) -> list:
+    """(where, message) of each sample on ``topic``, ``where`` naming the bag and the message."""
     reader = _reader(path)
     label = label or str(path)
-    rows = []
+    msgs = []
     try:
         connections = [c for c in reader.connections if c.topic == topic]
         if not connections:
             raise InputError(label, f"no topic {topic} in the bag (not a calibration session bag?)")
         try:
             for index, (connection, _, raw) in enumerate(reader.messages(connections=connections)):
-                msg = reader.deserialize(raw, connection.msgtype)
-                rows.append(sample_row_from_msg(msg, f"{label}: {topic} message {index + 1}"))
-        except InputError:
-            raise
+                msgs.append((f"{label}: {topic} message {index + 1}", reader.deserialize(raw, connection.msgtype)))
         except Exception as exc:  # a damaged segment: rosbags raises several types
             raise InputError(label, f"cannot read bag ({exc})") from None
     finally:
         reader.close()
-    return rows
+    return msgs
 
 
 def _segments(path: Path, root: Path) -> list[tuple[str, Path]]:
@@ -182,10 +186,15 @@ def _segments(path: Path, root: Path) -> list[tuple[str, Path]]:
     return out
 
 
-def sample_row_from_msg(msg, where: str) -> tuple[int, float, np.ndarray, np.ndarray]:
+def sample_row_from_msg(msg, where: str, joints: RobotJoints | None = None
+                        ) -> tuple[int, float, np.ndarray, np.ndarray]:
     """(pose, stamp, q (N,), spots (2,2) NaN where unseen) from a Sample message
-    (rclpy or rosbags object: same field names)."""
+    (rclpy or rosbags object: same field names). ``joints``: the robot's, q put in its
+    order by the message's joint_names; None: q as the message has it (a message the
+    sequencer built itself, in the robot's order)."""
     q = np.array(msg.joint_positions, dtype=float)
+    if joints is not None:
+        q = joints.sample_positions(msg.joint_names, q, where)
     spots = np.full((2, 2), np.nan)
     if len(msg.spots) != 2:
         raise InputError(where, f"{len(msg.spots)} spots, expected 2")

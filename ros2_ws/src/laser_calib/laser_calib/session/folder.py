@@ -36,6 +36,7 @@ import yaml
 
 from laser_calib.io import bag
 from laser_calib.io.errors import InputError
+from laser_calib.io.joint_names import RobotJoints
 from laser_calib.io.samples import Samples, format_samples, load_samples, parse_samples, sample_row
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import dump_robot, load_robot, save_robot
@@ -216,14 +217,16 @@ class SessionDir:
                                          f"{label} {which}; resume with the session's robot file or choose "
                                          f"another output_dir")
 
-    def reconcile(self, robot: Robot, poses: PoseSequence) -> Reconciled:
+    def reconcile(self, robot: Robot, poses: PoseSequence, joints: RobotJoints | None = None) -> Reconciled:
         """Bag and CSV files made to agree (see the module docstring); call it after the
-        bag writer has opened the bag (it adopts a segment closed just before a crash)."""
+        bag writer has opened the bag (it adopts a segment closed just before a crash).
+        joints: the robot's joints as the bag's samples name them (default: the robot's names)."""
+        joints = joints or RobotJoints(robot)
         done = np.zeros(len(poses), dtype=bool)
         kept, to_bag, repairs = {False: [], True: []}, [], []
         records = ((False, bag.SAMPLES_TOPIC, SAMPLES_FILE), (True, TEST_SAMPLES_TOPIC, TEST_SAMPLES_FILE))
         for test, topic, name in records:
-            in_bag = self._bag_samples(topic, robot)
+            in_bag = self._bag_samples(topic, robot, joints)
             in_csv, torn = self._csv_samples(self.path / name, robot)
             if torn:
                 repairs.append(f"{name}: dropped a torn last line (a crash while appending it)")
@@ -247,11 +250,11 @@ class SessionDir:
         return Reconciled(done, concat(kept[False], robot.n_joints), concat(kept[True], robot.n_joints),
                           concat(to_bag, robot.n_joints), repairs)
 
-    def _bag_samples(self, topic: str, robot: Robot) -> Samples:
+    def _bag_samples(self, topic: str, robot: Robot, joints: RobotJoints) -> Samples:
         if not (self.bag_dir / bag.METADATA).exists():
             return empty_samples(robot.n_joints)
         try:
-            return bag.read_samples(self.bag_dir, topic)
+            return bag.read_samples(self.bag_dir, topic, joints)
         except InputError as exc:
             if "holds no samples" in str(exc) or "no topic" in str(exc):
                 return empty_samples(robot.n_joints)
