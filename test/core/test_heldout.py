@@ -157,7 +157,9 @@ def test_fixed_frames_stay_fixed_on_the_test_file(point_data, capsys):
     assert "frames fitted: base, target)" in capsys.readouterr().out          # the base frame took over
     every = frame + [f"base_{p}" for p in ("x", "y", "z", "rx", "ry", "rz")] + ["target_x", "target_y", "target_z"]
     status, result = run(tmp_path, "--folds", "0", "--fix", *every)
-    assert status == 0 and "(nominal D-H, no frame fitted)" in capsys.readouterr().out
+    # the sensor frame held 3 mm / 10 mrad off: slm_x, not determined at the minimum, is held whatever
+    # that costs (a warning says it) and theta4 takes up the frame's error beyond any manufacturing one
+    assert status == 3 and "(nominal D-H, no frame fitted)" in capsys.readouterr().out
 
 
 def test_a_test_file_of_another_kind_is_one_line(point_data, tmp_path, capsys):

@@ -9,7 +9,8 @@ calibrate(robot, samples, options) runs, on estimation.estimate_model:
    "nominal D-H" figure: the frames fitted, the arm as designed);
 3. step 1 again at the fitted frames, and the full fit from there, with the
    user's masks (``fixed``) and priors; what it kept but its own minimum does
-   not determine (undetermined_at) is held too and the fit repeated;
+   not determine (undetermined_at) is held too and the fit repeated, with a
+   warning when holding it costs more chi^2 than undetermined parameters can;
 4. for pose samples, the weight of rotation against translation
    (rotation_length, m/rad) from the residuals of the fit: the ratio of the RMS
    translation to the RMS rotation residual (a variance-component step,
@@ -152,15 +153,24 @@ def _wrong_model(model: MeasurementModel, fit: Estimate, factor: float | None) -
     return level > MAX_RESIDUAL or bool(np.any(own & determined & (size > FAR_SCALES)))
 
 
-def _seen_after_all(fit: Estimate, held: Estimate, k: int) -> bool:
-    """Holding k parameters at nominal raised chi^2 (at ``fit``'s noise, per value)
-    beyond k + 6 sqrt(2k), the spread of what k undetermined ones could cost: the
-    data see them beyond the point the decision was linearised at (the paper's
-    4-DOF arm with its frames held wrong: slm_x of 10 mm has a std of 172
-    tolerances at the minimum, and holding it raised the residual from 0.90 to
-    1.06 mm and theta4 to 12 tolerances)."""
+def _costly_hold(fit: Estimate, held: Estimate, names: tuple[str, ...]) -> str | None:
+    """The warning when holding the k parameters ``names`` at nominal raised chi^2 (at
+    ``fit``'s noise, per value) beyond k + 6 sqrt(2k), the spread of what k
+    undetermined ones could cost, else None. They are held all the same, as the
+    spot estimate holds what it cannot determine whatever the fit then misses:
+    a value the minimum does not determine is no calibration (the paper's 4-DOF
+    arm with its frames held 3 mm wrong: slm_x kept with a std of 4600
+    tolerances, theta4 of 53000, written as numbers; held, chi^2 rose by 83)."""
     chi2 = held.fit.chi2 * (held.sigma / fit.sigma) ** 2 * fit.fit.n_values / held.fit.n_values
-    return chi2 - fit.fit.chi2 > k + 6.0 * np.sqrt(2.0 * k)
+    k = len(names)
+    cost, limit = chi2 - fit.fit.chi2, k + 6.0 * np.sqrt(2.0 * k)
+    if cost <= limit:
+        return None
+    them = "it" if k == 1 else "them"
+    return (f"not identifiable at the calibrated values, held at nominal: {', '.join(names)}; holding {them} "
+            f"raised chi^2 by {cost:.3g}, beyond the {limit:.3g} that {k} undetermined parameter{'s' * (k > 1)} "
+            f"can cost: the model is wrong (a frame held wrong, an unmodelled effect) or the data are insufficient "
+            f"to determine {them}")
 
 
 def _prior(model: MeasurementModel, options: SensorFitOptions) -> np.ndarray | None:
@@ -219,14 +229,16 @@ def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = 
     # and the next placement move it alike; at the fitted marker they do not.
     absorbed = frames_first(model, noise, held, nominal.values)
 
+    costly: list[str] = []  # the warnings of holds that cost chi^2: said on the final fit, before what they cause
+
     def full_fit(m: MeasurementModel, start: np.ndarray) -> Estimate:
         # Each refit holds at least one parameter more, so this ends; a fit holds its parameters at their start.
         est = fit(m, tuple(user) + tuple(absorbed), start)
         while more := undetermined_at(m, est, options):
             refit_start = np.where([name in more for name in m.names], nominal.values, start)
             refit = fit(m, tuple(user) + tuple(absorbed) + tuple(more), refit_start)
-            if _seen_after_all(est, refit, len(more)):
-                break
+            if warning := _costly_hold(est, refit, tuple(more)):
+                costly.append(warning)
             absorbed.update(more)
             start, est = refit_start, refit
         return est
@@ -238,7 +250,7 @@ def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = 
             model = build(length)
             nominal = fit(model, tuple(user) + tuple(absorbed) + not_frames, nominal.values)
             full = full_fit(model, full.values)
-    return SensorFit(model, nominal, full, absorbed, length)
+    return SensorFit(model, nominal, replace(full, warnings=tuple(costly) + full.warnings), absorbed, length)
 
 
 @dataclass(frozen=True)
