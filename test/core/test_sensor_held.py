@@ -2,17 +2,29 @@
 written as a calibrated value, whatever holding it costs."""
 
 import json
+import re
 
 import numpy as np
 import yaml
 
 from laser_calib.cli.main import main
-from laser_calib.estimation.identifiability import STD_FACTOR
+from laser_calib.estimation.identifiability import STD_FACTOR, carried_note
 from laser_calib.io.sensor_samples import save_sensor_samples
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE
 from laser_calib.measurement.chain import chain_names
 from laser_calib.model.robot_file import dump_robot
 from test_sensors import SIGMA_T, rig, simulate
+
+
+def carried_by_notes(parameters: dict[str, dict]) -> dict[str, tuple[str, ...]]:
+    """Kept parameter name -> the held ones whose note ('not separable from A, B; ...') names it."""
+    carried: dict[str, tuple[str, ...]] = {}
+    for name, entry in parameters.items():
+        if entry["value"] is None and (partners := re.search("not separable from ([^;]+);", entry["note"])):
+            for partner in partners[1].split(", "):
+                if parameters[partner]["value"] is not None:
+                    carried[partner] = carried.get(partner, ()) + (name,)
+    return carried
 
 
 def test_calibrate_poses_holds_what_its_minimum_does_not_determine_whatever_holding_costs(tmp_path, capsys):
@@ -41,6 +53,9 @@ def test_calibrate_poses_holds_what_its_minimum_does_not_determine_whatever_hold
     parameters = {p["name"]: p for p in result["parameters"]}
     assert parameters["slm_x"]["value"] is None
     assert parameters["slm_x"]["note"].startswith("not identifiable at the calibrated values")
+    # theta4 carries slm_x's combination, and says so
+    held_by_theta4 = carried_by_notes(parameters)["theta4"]
+    assert "slm_x" in held_by_theta4 and parameters["theta4"]["note"] == carried_note("theta4", held_by_theta4)
     # a number only where the data determine it: within identifiability.STD_FACTOR tolerance scales
     assert all(p["std"] <= STD_FACTOR * (LENGTH_SCALE if p["unit"] == "m" else ANGLE_SCALE)
                for p in parameters.values() if p["value"] is not None)
@@ -54,3 +69,22 @@ def test_calibrate_poses_holds_what_its_minimum_does_not_determine_whatever_hold
     assert result["insample"]["position_mm"]["rms"] > 1.3 * np.sqrt(3) * SIGMA_T * 1e3
     # ... and with slm_x held theta4 takes up what the frames miss, beyond any manufacturing error
     assert code == 3 and "error: NOT A CALIBRATION: theta4 is fitted at " in err
+
+
+def test_calibrate_poses_marks_the_kept_parameters_that_carry_a_held_ones_combination(tmp_path):
+    """The 4-DOF arm measured in pose: the frames carry what they cannot be told from (d1 and
+    d2 the sensor frame's, the laser module the target frame's). Each held parameter's note
+    names its carriers; each of them that is kept says its value is that combination's, in the
+    words of the spot estimate's result.json. Before, calibrate-poses wrote their values
+    without a note, as if each were that parameter's own error."""
+    robot = rig("standard")
+    save_sensor_samples(simulate(robot, np.zeros(len(chain_names(robot))), 40, 1, "pose"), tmp_path / "poses.csv")
+    (tmp_path / "robot.yaml").write_text(dump_robot(robot))
+    out = tmp_path / "out"
+    assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "poses.csv"),
+                 "--folds", "0", "--out", str(out)]) == 0
+    parameters = {p["name"]: p for p in json.loads((out / "result.json").read_text())["parameters"]}
+    carried = carried_by_notes(parameters)
+    assert {"sensor_x", "target_y"} <= carried.keys()
+    assert {name: parameters[name].get("note") for name in carried} == \
+        {name: carried_note(name, held) for name, held in carried.items()}

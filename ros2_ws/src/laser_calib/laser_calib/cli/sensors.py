@@ -24,7 +24,7 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       sigma_angle, sigma_length, staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import first_failure, is_failure
-from laser_calib.estimation.identifiability import TooFewValues
+from laser_calib.estimation.identifiability import TooFewValues, carried_note
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
 from laser_calib.io.revisits import repeat_warnings
@@ -66,6 +66,7 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
     est = fit.estimate
     # The robot's own kinds: a joint placement's offset is m or rad by its joint type.
     units = {n: "m" if kind == "length" else "rad" for n, kind in zip(robot.param_names, robot.param_kinds())}
+    carried = fit.carried
     out = []
     for i, name in enumerate(est.names):
         entry = {"name": name, "unit": units.get(name) or _unit(name),
@@ -76,6 +77,8 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
             entry["note"] = ("carried by the frames: " if held.by_frames else "") + held.why
         elif not est.identifiable[i]:
             entry["note"] = est.identifiability.merged.get(name, "held")
+        elif name in carried:  # as the spot estimate's result.json says it
+            entry["note"] = carried_note(name, carried[name])
         out.append(entry)
     return out
 

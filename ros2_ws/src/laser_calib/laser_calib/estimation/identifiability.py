@@ -105,13 +105,8 @@ class Identifiability:
 
     @property
     def carried(self) -> dict[str, tuple[str, ...]]:
-        """Kept parameter name -> the held ones whose combination it carries: its value
-        is that combination's, not its own error alone (d1 carrying d2 holds d1 + d2)."""
-        out: dict[str, tuple[str, ...]] = {}
-        for held, partners in self.carriers.items():
-            for name in partners:
-                out[name] = out.get(name, ()) + (held,)
-        return out
+        """Kept parameter name -> the held ones whose combination it carries (carried_by_kept)."""
+        return carried_by_kept(self.carriers)
 
     def table(self) -> str:
         lines = [f"parameters: {len(self.names)}   numerical rank: {self.rank}   "
@@ -127,6 +122,17 @@ class Identifiability:
         else:
             lines += ["", "all parameters identifiable"]
         return "\n".join(lines)
+
+
+def carried_by_kept(carriers: dict[str, tuple[str, ...]]) -> dict[str, tuple[str, ...]]:
+    """Kept parameter name -> the held ones whose combination it carries, from held
+    name -> its carriers: its value is that combination's, not its own error alone
+    (d1 carrying d2 holds d1 + d2)."""
+    out: dict[str, tuple[str, ...]] = {}
+    for held, partners in carriers.items():
+        for name in partners:
+            out[name] = out.get(name, ()) + (held,)
+    return out
 
 
 def carried_note(name: str, held: tuple[str, ...]) -> str:

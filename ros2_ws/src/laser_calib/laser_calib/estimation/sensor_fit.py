@@ -32,7 +32,7 @@ import numpy as np
 from laser_calib.estimation.failures import FAR_SCALES, MAX_RESIDUAL
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model, prior_sigmas
-from laser_calib.estimation.identifiability import analyse
+from laser_calib.estimation.identifiability import analyse, carried_by_kept
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, whiten
 from laser_calib.model.robot import Robot
 from laser_calib.measurement.frames import FRAME_PARAMS, frame_list, is_frame_param, robot_frames, with_frames
@@ -78,6 +78,18 @@ class SensorFit:
         frames = {frame: guesses[frame].perturbed(np.array([values.get(f"{frame}_{p}", 0.0) for p in FRAME_PARAMS]))
                   for frame in frame_list(robot)}
         return with_frames(robot.with_errors(self.estimate.values[:robot.n_params]), frames)
+
+    @property
+    def carried(self) -> dict[str, tuple[str, ...]]:
+        """Kept parameter name -> the held ones whose combination it carries, held
+        before the fit (absorbed) or by it: its value is that combination's."""
+        carriers = {name: held.carriers for name, held in self.absorbed.items()}
+        carriers.update(self.estimate.identifiability.carriers)
+        # the held names in the model's order, as the spot estimate's identifiability lists them
+        carried = carried_by_kept({name: carriers[name] for name in self.model.names if name in carriers})
+        kept = {name for name, free in zip(self.model.names, self.estimate.identifiable) if free}
+        # a carrier found before the fit may have been held since: only a kept value is a combination's
+        return {name: held for name, held in carried.items() if name in kept}
 
 
 def make_model(robot: Robot, samples: SensorSamples, rotation_length: float = 1.0,
