@@ -60,7 +60,10 @@ def test_calibrate_poses_holds_what_its_minimum_does_not_determine_whatever_hold
     assert all(p["std"] <= STD_FACTOR * (LENGTH_SCALE if p["unit"] == "m" else ANGLE_SCALE)
                for p in parameters.values() if p["value"] is not None)
     # the calibrated robot file keeps the laser module's nominal x (slm_x is the error of its a)
-    assert yaml.safe_load((out / "robot_calibrated.yaml").read_text())["slm"]["a"] == robot.slm.a
+    calibrated = yaml.safe_load((out / "robot_calibrated.yaml").read_text())
+    assert calibrated["slm"]["a"] == robot.slm.a
+    # and says so, as estimate's does: a calibration from it holds slm_x too (robot_file.held)
+    assert "slm_x" in calibrated["held"], calibrated.get("held")
     costs = [line for line in err.splitlines() if "chi^2" in line]
     assert len(costs) == 1 and costs[0].startswith("warning: not identifiable at the calibrated values, held at "
                                                    "nominal: slm_x; holding it raised chi^2 by ")

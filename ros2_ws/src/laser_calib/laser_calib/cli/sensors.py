@@ -31,7 +31,7 @@ from laser_calib.io.revisits import repeat_warnings
 from laser_calib.planning import PlanOptions, plan
 from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
-from laser_calib.model.robot_file import load_robot, load_robot_description, save_robot
+from laser_calib.model.robot_file import load_robot, load_robot_description, save_robot, with_held
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings, test_outside_range
 from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, calibrate, is_frame_param, kfold,
@@ -299,7 +299,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
             written = save_calibrated_urdf(fit.corrected(robot), robot, fit.estimate.identifiable, out,
                                            str(args.robot), failure)
         else:
-            corrected = fit.corrected(robot)
+            corrected = with_held(fit.corrected(robot), fit.held)
             save_robot(replace(corrected, extra={k: v for k, v in corrected.extra.items() if k != "effects"}),
                        out / "robot_calibrated.yaml",
                        header=f"Calibrated from {args.samples} (laser-calib calibrate-poses)."

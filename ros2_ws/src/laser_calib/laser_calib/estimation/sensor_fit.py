@@ -80,6 +80,15 @@ class SensorFit:
         return with_frames(robot.with_errors(self.estimate.values[:robot.n_params]), frames)
 
     @property
+    def held(self) -> tuple[str, ...]:
+        """The robot's parameters this fit held at nominal as undetermined, in the model's order: the
+        robot file's ``held`` key (robot_file.with_held), as estimate writes it. Not those a frame of
+        this set-up carries: a set-up without that frame (the laser screen) may determine them."""
+        by_fit = self.estimate.identifiability.merged
+        return tuple(name for name in self.model.names if not is_frame_param(name) and (
+            name in by_fit or (name in self.absorbed and not self.absorbed[name].by_frames)))
+
+    @property
     def carried(self) -> dict[str, tuple[str, ...]]:
         """Kept parameter name -> the held ones whose combination it carries, held
         before the fit (absorbed) or by it: its value is that combination's."""
