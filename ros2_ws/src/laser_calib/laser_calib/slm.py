@@ -10,7 +10,12 @@ the distance as
 
 The offsets u0, v0 (where the fixture puts the laser) are unknown; straight-
 line fits over two or more distances give the slopes, hence gamma and beta,
-and their standard deviations by first-order propagation.
+and their standard deviations by first-order propagation from the spot sigma:
+the --spot-sigma, or one estimated from the residual of all four lines (a
+spot sigma is one value for u and v of both lasers, as --spot-sigma is), on
+their 2 sum(K - 2) residual degrees of freedom, and judged as estimate judges
+its own (redundancy.sigma_warnings): from 4 (three distances) the true sigma
+may be 2.9 times larger (95 %), which is said; from 8 (four), no warning.
 
 Nothing is taken on trust (docs: README, slm-calibrate):
 - outliers: a spot (u, v) is one unit of two values. Each laser's lines are
@@ -52,7 +57,7 @@ import numpy as np
 # chi^2 and F quantiles and tails as scipy.stats computes them, without importing scipy.stats (seconds)
 from scipy.special import chdtrc, chdtri, fdtrc
 
-from laser_calib.estimation.redundancy import FAMILY_FALSE_REJECTION, outlier_limit
+from laser_calib.estimation.redundancy import FAMILY_FALSE_REJECTION, outlier_limit, sigma_warnings
 from laser_calib.estimation.robust import MAX_REJECTED
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Laser, Robot
@@ -129,26 +134,18 @@ def _angles(s_u: float, s_v: float) -> tuple[float, float]:
     return gamma, math.atan(s_u * math.cos(gamma))
 
 
-def fit_laser(distance: np.ndarray, uv: np.ndarray, sigma: float | None = None) -> LaserAngles:
-    """Angles of one laser from spots uv (K,2) in m at distances (K,) in m; the slopes' std from sigma, or
-    from each coordinate's residual when there are more than two spots."""
+def fit_laser(distance: np.ndarray, uv: np.ndarray, sigma: float) -> LaserAngles:
+    """Angles of one laser from spots uv (K,2) in m at distances (K,) in m; the slopes' std from the spot
+    sigma (m)."""
     if len(np.unique(distance)) < 2:
         raise ValueError("the spots must be measured at two or more different distances")
-    coef, resid, cov_unit = _line_fit(distance, uv)
-    if sigma is None:
-        dof = len(distance) - 2
-        if dof < 1:
-            raise ValueError("with spots at only two distances the slope's error is unknown: give --spot-sigma "
-                             "or measure at three or more distances")
-        sigma_uv = np.sqrt((resid ** 2).sum(axis=0) / dof)
-    else:
-        sigma_uv = np.full(2, sigma)
-    (s_u, s_v), (s_u_std, s_v_std) = coef[0], sigma_uv * np.sqrt(cov_unit[0, 0])
+    coef, _, cov_unit = _line_fit(distance, uv)
+    (s_u, s_v), s_std = coef[0], sigma * math.sqrt(cov_unit[0, 0])
     gamma, beta = _angles(s_u, s_v)
-    gamma_std = s_v_std / (1 + s_v ** 2)
+    gamma_std = s_std / (1 + s_v ** 2)
     t = math.tan(beta)
     # d t = cos(gamma) d s_u - s_u sin(gamma) d gamma
-    t_std = math.hypot(math.cos(gamma) * s_u_std, s_u * math.sin(gamma) * gamma_std)
+    t_std = math.hypot(math.cos(gamma) * s_std, s_u * math.sin(gamma) * gamma_std)
     return LaserAngles(gamma, beta, gamma_std, t_std / (1 + t ** 2), len(distance))
 
 
@@ -352,19 +349,36 @@ def _nominal_check(robot: Robot, angles: list[LaserAngles], path: str, accept: b
     return warnings
 
 
+def _estimated_sigma(kept: dict[int, Spots]) -> tuple[float, list[str]]:
+    """The spot sigma (m) from the lasers' line residuals pooled, and what its degrees of freedom allow."""
+    if any(len(spots.distance) < 3 for spots in kept.values()):
+        raise ValueError("with spots at only two distances the slope's error is unknown: give --spot-sigma "
+                         "or measure at three or more distances")
+    # Pooled, not per laser and coordinate: each line through K spots leaves K - 2, 1 at three distances, and a
+    # std from 1 degree of freedom means nothing (the error over it is Student's t with 1, without a variance).
+    # Pooled: 2 sum(K - 2) >= 4, so of estimate's rule only the uncertainty warning (below 8) can apply, not
+    # NOT A CALIBRATION (2 or fewer).
+    dof = sum(SPOT_VALUES * (len(spots.distance) - 2) for spots in kept.values())
+    square_sum = sum(float((_line_fit(spots.distance, spots.uv)[1] ** 2).sum()) for spots in kept.values())
+    sigma = math.sqrt(square_sum / dof)
+    return sigma, sigma_warnings(sigma, dof, "measure at more distances or give --spot-sigma")
+
+
 def calibrate(robot: Robot, measurements: Measurements, sigma: float | None = None,
               accept_large_change: bool = False) -> SlmCalibration:
     """The robot with its laser angles replaced by those fitted to the spots not rejected."""
     out, rule = _outliers(measurements, sigma)
-    angles, rejected, warnings = [], [], []
+    kept = {laser: Spots(spots.line[~out[laser]], spots.distance[~out[laser]], spots.uv[~out[laser]])
+            for laser, spots in measurements.lasers.items()}
+    estimated, warnings = _estimated_sigma(kept) if sigma is None else (sigma, [])
+    angles, rejected = [], []
     for laser, spots in sorted(measurements.lasers.items()):
-        kept = Spots(spots.line[~out[laser]], spots.distance[~out[laser]], spots.uv[~out[laser]])
-        angles.append(fit_laser(kept.distance, kept.uv, sigma))
+        angles.append(fit_laser(kept[laser].distance, kept[laser].uv, estimated))
         resid = _deletion(spots, out[laser])[0]
         rejected.extend(Rejected(int(spots.line[k]), laser, float(spots.distance[k]), resid[k])
                         for k in np.flatnonzero(out[laser]))
         if sigma is not None:
-            warnings.extend(_level_warning(laser, kept, sigma))
+            warnings.extend(_level_warning(laser, kept[laser], sigma))
     warnings.extend(_nominal_check(robot, angles, measurements.path, accept_large_change))
     lasers = tuple(Laser(a.gamma, a.beta) for a in angles)
     return SlmCalibration(replace(robot, lasers=lasers), angles, rejected, rule, warnings)

@@ -90,8 +90,9 @@ def sigma_upper(dof: int) -> float:
     return float(np.sqrt(dof / chdtri(dof, 0.975)))
 
 
-def sigma_warnings(sigma: float, dof: int) -> list[str]:
-    """What a spot sigma (m) estimated from ``dof`` residual degrees of freedom allows (module docstring)."""
+def sigma_warnings(sigma: float, dof: int, remedy: str = "measure more poses or give the spot sigma") -> list[str]:
+    """What a spot sigma (m) estimated from ``dof`` residual degrees of freedom allows (module docstring); the
+    remedy is the command's (more poses, more fixture distances)."""
     if dof < 1:  # an exact fit or one that lost its measurements: said elsewhere
         return []
     plural = "s" * (dof > 1)
@@ -100,10 +101,10 @@ def sigma_warnings(sigma: float, dof: int) -> list[str]:
                 f"degree{plural} of freedom (the values less the parameters fitted): the fit is nearly exact, "
                 "nothing checks it, and its standard deviations are no bound (with the noise estimated, an "
                 f"error's spread is Student's t with {dof} degree{plural} of freedom, which has no finite "
-                "variance); measure more poses or give the spot sigma"]
+                f"variance); {remedy}"]
     if sigma_upper(dof) > NOISE_RATIO:
         return [f"noise: the spot sigma {sigma * 1e3:.3g} mm is estimated from {dof} residual degrees of freedom "
                 f"(the values less the parameters fitted): the true one may be {sigma_upper(dof):.2g} times larger "
                 "(95 %), and every standard deviation with it; the values are less precise than their standard "
-                "deviations say (measure more poses or give the spot sigma)"]
+                f"deviations say ({remedy})"]
     return []
