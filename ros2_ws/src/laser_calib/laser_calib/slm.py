@@ -21,10 +21,11 @@ Nothing is taken on trust (docs: README, slm-calibrate):
 - outliers: a spot (u, v) is one unit of two values. Each laser's lines are
   first fitted robustly (repeated medians, scipy.stats.siegelslopes: half the
   spots may be wrong); the scale s is the --spot-sigma, or, without one or
-  when it is larger, s^2 = median(d^2) / median(chi^2_2) of the spots' squared
-  distances d^2 off those lines, both lasers pooled (one screen measures both):
-  a sigma too small must not reject good spots. A spot with
-  d^2 / s^2 > chi^2_2(1 - 0.01 / N) (N spots in the file) is a candidate;
+  when it is larger, the spot sigma estimated robustly (slm_lines.py: the
+  median distance of a spot off the line through two others of its laser,
+  at its std, the spots off those lines left out): a sigma too small must
+  not reject good spots. A spot whose squared distance d^2 off those lines
+  has d^2 / s^2 > chi^2_2(1 - 0.01 / N) (N spots in the file) is a candidate;
   least squares on the others then judges it as estimation/robust.py does: by
   its residual there against the noise plus the line's uncertainty at its
   distance, beyond chi^2_2's limit at the --spot-sigma, or 2 F_{2,nu}'s at
@@ -63,27 +64,14 @@ from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Laser, Robot
 from laser_calib.io.read import csv_rows, length_units, parse_int, parse_number, read_text
 from laser_calib.io.samples import MAX_DISTANCE
+from laser_calib.slm_lines import SCALE_FLOOR, SPOT_VALUES, Spots, deletion, line_fit, robust_scale
 
 COLUMNS = ("laser", "distance", "u", "v")
-SPOT_VALUES = 2  # u and v: a wrong spot is wrong as a whole, whichever coordinate shows it
 # A laser diode sits in a machined bore: the paper found its angles 1 to 2.2 deg off the drawing's 30 deg and
 # 0 deg. Five degrees is more than twice that; beyond it the module was rebuilt (a new robot file) or the
 # measurements were read wrong.
 MOUNTING_BOUND_DEG = 5.0
 CHANGE_SIGMAS = 5.0  # ... and a change is only implausible when the data determine it this well
-# A robust scale below a nanometre is rounding of exact (hand-made, simulated) spots, not noise: without
-# this floor their last digits would look like outliers.
-SCALE_FLOOR = 1e-9
-MEDIAN_CHI2_2 = 2.0 * math.log(2.0)  # median of chi^2 with 2 degrees of freedom
-
-
-@dataclass(frozen=True)
-class Spots:
-    """One laser's spots: the measurements file's line of each, the fixture distance (m), u and v (m)."""
-
-    line: np.ndarray
-    distance: np.ndarray
-    uv: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -120,14 +108,6 @@ class SlmCalibration:
     warnings: list[str]
 
 
-def _line_fit(distance: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Least-squares lines of u and v against the distance: coefficients (2,2) (slope, offset per column),
-    the residual (K,2) and (A^T A)^-1 (2,2) of the design A = [D, 1]."""
-    design = np.column_stack([distance, np.ones_like(distance)])
-    coef, *_ = np.linalg.lstsq(design, uv, rcond=None)
-    return coef, uv - design @ coef, np.linalg.inv(design.T @ design)
-
-
 def _angles(s_u: float, s_v: float) -> tuple[float, float]:
     """(gamma, beta) from the slopes of u and v (the module docstring's lines)."""
     gamma = -math.atan(s_v)
@@ -139,7 +119,7 @@ def fit_laser(distance: np.ndarray, uv: np.ndarray, sigma: float) -> LaserAngles
     sigma (m)."""
     if len(np.unique(distance)) < 2:
         raise ValueError("the spots must be measured at two or more different distances")
-    coef, _, cov_unit = _line_fit(distance, uv)
+    coef, _, cov_unit = line_fit(distance, uv)
     (s_u, s_v), s_std = coef[0], sigma * math.sqrt(cov_unit[0, 0])
     gamma, beta = _angles(s_u, s_v)
     gamma_std = s_std / (1 + s_v ** 2)
@@ -186,26 +166,6 @@ def load_measurements(path: str | Path) -> Measurements:
     return Measurements(str(path), lasers)
 
 
-def _robust_distances(spots: Spots) -> np.ndarray:
-    """Squared distances (K,) of the spots off repeated-median lines of u and v."""
-    from scipy.stats import siegelslopes  # here: scipy.stats takes seconds to import, and only this needs it
-
-    fits = [siegelslopes(spots.uv[:, c], spots.distance) for c in range(SPOT_VALUES)]
-    resid = spots.uv - np.column_stack([f.intercept + f.slope * spots.distance for f in fits])
-    return (resid ** 2).sum(axis=1)
-
-
-def _deletion(spots: Spots, out: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int]:
-    """Least squares on the spots not ``out``: the residual (K,2) of every spot there, the variance factor
-    1 + a (A^T A)^-1 a^T of each left-out spot's residual (1 elsewhere), the fitted spots' sum of squares
-    and residual degrees of freedom."""
-    kept = ~out
-    coef, resid, cov_unit = _line_fit(spots.distance[kept], spots.uv[kept])
-    design = np.column_stack([spots.distance, np.ones_like(spots.distance)])
-    factor = np.where(out, 1.0 + np.einsum("ki,ij,kj->k", design, cov_unit, design), 1.0)
-    return spots.uv - design @ coef, factor, float((resid ** 2).sum()), SPOT_VALUES * (int(kept.sum()) - 2)
-
-
 def _testable(spots: Spots, out: np.ndarray) -> bool:
     """Whether the spots not ``out`` both fit a line and leave a value to check it: three or more, at two or
     more distances."""
@@ -220,11 +180,11 @@ def _judge_whole(measurements: Measurements, laser: int, out: dict[int, np.ndarr
     tells (or nothing tells), its candidates were the robust scale's doing (a repeated-median line through
     two of three spots leaves those no residual); off it, a wrong spot is there and cannot be told."""
     spots = measurements.lasers[laser]
-    _, _, own, own_dof = _deletion(spots, np.zeros(len(spots.distance), bool))
+    _, _, own, own_dof = deletion(spots, np.zeros(len(spots.distance), bool))
     if sigma is not None:
         p, against = float(chdtrc(own_dof, own / sigma ** 2)), f"the --spot-sigma {sigma * 1e3:.3g} mm"
     else:
-        others = [_deletion(s, out[j] if _testable(s, out[j]) else np.zeros_like(out[j]))
+        others = [deletion(s, out[j] if _testable(s, out[j]) else np.zeros_like(out[j]))
                   for j, s in measurements.lasers.items() if j != laser]
         dof = sum(o[3] for o in others)
         if dof < 1:
@@ -247,15 +207,15 @@ def _outliers(measurements: Measurements, sigma: float | None) -> tuple[dict[int
     lasers = measurements.lasers
     n_spots = sum(len(s.distance) for s in lasers.values())
     known_limit = float(chdtri(SPOT_VALUES, FAMILY_FALSE_REJECTION / n_spots))
-    start = {j: _robust_distances(s) for j, s in lasers.items()}
-    robust = max(math.sqrt(float(np.median(np.concatenate(list(start.values())))) / MEDIAN_CHI2_2), SCALE_FLOOR)
+    robust, distances = robust_scale(list(lasers.values()), known_limit)
+    start = dict(zip(lasers, distances))
     if sigma is not None and sigma >= robust:
         scale, said = sigma, f"the --spot-sigma {sigma * 1e3:.3g} mm"
     else:  # a given sigma the spots exceed would reject good spots: the chi^2 test says it is too small
         scale = robust
-        said = (f"the spot sigma {robust * 1e3:.3g} mm estimated robustly (the median distance off "
-                "repeated-median lines; " + ("no --spot-sigma)" if sigma is None else
-                                             f"above the --spot-sigma {sigma * 1e3:.3g} mm)"))
+        said = (f"the spot sigma {robust * 1e3:.3g} mm estimated robustly (the median distance of a spot off the "
+                "line through two others of its laser, spots off repeated-median lines left out; "
+                + ("no --spot-sigma)" if sigma is None else f"above the --spot-sigma {sigma * 1e3:.3g} mm)"))
     out = {j: d2 / scale ** 2 > known_limit for j, d2 in start.items()}
     for j, spots in lasers.items():
         if not out[j].any():
@@ -269,7 +229,7 @@ def _outliers(measurements: Measurements, sigma: float | None) -> tuple[dict[int
             out[j] = np.zeros_like(out[j])
     limit, judged = known_limit, ""
     while any(o.any() for o in out.values()):  # each laser with candidates keeps three spots or more
-        deleted = {j: _deletion(s, out[j]) for j, s in lasers.items()}
+        deleted = {j: deletion(s, out[j]) for j, s in lasers.items()}
         dof = sum(d[3] for d in deleted.values())
         residual = sum(d[2] for d in deleted.values()) / dof
         if sigma is not None and residual <= sigma ** 2:
@@ -297,7 +257,7 @@ def _outliers(measurements: Measurements, sigma: float | None) -> tuple[dict[int
 
 def _level_warning(laser: int, spots: Spots, sigma: float) -> list[str]:
     """The chi^2 test of a laser's residual against the given spot sigma."""
-    _, resid, _ = _line_fit(spots.distance, spots.uv)
+    _, resid, _ = line_fit(spots.distance, spots.uv)
     dof = SPOT_VALUES * (len(spots.distance) - 2)
     if dof < 1:
         return [f"laser {laser}: spots at only two distances: the lines fit them exactly and nothing checks them "
@@ -359,7 +319,7 @@ def _estimated_sigma(kept: dict[int, Spots]) -> tuple[float, list[str]]:
     # Pooled: 2 sum(K - 2) >= 4, so of estimate's rule only the uncertainty warning (below 8) can apply, not
     # NOT A CALIBRATION (2 or fewer).
     dof = sum(SPOT_VALUES * (len(spots.distance) - 2) for spots in kept.values())
-    square_sum = sum(float((_line_fit(spots.distance, spots.uv)[1] ** 2).sum()) for spots in kept.values())
+    square_sum = sum(float((line_fit(spots.distance, spots.uv)[1] ** 2).sum()) for spots in kept.values())
     sigma = math.sqrt(square_sum / dof)
     return sigma, sigma_warnings(sigma, dof, "measure at more distances or give --spot-sigma")
 
@@ -374,7 +334,7 @@ def calibrate(robot: Robot, measurements: Measurements, sigma: float | None = No
     angles, rejected = [], []
     for laser, spots in sorted(measurements.lasers.items()):
         angles.append(fit_laser(kept[laser].distance, kept[laser].uv, estimated))
-        resid = _deletion(spots, out[laser])[0]
+        resid = deletion(spots, out[laser])[0]
         rejected.extend(Rejected(int(spots.line[k]), laser, float(spots.distance[k]), resid[k])
                         for k in np.flatnonzero(out[laser]))
         if sigma is not None:
