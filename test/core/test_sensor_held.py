@@ -12,7 +12,7 @@ from laser_calib.estimation.identifiability import STD_FACTOR, carried_note
 from laser_calib.io.sensor_samples import save_sensor_samples
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE
 from laser_calib.measurement.chain import chain_names
-from laser_calib.model.robot_file import dump_robot
+from laser_calib.model.robot_file import dump_robot, with_held
 from test_sensors import SIGMA_T, rig, simulate
 
 
@@ -91,3 +91,20 @@ def test_calibrate_poses_marks_the_kept_parameters_that_carry_a_held_ones_combin
     assert {"sensor_x", "target_y"} <= carried.keys()
     assert {name: parameters[name].get("note") for name in carried} == \
         {name: carried_note(name, held) for name, held in carried.items()}
+
+
+def test_calibrate_poses_holds_what_the_robot_file_says_was_held(tmp_path, capsys):
+    """A robot file whose key held names theta2 (written by a calibration that could not determine
+    it): calibrate-poses holds it at nominal and says so, as estimate does, and the file it writes
+    keeps the key. Before, calibrate-poses ignored the key and fitted theta2."""
+    robot = with_held(rig("standard"), ["theta2"])
+    save_sensor_samples(simulate(robot, np.zeros(len(chain_names(robot))), 40, 1, "pose"), tmp_path / "poses.csv")
+    (tmp_path / "robot.yaml").write_text(dump_robot(robot))
+    out = tmp_path / "out"
+    assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "poses.csv"),
+                 "--folds", "0", "--out", str(out)]) == 0
+    parameters = {p["name"]: p for p in json.loads((out / "result.json").read_text())["parameters"]}
+    assert parameters["theta2"]["value"] is None
+    assert f"warning: held at nominal, as the calibration that wrote {tmp_path / 'robot.yaml'} held them" \
+        in capsys.readouterr().err
+    assert "theta2" in yaml.safe_load((out / "robot_calibrated.yaml").read_text())["held"]

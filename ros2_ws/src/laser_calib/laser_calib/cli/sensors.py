@@ -31,7 +31,8 @@ from laser_calib.io.revisits import repeat_warnings
 from laser_calib.planning import PlanOptions, plan
 from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
-from laser_calib.model.robot_file import load_robot, load_robot_description, save_robot, with_held
+from laser_calib.model.robot_file import (held, held_warnings, load_robot, load_robot_description, save_robot,
+                                         with_held)
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings, test_outside_range
 from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, calibrate, is_frame_param, kfold,
@@ -83,9 +84,10 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
     return out
 
 
-def _options(args: argparse.Namespace) -> SensorFitOptions:
-    estimate = EstimateOptions(method=args.method, spot_sigma=args.sigma, fixed=tuple(args.fix),
-                               prior=args.prior, robust=args.robust)
+def _options(args: argparse.Namespace, robot: Robot) -> SensorFitOptions:
+    # what the calibration that wrote the robot file could not determine, this one holds too, as estimate does
+    estimate = EstimateOptions(method=args.method, spot_sigma=args.sigma, fixed=tuple(dict.fromkeys(
+                               (*args.fix, *held(robot)))), prior=args.prior, robust=args.robust)
     return SensorFitOptions(estimate=estimate, frame_prior_length=args.frame_prior_length,
                             frame_prior_angle=None if args.frame_prior_angle_deg is None
                             else math.radians(args.frame_prior_angle_deg),
@@ -235,7 +237,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         raise InputError(str(args.test), f"{test.kind} samples, but the calibration's are {samples.kind} samples")
     if test is not None:
         require_measured(test, str(args.test), f"no {test.kind} is measured in the test set")
-    options = _options(args)
+    options = _options(args, robot)
     try:
         fit = calibrate(robot, samples, options)
     except TooFewValues as exc:  # the estimator counts the values, the command knows their file
@@ -258,7 +260,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                                                     if w not in fit.estimate.warnings and not is_failure(w)]
                           + list(fit.estimate.warnings)
                           + repeat_warnings(samples, test, robot.joint_names,
-                                            {"samples": args.samples, "test": args.test})}
+                                            {"samples": args.samples, "test": args.test})
+                          + held_warnings(robot, str(args.robot))}
     stale = robot.extra.get("effects")
     if stale:  # their values belong to the geometry they were fitted with, not to this calibration's
         result["warnings"].append(f"{args.robot}: its effects ({len(stale)}) are not fitted by calibrate-poses (the "

@@ -81,6 +81,12 @@ def held(robot: Robot) -> tuple[str, ...]:
     return tuple(robot.extra.get("held", ()))
 
 
+def held_warnings(robot: Robot, source: str) -> list[str]:
+    """The warning of a calibration from the file ``source`` that holds what its key held names, or none."""
+    return [f"held at nominal, as the calibration that wrote {source} held them (not determined by its data; "
+            f"its key held): {', '.join(held(robot))}"] if held(robot) else []
+
+
 def with_held(robot: Robot, names) -> Robot:
     """``robot`` whose file says the parameters ``names`` (and those it held already) are held."""
     names = tuple(dict.fromkeys((*held(robot), *names)))

@@ -38,7 +38,7 @@ from laser_calib.io.samples import Samples
 from laser_calib.measurement.base import RobotModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
-from laser_calib.model.robot_file import held, with_held
+from laser_calib.model.robot_file import held, held_warnings, with_held
 from laser_calib.report.plots import display_units
 from laser_calib.report.pose_table import NOT_FITTED, fit_status
 from laser_calib.report.statistics import iso9283, laser_stats, worse_on_test_warning
@@ -274,9 +274,7 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
         said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)
         beyond = extrapolation_note([e.label for e in effects if isinstance(e, Surface)], samples.spots, test.spots)
         said += [f"test: {beyond}"] if beyond else []
-    if held(robot):
-        said.append(f"held at nominal, as the calibration that wrote {sources.get('robot', 'the robot file')} held "
-                    f"them (not determined by its data; its key held): {', '.join(held(robot))}")
+    said += held_warnings(robot, sources.get("robot", "the robot file"))
     sets = evaluate(robot, samples, est, test, effects, compensator, start)
     said += worse_on_test(sets)
     est = replace(est, warnings=est.warnings + tuple(said))
