@@ -279,8 +279,12 @@ def test_the_final_fits_warnings_reach_the_console_the_json_and_the_report(tmp_p
 
 @pytest.mark.parametrize("given", [False, True])
 def test_the_final_fits_warnings_say_where_its_spot_sigma_came_from(given, tmp_path, capsys):
-    """A large periodic error: the geometric fit's residual, 4x the spot noise, is the sigma every
-    later fit runs with. Without --spot-sigma, the final fit's warnings called it 'given'."""
+    """A large periodic error: the geometric fit's residual is 4x the spot noise. With --spot-sigma
+    (4x the noise too) the final fit's warnings say the sigma was given and its residual is far
+    below it. Without it, the final fit runs at the noise of its own residual (Fitter.at_noise):
+    nothing is held for noise and no line calls its residual far below the sigma. Before, it ran
+    at the geometric fit's: parameters held and 'far below the spot sigma the diagnosis estimated
+    from the geometric fit's residual' (and before that, 'given')."""
     session = library_session("paper-4dof", "periodic", n_cal=40, n_test=5, visible=5000.0)
     save_robot(session.nominal, tmp_path / "robot.yaml")
     save_samples(session.cal, tmp_path / "cal.csv")
@@ -288,11 +292,12 @@ def test_the_final_fits_warnings_say_where_its_spot_sigma_came_from(given, tmp_p
     assert diagnose_main(["--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "cal.csv"), *sigma,
                           "--out", str(tmp_path / "out")]) == 0
     printed = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ")]
-    source = "given" if given else "the diagnosis estimated from the geometric fit's residual"
-    held = [line for line in printed if "rank deficient" in line]
-    assert len(held) == 1 and f"parameters at the spot sigma {source} (" in held[0], printed
-    assert any(f"far below the spot sigma {source}, " in line for line in printed), printed
-    assert given or not any("given" in line for line in printed), printed
+    if given:
+        held = [line for line in printed if "rank deficient" in line]
+        assert len(held) == 1 and "parameters at the spot sigma given (" in held[0], printed
+        assert any("far below the spot sigma given, " in line for line in printed), printed
+    else:
+        assert not any("far below" in line or "rank deficient" in line or "given" in line for line in printed), printed
 
 
 @pytest.mark.parametrize("args, text", [
@@ -507,3 +512,19 @@ def test_a_library_effect_standing_in_for_a_foreign_one_is_not_explained():
     assert (top.parameter in ("theta4", "compliance4") and top.covariate == "q1"), top.sentence()
     assert "varies with q1" in diagnosis.evidence
 
+
+
+def test_the_final_models_stds_are_at_the_noise_of_its_own_residual():
+    """No noise given: the reference noise model, estimated from the geometric fit's residual,
+    holds a strong effect's misfit (here the spot sigma about 3 times the noise), and the final
+    model's standard deviations were that many times too wide. They are at the noise of the final
+    residual: as wide as with the true noise given, within what a sigma estimated from some 300
+    degrees of freedom can miss (about 4 % per standard deviation; 0.8-1.25 is over 5 of them)."""
+    session = library_session("paper-7dof", "periodic", visible=2000.0)
+    options = DiagnoseOptions(nested=False, compensate=False)
+    given = run(session, options=options)
+    estimated = diagnose(session.nominal, session.cal, session.test, options=options)
+    assert [e.label for e in estimated.final.effects] == [e.label for e in given.final.effects] == \
+        [session.truth[0].effect.label]
+    stds = [np.array([p["std"] for p in d.parameters[0]["parameters"]]) for d in (given, estimated)]
+    assert np.all((0.8 < stds[1] / stds[0]) & (stds[1] / stds[0] < 1.25)), stds

@@ -275,12 +275,18 @@ def nested_heldout(data: Data, options: DiagnoseOptions) -> np.ndarray:
 def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitter, fits, rounds, alternatives,
            nested: np.ndarray | None, notes: list[str], start: float) -> Diagnosis:
     """The stages' test errors, the verdict, the detector and the compensator."""
+    final = fits[-1]
+    if options.progress is not None:
+        options.progress(0, None, "the verdict's noise and structure tests")
+    noise = verdict_noise(final, data.samples, options, rated_noise(data.robot))
+    if options.spot_sigma is None or options.joint_sigma is None:
+        fits = fits[:-1] + [fitter.at_noise(final, noise.spot_sigma, noise.joint_sigma)]
+        final = fits[-1]
     stages = []
     for fitted in fits:
         test_d = None if test is None else distances(EffectModel(test.base(), fitted.effects),
                                                       fitted.estimate.values)
         stages.append(Stage(fitted.label, fitted, test_d))
-    final = fits[-1]
     if test is not None:
         notes.extend(test_range_warnings(data.samples.q, test.samples.q, "test", data.robot.joint_names))
     if isinstance(test, SpotData):
@@ -288,9 +294,6 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
                                     test.samples.spots)
         if beyond:
             notes.append(beyond)
-    if options.progress is not None:
-        options.progress(0, None, "the verdict's noise and structure tests")
-    noise = verdict_noise(final, data.samples, options, rated_noise(data.robot))
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
     samples = data.samples
