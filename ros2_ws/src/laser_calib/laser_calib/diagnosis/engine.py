@@ -13,7 +13,9 @@ model cannot carry (screen and lens effects without spots) are dropped. It runs:
    components not given are estimated from its residual by maximum
    likelihood (noise_components) and the fit repeated with them: this is the
    reference noise model every later fit, test and whitening uses (an effect
-   still in the residual inflates it, which only makes the tests cautious).
+   still in the residual inflates it, which only makes the tests cautious);
+   the final model's reported values and standard deviations are of a refit
+   at the noise of its own residual (Fitter.at_noise).
    Parameters the nominal geometry cannot separate stay fixed in every fit, as
    do those the data set fixes (data.fixed).
 2. rounds of selection over the effect library (effects.catalog.candidates:
