@@ -27,6 +27,16 @@ def carried_by_notes(parameters: dict[str, dict]) -> dict[str, tuple[str, ...]]:
     return carried
 
 
+def calibrated_in_pose(robot, folder) -> dict[str, dict]:
+    """calibrate-poses (exit 0) of ``robot`` measured in pose at its nominal geometry, 40 poses,
+    into folder/out: result.json's parameters by name."""
+    save_sensor_samples(simulate(robot, np.zeros(len(chain_names(robot))), 40, 1, "pose"), folder / "poses.csv")
+    (folder / "robot.yaml").write_text(dump_robot(robot))
+    assert main(["calibrate-poses", "--robot", str(folder / "robot.yaml"), "--samples", str(folder / "poses.csv"),
+                 "--folds", "0", "--out", str(folder / "out")]) == 0
+    return {p["name"]: p for p in json.loads((folder / "out" / "result.json").read_text())["parameters"]}
+
+
 def test_calibrate_poses_holds_what_its_minimum_does_not_determine_whatever_holding_costs(tmp_path, capsys):
     """The paper's 4-DOF arm measured at a point, its frames held (--fix) 3 mm / 3 mrad off the
     truth and its laser module 10 mm off along x: at the minimum slm_x is not determined
@@ -80,13 +90,7 @@ def test_calibrate_poses_marks_the_kept_parameters_that_carry_a_held_ones_combin
     names its carriers; each of them that is kept says its value is that combination's, in the
     words of the spot estimate's result.json. Before, calibrate-poses wrote their values
     without a note, as if each were that parameter's own error."""
-    robot = rig("standard")
-    save_sensor_samples(simulate(robot, np.zeros(len(chain_names(robot))), 40, 1, "pose"), tmp_path / "poses.csv")
-    (tmp_path / "robot.yaml").write_text(dump_robot(robot))
-    out = tmp_path / "out"
-    assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "poses.csv"),
-                 "--folds", "0", "--out", str(out)]) == 0
-    parameters = {p["name"]: p for p in json.loads((out / "result.json").read_text())["parameters"]}
+    parameters = calibrated_in_pose(rig("standard"), tmp_path)
     carried = carried_by_notes(parameters)
     assert {"sensor_x", "target_y"} <= carried.keys()
     assert {name: parameters[name].get("note") for name in carried} == \
@@ -97,14 +101,8 @@ def test_calibrate_poses_holds_what_the_robot_file_says_was_held(tmp_path, capsy
     """A robot file whose key held names theta2 (written by a calibration that could not determine
     it): calibrate-poses holds it at nominal and says so, as estimate does, and the file it writes
     keeps the key. Before, calibrate-poses ignored the key and fitted theta2."""
-    robot = with_held(rig("standard"), ["theta2"])
-    save_sensor_samples(simulate(robot, np.zeros(len(chain_names(robot))), 40, 1, "pose"), tmp_path / "poses.csv")
-    (tmp_path / "robot.yaml").write_text(dump_robot(robot))
-    out = tmp_path / "out"
-    assert main(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "poses.csv"),
-                 "--folds", "0", "--out", str(out)]) == 0
-    parameters = {p["name"]: p for p in json.loads((out / "result.json").read_text())["parameters"]}
+    parameters = calibrated_in_pose(with_held(rig("standard"), ["theta2"]), tmp_path)
     assert parameters["theta2"]["value"] is None
     assert f"warning: held at nominal, as the calibration that wrote {tmp_path / 'robot.yaml'} held them" \
         in capsys.readouterr().err
-    assert "theta2" in yaml.safe_load((out / "robot_calibrated.yaml").read_text())["held"]
+    assert "theta2" in yaml.safe_load((tmp_path / "out" / "robot_calibrated.yaml").read_text())["held"]
