@@ -81,3 +81,30 @@ def test_a_sample_the_rule_refuses_is_one_line_naming_the_bag_and_the_message(si
     err = capsys.readouterr().err
     assert err == f"laser-calib: {path}: /samples message 6: {problem}\n"
     assert not (tmp_path / "out").exists()
+
+
+def test_joint_names_given_map_a_bag_the_robots_names_do_not(simulated, tmp_path, capsys):
+    """A sequencer given the driver's names (joint_names parameter) writes them in its samples; for
+    a robot whose own names they are not, --joint-names says which is which, as that parameter
+    did. Before, estimate had no way to read such a bag: refused, or (a D-H robot's names mixed
+    with others) nothing to say."""
+    samples = load_samples(simulated / "samples.csv")
+    driver = ["joint1", "joint2", "elbow", "wrist"]  # refused without --joint-names (above)
+    ordered = write_bag(tmp_path / "ordered", samples, lambda k, q: (NAMES, q))
+    path = write_bag(tmp_path / "driver", samples, lambda k, q: (driver[::-1], q[::-1]))
+    assert estimate(simulated, ordered, tmp_path / "out ordered") == 0
+    assert main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"), "--bag", str(path),
+                 "--joint-names", *driver, "--out", str(tmp_path / "out driver")]) == 0
+    errors = [[(e["name"], e["value"], e["std"]) for e in json.loads((tmp_path / out / "result.json").read_text())
+               ["errors"]] for out in ("out ordered", "out driver")]
+    assert errors[1] == errors[0]
+    capsys.readouterr()
+    robot = str(simulated / "robot_nominal.yaml")
+    for args, line in (
+            (["--bag", str(path), "--joint-names", *driver[:3]], "--joint-names: 3 names, robot 'manipulator_4dof' has "
+                                                                  "4 joints"),
+            (["--samples", str(simulated / "samples.csv"), "--joint-names", *driver],
+             "--joint-names: names the joints of a bag's samples: it applies to --bag only")):
+        assert main(["estimate", "--robot", robot, *args, "--out", str(tmp_path / "refused")]) == 2
+        assert capsys.readouterr().err == f"laser-calib: {line}\n"
+        assert not (tmp_path / "refused").exists()

@@ -101,10 +101,12 @@ def _options(args: argparse.Namespace, progress: Progress | None = None) -> Esti
                            robust=args.robust, fixed=tuple(args.fix), lm=lm, ekf=ekf)
 
 
-def _bag_samples(path: str, robot) -> object:
+def _bag_samples(path: str, robot, joint_names: list[str] | None) -> object:
     """Samples of a recorded session bag (rosbags: no ROS runtime), each sample's joint_positions
-    put in the robot's order by its joint_names."""
-    samples, lost = read_samples_checked(path, joints=RobotJoints(robot))
+    put in the robot's order by its joint_names: the robot's own, or ``joint_names`` (--joint-names,
+    as the sequencer's parameter of that name gives them) base to tip."""
+    joints = RobotJoints(robot, joint_names, "--joint-names") if joint_names else RobotJoints(robot)
+    samples, lost = read_samples_checked(path, joints=joints)
     for segment in lost:
         print(f"warning: {path}: segment {segment} is damaged and was skipped; its samples are lost, the other "
               "segments were read", file=sys.stderr)
@@ -118,7 +120,9 @@ def _bag_samples(path: str, robot) -> object:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
-    samples = _bag_samples(args.bag, robot) if args.bag else load_samples(args.samples, robot)
+    if args.joint_names and not args.bag:
+        raise InputError("--joint-names", "names the joints of a bag's samples: it applies to --bag only")
+    samples = _bag_samples(args.bag, robot, args.joint_names) if args.bag else load_samples(args.samples, robot)
     test = load_samples(args.test, robot) if args.test else None
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
     require_measured(samples, str(args.samples or args.bag))
@@ -243,6 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--samples", help="samples CSV")
     source.add_argument("--bag", help="a recorded session bag (its /samples topic)")
+    p.add_argument("--joint-names", nargs="+", metavar="NAME",
+                   help="the names the bag's samples give the robot's joints, base to tip (the sequencer's "
+                        "joint_names parameter); default: the robot's own")
     p.add_argument("--test")
     p.add_argument("--method", choices=METHODS, default="lm")
     p.add_argument("--spot-sigma", type=sigma_length, default=None,
