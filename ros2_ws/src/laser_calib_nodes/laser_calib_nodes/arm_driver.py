@@ -35,7 +35,7 @@ from laser_calib.sim.simulation import NoiseSpec, true_errors
 from laser_calib_nodes import common, parameters
 from laser_calib.hardware.backends import SimArm, dynamixel_backend
 from laser_calib.hardware.trajectory import TrajectoryPoint, trajectory_goal
-from laser_calib.io.joint_names import default_joint_names
+from laser_calib.io.joint_names import RobotJoints
 
 TORQUE_NOT_CONFIRMED = 5  # exit code: a servo did not confirm torque off on shutdown
 
@@ -50,10 +50,7 @@ class ArmDriver(Node):
         names = declare("joint_names", Parameter.Type.STRING_ARRAY,
                         "Joint names, base to tip (default joint1..jointN; a URDF arm's: its joints').",
                         type_=Parameter.Type.STRING_ARRAY)
-        self.joint_names = list(names) if names else default_joint_names(self.robot)
-        if len(self.joint_names) != n:
-            raise parameters.NodeError(f"parameter joint_names: {len(self.joint_names)} names, "
-                                   f"robot '{self.robot.name}' has {n} joints", 2)
+        self.joint_names = RobotJoints(self.robot, names, "parameter joint_names").names  # checked: one per joint
         rate = parameters.checked("rate", declare("rate", 50.0, "Joint state publishing rate, Hz."), parameters.positive)
 
         # simulation
