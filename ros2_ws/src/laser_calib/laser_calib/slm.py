@@ -318,9 +318,9 @@ def _estimated_sigma(kept: dict[int, Spots]) -> tuple[float, list[str]]:
     # std from 1 degree of freedom means nothing (the error over it is Student's t with 1, without a variance).
     # Pooled: 2 sum(K - 2) >= 4, so of estimate's rule only the uncertainty warning (below 8) can apply, not
     # NOT A CALIBRATION (2 or fewer).
-    dof = sum(SPOT_VALUES * (len(spots.distance) - 2) for spots in kept.values())
-    square_sum = sum(float((line_fit(spots.distance, spots.uv)[1] ** 2).sum()) for spots in kept.values())
-    sigma = math.sqrt(square_sum / dof)
+    fits = [deletion(spots, np.zeros(len(spots.distance), bool)) for spots in kept.values()]
+    dof = sum(fit[3] for fit in fits)
+    sigma = math.sqrt(sum(fit[2] for fit in fits) / dof)
     return sigma, sigma_warnings(sigma, dof, "measure at more distances or give --spot-sigma")
 
 
