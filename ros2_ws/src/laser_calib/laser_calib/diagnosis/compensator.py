@@ -3,8 +3,8 @@
 After the physical effects, what remains may still follow the inputs
 smoothly (detector.py). The detector's regression refitted on all calibration
 poses gives, per pose, a joint-angle offset f_j(z) of each joint and a twist,
-length and offset change of each link, from the pose's inputs z (readings, move directions,
-stamp, extra columns). It is kept only when the detector's held-out gain is
+length and offset change of each link, from the pose's inputs z (readings, move directions
+and sizes, stamp, extra columns). It is kept only when the detector's held-out gain is
 significant (the test that decides it held each pose out), it never replaces
 a physical effect (the report lists it apart, with its gain) and it acts
 through the kinematics, so it applies to any pose and any measurement model:
@@ -24,7 +24,7 @@ alpha_j, m for d_j and a_j; version 1 files, from before the length
 directions, hold only angles under ``coef_rad`` and still load); load it with
 load_compensator(path), which checks the whole file when it reads it (every
 key's type, shape and finite numbers: one InputError naming the file and key,
-never an error deep in a fit). The move directions are taken from the row order of
+never an error deep in a fit). The moves (directions and sizes) are taken from the row order of
 the samples it is applied to (from q = 0), as in the calibration. Applied to a
 robot or model it was not made for (a target that is not the robot's, other
 parameter names), it raises InputError saying what differs.

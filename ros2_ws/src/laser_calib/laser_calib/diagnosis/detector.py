@@ -2,8 +2,16 @@
 
 What a residual can follow is not known in advance, so the detector regresses
 the whitened residual of every measured value (spot coordinate, point or pose
-axis) on all the inputs of a pose jointly: every joint reading, the sign of
-each joint's last move, the stamp and every extra column (temperature). The
+axis) on all the inputs of a pose jointly: every joint reading, the sign and
+the size of each joint's last move, the stamp and every extra column
+(temperature). The size is there for what a joint does after a move other
+than a dead band (the sign: backlash), such as a servo that stops short by a
+share of the move (test_diagnosis.py: p 0.25-0.42 on the sign alone, once
+"explained"; 0.001-0.004 with the size). It enters that joint's angle error
+only (submodels: own): with every direction, the size of joint 1's last move
+"found" a Dahl loop of joint 3 at p = 0.01, by chance (bench/effects_probe3.py,
+which the size of joint 3's own move does not see: p 0.91), and cost 16 %
+more CPU on bench/effects_bench.py, 10 % as it is. The
 regression goes through the kinematics: a pose's residual is modelled as
 
     W r  =  sum_j (W g_j) f_j(z)         g_j = d predicted / d theta_j, d alpha_j, d d_j, d a_j
@@ -47,7 +55,9 @@ refitted on all poses, is the learned compensator (compensator.py).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
@@ -65,13 +75,18 @@ ALPHAS = np.logspace(-2, 5, 8)
 N_KNOTS, DEGREE = 4, 3
 MIN_SPREAD = 1e-9  # an input that does not vary is left out
 LINK_DIRECTIONS = ("alpha", "d", "a")  # the D-H link parameters a smooth error may follow, beside theta
+STEP = re.compile(r"step[1-9][0-9]*")  # input_table's name of a joint's last move size
 
 
 def input_table(q: np.ndarray, stamp: np.ndarray, extra: dict[str, np.ndarray]) -> tuple[list[str], np.ndarray]:
     """The detector's inputs of a pose sequence: names and values (P,d): q_i
-    (rad), move_i (sign of the last move, in row order), stamp (s), every extra column."""
-    names = [f"q{i + 1}" for i in range(q.shape[1])] + [f"move{i + 1}" for i in range(q.shape[1])] + ["stamp"]
-    columns = [q, move_directions(q), np.asarray(stamp, float)[:, None]]
+    (rad), move_i (sign of the last move, in row order), step_i (the last move,
+    q_i minus the row before's, from q = 0 before the first: rad), stamp (s), every extra column."""
+    n = q.shape[1]
+    names = ([f"q{i + 1}" for i in range(n)] + [f"move{i + 1}" for i in range(n)] + [f"step{i + 1}" for i in range(n)]
+             + ["stamp"])
+    steps = np.diff(np.vstack([np.zeros((1, n)), q]), axis=0)
+    columns = [q, move_directions(q), steps, np.asarray(stamp, float)[:, None]]
     for name, values in extra.items():
         names.append(name)
         columns.append(np.asarray(values, float)[:, None])
@@ -192,18 +207,23 @@ def directions(names: tuple[str, ...], res: Residuals, whitener: np.ndarray, n_j
     return targets, np.einsum("pij,pjm->pim", whitener, columns)
 
 
-def submodels(basis: Basis, n_inputs: int, n_directions: int) -> list[np.ndarray]:
+def submodels(basis: Basis, n_inputs: int, n_directions: int, own: Mapping[int, int] | None = None
+              ) -> list[np.ndarray]:
     """Column sets of all_features: each direction with each input's splines,
     each direction with a pair of joint readings (both splines and their
     product). A smooth error of one joint or link following
     one or two inputs is found with few terms; all inputs at once on 80 poses
-    overfit so much that they miss it (held-out gain -0.07 where one input gave 0.24)."""
+    overfit so much that they miss it (held-out gain -0.07 where one input gave 0.24).
+    own: input -> the one direction it is tried with (a joint's last move size:
+    its angle error only), each a sub-model less to choose from than with every direction."""
+    own = dict(own or {})
     n_splines = N_KNOTS + DEGREE - 1
     width = n_inputs * n_splines + len(basis.pairs)
     spline = [np.arange(k * n_splines, (k + 1) * n_splines) for k in range(n_inputs)]
-    local = spline + [np.concatenate([spline[i], spline[k], [n_inputs * n_splines + p]])
-                      for p, (i, k) in enumerate(basis.pairs)]
-    return [j * width + cols for j in range(n_directions) for cols in local]
+    local = [spline[k] for k in range(n_inputs) if k not in own] + [
+        np.concatenate([spline[i], spline[k], [n_inputs * n_splines + p]]) for p, (i, k) in enumerate(basis.pairs)]
+    return ([j * width + cols for j in range(n_directions) for cols in local]
+            + [j * width + spline[k] for k, j in own.items()])
 
 
 @dataclass(frozen=True)
@@ -264,7 +284,8 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
     basis = Basis.of(z, int(varying[:n_joints].sum()), size)
     n_values = y.shape[1]
     rng = np.random.default_rng(seed)
-    subsets = submodels(basis, z.shape[1], g.shape[-1])
+    steps = {k: int(name[4:]) - 1 for k, name in enumerate(input_names) if STEP.fullmatch(name)}
+    subsets = submodels(basis, z.shape[1], g.shape[-1], steps)
     held = [np.repeat(fold, n_values) == k for k in np.unique(fold)]
     former = OffsetRegression(basis, z.shape[1])
     basis_values = basis(X[:, :z.shape[1]])

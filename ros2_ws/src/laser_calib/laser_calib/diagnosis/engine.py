@@ -335,7 +335,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
 
 
 # Poses the detector sees at most, in DETECTOR_RUNS runs of consecutive poses: the
-# detector's move inputs are the sign of the last move in row order, which a run keeps
+# detector's move inputs are the sign and size of the last move in row order, which a run keeps
 # (only its first pose's is taken from the run before), and the runs spread over the
 # whole session, so a slow change with the stamp stays in view.
 DETECTOR_POSES = 2000
