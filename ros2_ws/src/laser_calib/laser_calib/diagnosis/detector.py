@@ -6,8 +6,8 @@ axis) on all the inputs of a pose jointly: every joint reading, the sign and
 the size of each joint's last move, the stamp and every extra column
 (temperature). The size is there for what a joint does after a move other
 than a dead band (the sign: backlash), such as a servo that stops short by a
-share of the move (test_diagnosis.py: p 0.25-0.42 on the sign alone, once
-"explained"; 0.001-0.004 with the size). It enters that joint's angle error
+share of the move (test_diagnosis.py: p 0.25-0.42 on the sign alone, and
+"explained" on another joint and seed; 0.001-0.004 with the size). It enters that joint's angle error
 only (submodels: own): with every direction, the size of joint 1's last move
 "found" a Dahl loop of joint 3 at p = 0.01, by chance (bench/effects_probe3.py,
 which the size of joint 3's own move does not see: p 0.91), and cost 16 %
