@@ -228,6 +228,8 @@ CASES = {
     "a fifth joint's readings after the spots": (lambda d: _estimate(d, samples=_appended(",q5", ",0.1")), "column q5"),
     "a third laser's spots": (lambda d: _estimate(d, samples=_appended(",l3_y,l3_z", ",0.1,0.2")), "column l3_y"),
     "a column without a name": (lambda d: _estimate(d, samples=_appended(",", ",3")), "without a name"),
+    "a covariate named like the diagnosis's own input": (lambda d: _estimate(d, samples=_appended(",step2", ",0.1")),
+                                                          "column step2: the diagnosis's name"),
     "joint readings in degrees": (lambda d: _estimate(d, samples=_cell(1, "q2", "45")), "degrees"),
     "pose CSV without qz": (lambda d: _poses(d, "pose,stamp,q1,q2,q3,q4,x,y,z,qw,qx,qy"), "qz"),
     "positions in millimetres": (lambda d: _poses(d, "pose,stamp,q1,q2,q3,q4,x,y,z", "0,0.0,0.1,0.2,0.3,0.4,1000,500,200"),

@@ -259,7 +259,8 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
 def check_extra_columns(names: list[str], n_q: int, robot: Robot | None, source: str) -> None:
     """One line for a column after the measured ones that is named like measured data: the
     covariates there (temperature, ...) are free names, but q5 after a 4-joint arm's spots is a
-    bigger arm's log and l3_y a third laser's spot, which would otherwise be taken as covariates."""
+    bigger arm's log and l3_y a third laser's spot, which would otherwise be taken as covariates;
+    move2, step2 and torque2 are the diagnosis's own inputs, which a covariate would be taken for."""
     for name in names:
         if not name:
             raise _header_error(source, "a column without a name after the measured columns (a covariate needs one)")
@@ -270,6 +271,10 @@ def check_extra_columns(names: list[str], n_q: int, robot: Robot | None, source:
         if re.fullmatch(r"l\d+_[yz]", name):
             raise _header_error(source, f"column {name}: the laser module has two lasers, whose spots are "
                                         f"{','.join(SPOT_COLUMNS)}")
+        if re.fullmatch(r"(move|step|torque)\d+", name):
+            # the diagnosis names its own inputs so: a covariate of that name would be taken for one of them
+            raise _header_error(source, f"column {name}: the diagnosis's name of a joint's last move direction "
+                                        "(move), size (step) or gravity torque (torque); name the covariate otherwise")
 
 
 def check_distance_units(position: np.ndarray, where: str) -> None:
