@@ -65,7 +65,7 @@ from sklearn.inspection import permutation_importance
 from sklearn.linear_model import Ridge
 from sklearn.preprocessing import SplineTransformer
 
-from laser_calib.effects.base import move_directions
+from laser_calib.effects.base import last_moves, move_directions
 from laser_calib.measurement.base import NoiseModel, Residuals
 
 BATCH = 99               # permutations per pass (the first pass also fits the data)
@@ -85,8 +85,7 @@ def input_table(q: np.ndarray, stamp: np.ndarray, extra: dict[str, np.ndarray]) 
     n = q.shape[1]
     names = ([f"q{i + 1}" for i in range(n)] + [f"move{i + 1}" for i in range(n)] + [f"step{i + 1}" for i in range(n)]
              + ["stamp"])
-    steps = np.diff(np.vstack([np.zeros((1, n)), q]), axis=0)
-    columns = [q, move_directions(q), steps, np.asarray(stamp, float)[:, None]]
+    columns = [q, move_directions(q), last_moves(q), np.asarray(stamp, float)[:, None]]
     for name, values in extra.items():
         names.append(name)
         columns.append(np.asarray(values, float)[:, None])
@@ -284,8 +283,8 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
     basis = Basis.of(z, int(varying[:n_joints].sum()), size)
     n_values = y.shape[1]
     rng = np.random.default_rng(seed)
-    steps = {k: int(name[4:]) - 1 for k, name in enumerate(input_names) if STEP.fullmatch(name)}
-    subsets = submodels(basis, z.shape[1], g.shape[-1], steps)
+    own = {k: int(name[4:]) - 1 for k, name in enumerate(input_names) if STEP.fullmatch(name)}  # step_j -> theta_j
+    subsets = submodels(basis, z.shape[1], g.shape[-1], own)
     held = [np.repeat(fold, n_values) == k for k in np.unique(fold)]
     former = OffsetRegression(basis, z.shape[1])
     basis_values = basis(X[:, :z.shape[1]])

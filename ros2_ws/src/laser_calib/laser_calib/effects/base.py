@@ -198,6 +198,13 @@ def yaml_joint(robot: Robot, entry: Mapping[str, Any], where: str) -> int:
     return joint - 1
 
 
+def last_moves(q: np.ndarray) -> np.ndarray:
+    """(P,N) rad each joint's move into each row, in row order (conventions.md: before the
+    first row the arm is at q = 0)."""
+    q = np.atleast_2d(np.asarray(q, float))
+    return np.diff(np.vstack([np.zeros((1, q.shape[1])), q]), axis=0)
+
+
 def move_directions(q: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:
     """(P,N) sign of the last move of each joint before each row, in row order.
 
@@ -206,7 +213,7 @@ def move_directions(q: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:
     stay on the flank they were pushed against); 0 until it first moves.
     """
     q = np.atleast_2d(np.asarray(q, float))
-    steps = np.diff(np.vstack([np.zeros((1, q.shape[1])), q]), axis=0)
+    steps = last_moves(q)
     moved = np.abs(steps) > tolerance
     signs = np.where(moved, np.sign(steps), 0.0)
     out = np.zeros_like(signs)
