@@ -2,7 +2,8 @@
 its own process: a node stuck before its cleanup ends with its stacks and code 1; a
 middleware teardown that hangs after the cleanup ends with the node's code; a slow cleanup
 (saving what was measured) is never cut; a stop signal whose handler runs while the error
-it caused is handled still exits 0; a Ctrl-C while a node is still importing exits 0."""
+it caused is handled still exits 0; a Ctrl-C while a node is still importing, or while
+rclpy initialises, exits 0."""
 
 from __future__ import annotations
 
@@ -81,6 +82,30 @@ def test_a_stop_signal_handled_while_the_error_it_caused_is_handled_exits_0():
     result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60,
                             env=workspace_env())
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
+
+
+def test_a_ctrl_c_while_rclpy_initialises_exits_0_without_building_the_node():
+    """Its KeyboardInterrupt escaped from rclpy.init, before run()'s try: a traceback in the
+    estimator's log when a session was stopped while its nodes started (CI, stop 32). Here the
+    signal arrives inside rclpy.init."""
+    from ros_harness import workspace_env
+    program = textwrap.dedent("""
+        import os, signal, sys
+        import rclpy
+        from laser_calib_nodes import common
+        real_init = rclpy.init
+        def init(*args, **kwargs):
+            os.kill(os.getpid(), signal.SIGINT)  # its handler runs at the next line
+            real_init(*args, **kwargs)
+        rclpy.init = init
+        def make_node():
+            print("node built")
+            raise SystemExit(5)
+        sys.exit(common.run(make_node))
+    """)
+    result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60,
+                            env=workspace_env())
+    assert result.returncode == 0 and not result.stdout and "Traceback" not in result.stderr, result
 
 
 def test_a_ctrl_c_while_an_import_turns_errors_into_import_errors_exits_0():

@@ -235,22 +235,29 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     # signal, so that an error it causes inside rclpy (a KeyboardInterrupt while a large
     # message is converted surfaces as RuntimeError) is taken for the stop it is.
     stopped = threading.Event()
+    # A stop during rclpy.init is taken once it returns: raised inside it, the KeyboardInterrupt
+    # would leave a context made but not kept, with no clean way down (seen as a traceback when a
+    # session was stopped while its nodes started).
+    initialising = True
 
     def on_signal(signum, _frame):
         first = not stopped.is_set()
         stopped.set()
         watchdog.arm()
-        if first and signum == signal.SIGINT:  # a second Ctrl-C must not break the cleanup
+        if first and signum == signal.SIGINT and not initialising:  # a second Ctrl-C must not break the cleanup
             raise KeyboardInterrupt
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
     rclpy.init(args=args)
+    initialising = False
     node = None
     executor = None
     code = 0
     try:
         try:
+            if stopped.is_set():
+                raise KeyboardInterrupt
             node = make_node()
             warn_undeclared(node)
             executor = make_executor() if make_executor else SingleThreadedExecutor()
