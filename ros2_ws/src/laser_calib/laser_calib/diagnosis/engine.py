@@ -82,11 +82,13 @@ from laser_calib.diagnosis.data import Data, SpotData, supports
 from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
 from laser_calib.diagnosis.options import MIN_TRAINING_RATIO, DiagnoseOptions
+from laser_calib.diagnosis.prediction import predictive_test
 from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.screening import Refused, misfits, screened, screened_again, taken_back_by_either
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
 from laser_calib.diagnosis.specification import covariate_table, drift_covariates, load_table, specification_tests
-from laser_calib.diagnosis.verdict import analysis, evidence, rated_noise, verdict_noise, with_left_out, worse_on_test
+from laser_calib.diagnosis.verdict import (analysis, evidence, predicted, prediction_warning, rated_noise,
+                                           verdict_noise, with_left_out, worse_on_test)
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
@@ -321,6 +323,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     verdict, said = evidence(after, noise, detection, len(samples.q), options.alpha, varying)
     parameters = parameter_report(final, alternatives)
     verdict, said = ambiguous_verdict(verdict, said, parameters)
+    prediction = None if test is None else predictive_test(final, test, noise_model)
+    verdict, said = predicted(verdict, said, prediction, options.alpha)
     compensator = compensated = None
     if options.compensate and detection.p <= options.alpha and detection.gain > 0:
         compensator = backfit(detection, seen, final.estimate.values, fitter.fit_options, detector_noise)
@@ -330,7 +334,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
                      noise, before, after, verdict, said, parameters, replace(options, progress=None),
                      time.perf_counter() - start, merged, tuple(notes), detection, compensator, compensated, nested,
-                     tuple(varying), tuple(worse_on_test(stages, None if test is None else test.samples.pose)))
+                     tuple(varying), tuple(worse_on_test(stages, None if test is None else test.samples.pose)
+                                           + prediction_warning(prediction, options.alpha)), prediction)
 
 
 

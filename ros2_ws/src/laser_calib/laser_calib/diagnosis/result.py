@@ -107,6 +107,31 @@ class Analysis:
 
 
 @dataclass(frozen=True)
+class Prediction:
+    """ratio: the test poses' mean square over the calibration's, their prediction
+    variance allowed for (the F statistic on dof); p of "ratio 1", p_margin of "ratio at
+    most margin^2" (diagnosis/prediction.py); beyond: how many test units were left out of
+    it as beyond the robust rule's limit, and their names."""
+
+    ratio: float
+    dof: tuple[int, int]
+    p: float
+    p_margin: float
+    margin: float
+    beyond: int = 0
+    beyond_named: str = ""
+
+    def sentence(self) -> str:
+        text = (f"the test poses' whitened residual is {self.ratio:.2f} times the calibration poses' in mean square, "
+                f"their prediction variance allowed for (predictive F on {self.dof[0]}, {self.dof[1]} dof: "
+                f"p = {self.p:.2g} against 1, p = {self.p_margin:.2g} against {self.margin:g}^2)")
+        if self.beyond:
+            text += (f"; {self.beyond} test measurement{'s' * (self.beyond > 1)} beyond the robust rule's limit "
+                     f"left out of it ({self.beyond_named})")
+        return text
+
+
+@dataclass(frozen=True)
 class Diagnosis:
     robot: Robot
     samples: Readings
@@ -129,6 +154,7 @@ class Diagnosis:
     nested: np.ndarray | None = None  # (P, L) m held out with the selection inside the folds (engine.nested_heldout)
     specification: tuple[Varying, ...] = ()  # the chosen form's tests, strongest first (specification.py)
     warnings: tuple[str, ...] = ()  # the diagnosis's own, beside its final fit's (verdict.worse_on_test)
+    prediction: Prediction | None = None  # the test poses' predictive test (prediction.py), None without them
 
     @property
     def final(self) -> Fitted:
@@ -192,6 +218,10 @@ class Diagnosis:
             "specification": [{"parameter": v.parameter, "covariate": v.covariate, "F": v.f, "dof": list(v.dof),
                                "p": v.p, "p_adjusted": v.p_adjusted, "share": v.share, "shape": v.shape}
                               for v in self.specification[:10]],
+            "test_prediction": None if self.prediction is None else {
+                "ratio": self.prediction.ratio, "dof": list(self.prediction.dof), "p": self.prediction.p,
+                "margin": self.prediction.margin, "p_margin": self.prediction.p_margin,
+                "beyond_limit": self.prediction.beyond},
             "compensator": None if self.compensator is None else {
                 "heldout_gain": self.compensator.heldout_gain, "file": "compensator.json",
                 "targets": [t for t, u in zip(self.compensator.targets, self.compensator.used) if u],

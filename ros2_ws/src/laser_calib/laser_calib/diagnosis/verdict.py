@@ -13,7 +13,7 @@ from laser_calib.diagnosis.detector import Detection
 from laser_calib.diagnosis.noise import deviance, noise_components, pure_error
 from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_REPEAT_DOF, STRUCTURE,
                                            UNDETERMINED, DiagnoseOptions)
-from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo, Stage
+from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo, Prediction, Stage
 from laser_calib.diagnosis.specification import Varying
 from laser_calib.diagnosis.structure import Readings, joined, pose_covariates, pose_responses, structure_tests
 from laser_calib.effects.base import positive_number
@@ -208,3 +208,31 @@ def with_left_out(verdict: str, evidence: str, left_out: int) -> tuple[str, str]
                           f"{left_out} measurement{'s' * (left_out > 1)} rejected as gross outliers, which the final "
                           "model does not fit either, may be wrong detections or structure the model lacks where "
                           "they lie (the notes list them).")
+
+
+def predicted(verdict: str, evidence: str, prediction: Prediction | None, alpha: float) -> tuple[str, str]:
+    """The verdict once the test poses are counted (prediction.py): a test set the final model
+    predicts by more than the margin worse than it fits the calibration poses is structure they
+    did not show, whatever they said; test measurements left out of that test as beyond the
+    robust rule's limit make "explained" "undetermined", as the calibration's own do
+    (with_left_out). A significant excess within the margin is warned of (prediction_warning)."""
+    if prediction is None:
+        return verdict, evidence
+    failed = prediction.p_margin < alpha
+    said = f"{evidence} {'Test poses: structure remains: ' if failed else 'Test poses: '}{prediction.sentence()}."
+    if failed:
+        return STRUCTURE, said
+    if verdict == EXPLAINED and prediction.beyond:
+        return UNDETERMINED, (f"{said} Undetermined: the final model misses those test measurements grossly; the "
+                              "data cannot tell wrong detections from structure the model lacks where they lie.")
+    return verdict, said
+
+
+def prediction_warning(prediction: Prediction | None, alpha: float) -> list[str]:
+    """The warning when the test poses are fitted significantly worse than the calibration poses but
+    within the margin the verdict allows (predicted): at alpha, a chance once in 1 / alpha data sets."""
+    if prediction is None or prediction.p >= alpha or prediction.p_margin < alpha:
+        return []
+    return [f"test: the test poses are fitted worse than the calibration poses (mean square {prediction.ratio:.2f} "
+            f"times theirs, p = {prediction.p:.2g}; within {prediction.margin:g} times in RMS, which the verdict "
+            "allows): chance at this rate, or conditions that differ between the two sets"]
