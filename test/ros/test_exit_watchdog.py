@@ -1,9 +1,9 @@
 """The bound on the time from Ctrl-C to exit (laser_calib_nodes/shutdown.py), each case in
 its own process: a node stuck before its cleanup ends with its stacks and code 1; a
-middleware teardown that hangs after the cleanup ends with the node's code; a slow cleanup
-(saving what was measured) is never cut; a stop signal whose handler runs while the error
-it caused is handled still exits 0; a Ctrl-C while a node is still importing, or while
-rclpy initialises, exits 0."""
+middleware teardown that hangs after the cleanup ends with the node's code, even inside a C
+call that holds the GIL; a slow cleanup (saving what was measured) is never cut; a stop
+signal whose handler runs while the error it caused is handled still exits 0; a Ctrl-C
+while a node is still importing, or while rclpy initialises, exits 0."""
 
 from __future__ import annotations
 
@@ -44,6 +44,19 @@ def test_a_teardown_that_hangs_after_the_cleanup_exits_with_the_nodes_code(code)
     result = run(f"watchdog.arm(); watchdog.cleanup_started(); watchdog.cleanup_done({code})")
     assert result.returncode == code
     assert "teardown did not finish within 0.5 s; exiting without it" in result.stderr, result.stderr
+
+
+def test_a_teardown_that_hangs_holding_the_gil_exits_with_the_nodes_code():
+    """A C call that blocks while holding the GIL (as rclpy's node destruction did, in a DDS
+    teardown) stops the watchdog thread too; the native backstops still end the process with
+    the node's code, every thread's stack on stderr. Before them it hung until killed."""
+    result = run("""
+        watchdog.arm(); watchdog.cleanup_started(); watchdog.cleanup_done(2)
+        import ctypes
+        ctypes.PyDLL(None).sleep(20)  # libc sleep, the GIL held
+    """)
+    assert result.returncode == 2, result
+    assert "Timeout" in result.stderr and "line" in result.stderr, result.stderr  # faulthandler's stacks
 
 
 def test_a_slow_cleanup_is_never_cut():

@@ -8,10 +8,19 @@ on stderr and ends the process with os._exit. The node's own cleanup (close(): f
 flushed, the bag closed) is never cut: the watchdog waits while it runs. When it had
 finished, nothing measured is lost and the exit code is the node's; when it had not begun,
 every thread's stack goes to stderr and the code is 1.
+
+The watchdog is a Python thread: it runs only when it can take the GIL. A teardown that
+hangs inside a C call that holds it (the node's destruction in rclpy's extension: a session
+test's camera and detector, stopped together, were aborted after 30 s there) stops every
+Python thread with it. So once the cleanup is done two native backstops are armed as well:
+faulthandler's own thread writes every thread's stack to stderr, and a POSIX timer whose
+expiry runs _exit(code) on a thread of its own (timer_create with SIGEV_THREAD) ends the
+process with the node's code; neither needs the GIL.
 """
 
 from __future__ import annotations
 
+import ctypes
 import faulthandler
 import os
 import sys
@@ -19,6 +28,43 @@ import threading
 import time
 
 GRACE = 15.0  # s: ten times what the nodes need to exit on two loaded cores
+BACKSTOP = 1.0  # s after GRACE: the native backstops, when the watchdog thread could not run
+
+
+class _Sigevent(ctypes.Structure):
+    """struct sigevent (Linux, 64 bytes) for SIGEV_THREAD: sigev_value is the argument the
+    notify function is called with."""
+
+    _fields_ = [("value", ctypes.c_void_p), ("signo", ctypes.c_int), ("notify", ctypes.c_int),
+                ("function", ctypes.c_void_p), ("attributes", ctypes.c_void_p), ("pad", ctypes.c_int * 8)]
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("seconds", ctypes.c_long), ("nanoseconds", ctypes.c_long)]
+
+
+class _Itimerspec(ctypes.Structure):
+    _fields_ = [("interval", _Timespec), ("value", _Timespec)]
+
+
+SIGEV_THREAD = 2
+CLOCK_MONOTONIC = 1
+
+
+def exit_later(seconds: float, code: int) -> bool:
+    """_exit(code) after ``seconds`` on a thread the C library starts (no GIL needed); False
+    where the C library has no POSIX timers (the Python watchdog alone then bounds the exit)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        event = _Sigevent(value=code, notify=SIGEV_THREAD, function=ctypes.cast(libc._exit, ctypes.c_void_p).value)
+        timer = ctypes.c_void_p()
+        if libc.timer_create(CLOCK_MONOTONIC, ctypes.byref(event), ctypes.byref(timer)) != 0:
+            return False
+        whole = int(seconds)
+        spec = _Itimerspec(value=_Timespec(whole, int((seconds - whole) * 1e9)))
+        return libc.timer_settime(timer, 0, ctypes.byref(spec), None) == 0
+    except (OSError, AttributeError):
+        return False
 
 
 class ExitWatchdog:
@@ -42,6 +88,8 @@ class ExitWatchdog:
         self.code = code
         self.closed.set()
         self.arm()
+        faulthandler.dump_traceback_later(self.grace + BACKSTOP, file=sys.stderr)
+        exit_later(self.grace + BACKSTOP + 0.1, code)  # after the stacks are written
 
     def _watch(self) -> None:
         if not self.closed.wait(self.grace):
