@@ -31,14 +31,12 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import stats
-from scipy.special import chdtri
 
 from laser_calib.diagnosis.data import Data
 from laser_calib.diagnosis.result import Fitted, Prediction
-from laser_calib.diagnosis.screening import named
+from laser_calib.diagnosis.screening import named, within_limit
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.problem import pose_blocks, residuals_at
-from laser_calib.estimation.redundancy import FAMILY_FALSE_REJECTION
 from laser_calib.estimation.robust import distances_at
 from laser_calib.measurement.base import NoiseModel, whiten
 
@@ -62,8 +60,7 @@ def predictive_test(final: Fitted, test: Data, noise: NoiseModel) -> Prediction 
         return None
     scale2 = float(r @ r) / dof
     d2, valid, dims = distances_at(EffectModel(test.base(), final.effects), noise, x)
-    limit = chdtri(dims, FAMILY_FALSE_REJECTION / max(int(valid.sum()), 1))
-    beyond = valid & (d2 / max(scale2, 1.0) > limit)
+    beyond = valid & ~within_limit(d2, valid, dims, scale2)
     kept = test.without(beyond) if beyond.any() else test
     fit = final.estimate.fit
     w, v = np.linalg.eigh(fit.covariance[np.ix_(fit.free, fit.free)])

@@ -108,9 +108,16 @@ def fitted(data: Data, final: Fitted, verdict_noise: NoiseInfo, refused: Refused
     d2, valid, dims = distances_at(EffectModel(data.base(), final.effects), noise, final.estimate.values)
     refused_units = refused.rejected | refused.impossible
     kept = valid & ~refused_units
-    scale2 = max(1.0, float(d2[kept].mean() / dims)) if kept.any() else 1.0
+    scale2 = float(d2[kept].mean() / dims) if kept.any() else 1.0
+    return refused_units & within_limit(d2, valid, dims, scale2)
+
+
+def within_limit(d2: np.ndarray, valid: np.ndarray, dims: int, scale2: float) -> np.ndarray:
+    """(P,C) the valid units whose squared whitened distance d2 (P,C) of ``dims`` values, at the
+    scale ``scale2`` (at least 1), is within the robust rule's limit chi^2_D(1 - 0.01 / N), N the
+    valid units: what a model fits (screened_again), or a test unit is tested on (prediction.py)."""
     limit = chdtri(dims, FAMILY_FALSE_REJECTION / max(int(valid.sum()), 1))
-    return refused_units & valid & (d2 / scale2 <= limit)
+    return valid & (d2 / max(scale2, 1.0) <= limit)
 
 
 def misfits(data: Data, final: Fitted, verdict_noise: NoiseInfo, refused: Refused) -> int:
