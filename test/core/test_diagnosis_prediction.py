@@ -16,6 +16,7 @@ from laser_calib.estimation.problem import residuals_at
 from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.sim.effect_truth import effect_session
 from laser_calib.diagnosis.verdict import prediction_warning
+from laser_calib.session.estimate import estimate_options, run_calibration
 from test_diagnosis import NOISE, SEED, library_session, run
 
 NOISE_MODEL = NoiseModel(NOISE.spot_sigma, NOISE.joint_sigma)
@@ -97,3 +98,21 @@ def test_a_significant_excess_within_the_margin_is_a_warning_not_structure():
     assert prediction.p < diagnosis.options.alpha < prediction.p_margin
     assert diagnosis.verdict == EXPLAINED, diagnosis.evidence
     assert prediction_warning(prediction, diagnosis.options.alpha)[0] in diagnosis.to_json()["warnings"]
+
+
+def test_the_nodes_estimate_gives_its_test_poses_to_the_diagnosis_and_the_estimate():
+    """run_calibration, the code path of the estimator's service and action and of the sequencer,
+    with the session's test poses: the diagnosis tests them as `diagnose --test` does (the joint
+    scale only the test poses carry is "structure remains", where the calibration poses alone
+    say "explained"), and the estimate's files hold the test set as `estimate --test`'s do. Before,
+    the nodes' diagnosis never saw the test poses (test_prediction null)."""
+    clean, scaled = clean_session(), library_session("paper-4dof", "joint_scale")
+    options = replace(estimate_options("lm", NOISE.spot_sigma, False, True), joint_sigma=NOISE.joint_sigma)
+    alone = run_calibration(clean.nominal, clean.cal, options, None, diagnose=True)
+    assert alone.diagnosis["verdict"] == EXPLAINED and alone.diagnosis["test_prediction"] is None
+    tested = run_calibration(clean.nominal, clean.cal, options, None, diagnose=True, test=scaled.test,
+                             sources={"samples": "session samples", "test": "session test samples"})
+    assert tested.diagnosis["verdict"] == STRUCTURE, tested.diagnosis.get("evidence")
+    assert tested.diagnosis["test_prediction"]["ratio"] > 1.5
+    assert set(tested.calibration.to_json()["spot_error"]) == {"calibration", "test"}
+    assert tested.calibration.sets["test"].samples is scaled.test

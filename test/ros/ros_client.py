@@ -257,6 +257,10 @@ def bad_and_concurrent(robot_path: str) -> dict:
     nan_joint[4].joint_positions[2] = math.nan
     nan_spot = [sample(k, measured.q[k], measured.spots[k]) for k in range(len(measured))]
     nan_spot[2].spots[0].y = math.nan  # seen, but not finite
+    held_out, _ = measure(true, sample_poses([robot, true], 5, np.random.default_rng(4), "whole"), rng, NoiseSpec())
+    tests = [sample(100 + k, held_out.q[k], held_out.spots[k]) for k in range(len(held_out))]
+    nan_test = [sample(100 + k, held_out.q[k], held_out.spots[k]) for k in range(len(held_out))]
+    nan_test[1].joint_positions[0] = math.nan
     cases = {
         "empty": request([]),
         "wrong_joint_count": request(wrong_count),
@@ -265,6 +269,8 @@ def bad_and_concurrent(robot_path: str) -> dict:
         "bad_method": request(good, method="gauss"),
         "negative_sigma": request(good, spot_sigma=-1.0),
         "too_few": request(good[:2]),
+        "nan_test_joint": request(good, test_samples=nan_test),
+        "tested": request(good, test_samples=tests),
         "good_lm_1": request(good),
         "good_lm_2": request(good),
         "good_ekf": request(good, method="ekf", spot_sigma=0.00115),

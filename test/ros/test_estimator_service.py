@@ -20,6 +20,7 @@ def test_bad_requests_and_concurrent_clients(ros):
         "bad_method": "gauss",
         "negative_sigma": "spot_sigma",
         "too_few": "",
+        "nan_test_joint": "request: test sample 2 (pose 101): joint_positions[0] is not finite",
     }
     for name, text in expected_refusals.items():
         assert out[name]["success"] is False, (name, out[name]["message"])
@@ -36,6 +37,10 @@ def test_bad_requests_and_concurrent_clients(ros):
         json.loads(good["result_json"])
     assert json.loads(out["good_lm_3"]["diagnosis_json"])["verdict"]  # laser_calib.diagnosis.engine ran
     assert out["good_lm_1"]["diagnosis_json"] == ""
+    # test_samples: held out, never fitted (the same estimate), the estimate's test figures
+    assert out["tested"]["errors"] == goods[0]["errors"] and out["tested"]["sample_count"] == 30
+    assert json.loads(out["tested"]["result_json"])["spot_error"]["test"]["after"]["all"]["n"] == 10
+    assert "test" not in json.loads(goods[0]["result_json"])["spot_error"]
     assert out["good_ekf"]["success"], out["good_ekf"]["message"]
     assert ros.procs["estimator"].poll() is None  # still alive
     reset = ros.client("reset")

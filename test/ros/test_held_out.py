@@ -1,9 +1,13 @@
 """A simulated session with held-out test poses: measured, never fitted (not even by the
-online estimator), and the report's figures against the simulator's true robot."""
+online estimator), given to the estimate as its test set (the Estimate request's test_samples,
+the estimator's accumulated test_samples), and the report's figures against the simulator's
+true robot."""
 
 from __future__ import annotations
 
 import json
+
+import numpy as np
 
 from ros_harness import ROBOT, start_sim
 
@@ -25,6 +29,14 @@ def test_test_poses_are_measured_and_held_out(ros, tmp_path):
     assert len(bag.read_samples(out / "bag", "/test_samples")) == TEST
     online = ros.client("params", str(FIT))
     assert online["sample_count"] == FIT                        # the estimator never saw a test pose
+    # ... but the estimate tested on them: the sequencer's request carried them, the estimator kept them apart
+    assert f"with {FIT} samples and {TEST} test samples" in ros.log("sequencer")
+    tested = json.loads((out / "result.json").read_text())["spot_error"]["test"]["after"]
+    assert tested["all"]["n"] == int(np.isfinite(test.spots).all(axis=2).sum()) > 0, tested
+    accumulated = ros.client("estimate-accumulated")
+    assert accumulated["success"] and accumulated["sample_count"] == FIT, accumulated["message"]
+    assert json.loads(accumulated["result_json"])["spot_error"]["test"] == \
+        json.loads((out / "result.json").read_text())["spot_error"]["test"]
     result = json.loads((out / "truth.json").read_text())
     assert result["test"]["poses"] == TEST
     truth = result["truth"]

@@ -25,6 +25,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.session.estimate import estimate_options, run_calibration, run_diagnosis
 
 from laser_calib_nodes import common, responses
+from laser_calib_nodes.sample_rows import request_sets
 
 
 class CalibrateServer:
@@ -45,22 +46,20 @@ class CalibrateServer:
 
         with self.busy:
             try:
-                samples, source = node.request_samples(request)
+                samples, test, sources = request_sets(node, request)
                 output_dir = common.request_output_dir(request.output_dir)
                 options = estimate_options(request.method, request.spot_sigma or node.spot_sigma, request.prior,
                                            request.robust)
                 stage("estimate", 0.0)
-                outcome = run_calibration(node.robot, samples, options, output_dir,
-                                          sources={"robot": node.robot_path, "samples": source,
-                                                   "compensator": node.compensator_path},
-                                          compensator=node.compensator)
+                outcome = run_calibration(node.robot, samples, options, output_dir, sources=sources,
+                                          compensator=node.compensator, test=test)
                 if request.diagnose and goal.is_cancel_requested:
                     goal.canceled()
                     result.message = f"canceled before the diagnosis; the estimate: {outcome.message}"
                     return result
                 if request.diagnose:
                     stage("diagnosis", 0.5, outcome.message)
-                    diagnosis = run_diagnosis(node.robot, samples, options, output_dir)
+                    diagnosis = run_diagnosis(node.robot, samples, options, output_dir, test, sources)
                     outcome = replace(outcome, diagnosis_json=json.dumps(diagnosis))
             except InputError as exc:
                 result.message = str(exc)

@@ -38,6 +38,7 @@ CAMERA_INFO = "camera/camera_info"
 SPOTS = "spots"                        # laser_calib_interfaces/SpotPair, every frame
 LASER_SPOT = ("laser1/spot", "laser2/spot")  # geometry_msgs/PointStamped, only when seen
 SAMPLES = "samples"
+TEST_SAMPLES = "test_samples"           # the held-out samples: never on samples, so no estimator fits them
 PROGRESS = "session/progress"
 DH_PARAMETERS = "dh_parameters"
 MARKERS = "calibration_markers"

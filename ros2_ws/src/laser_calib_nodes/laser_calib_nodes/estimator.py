@@ -3,8 +3,10 @@
 
 Input 'samples' (Sample, as the sequencer or replay publishes them; subscribed
 with the sequencer's transient-local QoS and with the default one, each (pose,
-stamp) counted once) or 'stream' (joint_states + spots paired by stamp within
-sync_tolerance, counted when every |joint velocity| < stream.max_joint_speed). In
+stamp) counted once; the held-out ones on test_samples kept apart, never fitted,
+for the estimate's test figures and the diagnosis's predictive test) or 'stream'
+(joint_states + spots paired by stamp within sync_tolerance, counted when every
+|joint velocity| < stream.max_joint_speed). In
 both, and in the ~/estimate request's samples, each joint's reading is found by its
 name, ``joint_names``, as the sequencer does (joint_states.py; a Sample's by
 laser_calib.io.joint_names, as estimate --bag reads a bag's).
@@ -33,14 +35,13 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from laser_calib.io import bag
 from laser_calib.io.errors import InputError
-from laser_calib.io.samples import Samples
 
 from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
 from laser_calib_nodes.joint_states import JointStateReader
 from laser_calib_nodes.markers import MAX_POINTS, calibration_markers, online_parameters
+from laser_calib_nodes.sample_rows import Row, check_row, request_sets, row_from_msg
 from laser_calib.session.estimate import estimate_options, online_options, run_calibration
 from laser_calib.session.sync import StampSynchronizer
 
@@ -78,8 +79,10 @@ class Estimator(Node):
         from laser_calib_interfaces.srv import Estimate
 
         self.lock = threading.Lock()
-        self.rows: list[tuple[int, float, np.ndarray, np.ndarray]] = []
+        self.rows: list[Row] = []
         self.keys: set[tuple[int, float]] = set()
+        self.test_rows: list[Row] = []  # held out: never fitted
+        self.test_keys: set[tuple[int, float]] = set()
         self.online = self.make_online()
 
         self.param_pub = self.create_publisher(DhParameters, common.DH_PARAMETERS, common.LATCHED_QOS)
@@ -89,6 +92,7 @@ class Estimator(Node):
         if self.input == "samples":
             for qos in (common.SAMPLES_QOS, common.SAMPLES_INPUT_QOS):
                 self.create_subscription(Sample, common.SAMPLES, self.on_sample, qos, callback_group=inputs)
+                self.create_subscription(Sample, common.TEST_SAMPLES, self.on_test_sample, qos, callback_group=inputs)
         else:
             self.sync = StampSynchronizer(self.sync_tol)
             self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.STREAM_QOS,
@@ -117,18 +121,30 @@ class Estimator(Node):
         return OnlineEkf(self.robot, online_options(self.spot_sigma))
 
     def on_sample(self, msg) -> None:
+        row = self.new_row(msg, "sample", self.keys)
+        if row is not None:
+            self.add(row)
+
+    def on_test_sample(self, msg) -> None:
+        """A held-out sample: kept for the requests' test set, never given to the online EKF."""
+        row = self.new_row(msg, "test sample", self.test_keys)
+        if row is not None:
+            with self.lock:
+                self.test_rows = sorted(self.test_rows + [row], key=lambda r: r[1])
+
+    def new_row(self, msg, what: str, keys: set):
+        """The message's row, or None when it is bad (said) or already counted."""
         try:
-            row = bag.sample_row_from_msg(msg, f"sample (pose {msg.pose})", self.joints)
-            self.check_row(row, f"sample (pose {msg.pose})")
+            row = row_from_msg(msg, f"{what} (pose {msg.pose})", self.joints, self.robot)
         except InputError as exc:
             self.get_logger().error(f"ignored: {exc}")
-            return
+            return None
         key = (row[0], row[1])  # (pose id, stamp): a sample published again (sequencer resumed) counts once
         with self.lock:
-            if key in self.keys:
-                return
-            self.keys.add(key)
-        self.add(row)
+            if key in keys:
+                return None
+            keys.add(key)
+        return row
 
     def on_joint_state(self, msg: JointState) -> None:
         reading = self.joints.read(msg)
@@ -147,19 +163,11 @@ class Estimator(Node):
             return  # moving: joint reading and image do not describe the same pose
         row = (len(self.rows), pair.b_stamp, q, pair.b)
         try:
-            self.check_row(row, "joint state")
+            check_row(self.robot, row, "joint state")
         except InputError as exc:
             self.get_logger().error(f"ignored: {exc}")
             return
         self.add(row)
-
-    def check_row(self, row, where: str) -> None:
-        n = len(row[2])
-        if n != self.robot.n_joints:
-            raise InputError(where, f"{n} joint positions, robot '{self.robot.name}' has {self.robot.n_joints}")
-        bad = np.flatnonzero(~np.isfinite(row[2]))
-        if bad.size:
-            raise InputError(where, f"joint_positions[{bad[0]}] is not finite ({row[2][bad[0]]})")
 
     def add(self, row) -> None:
         with self.lock:
@@ -181,8 +189,8 @@ class Estimator(Node):
     # ---- services ----
     def on_reset(self, request, response):
         with self.lock:
-            self.rows = []
-            self.keys = set()
+            self.rows, self.test_rows = [], []
+            self.keys, self.test_keys = set(), set()
             self.online = self.make_online()
             if self.input == "stream":
                 self.sync.reset()
@@ -193,14 +201,15 @@ class Estimator(Node):
 
     def on_estimate(self, request, response):
         try:
-            samples, source = self.request_samples(request)
+            samples, test, sources = request_sets(self, request)
             # the request may run for minutes (the diagnosis): say it started
-            self.get_logger().info(f"estimating from {source}" + (", then the diagnosis" if request.diagnose else ""))
+            self.get_logger().info(f"estimating from {sources['samples']}"
+                                   + (f", tested on {sources['test']}" if test is not None else "")
+                                   + (", then the diagnosis" if request.diagnose else ""))
             options = estimate_options(request.method, request.spot_sigma or self.spot_sigma, request.prior,
                                        request.robust)
             outcome = run_calibration(self.robot, samples, options, common.request_output_dir(request.output_dir),
-                                      request.diagnose, {"robot": self.robot_path, "samples": source,
-                                                         "compensator": self.compensator_path}, self.compensator)
+                                      request.diagnose, sources, self.compensator, test)
         except InputError as exc:
             response.success = False
             response.message = str(exc)
@@ -214,25 +223,6 @@ class Estimator(Node):
         responses.fill(response, outcome, self.robot, len(samples), self.get_clock().now().to_msg())
         common.log_warned(self.get_logger(), outcome.warned, response.message)
         return response
-
-    def request_samples(self, request) -> tuple[Samples, str]:
-        if request.use_accumulated:
-            with self.lock:
-                rows = list(self.rows)
-            if not rows:
-                raise InputError("request", "use_accumulated is true but no samples have been accumulated yet")
-            source = f"{len(rows)} samples accumulated by {self.get_fully_qualified_name()}"
-        else:
-            if not request.samples:
-                raise InputError("request", "no samples (and use_accumulated is false)")
-            rows = []
-            for k, msg in enumerate(request.samples):
-                where = f"request: sample {k + 1} (pose {msg.pose})"
-                row = bag.sample_row_from_msg(msg, where, self.joints)
-                self.check_row(row, where)
-                rows.append(row)
-            source = f"{len(rows)} samples of an Estimate request"
-        return bag.samples_from_rows(rows, "request"), source
 
 
 def main(args=None) -> int:

@@ -17,8 +17,6 @@ from laser_calib.io.bag_writer import SegmentedBagWriter
 
 from laser_calib_nodes import common
 
-TEST_SAMPLES = "test_samples"   # the held-out samples: never on samples, so no estimator fits them
-
 
 class Recorder:
     def __init__(self, node: Node, bag_dir, work_dir, robot_name: str, record_images: bool, segment_seconds: float):
@@ -35,7 +33,7 @@ class Recorder:
         if record_images:
             recorded.append((common.IMAGE, Image, "sensor_msgs/msg/Image", common.IMAGE_QOS))
         own = [(common.SAMPLES, "laser_calib_interfaces/msg/Sample", common.SAMPLES_QOS),
-               (TEST_SAMPLES, "laser_calib_interfaces/msg/Sample", common.SAMPLES_QOS),
+               (common.TEST_SAMPLES, "laser_calib_interfaces/msg/Sample", common.SAMPLES_QOS),
                (common.JOINT_TRAJECTORY, "trajectory_msgs/msg/JointTrajectory", common.COMMAND_QOS),
                (common.PROGRESS, "laser_calib_interfaces/msg/SessionProgress", common.LATCHED_QOS)]
         topics = {node.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, _, kind, qos in recorded}

@@ -36,7 +36,7 @@ from laser_calib.session.folder import POSES_FILE, Progress
 from laser_calib.session.settle import SettleDetector, SettleRule
 
 from laser_calib_nodes import common, parameters, sequencer_parts
-from laser_calib_nodes.recorder import TEST_SAMPLES, Recorder
+from laser_calib_nodes.recorder import Recorder
 
 
 class Sequencer(Node):
@@ -91,7 +91,7 @@ class Sequencer(Node):
         self.Sample, self.SessionProgress = Sample, SessionProgress
         self.traj_pub = self.create_publisher(JointTrajectory, common.JOINT_TRAJECTORY, common.COMMAND_QOS)
         self.sample_pub = self.create_publisher(Sample, common.SAMPLES, common.SAMPLES_QOS)
-        self.test_pub = self.create_publisher(Sample, TEST_SAMPLES, common.SAMPLES_QOS)
+        self.test_pub = self.create_publisher(Sample, common.TEST_SAMPLES, common.SAMPLES_QOS)
         self.progress_pub = self.create_publisher(SessionProgress, common.PROGRESS, common.LATCHED_QOS)
         self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.STREAM_QOS)
         self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.STREAM_QOS)
@@ -174,7 +174,7 @@ class Sequencer(Node):
         found = self.resumed
         for r in range(len(found.to_bag)):   # restored from the CSV: back into the bag (the journal)
             test = bool(self.poses.test[self.poses.pose == found.to_bag.pose[r]][0])
-            self.recorder.publish(self.test_pub if test else self.sample_pub, TEST_SAMPLES if test else
+            self.recorder.publish(self.test_pub if test else self.sample_pub, common.TEST_SAMPLES if test else
                                   common.SAMPLES, sequencer_parts.sample_msg(self, found.to_bag, r), close_segment=True)
         for r in range(len(found.fit)):       # for an estimator that missed them (it ignores those it has)
             self.sample_pub.publish(sequencer_parts.sample_msg(self, found.fit, r))
@@ -214,7 +214,7 @@ class Sequencer(Node):
         # The CSV row is built from the message, so bag and CSV hold identical values; on disk (segment
         # closed) first, then published, then the row: folder.reconcile repairs a crash between the steps.
         row = bag.samples_from_rows([bag.sample_row_from_msg(msg, 'sample')], 'sample')
-        self.recorder.publish(self.test_pub if test else self.sample_pub, TEST_SAMPLES if test else common.SAMPLES,
+        self.recorder.publish(self.test_pub if test else self.sample_pub, common.TEST_SAMPLES if test else common.SAMPLES,
                               msg, close_segment=True)
         self.session.append_sample(row, test)
         self.progress.step()

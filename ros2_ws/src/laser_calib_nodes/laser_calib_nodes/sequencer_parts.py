@@ -185,6 +185,7 @@ def finish(node) -> None:
     node.recorder.rotate()
     session, end, log = node.session, node.end, node.get_logger()
     samples = session.samples(None)
+    test = session.samples(None, test=True) if node.poses.test.any() else None  # held out: never fitted
     measured = f"all {len(node.poses)} poses measured; samples in {session.path / 'samples.csv'}, bag in " \
                f"{session.bag_dir}"
     lost = int(np.isnan(samples.spots).any(axis=2).sum())  # spots (P,2,2) of the poses to fit
@@ -197,11 +198,11 @@ def finish(node) -> None:
         if end.mode == "local":
             from laser_calib.session.estimate import estimate_options, run_calibration
             options = estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
-            outcome = run_calibration(node.robot, samples, options, session.path, end.diagnose)
+            outcome = run_calibration(node.robot, samples, options, session.path, end.diagnose, test=test)
             message, warned = outcome.message, outcome.warned
             failed = outcome.calibration.failure is not None
         else:
-            message, failed, warned = call_service(node, samples)
+            message, failed, warned = call_service(node, samples, test)
         if failed:  # estimated but no calibration (NOT CONVERGED ...): its files show where the fit went
             raise parameters.NodeError(f"estimate failed: {message}; its files are in {session.path}", 4)
         common.log_warned(log, warned, message)
@@ -228,7 +229,7 @@ def compare_with_truth(node) -> None:
             node.get_logger().info(line)
 
 
-def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
+def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, bool, bool]:
     """The Estimate service's message, whether it failed (files written, no calibration)
     and whether the estimate has warnings."""
     end, path = node.end, node.session.path
@@ -244,10 +245,13 @@ def call_service(node, samples: Samples) -> tuple[str, bool, bool]:
             raise parameters.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; the data are in "
                                    f"{path}: estimate offline with laser-calib estimate", 3)
     request = node.estimate_client.srv_type.Request(
-        samples=[sample_msg(node, samples, r) for r in range(len(samples))], method=end.method,
+        samples=[sample_msg(node, samples, r) for r in range(len(samples))],
+        test_samples=[sample_msg(node, test, r) for r in range(len(test))] if test is not None else [],
+        method=end.method,
         spot_sigma=float(end.spot_sigma), prior=bool(end.prior), robust=bool(end.robust),
         diagnose=bool(end.diagnose), output_dir=str(path) if end.shared_fs else "")
-    node.get_logger().info(f"calling {name} with {len(samples)} samples ({end.method})")
+    node.get_logger().info(f"calling {name} with {len(samples)} samples"
+                           + (f" and {len(test)} test samples" if test is not None else "") + f" ({end.method})")
     future = node.estimate_client.call_async(request)
     answered = threading.Event()
     future.add_done_callback(lambda _: answered.set())

@@ -1,11 +1,12 @@
 """The batch estimate as the nodes run it (ROS-free): the command line's code path.
 
 Both the estimator's Estimate service and the sequencer's local mode call
-run_calibration: report.calibration.calibrate (what `laser-calib estimate`
-runs), the files written from its result when there is a folder for them, and
-the diagnosis on request. The service fills its response from the result object:
-success is false for an estimate that is no calibration (Calibration.failure), as
-the command line exits 3 for it.
+run_calibration: report.calibration.calibrate (what `laser-calib estimate
+--test` runs), the files written from its result when there is a folder for
+them, and the diagnosis on request (`laser-calib diagnose --test`), both with
+the session's held-out test poses when it measured any. The service fills its
+response from the result object: success is false for an estimate that is no
+calibration (Calibration.failure), as the command line exits 3 for it.
 """
 
 from __future__ import annotations
@@ -78,21 +79,24 @@ def warned(estimate_warnings, diagnosis_json: str) -> bool:
 
 
 def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
-                    diagnose: bool = False, sources: dict | None = None, compensator: Compensator | None = None
-                    ) -> Outcome:
+                    diagnose: bool = False, sources: dict | None = None, compensator: Compensator | None = None,
+                    test: Samples | None = None) -> Outcome:
     """calibrate() (what `laser-calib estimate` runs: the robot file's effects, and the
     learned compensator when given), its files into out_dir when given; ValueError
-    from the estimate (too few spots, ...) becomes an InputError."""
+    from the estimate (too few spots, ...) becomes an InputError. test: held-out
+    samples (never fitted) for the test figures and the diagnosis's predictive test."""
     # Samples from a request or a live session are not read from a file: their units and columns are checked here.
-    source = (sources or {}).get("samples") or "samples"
-    check_spot_units(samples.spots, robot, source)
-    check_spot_columns(robot, samples.q, samples.spots, source)
+    for name, checked in (("samples", samples), ("test", test)):
+        if checked is not None:
+            source = (sources or {}).get(name) or name
+            check_spot_units(checked.spots, robot, source)
+            check_spot_columns(robot, checked.q, checked.spots, source)
     with writing(out_dir):  # a folder that cannot be made: refused before the estimate
         if out_dir:
             refuse_finished(out_dir, "output_dir")
             Path(out_dir).mkdir(parents=True, exist_ok=True)
     try:
-        calibration = calibrate(robot, samples, options, sources=sources, compensator=compensator)
+        calibration = calibrate(robot, samples, options, test, sources=sources, compensator=compensator)
     except ValueError as exc:
         if isinstance(exc, InputError):
             raise
@@ -102,7 +106,8 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
             write_outputs(calibration, out_dir)
         diagnosis = ""
         if diagnose:
-            diagnosis = json.dumps(run_diagnosis(robot, samples, options, Path(out_dir) if out_dir else None))
+            diagnosis = json.dumps(run_diagnosis(robot, samples, options, Path(out_dir) if out_dir else None, test,
+                                                 sources))
     return Outcome(calibration, diagnosis)
 
 
@@ -116,8 +121,10 @@ def writing(out_dir: str | Path | None):
         raise InputError("output_dir", f"cannot write the report into {out_dir} ({reason})") from None
 
 
-def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out: Path | None) -> dict:
-    """laser_calib.diagnosis.engine.diagnose (what `laser-calib diagnose` runs) on the same samples.
+def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out: Path | None,
+                  test: Samples | None = None, sources: dict | None = None) -> dict:
+    """laser_calib.diagnosis.engine.diagnose (what `laser-calib diagnose --test` runs) on the same
+    samples and test samples (None: none; its predictive test is then not run).
 
     Its files (diagnosis.json, report.md with plots, robot_calibrated.yaml with
     the effects) go to out/diagnosis/, beside the geometric estimate's, when out
@@ -125,13 +132,16 @@ def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out:
     poses for it is a data limit, not an error: {"skipped": "diagnosis skipped: ..."}.
     """
     try:
-        diagnosis = diagnose(robot, samples, options=DiagnoseOptions(
+        diagnosis = diagnose(robot, samples, test, options=DiagnoseOptions(
             method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma or None,
-            robust=options.robust))
+            robust=options.robust), sources=sources)
     except TooFewPoses as exc:
         return {"skipped": f"diagnosis skipped: {exc.n_poses} poses, at least {exc.needed} needed"}
     if out is not None:
-        write_diagnosis(diagnosis, out / "diagnosis", {"robot": robot.name, "samples": f"{len(samples)} session samples"})
+        written_from = {"robot": robot.name, "samples": f"{len(samples)} session samples"}
+        if test is not None:
+            written_from["test"] = f"{len(test)} session test samples"
+        write_diagnosis(diagnosis, out / "diagnosis", written_from)
     return diagnosis.to_json()
 
 

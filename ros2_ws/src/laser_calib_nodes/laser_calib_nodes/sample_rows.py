@@ -1,0 +1,54 @@
+"""The estimator's sample rows (pose id, stamp s, q (N,) rad, spots (2,2) m), from Sample
+messages and joint-state pairs, and the sets an Estimate request or a Calibrate goal
+names: its own samples and test samples, or those the node accumulated."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from laser_calib.io import bag
+from laser_calib.io.errors import InputError
+from laser_calib.io.samples import Samples
+from laser_calib.model.robot import Robot
+
+Row = tuple[int, float, np.ndarray, np.ndarray]
+
+
+def check_row(robot: Robot, row: Row, where: str) -> None:
+    n = len(row[2])
+    if n != robot.n_joints:
+        raise InputError(where, f"{n} joint positions, robot '{robot.name}' has {robot.n_joints}")
+    bad = np.flatnonzero(~np.isfinite(row[2]))
+    if bad.size:
+        raise InputError(where, f"joint_positions[{bad[0]}] is not finite ({row[2][bad[0]]})")
+
+
+def row_from_msg(msg, where: str, joints, robot: Robot) -> Row:
+    """A Sample message's row, its joints in the robot's order (joints: the node's JointStateReader)."""
+    row = bag.sample_row_from_msg(msg, where, joints)
+    check_row(robot, row, where)
+    return row
+
+
+def request_sets(node, request) -> tuple[Samples, Samples | None, dict]:
+    """An Estimate request's (or a Calibrate goal's) samples, its test samples (None: none)
+    and the sources run_calibration names: the robot, both sets and the compensator."""
+    if request.use_accumulated:
+        with node.lock:
+            rows, test_rows = list(node.rows), list(node.test_rows)
+        if not rows:
+            raise InputError("request", "use_accumulated is true but no samples have been accumulated yet")
+        by = f"accumulated by {node.get_fully_qualified_name()}"
+    else:
+        if not request.samples:
+            raise InputError("request", "no samples (and use_accumulated is false)")
+        rows, test_rows = (
+            [row_from_msg(msg, f"request: {what} {k + 1} (pose {msg.pose})", node.joints, node.robot)
+             for k, msg in enumerate(msgs)]
+            for what, msgs in (("sample", request.samples), ("test sample", request.test_samples)))
+        by = "of the request"
+    sources = {"robot": node.robot_path, "samples": f"{len(rows)} samples {by}",
+               "test": f"{len(test_rows)} test samples {by}" if test_rows else None,
+               "compensator": node.compensator_path}
+    test = bag.samples_from_rows(test_rows, "request: test_samples") if test_rows else None
+    return bag.samples_from_rows(rows, "request"), test, sources
