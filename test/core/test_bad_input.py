@@ -246,6 +246,7 @@ CASES = {
                                                "--poses-per-span", "0"], "--poses-per-span"),
     # said before replay's need of ROS (not sourced here), which a user would otherwise fix first
     "replay a missing bag": (lambda d: ["replay", str(d / "nobag")], "nobag: no such bag"),
+    "replay at rate 0": (lambda d: ["replay", str(d / "nobag"), "--rate", "0"], "--rate: expected a positive number"),
     "--out is a file": (lambda d: (d / "taken").write_text("x") and _estimate(d)[:-1] + [str(d / "taken")], "--out"),
     "--out unwritable": (lambda d: _estimate(d)[:-1] + ["/proc/x/y"], "/proc"),
     "--out a finished session": (lambda d: _finished(d / "session") and _estimate(d)[:-1] + [str(d / "session")],

@@ -322,3 +322,16 @@ def test_slm_calibrate_recovers_the_laser_angles(tmp_path, capsys):
     for (gamma, beta), fitted, laser in zip(truth, angles, lasers):
         assert abs(fitted.gamma - gamma) < 4 * fitted.gamma_std and abs(fitted.beta - beta) < 4 * fitted.beta_std
         assert (laser.gamma, laser.beta) == (fitted.gamma, fitted.beta)
+
+
+@pytest.mark.parametrize("argv", [["bag"], ["--rate", "20", "bag", "--topics", "samples", "/test_samples", "--quiet"],
+                                  ["bag", "--exclude", "/spots", "--wait-for", "samples", "--wait-timeout", "2.5"]])
+def test_replay_hands_its_options_to_the_node_as_parsed(argv):
+    """`laser-calib replay` takes the replay node's arguments (one definition) and hands them on
+    whole: before, it knew --rate only, and --topics or --wait-for were refused."""
+    import argparse
+    from laser_calib.cli.arguments import add_replay_arguments, replay_argv
+    parser = argparse.ArgumentParser()
+    add_replay_arguments(parser)
+    parsed = parser.parse_args(argv)
+    assert parser.parse_args(replay_argv(parsed)) == parsed

@@ -143,8 +143,9 @@ def test_replay_and_bag_estimate_agree_with_live(session):
     live_errors = [np.nan if e["value"] is None else e["value"] for e in live_result["errors"]]
 
     assert ros.client("reset")["success"]
-    replay = ros.run([str(ros_bin("replay")), str(out / "bag"), "--rate", "20", "--topics", "/samples",
-                      "--wait-for", "/samples"], timeout=120)
+    # through the command line, which hands its options to the node; topics named as a node would resolve them
+    replay = ros.run([str(ROOT / "scripts" / "laser-calib"), "replay", str(out / "bag"), "--rate", "20", "--topics",
+                      "samples", "--wait-for", "samples"], timeout=120)
     assert replay.returncode == 0, replay.stderr
     replayed = ros.client("params", str(POSES))
     assert close(replayed["errors"], live_online["errors"])

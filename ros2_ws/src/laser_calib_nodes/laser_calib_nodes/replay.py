@@ -27,6 +27,7 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from laser_calib.cli.arguments import add_replay_arguments
 from laser_calib.io.errors import InputError
 
 from laser_calib.io import bag
@@ -58,15 +59,12 @@ COMMANDS = ("trajectory_msgs/msg/JointTrajectory",)
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="replay", description="Republish a recorded calibration session.")
-    parser.add_argument("bag", help="session bag directory (rosbag2, MCAP)")
-    parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1)")
-    parser.add_argument("--topics", nargs="+", help="only these topics (default: all but motion commands)")
-    parser.add_argument("--exclude", nargs="+", default=[], help="not these topics")
-    parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
-                        help="start once each of these topics has a subscriber")
-    parser.add_argument("--wait-timeout", type=float, default=30.0, help="for --wait-for, s (default 30)")
-    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_replay_arguments(parser)
     return parser
+
+
+def absolute(topic: str) -> str:
+    return topic if topic.startswith("/") else "/" + topic
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,9 +74,9 @@ def main(argv: list[str] | None = None) -> int:
         i = argv.index("--ros-args")
         argv, ros_args = argv[:i], argv[i:]
     args = build_parser().parse_args(argv)
-    if not args.rate > 0:
-        print("replay: --rate must be positive", file=sys.stderr)
-        return 2
+    # a bag names its topics absolute (/samples); a name given as a node would resolve it (samples) is the same
+    args.topics, args.exclude, args.wait_for = ([absolute(t) for t in names] if names is not None else None
+                                                for names in (args.topics, args.exclude, args.wait_for))
     try:
         topics = bag.bag_topics(args.bag)
         chosen = {t: v for t, v in topics.items()

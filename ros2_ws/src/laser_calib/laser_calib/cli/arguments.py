@@ -110,6 +110,27 @@ def positive_int(text: str) -> int:
     return _integer(text, 1)
 
 
+def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
+    """The replay node's arguments (laser_calib_nodes.replay), which `laser-calib replay` takes
+    too and hands on (replay_argv): one definition for both."""
+    parser.add_argument("bag", help="session bag directory (rosbag2, MCAP)")
+    parser.add_argument("--rate", type=positive, default=1.0, help="playback speed factor (default 1)")
+    parser.add_argument("--topics", nargs="+", help="only these topics (default: all but motion commands)")
+    parser.add_argument("--exclude", nargs="+", default=[], help="not these topics")
+    parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
+                        help="start once each of these topics has a subscriber")
+    parser.add_argument("--wait-timeout", type=positive, default=30.0, help="for --wait-for, s (default 30)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def replay_argv(args: argparse.Namespace) -> list[str]:
+    """The replay node's command line for arguments parsed by add_replay_arguments."""
+    argv = [args.bag, "--rate", repr(args.rate), "--wait-timeout", repr(args.wait_timeout)]
+    for flag, topics in (("--topics", args.topics), ("--exclude", args.exclude), ("--wait-for", args.wait_for)):
+        argv += [flag, *topics] if topics else []
+    return argv + (["--quiet"] if args.quiet else [])
+
+
 def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
     """--robot (a robot YAML, or a URDF / xacro file with --base and --tip)."""
     parser.add_argument("--robot", required=True, help="robot YAML, or URDF / xacro (then --base and --tip)")

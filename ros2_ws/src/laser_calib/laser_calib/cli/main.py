@@ -40,9 +40,10 @@ from laser_calib.cli import diagnose as diagnose_cli
 from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
-from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, noise_angle_deg, noise_length, non_negative_int,
-                                      no_spot_to_fit, out_file, out_folder, positive, positive_int, print_warnings,
-                                      require_measured, sigma_angle, sigma_length, staged_folder, tolerance_length)
+from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, add_replay_arguments, noise_angle_deg,
+                                      noise_length, non_negative_int, no_spot_to_fit, out_file, out_folder, positive,
+                                      positive_int, print_warnings, replay_argv, require_measured, sigma_angle,
+                                      sigma_length, staged_folder, tolerance_length)
 
 EXIT_BAD_INPUT = 2
 # The reader of the output went away (| head): the status a shell gives a program SIGPIPE ends (128 + 13).
@@ -215,7 +216,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if executable is None or not os.access(executable, os.X_OK):
         raise InputError("replay", "needs the ROS 2 environment: run scripts/setup, then use scripts/laser-calib "
                                    "(or source scripts/env.sh)")
-    os.execv(executable, [str(executable), args.bag, "--rate", str(args.rate)])
+    os.execv(executable, [str(executable), *replay_argv(args)])
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -287,8 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_slm_calibrate)
 
     p = sub.add_parser("replay", help="republish a recorded session bag with its original timing (ROS)")
-    p.add_argument("bag")
-    p.add_argument("--rate", type=positive, default=1.0, help="playback speed factor")
+    add_replay_arguments(p)
     p.set_defaults(func=cmd_replay)
 
     diagnose_cli.register(sub)
