@@ -24,21 +24,26 @@ def simulated(tmp_path_factory):
     return out
 
 
-def write_bag(path, samples, labelled):
-    """The samples as a session bag, one segment per sample as the sequencer writes it;
-    ``labelled(k, q)``: sample k's (joint_names, joint_positions) from its readings q, robot order."""
+def write_bag(path, samples, labelled, test=None):
+    """The samples (and the test samples on /test_samples, after them) as a session bag, one
+    segment per sample as the sequencer writes it; ``labelled(k, q)``: sample k's (joint_names,
+    joint_positions) from its readings q, robot order."""
     store = bag.typestore()
     T = store.types
-    topics = {bag.SAMPLES_TOPIC: (SAMPLE, [bag.qos(True, True, 100)])}
+    sets = {bag.SAMPLES_TOPIC: samples, bag.TEST_SAMPLES_TOPIC: test}
+    topics = {topic: (SAMPLE, [bag.qos(True, True, 100)]) for topic, written in sets.items() if written is not None}
     writer = SegmentedBagWriter(path, path.parent / f".{path.name}", topics, store)
-    for k in range(len(samples)):
-        stamp = 1000 + k
-        names, positions = labelled(k, samples.q[k])
-        spots = [T["laser_calib_interfaces/msg/Spot"](float(y), float(z), True) for y, z in samples.spots[k]]
-        msg = T[SAMPLE](T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](stamp, 0), "screen"),
-                        int(samples.pose[k]), names, np.array(positions), spots, 3)
-        writer.write(bag.SAMPLES_TOPIC, stamp * 10 ** 9, store.serialize_cdr(msg, SAMPLE))
-        writer.rotate()
+    stamp = 1000
+    for topic in topics:
+        for k in range(len(sets[topic])):
+            stamp += 1
+            names, positions = labelled(k, sets[topic].q[k])
+            spots = [T["laser_calib_interfaces/msg/Spot"](float(y), float(z), bool(np.isfinite(y)))
+                     for y, z in sets[topic].spots[k]]
+            msg = T[SAMPLE](T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](stamp, 0), "screen"),
+                            int(sets[topic].pose[k]), names, np.array(positions), spots, 3)
+            writer.write(topic, stamp * 10 ** 9, store.serialize_cdr(msg, SAMPLE))
+            writer.rotate()
     writer.close()
     return path
 

@@ -31,7 +31,7 @@ from laser_calib.report.calibration import shown_mm
 from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
-from laser_calib.io.bag import bag_topics, read_samples_checked
+from laser_calib.io.bag import SAMPLES_TOPIC, TEST_SAMPLES_TOPIC, bag_topics, read_samples_checked
 from laser_calib.io.joint_names import RobotJoints
 from laser_calib.io.samples import check_joint_range, check_spot_units, load_samples, save_samples
 from laser_calib.io.spot_columns import check_spot_columns
@@ -102,12 +102,12 @@ def _options(args: argparse.Namespace, progress: Progress | None = None) -> Esti
                            robust=args.robust, fixed=tuple(args.fix), lm=lm, ekf=ekf)
 
 
-def _bag_samples(path: str, robot, joint_names: list[str] | None) -> object:
-    """Samples of a recorded session bag (rosbags: no ROS runtime), each sample's joint_positions
-    put in the robot's order by its joint_names: the robot's own, or ``joint_names`` (--joint-names,
-    as the sequencer's parameter of that name gives them) base to tip."""
+def _bag_samples(path: str, robot, joint_names: list[str] | None, topic: str = SAMPLES_TOPIC) -> object:
+    """Samples of a recorded session bag's ``topic`` (rosbags: no ROS runtime), each sample's
+    joint_positions put in the robot's order by its joint_names: the robot's own, or
+    ``joint_names`` (--joint-names, as the sequencer's parameter of that name gives them) base to tip."""
     joints = RobotJoints(robot, joint_names, "--joint-names") if joint_names else RobotJoints(robot)
-    samples, lost = read_samples_checked(path, joints=joints)
+    samples, lost = read_samples_checked(path, topic, joints)
     for segment in lost:
         print(f"warning: {path}: segment {segment} is damaged and was skipped; its samples are lost, the other "
               "segments were read", file=sys.stderr)
@@ -124,11 +124,17 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if args.joint_names and not args.bag:
         raise InputError("--joint-names", "names the joints of a bag's samples: it applies to --bag only")
     samples = _bag_samples(args.bag, robot, args.joint_names) if args.bag else load_samples(args.samples, robot)
-    test = load_samples(args.test, robot) if args.test else None
-    _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})")
+    test_source = args.test
+    if args.bag and not args.test and TEST_SAMPLES_TOPIC in bag_topics(args.bag):
+        test_source = f"{args.bag} {TEST_SAMPLES_TOPIC}"  # the session's held-out poses, as it tested them
+        test = _bag_samples(args.bag, robot, args.joint_names, TEST_SAMPLES_TOPIC)
+    else:
+        test = load_samples(args.test, robot) if args.test else None
+    _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})"
+              + (f", tested on {len(test)} poses of {test_source}" if test is not None else ""))
     require_measured(samples, str(args.samples or args.bag))
     if test is not None:
-        require_measured(test, str(args.test), "no spot is measured in the test set")
+        require_measured(test, test_source, "no spot is measured in the test set")
     compensator = None
     if args.compensator:
         from laser_calib.diagnosis.compensator import load_compensator  # scikit-learn: only when asked for
@@ -137,7 +143,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         try:
             calibration = run_estimate(robot, samples, _options(args, progress), out, test,
                                        sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
-                                                "test": str(args.test) if args.test else None,
+                                                "test": test_source,
                                                 "compensator": args.compensator},
                                        compensator=compensator)
         except TooFewValues as exc:  # the estimator counts the values, the command knows their file
@@ -247,11 +253,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robot", required=True)
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--samples", help="samples CSV")
-    source.add_argument("--bag", help="a recorded session bag (its /samples topic)")
+    source.add_argument("--bag", help="a recorded session bag (its /samples topic; its /test_samples, the "
+                                      "session's held-out poses, are the test set unless --test is given)")
     p.add_argument("--joint-names", nargs="+", metavar="NAME",
                    help="the names the bag's samples give the robot's joints, base to tip (the sequencer's "
                         "joint_names parameter); default: the robot's own")
-    p.add_argument("--test")
+    p.add_argument("--test", help="test samples CSV: poses the fit never sees")
     p.add_argument("--method", choices=METHODS, default="lm")
     p.add_argument("--spot-sigma", type=sigma_length, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual)")

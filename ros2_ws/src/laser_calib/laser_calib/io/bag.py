@@ -23,6 +23,7 @@ from laser_calib.io.samples import Samples
 
 INTERFACES = "laser_calib_interfaces"
 SAMPLES_TOPIC = "/samples"
+TEST_SAMPLES_TOPIC = "/test_samples"  # the session's held-out poses: measured, never fitted
 METADATA = "metadata.yaml"
 _INFINITE = QosTime(9223372036, 854775807)  # RMW_DURATION_INFINITE, as ros2 bag (Jazzy) writes it
 
