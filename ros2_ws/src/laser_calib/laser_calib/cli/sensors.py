@@ -299,14 +299,15 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     failure = first_failure(fit.estimate.warnings)
     with staged_folder(args.out) as out:
         if robot.chain is not None:
-            written = save_calibrated_urdf(fit.corrected(robot), robot, fit.estimate.identifiable, out,
-                                           str(args.robot), failure)
+            written = save_calibrated_urdf(fit.corrected(robot), robot, fit.determined, out, str(args.robot), failure)
         else:
             corrected = with_held(fit.corrected(robot), fit.held)
             save_robot(replace(corrected, extra={k: v for k, v in corrected.extra.items() if k != "effects"}),
                        out / "robot_calibrated.yaml",
                        header=f"Calibrated from {args.samples} (laser-calib calibrate-poses)."
                               + (f"\nNO CALIBRATION: {failure}" if failure else "")
+                              + (f"\nNot determined at its values (std beyond the data), written at nominal: "
+                                 f"{', '.join(fit.undetermined)}" if fit.undetermined else "")
                               + (f"\nThe geometric model only: the effects --diagnose chose "
                                  f"({result['diagnosis']['stages'][-1]['model']}) are in result.json, not here."
                                  if args.diagnose and len(result["diagnosis"]["stages"]) > 1 else ""))

@@ -11,6 +11,8 @@ calibrate(robot, samples, options) runs, on estimation.estimate_model:
    user's masks (``fixed``) and priors; what it kept but its own minimum does
    not determine (undetermined_at) is held too and the fit repeated, with a
    warning when holding it costs more chi^2 than undetermined parameters can;
+   a failed fit (a wrong model) is not refitted so, but what it kept and does
+   not determine at its values (beyond_data) is written at nominal;
 4. for pose samples, the weight of rotation against translation
    (rotation_length, m/rad) from the residuals of the fit: the ratio of the RMS
    translation to the RMS rotation residual (a variance-component step,
@@ -29,7 +31,7 @@ from typing import Callable
 
 import numpy as np
 
-from laser_calib.estimation.failures import FAR_SCALES, MAX_RESIDUAL
+from laser_calib.estimation.failures import FAR_SCALES, MAX_RESIDUAL, first_failure
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model, prior_sigmas
 from laser_calib.estimation.identifiability import analyse, carried_by_kept
@@ -63,30 +65,41 @@ class SensorFitOptions:
 class SensorFit:
     """model: the final model; nominal: the frames-only fit; estimate: the full
     fit; absorbed: name -> why it was held (Absorbed); rotation_length (m/rad)
-    the pose residuals were weighted with."""
+    the pose residuals were weighted with; undetermined: what a failed full fit
+    kept but does not determine at its values (beyond_data), written at nominal."""
 
     model: MeasurementModel
     nominal: Estimate
     estimate: Estimate
     absorbed: dict[str, Absorbed]
     rotation_length: float
+    undetermined: tuple[str, ...] = ()
+
+    @property
+    def determined(self) -> np.ndarray:
+        """(n,) the parameters whose values the calibrated robot file writes: those the fit kept,
+        but for a failed fit's undetermined ones."""
+        return self.estimate.identifiable & ~np.isin(self.model.names, self.undetermined)
 
     def corrected(self, robot: Robot) -> Robot:
-        """The robot with the estimated D-H errors and frames (guess · error)."""
-        values = dict(zip(self.model.names, self.estimate.values))
+        """The robot with the estimated D-H errors and frames (guess · error), a failed fit's
+        undetermined ones at nominal (zero error)."""
+        errors = np.where(np.isin(self.model.names, self.undetermined), 0.0, self.estimate.values)
+        values = dict(zip(self.model.names, errors))
         guesses = robot_frames(robot)
         frames = {frame: guesses[frame].perturbed(np.array([values.get(f"{frame}_{p}", 0.0) for p in FRAME_PARAMS]))
                   for frame in frame_list(robot)}
-        return with_frames(robot.with_errors(self.estimate.values[:robot.n_params]), frames)
+        return with_frames(robot.with_errors(errors[:robot.n_params]), frames)
 
     @property
     def held(self) -> tuple[str, ...]:
-        """The robot's parameters this fit held at nominal as undetermined, in the model's order: the
-        robot file's ``held`` key (robot_file.with_held), as estimate writes it. Not those a frame of
-        this set-up carries: a set-up without that frame (the laser screen) may determine them."""
+        """The robot's parameters this fit held or wrote at nominal as undetermined, in the model's
+        order: the robot file's ``held`` key (robot_file.with_held), as estimate writes it. Not those a
+        frame of this set-up carries: a set-up without that frame (the laser screen) may determine them."""
         by_fit = self.estimate.identifiability.merged
         return tuple(name for name in self.model.names if not is_frame_param(name) and (
-            name in by_fit or (name in self.absorbed and not self.absorbed[name].by_frames)))
+            name in by_fit or name in self.undetermined
+            or (name in self.absorbed and not self.absorbed[name].by_frames)))
 
     @property
     def carried(self) -> dict[str, tuple[str, ...]]:
@@ -152,12 +165,32 @@ def undetermined_at(model: MeasurementModel, fit: Estimate, options: SensorFitOp
     true one is on it: a point on the last axis showed that axis's tilt and the
     next placement as 3 tolerances there; the fit then moved the marker and
     both came out with 60 tolerances, written as numbers."""
-    factor = options.estimate.std_factor if _prior(model, options) is None else None
+    factor = _std_factor(model, options)
     if _wrong_model(model, fit, factor):
         return {}
     left_out = (*fit.rejected, *((p, c) for p, c, _ in fit.impossible))
     return frames_first(model, NoiseModel(fit.sigma, options.estimate.joint_sigma), ~fit.identifiable,
                         fit.values, factor, left_out, "not identifiable at the calibrated values: ")
+
+
+def beyond_data(model: MeasurementModel, fit: Estimate, options: SensorFitOptions) -> tuple[str, ...]:
+    """What ``fit`` kept whose standard deviation at its values is beyond the noise threshold (with a
+    prior, none: the prior bounds every value). A failed fit is not refitted without them (its weak
+    directions are a wrong model's, _wrong_model), but its file writes them at nominal: the 4-DOF
+    arm measured at a point with its second joint's readings negated ran off along d3 and the sensor
+    frame together, d3 written 5.45 m with a std of 2400 tolerance scales."""
+    undetermined = fit.identifiable & ~_determined(model, fit, _std_factor(model, options))
+    return tuple(name for name, beyond in zip(model.names, undetermined) if beyond)
+
+
+def _std_factor(model: MeasurementModel, options: SensorFitOptions) -> float | None:
+    """The noise threshold of identifiability (tolerance scales); None with a prior, which bounds every value."""
+    return options.estimate.std_factor if _prior(model, options) is None else None
+
+
+def _determined(model: MeasurementModel, fit: Estimate, factor: float | None) -> np.ndarray:
+    """(n,) the parameters ``fit`` kept whose std at its values is within ``factor`` tolerance scales."""
+    return fit.identifiable & (fit.fit.std / model.scales <= (np.inf if factor is None else factor))
 
 
 def _wrong_model(model: MeasurementModel, fit: Estimate, factor: float | None) -> bool:
@@ -168,10 +201,9 @@ def _wrong_model(model: MeasurementModel, fit: Estimate, factor: float | None) -
     (the UR10e's shoulder and elbow columns swapped: elbow_joint.x at 62
     tolerances, std 0.2)."""
     level = fit.sigma * np.sqrt(fit.fit.chi2 / max(fit.fit.dof, 1))
-    size, std = np.abs(fit.values) / model.scales, fit.fit.std / model.scales
-    determined = fit.identifiable & (std <= (np.inf if factor is None else factor))
+    size = np.abs(fit.values) / model.scales
     own = np.isin(model.names, model.robot.param_names)
-    return level > MAX_RESIDUAL or bool(np.any(own & determined & (size > FAR_SCALES)))
+    return level > MAX_RESIDUAL or bool(np.any(own & _determined(model, fit, factor) & (size > FAR_SCALES)))
 
 
 def _costly_hold(fit: Estimate, held: Estimate, names: tuple[str, ...]) -> str | None:
@@ -271,7 +303,10 @@ def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = 
             model = build(length)
             nominal = fit(model, tuple(user) + tuple(absorbed) + not_frames, nominal.values)
             full = full_fit(model, full.values)
-    return SensorFit(model, nominal, replace(full, warnings=tuple(costly) + full.warnings), absorbed, length)
+    full = replace(full, warnings=tuple(costly) + full.warnings)
+    # a calibration's minimum determines what it kept (undetermined_at); a failed one's was not asked
+    return SensorFit(model, nominal, full, absorbed, length,
+                     beyond_data(model, full, options) if first_failure(full.warnings) else ())
 
 
 @dataclass(frozen=True)
