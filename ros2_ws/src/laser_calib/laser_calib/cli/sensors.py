@@ -31,8 +31,7 @@ from laser_calib.io.revisits import repeat_warnings
 from laser_calib.planning import PlanOptions, plan
 from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
-from laser_calib.model.robot_file import (held, held_warnings, load_robot, load_robot_description, save_robot,
-                                         with_held)
+from laser_calib.model.robot_file import held, held_warnings, load_robot, load_robot_description, save_robot, with_held
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings, test_outside_range
 from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, calibrate, is_frame_param, kfold,
@@ -78,6 +77,8 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
             entry["note"] = ("carried by the frames: " if held.by_frames else "") + held.why
         elif not est.identifiable[i]:
             entry["note"] = est.identifiability.merged.get(name, "held")
+        elif name in fit.undetermined:  # a failed fit's: where it went is no value, the robot file has nominal
+            entry.update(value=None, note="not determined at the failed fit's values (std beyond the data): nominal")
         elif name in carried:  # as the spot estimate's result.json says it
             entry["note"] = carried_note(name, carried[name])
         out.append(entry)
