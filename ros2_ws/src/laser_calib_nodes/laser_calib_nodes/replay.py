@@ -81,7 +81,9 @@ def main(argv: list[str] | None = None) -> int:
         topics = bag.bag_topics(args.bag)
         chosen = {t: v for t, v in topics.items()
                   if (t in args.topics if args.topics else v[0] not in COMMANDS) and t not in args.exclude}
-        commands = [t for t, v in topics.items() if v[0] in COMMANDS and t not in chosen and t not in args.exclude]
+        # said when left out by default; topics named (--topics) or excluded were the user's choice
+        commands = [t for t, v in topics.items() if v[0] in COMMANDS and t not in chosen and t not in args.exclude
+                    and args.topics is None]
         missing = [t for t in (args.topics or []) + args.wait_for if t not in topics]
         if missing:
             raise InputError(args.bag, f"no topic {missing[0]} in the bag (it has {', '.join(sorted(topics))})")
