@@ -23,7 +23,7 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       out_file, out_folder, positive, positive_int, print_warnings, require_measured,
                                       sigma_angle, sigma_length, staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
-from laser_calib.estimation.failures import first_failure, is_failure
+from laser_calib.estimation.failures import first_failure, is_failure, undetermined_note
 from laser_calib.estimation.identifiability import TooFewValues, carried_note
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
@@ -307,8 +307,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                        out / "robot_calibrated.yaml",
                        header=f"Calibrated from {args.samples} (laser-calib calibrate-poses)."
                               + (f"\nNO CALIBRATION: {failure}" if failure else "")
-                              + (f"\nNot determined at its values (std beyond the data), written at nominal: "
-                                 f"{', '.join(fit.undetermined)}" if fit.undetermined else "")
+                              + undetermined_note(fit.undetermined)
                               + (f"\nThe geometric model only: the effects --diagnose chose "
                                  f"({result['diagnosis']['stages'][-1]['model']}) are in result.json, not here."
                                  if args.diagnose and len(result["diagnosis"]["stages"]) > 1 else ""))

@@ -166,12 +166,25 @@ class Diagnosis:
         estimation/failures.py), None when it is one: the robot it writes is then none."""
         return first_failure(self.final.estimate.warnings)
 
+    @property
+    def at_nominal(self) -> tuple[str, ...]:
+        """What a failed final fit's file writes at nominal: what it kept but does not determine at its
+        values (Estimate.undetermined), and the robot's errors it held, which a fit holds at its warm
+        start, here the failed fit before it (the spots out of step with the joint readings: d2 held
+        for the noise, written 0.75 m off under 'held at nominal'); none for a calibration."""
+        if self.failure is None:
+            return ()
+        held = tuple(name for name in self.merged if name in self.robot.param_names)
+        return (*self.final.estimate.undetermined, *held)
+
     def calibrated_robot(self) -> Robot:
         """The robot with the geometric corrections and the ``effects:`` key
-        (spot data: the base parameters are the D-H errors)."""
+        (spot data: the base parameters are the D-H errors), at_nominal at zero: no
+        geometric error, no effect (where every effect the diagnosis adds starts)."""
         final = self.final
-        geometric, values = final.model.split(final.estimate.values)
-        corrected = with_held(self.robot.with_errors(geometric), self.merged)
+        nominal = np.isin(final.model.names, self.at_nominal)
+        geometric, values = final.model.split(np.where(nominal, 0.0, final.estimate.values))
+        corrected = with_held(self.robot.with_errors(geometric), (*self.merged, *final.estimate.undetermined))
         extra = {k: v for k, v in corrected.extra.items() if k != "effects"}
         if final.effects:
             extra["effects"] = effects_to_yaml(final.effects, values)

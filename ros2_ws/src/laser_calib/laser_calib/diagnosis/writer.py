@@ -8,6 +8,7 @@ from pathlib import Path
 from laser_calib import __version__
 from laser_calib.diagnosis.report import write_report
 from laser_calib.diagnosis.result import Diagnosis
+from laser_calib.estimation.failures import undetermined_note
 from laser_calib.model.robot_file import save_robot
 
 
@@ -39,6 +40,7 @@ def robot_header(diagnosis: Diagnosis, result: dict) -> str:
             f"{diagnosis.final.label}. Verdict: {diagnosis.verdict}."
             + (f"\nNO CALIBRATION: {diagnosis.failure}" if diagnosis.failure else "")
             + (f"\nNot identifiable, held at nominal: {merged}" if merged else "")
+            + undetermined_note(diagnosis.final.estimate.undetermined)
             + "".join(f"\nEffect parameter not separable from the geometric errors (the model uses the "
                       f"value, which has no meaning alone): {u}" for u in unseparated)
             + "".join(f"\nNot one cause: {e['group']}; this file uses {e['name']} ({e['where']}), the lowest "

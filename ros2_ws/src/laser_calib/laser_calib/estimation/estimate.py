@@ -31,8 +31,9 @@ estimate(robot, samples, options) runs, in order:
    6 sqrt(2 dof), the minimum is suspect (a wrong local minimum, an outlier or
    an unmodelled effect); LM restarts from seeded random starts within twice
    the parameter scales and keeps the lowest cost; if still suspect, it says so.
-Rank deficiency, an unconverged fit, dropped spots and a noise level far from
-the given one are one warning line each (Estimate.warnings).
+Rank deficiency, an unconverged fit, dropped spots and a noise level far from the given one are
+one warning line each (Estimate.warnings); what a failed fit kept but does not determine at its
+values is named (Estimate.undetermined), for its files to write at nominal.
 """
 
 from __future__ import annotations
@@ -45,12 +46,13 @@ from typing import Callable
 import numpy as np
 
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
-from laser_calib.estimation.failures import NOT_CONVERGED, NoSpotToFit, fit_failures, implausible
+from laser_calib.estimation.failures import (NOT_CONVERGED, NoSpotToFit, beyond_data, first_failure, fit_failures,
+                                             implausible)
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse
 from laser_calib.estimation.impossible import impossible_spots, judged_again
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
-from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses,
+from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses, rescaled,
                                             residuals_at, whitened_factor)
 from laser_calib.estimation.redundancy import NOISE_RATIO, sigma_warnings
 from laser_calib.estimation.robust import NO_JOINT_NOISE, ROBUST_RULE, robust_fit
@@ -101,12 +103,12 @@ class EstimateOptions:
 
 @dataclass(frozen=True)
 class Estimate:
-    """The result: fit holds x, the covariance and the history; sigma is the spot
-    sigma used (estimated when sigma_estimated); rejected: (pose index, channel)
-    of the spots the robust rule dropped; impossible: (pose index, channel,
-    reason) of the spots refused before the fit; robust: the rule and its
-    figures, None when off; predicted_at_start (P,C,D): what the model predicts
-    at the start x0 (the nominal model), as fit.predicted at the result."""
+    """The result: fit holds x, the covariance and the history; sigma is the spot sigma used (estimated
+    when sigma_estimated); rejected: (pose index, channel) of the spots the robust rule dropped; impossible:
+    (pose index, channel, reason) of the spots refused before the fit; robust: the rule and its figures,
+    None when off; predicted_at_start (P,C,D): what the model predicts at the start x0 (the nominal model),
+    as fit.predicted at the result; undetermined: what a failed fit kept whose std at its values is beyond
+    the identifiability threshold (failures.beyond_data; a calibration's minimum determines what it kept)."""
 
     names: tuple[str, ...]
     identifiable: np.ndarray
@@ -121,6 +123,7 @@ class Estimate:
     impossible: tuple[tuple[int, int, str], ...] = ()
     robust: dict | None = None
     predicted_at_start: np.ndarray | None = field(default=None, repr=False)
+    undetermined: tuple[str, ...] = ()
 
     @property
     def values(self) -> np.ndarray:
@@ -137,8 +140,14 @@ class Estimate:
         """(n,) standard deviations from the covariance, NaN where not identifiable."""
         return np.where(self.identifiable, self.fit.std, np.nan)
 
-    def corrected(self, robot: Robot) -> Robot:
-        return robot.with_errors(self.values[:robot.n_params])
+    @property
+    def determined(self) -> np.ndarray:
+        """(n,) the parameters a calibrated robot file writes a value of: those kept, but the undetermined."""
+        return self.identifiable & ~np.isin(self.names, self.undetermined)
+
+    def written(self, nominal: np.ndarray) -> np.ndarray:
+        """(n,) the values a calibrated robot file writes: the fitted ones, the undetermined at ``nominal`` (n,)."""
+        return np.where(np.isin(self.names, self.undetermined), nominal, self.values)
 
 
 def prior_sigmas(model: MeasurementModel, n_geometric: int, options: EstimateOptions) -> np.ndarray | None:
@@ -364,16 +373,9 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     if not result.converged:
         warnings.append(f"{NOT_CONVERGED}: {options.method} stopped after {result.iterations} iterations; the "
                         "values are not a minimum")
+    undetermined = beyond_data(names, free, result.std, model.scales, factor) if first_failure(warnings) else ()
     return Estimate(names, free.copy(), ident, result, sigma, sigma_estimated, tuple(rejected), tuple(warnings),
-                    time.perf_counter() - start, restarts, tuple(impossible), robust, at_start.predicted)
-
-
-def rescaled(fit: Fit, ratio: float) -> Fit:
-    """A least-squares fit without joint noise or prior under a noise sigma
-    ``ratio`` times its own: x stays, chi^2 and the costs scale by 1 / ratio^2,
-    the covariance by ratio^2."""
-    return replace(fit, covariance=fit.covariance * ratio ** 2, cost=fit.cost / ratio ** 2,
-                   chi2=fit.chi2 / ratio ** 2, cost_history=fit.cost_history / ratio ** 2)
+                    time.perf_counter() - start, restarts, tuple(impossible), robust, at_start.predicted, undetermined)
 
 
 def _suspect(result: Fit) -> bool:

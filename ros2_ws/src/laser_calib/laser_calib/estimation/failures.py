@@ -3,7 +3,8 @@ error fitted beyond any manufacturing error; redundancy.sigma_warnings's for a s
 from 1 or 2 residual degrees of freedom). The console
 prints them as error lines and the command exits with status 3
 (cli.arguments.print_warnings); the files are still written (they show where the fit
-went) but a script must not take them for a calibration. And the errors of a fit that
+went, but for what such a fit kept and does not determine at its values, beyond_data: at
+nominal) but a script must not take them for a calibration. And the errors of a fit that
 has nothing to fit at its start: no spot there (NoSpotToFit), or none because the fit
 it starts from moved the beams off the screen (FitMovedBeams)."""
 
@@ -98,3 +99,23 @@ def implausible(names: tuple[str, ...], x: np.ndarray, scales: np.ndarray, own: 
         return [f"implausible: {names[worst]} is fitted at {size[worst]:.0f} times its tolerance scale; a wrong "
                 "minimum, a wrong nominal model or data the model cannot explain"]
     return []
+
+
+def beyond_data(names, kept: np.ndarray, std: np.ndarray, scales: np.ndarray, factor: float | None) -> tuple[str, ...]:
+    """The ``names`` a failed fit kept (n,) whose std (n,) at its values is beyond ``factor`` tolerance
+    ``scales`` (with a prior, factor None: none, the prior bounds every value). Such a fit is not
+    refitted without them (its weak directions are a wrong model's), but its files write them at
+    nominal: the 4-DOF arm measured at a point with its second joint's readings negated ran off along
+    d3 and the sensor frame together, d3 written 5.45 m with a std of 2400 tolerance scales; the 7-DOF
+    arm's spots paired with the previous pose's readings, d1 and d2 over 0.7 m with a std of 130."""
+    if factor is None:
+        return ()
+    beyond = kept & ~(std / scales <= factor)
+    return tuple(name for name, far in zip(names, beyond) if far)
+
+
+def undetermined_note(names) -> str:
+    """The calibrated robot file's header line naming what a failed fit kept but does not determine
+    (beyond_data), written at nominal; '' for none."""
+    return (f"\nNot determined at its values (std beyond the data), written at nominal: {', '.join(names)}"
+            if names else "")

@@ -328,3 +328,11 @@ def make_fit(problem: Problem, x: np.ndarray, normal: Normal, iterations: int, c
     return Fit(x, problem.covariance(normal.information), problem.free, normal.cost, 2 * normal.cost,
                normal.n_values, iterations, converged, np.array(history), np.array(costs), problem.excluded,
                predicted=normal.predicted)
+
+
+def rescaled(fit: Fit, ratio: float) -> Fit:
+    """A least-squares fit without joint noise or prior under a noise sigma
+    ``ratio`` times its own: x stays, chi^2 and the costs scale by 1 / ratio^2,
+    the covariance by ratio^2."""
+    return replace(fit, covariance=fit.covariance * ratio ** 2, cost=fit.cost / ratio ** 2,
+                   chi2=fit.chi2 / ratio ** 2, cost_history=fit.cost_history / ratio ** 2)

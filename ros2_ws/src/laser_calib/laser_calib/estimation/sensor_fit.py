@@ -12,7 +12,7 @@ calibrate(robot, samples, options) runs, on estimation.estimate_model:
    not determine (undetermined_at) is held too and the fit repeated, with a
    warning when holding it costs more chi^2 than undetermined parameters can;
    a failed fit (a wrong model) is not refitted so, but what it kept and does
-   not determine at its values (beyond_data) is written at nominal;
+   not determine at its values (Estimate.undetermined) is written at nominal;
 4. for pose samples, the weight of rotation against translation
    (rotation_length, m/rad) from the residuals of the fit: the ratio of the RMS
    translation to the RMS rotation residual (a variance-component step,
@@ -31,7 +31,7 @@ from typing import Callable
 
 import numpy as np
 
-from laser_calib.estimation.failures import FAR_SCALES, MAX_RESIDUAL, first_failure
+from laser_calib.estimation.failures import FAR_SCALES, MAX_RESIDUAL
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model, prior_sigmas
 from laser_calib.estimation.identifiability import analyse, carried_by_kept
@@ -65,26 +65,30 @@ class SensorFitOptions:
 class SensorFit:
     """model: the final model; nominal: the frames-only fit; estimate: the full
     fit; absorbed: name -> why it was held (Absorbed); rotation_length (m/rad)
-    the pose residuals were weighted with; undetermined: what a failed full fit
-    kept but does not determine at its values (beyond_data), written at nominal."""
+    the pose residuals were weighted with."""
 
     model: MeasurementModel
     nominal: Estimate
     estimate: Estimate
     absorbed: dict[str, Absorbed]
     rotation_length: float
-    undetermined: tuple[str, ...] = ()
+
+    @property
+    def undetermined(self) -> tuple[str, ...]:
+        """What a failed full fit kept but does not determine at its values (Estimate.undetermined),
+        written at nominal."""
+        return self.estimate.undetermined
 
     @property
     def determined(self) -> np.ndarray:
         """(n,) the parameters whose values the calibrated robot file writes: those the fit kept,
         but for a failed fit's undetermined ones."""
-        return self.estimate.identifiable & ~np.isin(self.model.names, self.undetermined)
+        return self.estimate.determined
 
     def corrected(self, robot: Robot) -> Robot:
         """The robot with the estimated D-H errors and frames (guess · error), a failed fit's
         undetermined ones at nominal (zero error)."""
-        errors = np.where(np.isin(self.model.names, self.undetermined), 0.0, self.estimate.values)
+        errors = self.estimate.written(np.zeros(len(self.model.names)))
         values = dict(zip(self.model.names, errors))
         guesses = robot_frames(robot)
         frames = {frame: guesses[frame].perturbed(np.array([values.get(f"{frame}_{p}", 0.0) for p in FRAME_PARAMS]))
@@ -171,16 +175,6 @@ def undetermined_at(model: MeasurementModel, fit: Estimate, options: SensorFitOp
     left_out = (*fit.rejected, *((p, c) for p, c, _ in fit.impossible))
     return frames_first(model, NoiseModel(fit.sigma, options.estimate.joint_sigma), ~fit.identifiable,
                         fit.values, factor, left_out, "not identifiable at the calibrated values: ")
-
-
-def beyond_data(model: MeasurementModel, fit: Estimate, options: SensorFitOptions) -> tuple[str, ...]:
-    """What ``fit`` kept whose standard deviation at its values is beyond the noise threshold (with a
-    prior, none: the prior bounds every value). A failed fit is not refitted without them (its weak
-    directions are a wrong model's, _wrong_model), but its file writes them at nominal: the 4-DOF
-    arm measured at a point with its second joint's readings negated ran off along d3 and the sensor
-    frame together, d3 written 5.45 m with a std of 2400 tolerance scales."""
-    undetermined = fit.identifiable & ~_determined(model, fit, _std_factor(model, options))
-    return tuple(name for name, beyond in zip(model.names, undetermined) if beyond)
 
 
 def _std_factor(model: MeasurementModel, options: SensorFitOptions) -> float | None:
@@ -303,10 +297,9 @@ def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = 
             model = build(length)
             nominal = fit(model, tuple(user) + tuple(absorbed) + not_frames, nominal.values)
             full = full_fit(model, full.values)
-    full = replace(full, warnings=tuple(costly) + full.warnings)
-    # a calibration's minimum determines what it kept (undetermined_at); a failed one's was not asked
-    return SensorFit(model, nominal, full, absorbed, length,
-                     beyond_data(model, full, options) if first_failure(full.warnings) else ())
+    # a calibration's minimum determines what it kept (undetermined_at); a failed one's names what it
+    # does not (Estimate.undetermined, by the same threshold: _std_factor is estimate_model's)
+    return SensorFit(model, nominal, replace(full, warnings=tuple(costly) + full.warnings), absorbed, length)
 
 
 @dataclass(frozen=True)

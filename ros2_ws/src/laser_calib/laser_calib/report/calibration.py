@@ -90,15 +90,17 @@ class SetEvaluation:
 
 @dataclass(frozen=True)
 class Calibration:
-    """robot: the nominal model; sets: 'calibration' and optionally 'test';
-    sources: where the inputs came from (file names), for result.json; effects:
-    those of the robot file (estimated after the geometric errors), compensator:
-    the learned compensator applied, if any."""
+    """robot: the nominal model; sets: 'calibration' and optionally 'test'; start:
+    the robot file's values (no geometric error, its effects' values) the fit
+    started from; sources: where the inputs came from (file names), for
+    result.json; effects: those of the robot file (estimated after the geometric
+    errors), compensator: the learned compensator applied, if any."""
 
     robot: Robot
     options: EstimateOptions
     estimate: Estimate
     sets: dict[str, SetEvaluation]
+    start: np.ndarray
     sources: dict = field(default_factory=dict)
     effects: tuple[Effect, ...] = ()
     compensator: Compensator | None = None
@@ -109,12 +111,17 @@ class Calibration:
 
     @property
     def calibrated(self) -> Robot:
-        """The robot file's model with the estimate: D-H values corrected, effect values refitted."""
-        corrected = with_held(self.estimate.corrected(self.robot), self.estimate.identifiability.merged)
+        """The robot file's model with the estimate: D-H values corrected, effect values refitted; what a
+        failed fit does not determine (Estimate.undetermined) at the file's values, held as what it could
+        not separate (the spots out of step with the joint readings: d1 and d2 were written over 0.7 m off,
+        with stds of 130 tolerance scales)."""
+        est = self.estimate
+        written = est.written(self.start)
+        corrected = with_held(self.robot.with_errors(written[:self.robot.n_params]),
+                              (*est.identifiability.merged, *est.undetermined))
         if not self.effects:
             return corrected
-        values = np.split(self.estimate.values[self.robot.n_params:],
-                          np.cumsum([len(e.params) for e in self.effects])[:-1])
+        values = np.split(written[self.robot.n_params:], np.cumsum([len(e.params) for e in self.effects])[:-1])
         return replace(corrected, extra={**corrected.extra, "effects": effects_to_yaml(self.effects, values)})
 
     def units(self) -> list[tuple[float, str]]:
@@ -278,7 +285,7 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     sets = evaluate(robot, samples, est, test, effects, compensator, start)
     said += worse_on_test(sets)
     est = replace(est, warnings=est.warnings + tuple(said))
-    return Calibration(robot, options, est, sets, sources, effects, compensator)
+    return Calibration(robot, options, est, sets, start, sources, effects, compensator)
 
 
 def worse_on_test(sets: dict[str, SetEvaluation]) -> list[str]:

@@ -17,6 +17,7 @@ import numpy as np
 
 from laser_calib import __version__
 from laser_calib.estimation.estimate import EstimateOptions
+from laser_calib.estimation.failures import undetermined_note
 from laser_calib.estimation.identifiability import carried_note
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot import Robot
@@ -51,6 +52,7 @@ def calibrated_robot_yaml(calibration: Calibration) -> str:
                                 if calibration.effects else "") + "."
                              + (f"\nNO CALIBRATION: {calibration.failure}" if calibration.failure else "")
                              + (f"\nNot identifiable, held at nominal: {merged}" if merged else "")
+                             + undetermined_note(est.undetermined)
                              + ("\nFitted with the learned compensator "
                                 f"{calibration.sources.get('compensator', '')} (not in this file): predict with it "
                                 "(diagnosis.compensator.load_compensator)" if kept else ""))
@@ -93,7 +95,7 @@ def _write_tables(calibration: Calibration, out: Path) -> None:
     """The calibrated robot (YAML, and URDF for a URDF robot), result.json and residuals.csv."""
     (out / "robot_calibrated.yaml").write_text(calibrated_robot_yaml(calibration))
     if calibration.robot.chain is not None:  # the URDF to apply (docs/urdf.md)
-        save_calibrated_urdf(calibration.calibrated, calibration.robot, calibration.estimate.identifiable, out,
+        save_calibrated_urdf(calibration.calibrated, calibration.robot, calibration.estimate.determined, out,
                              str(calibration.sources.get("robot", "")), calibration.failure)
     (out / "result.json").write_text(result_json(calibration))
     save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal)

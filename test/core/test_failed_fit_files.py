@@ -1,0 +1,94 @@
+"""A spot fit that is no calibration (exit 3) still writes its files, but not as values what
+its data do not determine: estimate writes what it kept with a std beyond the identifiability
+threshold at nominal (a header line, the key held, null in urdf_corrections.json), diagnose the
+robot's errors it held at nominal, as its header says; what they determine shows where the fit
+went. The data: the paper's 7-DOF arm, each pose's spots paired with the previous pose's joint
+readings (a sync fault, as in test_cli)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from laser_calib.cli.main import main
+from laser_calib.io.samples import load_samples, save_samples
+from laser_calib.measurement.base import LENGTH_SCALE
+from laser_calib.model.robot_file import load_robot
+from laser_calib.model.urdf import calibrated_origins, origin_attributes
+from test_sensor_held import beyond_the_data, origin_values, written_errors
+from test_urdf_cli import _urdf_robot_yaml
+
+
+def out_of_step(folder: Path) -> tuple[Path, Path]:
+    """The simulated arm's nominal robot file and its 60 poses, each pose's spots with the
+    previous pose's readings (59 poses), under folder."""
+    sim = folder / "sim"
+    assert main(["simulate", "--case", "paper-7dof", "--seed", "1", "--out", str(sim)]) == 0
+    samples = load_samples(sim / "case3_cal.csv")
+    save_samples(type(samples)(samples.pose[1:], samples.stamp[1:], samples.q[1:], samples.spots[:-1]),
+                 folder / "lagged.csv")
+    return sim / "robot_nominal.yaml", folder / "lagged.csv"
+
+
+def failed_estimate(robot: Path, samples: Path, out: Path) -> dict[str, dict]:
+    """estimate of ``samples`` into out, which must exit 3: result.json's parameters by name."""
+    assert main(["estimate", "--robot", str(robot), "--samples", str(samples), "--out", str(out)]) == 3
+    return {p["name"]: p for p in json.loads((out / "result.json").read_text())["errors"]}
+
+
+def test_a_failed_estimate_writes_what_it_did_not_determine_at_nominal(tmp_path):
+    """The fit misses the spots by 284 mm and leaves d1 and d2 with stds of 130 tolerance scales
+    at its values: they are written at nominal, held and named in the header. Before, the file
+    wrote d1 1.1 m and d2 0.75 m off."""
+    robot_file, samples = out_of_step(tmp_path)
+    parameters = failed_estimate(robot_file, samples, tmp_path / "out")
+    undetermined = beyond_the_data(parameters)
+    assert {"d1", "d2"} <= undetermined
+    robot = load_robot(robot_file)
+    written = load_robot(tmp_path / "out" / "robot_calibrated.yaml", failed_fit=True)
+    assert np.allclose(written.vector() - robot.vector(),
+                       written_errors(parameters, undetermined, robot.param_names), atol=1e-9)
+    assert undetermined <= set(written.extra["held"])
+    listed = ", ".join(name for name in parameters if name in undetermined)  # in the model's order
+    assert f"# Not determined at its values (std beyond the data), written at nominal: {listed}" in \
+        (tmp_path / "out" / "robot_calibrated.yaml").read_text().splitlines()
+
+
+def test_a_failed_estimate_writes_a_urdf_without_what_it_did_not_determine(tmp_path):
+    """The same arm as a URDF robot: joint1's and joint3's offsets (37 and 22 tolerance scales of
+    std) and joint3's tilt are null in urdf_corrections.json and at nominal in the calibrated URDF;
+    every other joint placement is where the fit went. Before, they were written 2.5, 5.5 and
+    -4.3 rad off."""
+    robot_file = _urdf_robot_yaml(tmp_path / "urdf")
+    _, samples = out_of_step(tmp_path)
+    parameters = failed_estimate(robot_file, samples, tmp_path / "out")
+    undetermined = beyond_the_data(parameters)
+    assert {"joint1.offset", "joint3.offset", "joint3.rx"} <= undetermined
+    corrections = json.loads((tmp_path / "out" / "urdf_corrections.json").read_text())
+    for joint in corrections["joints"]:
+        for p, value in joint["errors"].items():
+            name = f"{joint['joint']}.{p}"
+            assert value == (None if name in undetermined else parameters[name]["value"]), name
+    robot = load_robot(robot_file)
+    expected = calibrated_origins(robot.with_errors(written_errors(parameters, undetermined, robot.param_names)))
+    for joint in corrections["joints"]:
+        assert np.allclose(origin_values(joint["calibrated_origin"]),
+                           origin_values(origin_attributes(expected[joint["joint"]])), atol=1e-9), joint["joint"]
+
+
+def test_a_failed_diagnosis_writes_the_errors_it_held_at_nominal(tmp_path):
+    """The final fit, refitted at the noise its residual shows (232 mm), holds d2, alpha3, theta3
+    and a5 too, at its warm start: the failed fit before it. They are written at nominal, as the
+    header's 'Not identifiable, held at nominal' says; d1, which it determines, where it went.
+    Before, d2 was written 0.75 m off."""
+    robot_file, samples = out_of_step(tmp_path)
+    out = tmp_path / "out"
+    assert main(["diagnose", "--robot", str(robot_file), "--samples", str(samples), "--max-effects", "0",
+                 "--no-compensator", "--out", str(out)]) == 3
+    held = json.loads((out / "diagnosis.json").read_text())["not_identifiable"]
+    assert {"d2", "theta3"} <= set(held)
+    robot = load_robot(robot_file)
+    errors = dict(zip(robot.param_names, load_robot(out / "robot_calibrated.yaml", failed_fit=True).vector()
+                      - robot.vector()))
+    assert {name: errors[name] for name in held if abs(errors[name]) > 1e-12} == {}
+    assert abs(errors["d1"]) > 10 * LENGTH_SCALE
