@@ -23,7 +23,7 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       out_file, out_folder, positive, positive_int, print_warnings, require_measured,
                                       sigma_angle, sigma_length, staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
-from laser_calib.estimation.failures import first_failure, is_failure, undetermined_note
+from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
 from laser_calib.estimation.identifiability import TooFewValues, carried_note
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
@@ -78,7 +78,7 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
         elif not est.identifiable[i]:
             entry["note"] = est.identifiability.merged.get(name, "held")
         elif name in fit.undetermined:  # a failed fit's: where it went is no value, the robot file has nominal
-            entry.update(value=None, note="not determined at the failed fit's values (std beyond the data): nominal")
+            entry.update(value=None, note=UNDETERMINED)
         elif name in carried:  # as the spot estimate's result.json says it
             entry["note"] = carried_note(name, carried[name])
         out.append(entry)

@@ -114,6 +114,10 @@ def beyond_data(names, kept: np.ndarray, std: np.ndarray, scales: np.ndarray, fa
     return tuple(name for name, far in zip(names, beyond) if far)
 
 
+# result.json's note on each of them: its std stays, its value is null
+UNDETERMINED = "not determined at the failed fit's values (std beyond the data): nominal in the robot file"
+
+
 def undetermined_note(names) -> str:
     """The calibrated robot file's header line naming what a failed fit kept but does not determine
     (beyond_data), written at nominal; '' for none."""

@@ -29,7 +29,7 @@ from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
-from laser_calib.estimation.failures import first_failure
+from laser_calib.estimation.failures import UNDETERMINED, first_failure
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.identifiability import carried_note
 from laser_calib.estimation.problem import residuals_at
@@ -166,7 +166,9 @@ class Calibration:
             unit = {"mm": "m", "deg": "rad"}.get(units[i][1], units[i][1])
             entry = {"name": name, "value": finite_or_none(est.errors[i]), "std": finite_or_none(est.std[i]),
                      "identifiable": bool(est.identifiable[i]), "unit": unit}
-            if name in est.identifiability.merged:
+            if name in est.undetermined:  # a failed fit's: where it went is no value, the robot file has nominal
+                entry.update(value=None, note=UNDETERMINED)
+            elif name in est.identifiability.merged:
                 entry["note"] = est.identifiability.merged[name]
             elif name in est.identifiability.carried:
                 entry["note"] = carried_note(name, est.identifiability.carried[name])
