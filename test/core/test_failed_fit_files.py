@@ -52,6 +52,8 @@ def test_a_failed_estimate_writes_what_it_did_not_determine_at_nominal(tmp_path)
     listed = ", ".join(name for name in parameters if name in undetermined)  # in the model's order
     assert f"# Not determined at its values (std beyond the data), written at nominal: {listed}" in \
         (tmp_path / "out" / "robot_calibrated.yaml").read_text().splitlines()
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert all(f"| {name} | not determined | " in report for name in undetermined), report
 
 
 def test_a_failed_estimate_writes_a_urdf_without_what_it_did_not_determine(tmp_path):

@@ -26,7 +26,7 @@ def fill(response, outcome: Outcome, robot: Robot, count: int, stamp) -> None:
     params.values = [float(v) for v in np.r_[calibration.calibrated.vector(), est.values[robot.n_params:]]]
     params.errors = [float(v) for v in est.errors]
     params.std = [float(v) for v in est.std]
-    params.identifiable = [bool(v) for v in est.identifiable]
+    params.identifiable = [bool(v) for v in est.determined]  # a failed fit's undetermined: no value (errors NaN)
     params.iterations = int(est.fit.iterations)
     params.sample_count = count
     response.parameters = params

@@ -77,8 +77,8 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
             entry["note"] = ("carried by the frames: " if held.by_frames else "") + held.why
         elif not est.identifiable[i]:
             entry["note"] = est.identifiability.merged.get(name, "held")
-        elif name in fit.undetermined:  # a failed fit's: where it went is no value, the robot file has nominal
-            entry.update(value=None, note=UNDETERMINED)
+        elif name in fit.undetermined:  # a failed fit's: where it went is no value (errors), the file has nominal
+            entry["note"] = UNDETERMINED
         elif name in carried:  # as the spot estimate's result.json says it
             entry["note"] = carried_note(name, carried[name])
         out.append(entry)

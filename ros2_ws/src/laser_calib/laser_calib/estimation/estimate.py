@@ -132,8 +132,8 @@ class Estimate:
 
     @property
     def errors(self) -> np.ndarray:
-        """(n,) the estimated errors, NaN where not identifiable (never reported as known)."""
-        return np.where(self.identifiable, self.fit.x, np.nan)
+        """(n,) the estimated errors, NaN where not identifiable or not determined (never reported as known)."""
+        return np.where(self.determined, self.fit.x, np.nan)
 
     @property
     def std(self) -> np.ndarray:

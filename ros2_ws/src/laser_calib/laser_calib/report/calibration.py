@@ -166,8 +166,8 @@ class Calibration:
             unit = {"mm": "m", "deg": "rad"}.get(units[i][1], units[i][1])
             entry = {"name": name, "value": finite_or_none(est.errors[i]), "std": finite_or_none(est.std[i]),
                      "identifiable": bool(est.identifiable[i]), "unit": unit}
-            if name in est.undetermined:  # a failed fit's: where it went is no value, the robot file has nominal
-                entry.update(value=None, note=UNDETERMINED)
+            if name in est.undetermined:  # a failed fit's: where it went is no value (errors), the file has nominal
+                entry["note"] = UNDETERMINED
             elif name in est.identifiability.merged:
                 entry["note"] = est.identifiability.merged[name]
             elif name in est.identifiability.carried:

@@ -166,10 +166,12 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     for i, name in enumerate(est.names):
         factor, unit = units[i]
         digits = ".4f" if unit in ("mm", "deg") else ".4g"  # an effect's parameter in its own unit
-        if est.identifiable[i]:
+        if est.determined[i]:
             mark = " *" if name in ident.carried else ""
             lines.append(f"| {i + 1} | {name}{mark} | {est.errors[i] * factor:+{digits}} | "
                          f"{est.std[i] * factor:{digits}} | {unit} |")
+        elif est.identifiable[i]:  # a failed fit's, beyond the data at its values: written at nominal
+            lines.append(f"| {i + 1} | {name} | not determined | {est.std[i] * factor:{digits}} | {unit} |")
         else:
             lines.append(f"| {i + 1} | {name} | not identifiable | - | {unit} |")
     if calibration.effects or calibration.compensator is not None:
