@@ -110,8 +110,14 @@ def beyond_data(names, kept: np.ndarray, std: np.ndarray, scales: np.ndarray, fa
     arm's spots paired with the previous pose's readings, d1 and d2 over 0.7 m with a std of 130."""
     if factor is None:
         return ()
-    beyond = kept & ~(std / scales <= factor)
+    beyond = kept & ~within_data(std, scales, factor)
     return tuple(name for name, far in zip(names, beyond) if far)
+
+
+def within_data(std: np.ndarray, scales: np.ndarray, factor: float | None) -> np.ndarray:
+    """(n,) whether each std (n,) is within ``factor`` tolerance ``scales`` (n,): what the data
+    determine (factor None, a prior's: every finite std)."""
+    return std / scales <= (np.inf if factor is None else factor)
 
 
 # result.json's note on each of them: its std stays, its value is null

@@ -31,7 +31,7 @@ from typing import Callable
 
 import numpy as np
 
-from laser_calib.estimation.failures import FAR_SCALES, MAX_RESIDUAL
+from laser_calib.estimation.failures import FAR_SCALES, MAX_RESIDUAL, within_data
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model, prior_sigmas
 from laser_calib.estimation.identifiability import analyse, carried_by_kept
@@ -184,7 +184,7 @@ def _std_factor(model: MeasurementModel, options: SensorFitOptions) -> float | N
 
 def _determined(model: MeasurementModel, fit: Estimate, factor: float | None) -> np.ndarray:
     """(n,) the parameters ``fit`` kept whose std at its values is within ``factor`` tolerance scales."""
-    return fit.identifiable & (fit.fit.std / model.scales <= (np.inf if factor is None else factor))
+    return fit.identifiable & within_data(fit.fit.std, model.scales, factor)
 
 
 def _wrong_model(model: MeasurementModel, fit: Estimate, factor: float | None) -> bool:
