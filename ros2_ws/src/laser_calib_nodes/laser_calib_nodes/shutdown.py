@@ -51,20 +51,19 @@ SIGEV_THREAD = 2
 CLOCK_MONOTONIC = 1
 
 
-def exit_later(seconds: float, code: int) -> bool:
-    """_exit(code) after ``seconds`` on a thread the C library starts (no GIL needed); False
+def exit_later(seconds: float, code: int) -> None:
+    """_exit(code) after ``seconds`` on a thread the C library starts (no GIL needed); nothing
     where the C library has no POSIX timers (the Python watchdog alone then bounds the exit)."""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         event = _Sigevent(value=code, notify=SIGEV_THREAD, function=ctypes.cast(libc._exit, ctypes.c_void_p).value)
         timer = ctypes.c_void_p()
-        if libc.timer_create(CLOCK_MONOTONIC, ctypes.byref(event), ctypes.byref(timer)) != 0:
-            return False
-        whole = int(seconds)
-        spec = _Itimerspec(value=_Timespec(whole, int((seconds - whole) * 1e9)))
-        return libc.timer_settime(timer, 0, ctypes.byref(spec), None) == 0
+        if libc.timer_create(CLOCK_MONOTONIC, ctypes.byref(event), ctypes.byref(timer)) == 0:
+            whole = int(seconds)
+            spec = _Itimerspec(value=_Timespec(whole, int((seconds - whole) * 1e9)))
+            libc.timer_settime(timer, 0, ctypes.byref(spec), None)
     except (OSError, AttributeError):
-        return False
+        pass  # no POSIX timers here
 
 
 class ExitWatchdog:
