@@ -11,12 +11,12 @@ import argparse
 import sys
 
 from laser_calib.cli.arguments import (no_spot_to_fit, non_negative, non_negative_int, out_folder, positive,
-                                      print_warnings, require_measured, staged_folder)
+                                      print_warnings, staged_folder)
+from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
-from laser_calib.io.samples import load_samples
 from laser_calib.report.progress import Progress
 
 
@@ -26,14 +26,11 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     from laser_calib.estimation.failures import FitMovedBeams, NoSpotToFit
 
     robot = load_robot(args.robot)
-    samples = load_samples(args.samples, robot)
-    test = load_samples(args.test, robot) if args.test else None
-    require_measured(samples, str(args.samples))
-    if test is not None:
-        require_measured(test, str(args.test), "no spot is measured in the test set")
+    sets = read_sample_sets(args, robot)
+    samples, test = sets.samples, sets.test
     print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
           file=sys.stderr, flush=True)
-    sources = {"robot": str(args.robot), "samples": str(args.samples), "test": str(args.test) if args.test else None}
+    sources = {"robot": str(args.robot), "samples": sets.source, "test": sets.test_source}
     # The folder first: one that cannot be written fails before the work, and a failed run leaves none.
     with staged_folder(args.out) as out:
         # per model fitted: its fit on all poses and one per fold
@@ -45,11 +42,11 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             try:
                 diagnosis = diagnose(robot, samples, test, options=options, sources=sources)
             except TooFewPoses as exc:  # the engine knows the count, the command the file
-                raise InputError(str(args.samples), exc.problem) from None
+                raise InputError(sets.source, exc.problem) from None
             except FitMovedBeams as exc:  # a fit knows the beams it moved, the command the robot file
                 raise InputError(str(args.robot), exc.problem) from None
             except NoSpotToFit:  # every measured spot refused at the nominal model: the robot file's doing
-                raise no_spot_to_fit(str(args.robot), str(args.samples)) from None
+                raise no_spot_to_fit(str(args.robot), sets.source) from None
         result = write_outputs(diagnosis, out, sources)
     for stage in result["stages"]:
         where = "test" if stage["test"] else "cv"
@@ -77,8 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("diagnose", help="find and add the effects the geometric model lacks",
                               description=__doc__.splitlines()[0])
     p.add_argument("--robot", required=True, help="nominal robot model (YAML)")
-    p.add_argument("--samples", required=True, help="calibration samples (CSV, rows in measurement order)")
-    p.add_argument("--test", help="test samples: poses the fit never sees (CSV)")
+    add_sample_arguments(p, "calibration samples (CSV, rows in measurement order)")
     p.add_argument("--spot-sigma", type=positive, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual; the level is then tested against repeated poses, if any)")
     p.add_argument("--joint-sigma", type=non_negative, default=None,

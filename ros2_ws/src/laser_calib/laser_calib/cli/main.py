@@ -31,15 +31,14 @@ from laser_calib.report.calibration import shown_mm
 from laser_calib.report.files import run_estimate
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
-from laser_calib.io.bag import SAMPLES_TOPIC, TEST_SAMPLES_TOPIC, bag_topics, read_samples_checked
-from laser_calib.io.joint_names import RobotJoints
-from laser_calib.io.samples import check_joint_range, check_spot_units, load_samples, save_samples
-from laser_calib.io.spot_columns import check_spot_columns
+from laser_calib.io.bag import bag_topics
+from laser_calib.io.samples import load_samples, save_samples
 from laser_calib.sim.simulation import CASE_POSES, CASES, NoiseSpec, paper_session, robot_session
 from laser_calib.cli import diagnose as diagnose_cli
 from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
+from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, add_replay_arguments, noise_angle_deg,
                                       noise_length, non_negative_int, no_spot_to_fit, out_file, out_folder, positive,
                                       positive_int, print_warnings, replay_argv, require_measured, sigma_angle,
@@ -102,39 +101,12 @@ def _options(args: argparse.Namespace, progress: Progress | None = None) -> Esti
                            robust=args.robust, fixed=tuple(args.fix), lm=lm, ekf=ekf)
 
 
-def _bag_samples(path: str, robot, joint_names: list[str] | None, topic: str = SAMPLES_TOPIC) -> object:
-    """Samples of a recorded session bag's ``topic`` (rosbags: no ROS runtime), each sample's
-    joint_positions put in the robot's order by its joint_names: the robot's own, or
-    ``joint_names`` (--joint-names, as the sequencer's parameter of that name gives them) base to tip."""
-    joints = RobotJoints(robot, joint_names, "--joint-names") if joint_names else RobotJoints(robot)
-    samples, lost = read_samples_checked(path, topic, joints)
-    for segment in lost:
-        print(f"warning: {path}: segment {segment} is damaged and was skipped; its samples are lost, the other "
-              "segments were read", file=sys.stderr)
-    if samples.n_joints != robot.n_joints:
-        raise InputError(path, f"{samples.n_joints} joints in the bag but robot '{robot.name}' has {robot.n_joints}")
-    check_joint_range(samples.q, robot, path, samples.pose)
-    check_spot_units(samples.spots, robot, path)
-    check_spot_columns(robot, samples.q, samples.spots, path)
-    return samples
-
-
 def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
-    if args.joint_names and not args.bag:
-        raise InputError("--joint-names", "names the joints of a bag's samples: it applies to --bag only")
-    samples = _bag_samples(args.bag, robot, args.joint_names) if args.bag else load_samples(args.samples, robot)
-    test_source = args.test
-    if args.bag and not args.test and TEST_SAMPLES_TOPIC in bag_topics(args.bag):
-        test_source = f"{args.bag} {TEST_SAMPLES_TOPIC}"  # the session's held-out poses, as it tested them
-        test = _bag_samples(args.bag, robot, args.joint_names, TEST_SAMPLES_TOPIC)
-    else:
-        test = load_samples(args.test, robot) if args.test else None
+    sets = read_sample_sets(args, robot)
+    samples, test = sets.samples, sets.test
     _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})"
-              + (f", tested on {len(test)} poses of {test_source}" if test is not None else ""))
-    require_measured(samples, str(args.samples or args.bag))
-    if test is not None:
-        require_measured(test, test_source, "no spot is measured in the test set")
+              + (f", tested on {len(test)} poses of {sets.test_source}" if test is not None else ""))
     compensator = None
     if args.compensator:
         from laser_calib.diagnosis.compensator import load_compensator  # scikit-learn: only when asked for
@@ -142,14 +114,14 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     with staged_folder(args.out) as out, Progress(args.method, unit="iteration") as progress:
         try:
             calibration = run_estimate(robot, samples, _options(args, progress), out, test,
-                                       sources={"robot": str(args.robot), "samples": str(args.samples or args.bag),
-                                                "test": test_source,
+                                       sources={"robot": str(args.robot), "samples": sets.source,
+                                                "test": sets.test_source,
                                                 "compensator": args.compensator},
                                        compensator=compensator)
         except TooFewValues as exc:  # the estimator counts the values, the command knows their file
-            raise InputError(str(args.samples or args.bag), str(exc)) from None
+            raise InputError(sets.source, str(exc)) from None
         except NoSpotToFit:  # every measured spot refused at the nominal model: the robot file's doing
-            raise no_spot_to_fit(str(args.robot), str(args.samples or args.bag), args.compensator) from None
+            raise no_spot_to_fit(str(args.robot), sets.source, args.compensator) from None
     status = _summary(calibration)
     urdf = ", robot_calibrated.urdf, urdf_corrections.json" if robot.chain is not None else ""
     print(f"wrote {args.out}/robot_calibrated.yaml{urdf}, result.json, report.md, residuals.csv")
@@ -251,14 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("estimate", help="estimate the geometric errors")
     p.add_argument("--robot", required=True)
-    source = p.add_mutually_exclusive_group(required=True)
-    source.add_argument("--samples", help="samples CSV")
-    source.add_argument("--bag", help="a recorded session bag (its /samples topic; its /test_samples, the "
-                                      "session's held-out poses, are the test set unless --test is given)")
-    p.add_argument("--joint-names", nargs="+", metavar="NAME",
-                   help="the names the bag's samples give the robot's joints, base to tip (the sequencer's "
-                        "joint_names parameter); default: the robot's own")
-    p.add_argument("--test", help="test samples CSV: poses the fit never sees")
+    add_sample_arguments(p)
     p.add_argument("--method", choices=METHODS, default="lm")
     p.add_argument("--spot-sigma", type=sigma_length, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual)")

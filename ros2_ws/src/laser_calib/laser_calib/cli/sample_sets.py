@@ -1,0 +1,79 @@
+"""The calibration and test samples of `estimate` and `diagnose`: a samples CSV or a
+recorded session bag, and a test set (--test, else a bag's own /test_samples).
+
+Both commands read them here, so a session diagnosed from its bag sees the poses
+its estimate saw, with the same checks and the same one-line errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+
+from laser_calib.cli.arguments import require_measured
+from laser_calib.io.bag import SAMPLES_TOPIC, TEST_SAMPLES_TOPIC, bag_topics, read_samples_checked
+from laser_calib.io.errors import InputError
+from laser_calib.io.joint_names import RobotJoints
+from laser_calib.io.samples import Samples, check_joint_range, check_spot_units, load_samples
+from laser_calib.io.spot_columns import check_spot_columns
+from laser_calib.model.robot import Robot
+
+
+@dataclass(frozen=True)
+class SampleSets:
+    """The poses to fit and those to test on (None without a test set), each with where it came from
+    (a file, or a bag and its topic): the name an error about them gives."""
+
+    samples: Samples
+    source: str
+    test: Samples | None
+    test_source: str | None
+
+
+def add_sample_arguments(parser: argparse.ArgumentParser, samples_help: str = "samples CSV") -> None:
+    """--samples or --bag (one of them), --joint-names (a bag's) and --test."""
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--samples", help=samples_help)
+    source.add_argument("--bag", help="a recorded session bag (its /samples topic; its /test_samples, the "
+                                      "session's held-out poses, are the test set unless --test is given)")
+    parser.add_argument("--joint-names", nargs="+", metavar="NAME",
+                        help="the names the bag's samples give the robot's joints, base to tip (the sequencer's "
+                             "joint_names parameter); default: the robot's own")
+    parser.add_argument("--test", help="test samples CSV: poses the fit never sees")
+
+
+def read_sample_sets(args: argparse.Namespace, robot: Robot) -> SampleSets:
+    """The sets add_sample_arguments named, checked against the robot; a set with nothing measured
+    in it is bad input (require_measured)."""
+    if args.joint_names and not args.bag:
+        raise InputError("--joint-names", "names the joints of a bag's samples: it applies to --bag only")
+    source = str(args.samples or args.bag)
+    samples = bag_samples(args.bag, robot, args.joint_names) if args.bag else load_samples(args.samples, robot)
+    if args.bag and not args.test and TEST_SAMPLES_TOPIC in bag_topics(args.bag):
+        test_source = f"{args.bag} {TEST_SAMPLES_TOPIC}"  # the session's held-out poses, as it tested them
+        test = bag_samples(args.bag, robot, args.joint_names, TEST_SAMPLES_TOPIC)
+    else:
+        test_source = args.test
+        test = load_samples(args.test, robot) if args.test else None
+    require_measured(samples, source)
+    if test is not None:
+        require_measured(test, test_source, "no spot is measured in the test set")
+    return SampleSets(samples, source, test, test_source)
+
+
+def bag_samples(path: str, robot: Robot, joint_names: list[str] | None, topic: str = SAMPLES_TOPIC) -> Samples:
+    """Samples of a recorded session bag's ``topic`` (rosbags: no ROS runtime), each sample's
+    joint_positions put in the robot's order by its joint_names: the robot's own, or
+    ``joint_names`` (--joint-names, as the sequencer's parameter of that name gives them) base to tip."""
+    joints = RobotJoints(robot, joint_names, "--joint-names") if joint_names else RobotJoints(robot)
+    samples, lost = read_samples_checked(path, topic, joints)
+    for segment in lost:
+        print(f"warning: {path}: segment {segment} is damaged and was skipped; its samples are lost, the other "
+              "segments were read", file=sys.stderr)
+    if samples.n_joints != robot.n_joints:
+        raise InputError(path, f"{samples.n_joints} joints in the bag but robot '{robot.name}' has {robot.n_joints}")
+    check_joint_range(samples.q, robot, path, samples.pose)
+    check_spot_units(samples.spots, robot, path)
+    check_spot_columns(robot, samples.q, samples.spots, path)
+    return samples
