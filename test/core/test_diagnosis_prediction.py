@@ -4,6 +4,7 @@ the calibration poses said, and a significant excess within it a warning; its st
 textbook one; on test poses like the calibration poses it is F distributed; a test measurement
 beyond the robust rule's limit is listed, not tested."""
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -100,18 +101,24 @@ def test_a_significant_excess_within_the_margin_is_a_warning_not_structure():
     assert prediction_warning(prediction, diagnosis.options.alpha)[0] in diagnosis.to_json()["warnings"]
 
 
-def test_the_nodes_estimate_gives_its_test_poses_to_the_diagnosis_and_the_estimate():
+def test_the_nodes_estimate_gives_its_test_poses_to_the_diagnosis_and_the_estimate(tmp_path):
     """run_calibration, the code path of the estimator's service and action and of the sequencer,
     with the session's test poses: the diagnosis tests them as `diagnose --test` does (the joint
     scale only the test poses carry is "structure remains", where the calibration poses alone
     say "explained"), and the estimate's files hold the test set as `estimate --test`'s do. Before,
-    the nodes' diagnosis never saw the test poses (test_prediction null)."""
+    the nodes' diagnosis never saw the test poses (test_prediction null). Its file names its inputs
+    as the estimate's beside it does (it named the session's counts whatever the service was given)."""
     clean, scaled = clean_session(), library_session("paper-4dof", "joint_scale")
     options = replace(estimate_options("lm", NOISE.spot_sigma, False, True), joint_sigma=NOISE.joint_sigma)
     alone = run_calibration(clean.nominal, clean.cal, options, None, diagnose=True)
     assert alone.diagnosis["verdict"] == EXPLAINED and alone.diagnosis["test_prediction"] is None
-    tested = run_calibration(clean.nominal, clean.cal, options, None, diagnose=True, test=scaled.test,
-                             sources={"samples": "session samples", "test": "session test samples"})
+    sources = {"robot": "robot.yaml", "samples": "80 samples in the request", "test": "80 test samples in the request",
+               "compensator": None}
+    tested = run_calibration(clean.nominal, clean.cal, options, tmp_path, diagnose=True, test=scaled.test,
+                             sources=sources)
+    written = json.loads((tmp_path / "diagnosis" / "diagnosis.json").read_text())["inputs"]
+    assert written == {k: v for k, v in sources.items() if k != "compensator"}
+    assert json.loads((tmp_path / "result.json").read_text())["inputs"] == sources
     assert tested.diagnosis["verdict"] == STRUCTURE, tested.diagnosis.get("evidence")
     assert tested.diagnosis["test_prediction"]["ratio"] > 1.5
     assert set(tested.calibration.to_json()["spot_error"]) == {"calibration", "test"}

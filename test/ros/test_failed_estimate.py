@@ -5,6 +5,7 @@ estimator's Estimate service (which fits with its own robot file)."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import pytest
@@ -35,6 +36,10 @@ def test_a_fit_that_is_no_calibration_ends_the_session_with_status_4(ros, tmp_pa
     assert code == 4, log[-3000:]
     assert "estimate failed: " in log and f"its files are in {out}" in log and "Traceback" not in log, log[-3000:]
     assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
+    if mode == "local":  # its files name the session's files it fitted, as `laser-calib estimate` names its inputs
+        assert json.loads((out / "result.json").read_text())["inputs"] == {
+            "robot": str(out / "robot.yaml"), "samples": str(out / "samples.csv"),
+            "test": None, "compensator": None}
 
 
 def test_poses_whose_spots_are_not_seen_are_warned_of_and_kept(ros, tmp_path):

@@ -21,7 +21,8 @@ from laser_calib.io.joint_names import default_joint_names
 from laser_calib.io.samples import Samples
 from laser_calib.model.robot_file import load_robot
 from laser_calib.report import truth
-from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, plan_value, refuse_finished
+from laser_calib.session.folder import (PLAN_DEFAULTS, ROBOT_FILE, SAMPLES_FILE, TEST_SAMPLES_FILE, SessionDir,
+                                       plan_value, refuse_finished)
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import generate_poses, load_poses, with_test_poses
 
@@ -198,7 +199,10 @@ def finish(node) -> None:
         if end.mode == "local":
             from laser_calib.session.estimate import estimate_options, run_calibration
             options = estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
-            outcome = run_calibration(node.robot, samples, options, session.path, end.diagnose, test=test)
+            sources = {"robot": str(session.path / ROBOT_FILE), "samples": str(session.path / SAMPLES_FILE),
+                       "test": str(session.path / TEST_SAMPLES_FILE) if test is not None else None,
+                       "compensator": None}  # the files just read, as `laser-calib estimate` names its inputs
+            outcome = run_calibration(node.robot, samples, options, session.path, end.diagnose, sources, test=test)
             message, warned = outcome.message, outcome.warned
             failed = outcome.calibration.failure is not None
         else:

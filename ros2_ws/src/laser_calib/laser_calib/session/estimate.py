@@ -128,7 +128,8 @@ def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out:
 
     Its files (diagnosis.json, report.md with plots, robot_calibrated.yaml with
     the effects) go to out/diagnosis/, beside the geometric estimate's, when out
-    is given. Always LM: the diagnosis runs dozens of fits. Returns the JSON; too few
+    is given, naming its inputs as ``sources`` does (the estimate's; without, the session's counts).
+    Always LM: the diagnosis runs dozens of fits. Returns the JSON; too few
     poses for it is a data limit, not an error: {"skipped": "diagnosis skipped: ..."}.
     """
     try:
@@ -138,9 +139,13 @@ def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out:
     except TooFewPoses as exc:
         return {"skipped": f"diagnosis skipped: {exc.n_poses} poses, at least {exc.needed} needed"}
     if out is not None:
-        written_from = {"robot": robot.name, "samples": f"{len(samples)} session samples"}
+        # what the estimate beside it names (its result.json's inputs), but the compensator, which the diagnosis
+        # does not apply
+        given = sources or {}
+        written_from = {"robot": given.get("robot") or robot.name,
+                        "samples": given.get("samples") or f"{len(samples)} session samples"}
         if test is not None:
-            written_from["test"] = f"{len(test)} session test samples"
+            written_from["test"] = given.get("test") or f"{len(test)} session test samples"
         write_diagnosis(diagnosis, out / "diagnosis", written_from)
     return diagnosis.to_json()
 
