@@ -20,7 +20,7 @@ from laser_calib.model.robot import Robot
 
 class Data(Protocol):
     """A calibration data set as the engine sees it (SpotData here,
-    sensors.analysis.SensorData for point and pose sensors).
+    sensor_data.SensorData for point and pose sensors).
 
     robot and samples (readings q (P,N), stamp (P,), extra columns); fixed:
     parameter names of the base model held at their nominal values in every

@@ -3,7 +3,7 @@
 diagnose(robot, samples, test, spot_sigma, joint_sigma) runs the engine, run(),
 on laser spot data (SpotData). run(data, options) works on any data set that
 gives a base measurement model, its candidate effects and its measurement-level
-covariates (the Data protocol; sensors.analysis.SensorData for point and pose
+covariates (the Data protocol; sensor_data.SensorData for point and pose
 sensors, which adds the sensor's scale as a candidate); candidates the base
 model cannot carry (screen and lens effects without spots) are dropped. It runs:
 

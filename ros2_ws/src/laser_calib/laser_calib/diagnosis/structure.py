@@ -12,7 +12,7 @@ robot model derives from it):
 
 The pose level serves every measurement model (it needs only the readings and
 the Jacobians); the spot level is the laser data's measurement level, other
-measurement models supply their own (sensors.analysis: the residual
+measurement models supply their own (diagnosis.sensor_data: the residual
 components against the measured position in the sensor frame).
 
 The raw spot residual of a joint or length error changes sign from pose to
