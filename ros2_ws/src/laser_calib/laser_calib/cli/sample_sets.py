@@ -8,11 +8,10 @@ its estimate saw, with the same checks and the same one-line errors.
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import dataclass
 
 from laser_calib.cli.arguments import require_measured
-from laser_calib.io.bag import SAMPLES_TOPIC, TEST_SAMPLES_TOPIC, bag_topics, read_samples_checked
+from laser_calib.io.bag import SAMPLES_TOPIC, TEST_SAMPLES_TOPIC, read_samples_checked
 from laser_calib.io.errors import InputError
 from laser_calib.io.joint_names import RobotJoints
 from laser_calib.io.samples import Samples, check_joint_range, check_spot_units, load_samples
@@ -50,27 +49,29 @@ def read_sample_sets(args: argparse.Namespace, robot: Robot) -> SampleSets:
         raise InputError("--joint-names", "names the joints of a bag's samples: it applies to --bag only")
     source = str(args.samples or args.bag)
     samples = bag_samples(args.bag, robot, args.joint_names) if args.bag else load_samples(args.samples, robot)
-    if args.bag and not args.test and TEST_SAMPLES_TOPIC in bag_topics(args.bag):
-        test_source = f"{args.bag} {TEST_SAMPLES_TOPIC}"  # the session's held-out poses, as it tested them
-        test = bag_samples(args.bag, robot, args.joint_names, TEST_SAMPLES_TOPIC)
-    else:
-        test_source = args.test
-        test = load_samples(args.test, robot) if args.test else None
+    test = test_source = None
+    if args.test:
+        test_source, test = args.test, load_samples(args.test, robot)
+    elif args.bag:  # the session's held-out poses, as it tested them, if it had any
+        test = bag_samples(args.bag, robot, args.joint_names, TEST_SAMPLES_TOPIC, required=False)
+        test_source = None if test is None else f"{args.bag} {TEST_SAMPLES_TOPIC}"
     require_measured(samples, source)
     if test is not None:
         require_measured(test, test_source, "no spot is measured in the test set")
     return SampleSets(samples, source, test, test_source)
 
 
-def bag_samples(path: str, robot: Robot, joint_names: list[str] | None, topic: str = SAMPLES_TOPIC) -> Samples:
+def bag_samples(path: str, robot: Robot, joint_names: list[str] | None, topic: str = SAMPLES_TOPIC,
+                required: bool = True) -> Samples | None:
     """Samples of a recorded session bag's ``topic`` (rosbags: no ROS runtime), each sample's
     joint_positions put in the robot's order by its joint_names: the robot's own, or
-    ``joint_names`` (--joint-names, as the sequencer's parameter of that name gives them) base to tip."""
+    ``joint_names`` (--joint-names, as the sequencer's parameter of that name gives them) base to tip.
+    Their warnings (damaged segments skipped, joints the robot does not have) go with them into the
+    command's warnings and files. Not ``required``: None for a bag without a sample on the topic."""
     joints = RobotJoints(robot, joint_names, "--joint-names") if joint_names else RobotJoints(robot)
-    samples, lost = read_samples_checked(path, topic, joints)
-    for segment in lost:
-        print(f"warning: {path}: segment {segment} is damaged and was skipped; its samples are lost, the other "
-              "segments were read", file=sys.stderr)
+    samples, _ = read_samples_checked(path, topic, joints, required)
+    if samples is None:
+        return None
     if samples.n_joints != robot.n_joints:
         raise InputError(path, f"{samples.n_joints} joints in the bag but robot '{robot.name}' has {robot.n_joints}")
     check_joint_range(samples.q, robot, path, samples.pose)

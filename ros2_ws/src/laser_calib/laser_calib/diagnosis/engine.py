@@ -130,8 +130,12 @@ def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_s
     if held(robot):
         notes.append(f"held at nominal, as the calibration that wrote the robot file held them (its key held): "
                      f"{', '.join(held(robot))}")
-    return run(SpotData(robot, samples, held(robot)), options, None if test is None else SpotData(robot, test),
-               tuple(notes))
+    diagnosis = run(SpotData(robot, samples, held(robot)), options, None if test is None else SpotData(robot, test),
+                    tuple(notes))
+    # what reading them found (a bag's damaged segments skipped, joints the robot does not have): warnings, as
+    # estimate gives them
+    reading = tuple(dict.fromkeys((*samples.warnings, *(test.warnings if test is not None else ()))))
+    return replace(diagnosis, warnings=reading + diagnosis.warnings)
 
 
 class TooFewPoses(InputError):

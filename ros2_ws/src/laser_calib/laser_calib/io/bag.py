@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -70,6 +71,17 @@ def stamp_seconds(sec: int, nanosec: int) -> float:
     return float(sec) + float(nanosec) * 1e-9
 
 
+class MissingTopic(InputError):
+    """A bag that does not have the topic asked for (not damage: no segment is lost for it)."""
+
+
+def _one_line(exc: Exception, limit: int = 300) -> str:
+    """An exception's text on one line, cut at ``limit`` characters: a YAML parser's message spans
+    lines, and rosbags lists every missing segment of a bag (3 kB for 82)."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[:limit] + " ..."
+
+
 def _reader(path: Path):
     from rosbags.highlevel import AnyReader
     if not path.exists():
@@ -82,7 +94,7 @@ def _reader(path: Path):
     except InputError:
         raise
     except Exception as exc:  # rosbags raises several types; the user needs one line
-        raise InputError(str(path), f"cannot read bag ({exc})") from None
+        raise InputError(str(path), f"cannot read bag ({_one_line(exc)})") from None
     return reader
 
 
@@ -112,21 +124,29 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int, list[Qos]]]:
         reader.close()
 
 
-def read_samples(path: str | Path, topic: str = SAMPLES_TOPIC, joints: RobotJoints | None = None) -> Samples:
-    """The measured samples of a session bag (its /samples messages, in order), as the core's Samples."""
-    return read_samples_checked(path, topic, joints)[0]
+def read_samples(path: str | Path, topic: str = SAMPLES_TOPIC, joints: RobotJoints | None = None,
+                 required: bool = True) -> Samples | None:
+    """The measured samples of a session bag (its /samples messages, in order), as the core's Samples;
+    not ``required``: None for a bag without the topic or without a message on it."""
+    return read_samples_checked(path, topic, joints, required)[0]
 
 
-def read_samples_checked(path: str | Path, topic: str = SAMPLES_TOPIC,
-                         joints: RobotJoints | None = None) -> tuple[Samples, list[str]]:
+def read_samples_checked(path: str | Path, topic: str = SAMPLES_TOPIC, joints: RobotJoints | None = None,
+                         required: bool = True) -> tuple[Samples | None, list[str]]:
     """Samples and the damaged segments lost, one text each. If the bag cannot
     be read whole, each segment is read on its own and the intact ones kept.
     ``joints``: the robot's, each sample's joint_positions put in its order by the
-    sample's joint_names; None: the positions as recorded."""
+    sample's joint_names; None: the positions as recorded. A bag without the topic,
+    or without a message on it: InputError, or None when not ``required`` (a session
+    without test poses has no /test_samples)."""
     path = Path(path)
     try:
         msgs = _sample_msgs(path, topic)
         lost: list[str] = []
+    except MissingTopic:
+        if required:
+            raise
+        return None, []
     except InputError as whole:
         with tempfile.TemporaryDirectory(prefix="bag-segments-") as root:
             segments = _segments(path, Path(root))
@@ -136,15 +156,24 @@ def read_samples_checked(path: str | Path, topic: str = SAMPLES_TOPIC,
             for name, single in segments:
                 try:
                     msgs += _sample_msgs(single, topic, str(path / name))
-                except InputError as exc:
-                    lost.append(f"{name} ({exc.problem})")
+                except MissingTopic:  # its metadata lists the bag's topics: this one is not among them
+                    continue
+                except InputError as exc:  # said of the bag's own file, not of the link made to read it alone
+                    lost.append(f"{name} ({exc.problem.replace(str(single), str(path))})")
         if len(lost) == len(segments):
             raise whole from None
     if not msgs:
+        if not required:
+            return None, lost
         raise InputError(str(path), f"topic {topic} holds no samples")
     # a sample that was read but is wrong is bad input, not a damaged segment: it refuses the bag
     rows = [sample_row_from_msg(msg, where, joints) for where, msg in msgs]
-    return samples_from_rows(rows, str(path)), lost
+    samples = samples_from_rows(rows, f"{path} {topic}")
+    said = [f"{path}: segment {segment} is damaged and was skipped; its samples are lost, the other segments "
+            "were read" for segment in lost]
+    if joints is not None:
+        said += joints.naming_warnings([list(msg.joint_names) for _, msg in msgs], f"{path} {topic}")
+    return replace(samples, warnings=samples.warnings + tuple(said)), lost
 
 
 def _sample_msgs(path: Path, topic: str, label: str | None = None) -> list:
@@ -155,12 +184,12 @@ def _sample_msgs(path: Path, topic: str, label: str | None = None) -> list:
     try:
         connections = [c for c in reader.connections if c.topic == topic]
         if not connections:
-            raise InputError(label, f"no topic {topic} in the bag (not a calibration session bag?)")
+            raise MissingTopic(label, f"no topic {topic} in the bag (not a calibration session bag?)")
         try:
             for index, (connection, _, raw) in enumerate(reader.messages(connections=connections)):
                 msgs.append((f"{label}: {topic} message {index + 1}", reader.deserialize(raw, connection.msgtype)))
         except Exception as exc:  # a damaged segment: rosbags raises several types
-            raise InputError(label, f"cannot read bag ({exc})") from None
+            raise InputError(label, f"cannot read bag ({_one_line(exc)})") from None
     finally:
         reader.close()
     return msgs
@@ -172,18 +201,18 @@ def _segments(path: Path, root: Path) -> list[tuple[str, Path]]:
     try:
         meta = yaml.safe_load((path / METADATA).read_text())
         info = meta["rosbag2_bagfile_information"]
-        files = list(info.get("files") or [])
-    except Exception:  # no readable metadata: nothing to split
+        files = [(entry, str(entry["path"])) for entry in info.get("files") or []]
+    except Exception:  # no readable metadata (a torn file lists a segment without its path): nothing to split
         return []
     out = []
-    for entry in files:
-        single = root / Path(entry["path"]).stem
+    for entry, name in files:
+        single = root / Path(name).stem
         single.mkdir()
-        (single / entry["path"]).symlink_to((path / entry["path"]).absolute())
-        one = dict(info, relative_file_paths=[entry["path"]], files=[entry],
+        (single / name).symlink_to((path / name).absolute())
+        one = dict(info, relative_file_paths=[name], files=[entry],
                    message_count=entry.get("message_count", 0))
         (single / METADATA).write_text(yaml.safe_dump({**meta, "rosbag2_bagfile_information": one}))
-        out.append((entry["path"], single))
+        out.append((name, single))
     return out
 
 

@@ -34,6 +34,29 @@ class RobotJoints:
         self.strict = bool(names) or robot.chain is not None
         if len(self.names) != self.n:
             raise InputError(self.named_by, f"{len(self.names)} names, robot '{robot.name}' has {self.n} joints")
+        twice = [name for k, name in enumerate(self.names) if name in self.names[:k]]
+        if twice:  # two robot joints read from one entry: another joint's readings left out
+            raise InputError(self.named_by, f"names '{twice[0]}' twice")
+
+    def naming_warnings(self, name_lists: Sequence[Sequence[str]], where: str) -> list[str]:
+        """What a set of samples' joint_names (``name_lists``, each sample's) says that is no error but
+        must be said: joints named that are none of the robot's, among the samples read by name (a
+        gripper in joint_states, or the readings of a longer arm whose first joints' names this one
+        shares); samples naming none of a D-H robot's joints, taken in its order, beside samples
+        that name them (two sources mixed)."""
+        by_name = [bool(names) and (self.strict or not set(names).isdisjoint(self.names)) for names in name_lists]
+        unused = dict.fromkeys(name for names, named in zip(name_lists, by_name) if named
+                               for name in names if name not in self.names)
+        in_order = [k for k, (names, named) in enumerate(zip(name_lists, by_name)) if names and not named]
+        said = []
+        if unused:
+            said.append(f"{where}: the samples also name {', '.join(unused)}, which {self.named_by} does not "
+                        "have: those readings are not used (the bag of another arm?)")
+        if in_order and any(by_name):
+            said.append(f"{where}: {len(in_order)} of {len(name_lists)} samples (the first: sample {in_order[0] + 1}) "
+                        f"name none of the joints of {self.named_by} and were taken in its order, while the others "
+                        "name them (samples of two sources mixed?)")
+        return said
 
     def sample_positions(self, names: Sequence[str], positions: np.ndarray, where: str) -> np.ndarray:
         """A Sample's joint_positions (named by its joint_names, ``names``) as the robot's q (N,),

@@ -278,7 +278,9 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     model = spot_model(robot, samples, effects, compensator)
     start = np.concatenate([np.zeros(robot.n_params), *values])
     est = estimate(robot, samples, options, model, start)
-    said = repeat_warnings(samples, test, robot.joint_names, sources)
+    # what reading them found (a bag's damaged segments skipped, joints the robot does not have)
+    said = list(dict.fromkeys((*samples.warnings, *(test.warnings if test is not None else ()))))
+    said += repeat_warnings(samples, test, robot.joint_names, sources)
     if test is not None:  # a test pose beyond the joint ranges calibrated on is an extrapolation: said with the fit's
         said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)
         beyond = extrapolation_note([e.label for e in effects if isinstance(e, Surface)], samples.spots, test.spots)

@@ -253,12 +253,8 @@ class SessionDir:
     def _bag_samples(self, topic: str, robot: Robot, joints: RobotJoints) -> Samples:
         if not (self.bag_dir / bag.METADATA).exists():
             return empty_samples(robot.n_joints)
-        try:
-            return bag.read_samples(self.bag_dir, topic, joints)
-        except InputError as exc:
-            if "holds no samples" in str(exc) or "no topic" in str(exc):
-                return empty_samples(robot.n_joints)
-            raise
+        samples = bag.read_samples(self.bag_dir, topic, joints, required=False)
+        return empty_samples(robot.n_joints) if samples is None else samples
 
     @staticmethod
     def _csv_samples(path: Path, robot: Robot) -> tuple[Samples, bool]:
