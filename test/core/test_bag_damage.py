@@ -98,3 +98,16 @@ def test_a_bad_test_sample_names_its_topic(session, simulated, tmp_path, capsys)
     assert run("diagnose", robot, path, tmp_path / "out") == 2
     assert capsys.readouterr().err == (f"laser-calib: {path} /test_samples: sample 4 (pose {test.pose[3]}): "
                                        "joint_positions[1] is not finite (nan)\n")
+
+
+def test_the_bag_of_a_longer_arm_is_refused_by_its_extra_joint(simulated, tmp_path, capsys):
+    """A D-H robot's joints are joint1..jointN; a sample naming joint5 for this 4-joint arm is a longer
+    arm's. Before, joint1..4 were picked from its names and the refusal, if any, came from a joint range
+    (pose 1, field q2 outside the joint range: another cause)."""
+    robot = str(simulated / "robot_nominal.yaml")
+    path = write_bag(tmp_path / "longer", load_samples(simulated / "samples.csv"),
+                     lambda k, q: (NAMES + ["joint5"], [*q, 0.2]))
+    assert run("estimate", robot, path, tmp_path / "out") == 2
+    assert capsys.readouterr().err == (f"laser-calib: {path}: /samples message 1: joint 'joint5' is beyond the 4 "
+                                       "joints of robot 'manipulator_4dof' (joint1 .. joint4): the readings of a "
+                                       "longer arm?\n")

@@ -7,6 +7,7 @@ without any error."""
 
 from __future__ import annotations
 
+import re
 from typing import Sequence
 
 import numpy as np
@@ -68,6 +69,11 @@ class RobotJoints:
             return positions
         if len(names) != len(positions):
             raise InputError(where, f"{len(names)} joint_names but {len(positions)} joint_positions")
+        if not self.strict:  # joint1..jointN: a jointK beyond them is a longer arm's, not a gripper
+            beyond = [name for name in names if name not in self.names and re.fullmatch(r"joint\d+", name)]
+            if beyond:
+                raise InputError(where, f"joint '{beyond[0]}' is beyond the {self.n} joints of {self.named_by} "
+                                        f"(joint1 .. joint{self.n}): the readings of a longer arm?")
         try:
             order = joint_order(names, self.names, self.n, "the sample's joint_names", self.named_by)
         except ValueError as exc:
