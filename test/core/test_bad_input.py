@@ -287,7 +287,7 @@ def test_bad_input_is_one_line_and_exit_2(name, tmp_path, capsys):
     code = exit_status(argv)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2, (name, err)
-    # one error line, the last (argparse prints its usage and progress lines may precede it)
+    # one error line, the last (progress lines may precede it)
     assert not any("Traceback" in line for line in err)
     assert [line for line in err if line.startswith("laser-calib")] == err[-1:], err
     assert expected in err[-1], err[-1]

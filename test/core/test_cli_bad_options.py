@@ -164,3 +164,36 @@ def test_a_second_render_replaces_the_image_folders(tmp_path, blank_frames):
                  "--screen-views", "1"]) == 0
     assert exit_status(_render(tmp_path)) == 0
     assert sorted(p.name for p in (tmp_path / "out" / "board").iterdir()) == ["board_000.png"]
+
+
+ARGUMENT_ERRORS = {
+    "estimate --spot-sigma -1": (["estimate", "--robot", "R", "--samples", "S", "--spot-sigma", "-1", "--out", "X"],
+                                 "laser-calib estimate: argument --spot-sigma: expected a positive number, got -1"),
+    "estimate --bag and --samples": (["estimate", "--bag", "B", "--samples", "S"],
+                                     "laser-calib estimate: argument --samples: not allowed with argument --bag"),
+    "calibrate-poses --chronological 1.5": (["calibrate-poses", "--robot", "R", "--samples", "S", "--out", "X",
+                                             "--chronological", "1.5"],
+                                            "laser-calib calibrate-poses: argument --chronological: expected a "
+                                            "fraction between 0 and 1, got 1.5"),
+    "plan --out in no folder": (["plan", "--robot", "R", "--n", "3", "--out", "/nonexistent-folder/x.csv"],
+                                "laser-calib plan: argument --out: /nonexistent-folder/x.csv: the folder "
+                                "/nonexistent-folder does not exist"),
+    "diagnose without --out": (["diagnose", "--robot", "R", "--samples", "S"],
+                               "laser-calib diagnose: the following arguments are required: --out"),
+    "no command": ([], "laser-calib: the following arguments are required: command"),
+}
+
+
+@pytest.mark.parametrize("name", list(ARGUMENT_ERRORS))
+def test_an_argument_error_is_one_line_without_the_usage(name, capsys):
+    """argparse printed its usage block (4-13 lines) before the line saying what is wrong: now
+    that line alone, naming the command and the argument, as any bad input."""
+    argv, expected = ARGUMENT_ERRORS[name]
+    assert exit_status(argv) == 2
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [expected] and captured.out == ""
+
+
+def test_help_still_shows_the_usage(capsys):
+    assert exit_status(["estimate", "--help"]) == 0
+    assert capsys.readouterr().out.startswith("usage: laser-calib estimate [-h] --robot ROBOT")

@@ -1,7 +1,8 @@
 """Argument types of the command line: each checks one text and returns its
-value, or raises argparse.ArgumentTypeError (argparse then prints one line and
-exits with status 2); output folders written all or nothing (staged_folder);
-warnings printed one line each; samples with nothing measured refused."""
+value, or raises argparse.ArgumentTypeError (the parser, OneLineParser, then
+prints one line and exits with status 2); output folders written all or nothing
+(staged_folder); warnings printed one line each; samples with nothing measured
+refused."""
 
 from __future__ import annotations
 
@@ -20,6 +21,16 @@ from laser_calib.io.errors import InputError
 from laser_calib.io.read import parse_int, parse_number
 from laser_calib.io.sensor_samples import POINT_COLUMNS, QUATERNION_COLUMNS
 from laser_calib.session.folder import refuse_finished
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument error as one line on stderr, 'laser-calib estimate: argument --spot-sigma: ...',
+    exit status 2, as for any bad input (argparse printed its whole usage block first, 4-13 lines
+    before the one that says what is wrong); --help still shows the usage. Subparsers are made of
+    their parser's class, so the main parser's is every command's."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {message}\n")
 
 
 # Plausible noise levels: a spot or position noise outside 1 nm .. 1 m, or a

@@ -39,10 +39,10 @@ from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
 from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
-from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, add_replay_arguments, noise_angle_deg,
-                                      noise_length, non_negative_int, no_spot_to_fit, out_file, out_folder, positive,
-                                      positive_int, print_warnings, replay_argv, require_measured, sigma_angle,
-                                      sigma_length, staged_folder, tolerance_length)
+from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, OneLineParser, add_replay_arguments,
+                                      noise_angle_deg, noise_length, non_negative_int, no_spot_to_fit, out_file,
+                                      out_folder, positive, positive_int, print_warnings, replay_argv,
+                                      require_measured, sigma_angle, sigma_length, staged_folder, tolerance_length)
 
 EXIT_BAD_INPUT = 2
 # The reader of the output went away (| head): the status a shell gives a program SIGPIPE ends (128 + 13).
@@ -200,7 +200,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     # the docstring's first paragraph names every command, its second the exit statuses
     summary, statuses = (" ".join(part.split()) for part in __doc__.split("\n\n")[:2])
-    parser = argparse.ArgumentParser(prog="laser-calib", description=summary, epilog=statuses)
+    parser = OneLineParser(prog="laser-calib", description=summary, epilog=statuses)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate the paper's session (section IV / V)")
