@@ -137,8 +137,15 @@ def test_calibrate_poses_writes_no_stale_effects(run, tmp_path, capsys):
     assert "effects" not in yaml.safe_load((out / "robot_calibrated.yaml").read_text())
 
 
-def test_calibrate_poses_diagnose_runs_the_diagnosis_engine(run, tmp_path, capsys):
+def test_calibrate_poses_diagnose_runs_the_diagnosis_engine(run, tmp_path, capsys, monkeypatch):
     """--diagnose: the engine of diagnosis.py on the pose data; the sensor scale first, no spot effects."""
+    from laser_calib.diagnosis import sensor_data
+    summary = sensor_data.diagnosis_summary
+
+    def noted(*args, **kwargs):  # these data give the diagnosis nothing to note: one added, to see where it goes
+        result = summary(*args, **kwargs)
+        return {**result, "notes": [*result["notes"], "a note of the diagnosis"]}
+    monkeypatch.setattr(sensor_data, "diagnosis_summary", noted)
     assert run(["import-positioner", "--data", str(DATA), "--out", str(tmp_path)]) == 0
     out = tmp_path / "diag"
     assert run(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples",
@@ -153,7 +160,10 @@ def test_calibrate_poses_diagnose_runs_the_diagnosis_engine(run, tmp_path, capsy
     # effects still beat the geometric model held out; it is the one the console gives first.
     assert len(diagnosis["nested_choices"]) == 3
     assert 0 < diagnosis["heldout_nested_mean_mm"] < diagnosis["stages"][0]["heldout_mean_mm"]
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    # the notes on stderr with the warnings: seen when the results go to a file
+    assert "diagnosis note: a note of the diagnosis" in captured.err.splitlines() and "note" not in printed
     assert diagnosis["verdict"] in ("explained", "structure remains") and "verdict" in printed
     assert f"held-out mean {diagnosis['heldout_nested_mean_mm']:.3f} mm with the selection inside the folds" in printed
     # The calibrated robot file is the geometric model: it says the effects chosen are not in it (the

@@ -64,7 +64,7 @@ def test_diagnose_notes_the_reused_id(tmp_path, capsys):
                  "--folds", "2", "--max-effects", "0", "--out", str(tmp_path / "out")]) == 0
     assert any(line.startswith(f"note: {tmp_path / 'reused.csv'}: a pose id repeated with different joint readings: "
                                "pose 3")
-               for line in capsys.readouterr().out.splitlines())
+               for line in capsys.readouterr().err.splitlines())
 
 
 def test_calibrate_poses_prints_the_warning_for_the_samples_and_the_test_file(tmp_path, capsys):
@@ -197,12 +197,14 @@ def test_diagnose_notes_copies_and_a_test_set_of_calibration_poses(sim, tmp_path
     doubled = sim / "doubled.csv"  # every repeated pose without scatter: the level is not tested, no division by 0
     assert main(["diagnose", "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(doubled), "--test",
                  str(sim / "samples.csv"), "--folds", "2", "--max-effects", "0", "--out", str(tmp_path / "out")]) == 0
-    out = capsys.readouterr().out
+    captured = capsys.readouterr()  # the notes on stderr with the warnings, the results on stdout
+    out = captured.err
+    assert "note:" not in captured.out
     lines = _warnings(out.splitlines(), "note: ")
     assert [line.split(":")[0] for line in lines] == [str(doubled), str(sim / "samples.csv")]
     assert lines[1].startswith(f"{sim / 'samples.csv'}: 16 of 16 test poses repeat a calibration pose of {doubled}")
     assert lines == _warnings(json.loads((tmp_path / "out" / "diagnosis.json").read_text())["notes"], "")
-    assert "repeated poses without any scatter (copied rows?)" in out
+    assert "repeated poses without any scatter (copied rows?)" in captured.out  # the verdict's evidence
 
 
 def test_calibrate_poses_says_copies_and_a_test_set_of_calibration_poses(tmp_path, capsys):

@@ -197,6 +197,13 @@ def print_warnings(warnings: list[str]) -> int:
     return EXIT_NOT_A_CALIBRATION if any(map(is_failure, warnings)) else 0
 
 
+def print_notes(notes: list[str], label: str = "note") -> None:
+    """One line each on stderr, as the warnings: on the console even when the command's
+    results (stdout) go to a file or a pipe."""
+    for note in notes:
+        print(f"{label}: {note}", file=sys.stderr)
+
+
 def _writable_ancestor(path: Path) -> Path:
     """The nearest existing folder at or above path's parent, which must be writable."""
     ancestor = path.absolute().parent
@@ -232,7 +239,7 @@ def staged_folder(out: str) -> Iterator[Path]:
     """A fresh folder beside ``out`` to write into. On success its files replace
     the same names in ``out`` (other files there are left and named, so it is
     clear what this run wrote), a subfolder as a whole (no file of an earlier
-    run left in it); on failure it is removed, so a failed run leaves no
+    run left in it, on stderr); on failure it is removed, so a failed run leaves no
     half-written folder."""
     target = Path(out)
     refuse_finished(target, "--out")
@@ -253,8 +260,8 @@ def staged_folder(out: str) -> Iterator[Path]:
         shutil.rmtree(stage, ignore_errors=True)
     others = sorted(p.name for p in target.iterdir() if p.name not in written)
     if others:
-        print(f"note: {out}/ also holds files this run did not write (left as they were): "
-              + ", ".join(others[:6]) + (f" and {len(others) - 6} more" if len(others) > 6 else ""))
+        print_notes([f"{out}/ also holds files this run did not write (left as they were): "
+                     + ", ".join(others[:6]) + (f" and {len(others) - 6} more" if len(others) > 6 else "")])
 
 
 def _replace(new: Path, old: Path, stage: Path) -> None:

@@ -11,7 +11,7 @@ import argparse
 import sys
 
 from laser_calib.cli.arguments import (no_spot_to_fit, non_negative, non_negative_int, out_folder, positive,
-                                      print_warnings, staged_folder)
+                                      print_notes, print_warnings, staged_folder)
 from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
@@ -62,8 +62,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         print(f"learned compensator kept: held-out gain {100 * kept['heldout_gain']:.1f} %"
               + (f", test spot error rms {test['rms_mm']:.3f} mm" if test else ""))
     print(f"verdict: {result['verdict']}. {result['evidence']}")
-    for note in result["notes"]:
-        print(f"note: {note}")
+    print_notes(result["notes"])
     print(f"wrote {args.out}/diagnosis.json, robot_calibrated.yaml, report.md" + (", compensator.json" if kept else ""))
     # the final model's fit: a failure (what it wrote shows where the fit went) is no calibration, exit 3
     return print_warnings(result["warnings"])

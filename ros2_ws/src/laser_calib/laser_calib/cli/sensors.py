@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fraction, non_negative, non_negative_int,
-                                      out_file, out_folder, positive, positive_int, print_warnings, require_measured,
-                                      sigma_angle, sigma_length, staged_folder, tolerance_length)
+                                      out_file, out_folder, positive, positive_int, print_notes, print_warnings,
+                                      require_measured, sigma_angle, sigma_length, staged_folder,
+                                      tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
 from laser_calib.estimation.identifiability import TooFewValues, carried_note
@@ -263,8 +264,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                           + repeat_warnings(samples, test, robot.joint_names,
                                             {"samples": args.samples, "test": args.test})
                           + held_warnings(robot, str(args.robot))}
-    stale = robot.extra.get("effects")
-    if stale:  # their values belong to the geometry they were fitted with, not to this calibration's
+    if stale := robot.extra.get("effects"):  # their values belong to the geometry they were fitted with, not to this calibration's
         result["warnings"].append(f"{args.robot}: its effects ({len(stale)}) are not fitted by calibrate-poses (the "
                                   "geometric model and the frames only): the calibrated robot is written without "
                                   "them; --diagnose selects effects anew")
@@ -296,7 +296,6 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                      f"chosen on all poses); verdict: {result['diagnosis']['verdict']}"
                      + ("; its effects are in result.json, not in the calibrated robot file (the geometric model)"
                         if len(result["diagnosis"]["stages"]) > 1 else ""))
-        lines += [f"diagnosis note: {note}" for note in result["diagnosis"]["notes"]]
     failure = first_failure(fit.estimate.warnings)
     with staged_folder(args.out) as out:
         if robot.chain is not None:
@@ -315,6 +314,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         (out / "result.json").write_text(json.dumps(result, indent=2))
         save_pose_table(sets, out / "residuals.csv")
     print("\n".join(lines))
+    print_notes(result.get("diagnosis", {}).get("notes", []), "diagnosis note")
     status = print_warnings(result["warnings"])
     print(f"wrote {args.out}/{', '.join(written)}, result.json and residuals.csv")
     return status
