@@ -294,6 +294,41 @@ def test_bad_input_is_one_line_and_exit_2(name, tmp_path, capsys):
     assert not (tmp_path / "out").exists()      # nothing half-written
 
 
+def _one_pose() -> str:
+    return "\n".join(SAMPLES.splitlines()[:2]) + "\n"
+
+
+REFUSED_BEFORE_THE_WORK = {
+    "estimate --fix of an unknown name": (lambda d: _estimate(d, None, None, "--fix", "a1", "bogus"),
+                                          "laser-calib: --fix: 'bogus' is not a parameter of "),
+    "estimate --compensator missing": (lambda d: _estimate(d, None, None, "--compensator", str(d / "none.json")),
+                                       "laser-calib estimate: argument --compensator: "),
+    "diagnose --folds 1": (lambda d: _diagnose(d, "--folds", "1"),
+                           "laser-calib diagnose: argument --folds: expected an integer of at least 2, got 1"),
+    "estimate of one pose": (lambda d: _estimate(d, None, _one_pose()), "samples.csv: 4 measured values cannot"),
+    "diagnose of one pose": (lambda d: ["diagnose"] + _estimate(d, None, _one_pose())[1:],
+                             "samples.csv: 1 poses, at least "),
+}
+
+
+@pytest.mark.parametrize("name", list(REFUSED_BEFORE_THE_WORK))
+def test_input_refused_before_the_work_is_its_error_line_alone(name, tmp_path, capsys):
+    """The progress line ('estimating 21 errors of ...') came first, then the error: two lines
+    for input refused before any fit. The names and files are checked first, and the line is
+    said once the work has begun."""
+    make, expected = REFUSED_BEFORE_THE_WORK[name]
+    argv = make(tmp_path)
+    assert exit_status(argv) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and expected in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_run_still_says_what_it_estimates_first(tmp_path, capsys):
+    assert exit_status(_estimate(tmp_path, None, None, "--fix", "a1")) == 0
+    assert capsys.readouterr().err.splitlines()[0] == f"estimating 21 errors of {ROBOT.name} from 12 poses (lm)"
+
+
 def test_an_unconverged_fit_exits_3_and_the_still_joint_is_named(tmp_path, capsys):
     """The real UR10e log with the elbow's column replaced by one value: the fit cannot converge
     (the elbow did move); the files are written, the joint is named, and the exit status is not 0."""

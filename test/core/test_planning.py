@@ -139,6 +139,25 @@ def test_progress_off_a_terminal_is_plain_lines():
     assert lines[-1].startswith("plan: 3/10 pose,") and "s left" in lines[-1] and lines[-1].endswith("; greedy")
 
 
+def test_progress_says_its_header_once_the_work_has_begun():
+    """The step's header line: at its first call, else at its end without an error, never
+    after an error raised before any call (the error line alone)."""
+    stream = io.StringIO()
+    with Progress("lm", stream=stream, interval=0.0, delay=10.0, header="estimating") as progress:
+        assert stream.getvalue() == ""
+        progress(1, 5)
+        progress(2, 5)
+    assert stream.getvalue() == "estimating\n"
+    stream = io.StringIO()
+    with Progress("lm", stream=stream, header="estimating"):
+        pass
+    assert stream.getvalue() == "estimating\n"
+    stream = io.StringIO()
+    with pytest.raises(ValueError), Progress("lm", stream=stream, header="estimating"):
+        raise ValueError("too few values")
+    assert stream.getvalue() == ""
+
+
 def test_progress_restarts_its_rate_when_the_count_falls_back():
     """A second fit reports from 1 again: its rate is its own, not the first fit's."""
     stream = io.StringIO()

@@ -121,6 +121,21 @@ def positive_int(text: str) -> int:
     return _integer(text, 1)
 
 
+def fold_count(text: str) -> int:
+    """Cross-validation folds: at least 2 (one fold leaves nothing to train on)."""
+    return _integer(text, 2)
+
+
+def readable_file(text: str) -> str:
+    """An input file that exists and can be read (refused before any work, not after the progress line)."""
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    if not path.is_file() or not os.access(path, os.R_OK):
+        raise argparse.ArgumentTypeError(f"{text}: {'a folder, not a file' if path.is_dir() else 'cannot be read'}")
+    return text
+
+
 def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     """The replay node's arguments (laser_calib_nodes.replay), which `laser-calib replay` takes
     too and hands on (replay_argv): one definition for both."""

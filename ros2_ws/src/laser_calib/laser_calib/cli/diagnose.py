@@ -8,9 +8,8 @@ exit status 2, as for every command; a final model whose fit is no calibration
 from __future__ import annotations
 
 import argparse
-import sys
 
-from laser_calib.cli.arguments import (no_spot_to_fit, non_negative, non_negative_int, out_folder, positive,
+from laser_calib.cli.arguments import (fold_count, no_spot_to_fit, non_negative, non_negative_int, out_folder, positive,
                                       print_notes, print_warnings, staged_folder)
 from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.diagnosis.options import DiagnoseOptions
@@ -28,13 +27,13 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     sets = read_sample_sets(args, robot)
     samples, test = sets.samples, sets.test
-    print(f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else ""),
-          file=sys.stderr, flush=True)
+    # said once the first fit has begun: input refused before it (too few poses) is its error line alone
+    header = f"diagnosing {robot.name} from {len(samples)} poses" + (f", testing on {len(test)}" if test else "")
     sources = {"robot": str(args.robot), "samples": sets.source, "test": sets.test_source}
     # The folder first: one that cannot be written fails before the work, and a failed run leaves none.
     with staged_folder(args.out) as out:
         # per model fitted: its fit on all poses and one per fold
-        with Progress("diagnose", unit="fit") as progress:
+        with Progress("diagnose", unit="fit", header=header) as progress:
             options = DiagnoseOptions(method=args.method, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                                       folds=args.folds, max_effects=args.max_effects, seed=args.seed,
                                       compensate=not args.no_compensator, nested=True, robust=args.robust,
@@ -79,7 +78,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--joint-sigma", type=non_negative, default=None,
                    help="joint reading noise std, rad (default: estimated from the residual)")
     p.add_argument("--method", choices=METHODS, default="lm", help="estimator of every fit")
-    p.add_argument("--folds", type=non_negative_int, default=5, help="cross-validation folds (at least 2)")
+    p.add_argument("--folds", type=fold_count, default=5, help="cross-validation folds (at least 2)")
     p.add_argument("--max-effects", type=non_negative_int, default=4, help="effects added at most")
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the fold split")
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,

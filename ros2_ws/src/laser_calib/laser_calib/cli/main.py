@@ -29,6 +29,7 @@ from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.calibration import shown_mm
 from laser_calib.report.files import run_estimate
+from laser_calib.effects.catalog import effects_from_robot
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
 from laser_calib.io.bag import bag_topics
@@ -41,16 +42,12 @@ from laser_calib.cli import vision as vision_cli
 from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, OneLineParser, add_replay_arguments,
                                       noise_angle_deg, noise_length, non_negative_int, no_spot_to_fit, out_file,
-                                      out_folder, positive, positive_int, print_warnings, replay_argv,
+                                      out_folder, positive, positive_int, print_warnings, readable_file, replay_argv,
                                       require_measured, sigma_angle, sigma_length, staged_folder, tolerance_length)
 
 EXIT_BAD_INPUT = 2
 # The reader of the output went away (| head): the status a shell gives a program SIGPIPE ends (128 + 13).
 EXIT_BROKEN_PIPE = 141
-
-
-def _progress(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -101,17 +98,29 @@ def _options(args: argparse.Namespace, progress: Progress | None = None) -> Esti
                            robust=args.robust, fixed=tuple(args.fix), lm=lm, ekf=ekf)
 
 
+def _check_fixed(names: list[str], robot, source: str) -> None:
+    """--fix names only what the estimate fits: the robot's errors and its file's effects' parameters."""
+    effects, _ = effects_from_robot(robot, source)
+    known = (*robot.param_names, *(name for effect in effects for name in effect.names))
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise InputError("--fix", f"{unknown[0]!r} is not a parameter of {source} (its parameters: "
+                                  f"{', '.join(known)})")
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
+    _check_fixed(args.fix, robot, str(args.robot))
     sets = read_sample_sets(args, robot)
     samples, test = sets.samples, sets.test
-    _progress(f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})"
-              + (f", tested on {len(test)} poses of {sets.test_source}" if test is not None else ""))
     compensator = None
     if args.compensator:
         from laser_calib.diagnosis.compensator import load_compensator  # scikit-learn: only when asked for
         compensator = load_compensator(args.compensator)
-    with staged_folder(args.out) as out, Progress(args.method, unit="iteration") as progress:
+    # said once the fit has begun: input refused before it (too few values) is its error line alone
+    header = (f"estimating {robot.n_params} errors of {robot.name} from {len(samples)} poses ({args.method})"
+              + (f", tested on {len(test)} poses of {sets.test_source}" if test is not None else ""))
+    with staged_folder(args.out) as out, Progress(args.method, unit="iteration", header=header) as progress:
         try:
             calibration = run_estimate(robot, samples, _options(args, progress), out, test,
                                        sources={"robot": str(args.robot), "samples": sets.source,
@@ -235,7 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
                    help="robust fit: outlier spots rejected and listed (default; the rule is in result.json)")
     p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")
-    p.add_argument("--compensator", help="a diagnosis's compensator.json, applied to every pose (made for the "
+    p.add_argument("--compensator", type=readable_file, help="a diagnosis's compensator.json, applied to every pose (made for the "
                                          "robot file's model: its robot_calibrated.yaml's effects)")
     p.add_argument("--out", required=True, type=out_folder)
     p.set_defaults(func=cmd_estimate)

@@ -18,11 +18,15 @@ from tqdm import tqdm
 
 class Progress:
     """Callable progress(done, total, note) for one step; close() when it ends
-    (or use it as a context manager)."""
+    (or use it as a context manager). header: a line saying what the step does,
+    written at its first call (the work has begun), or when the context ends
+    without an error if no call came: input the step refuses before any work
+    (too few poses, a name it does not know) gives its error line alone."""
 
     def __init__(self, desc: str, unit: str = "it", stream: TextIO | None = None,
-                 interval: float = 10.0, delay: float = 2.0):
+                 interval: float = 10.0, delay: float = 2.0, header: str | None = None):
         self.desc, self.unit = desc, unit
+        self.header = header
         self.stream = sys.stderr if stream is None else stream
         self.interval, self.delay = interval, delay
         self.terminal = hasattr(self.stream, "isatty") and self.stream.isatty()
@@ -33,6 +37,7 @@ class Progress:
         self._done = 0
 
     def __call__(self, done: int, total: int | None = None, note: str = "") -> None:
+        self._say_header()
         # a count that falls back is the next run of the step (another fit): rate and time from there
         restart = done < self._done
         self._done = done
@@ -70,6 +75,12 @@ class Progress:
             text += f", ~{max(total - done, 0) / rate:.0f} s left"
         return text + (f"; {note}" if note else "")
 
+    def _say_header(self) -> None:
+        if self.header is not None:
+            self.stream.write(self.header + "\n")
+            self.stream.flush()
+            self.header = None
+
     def close(self) -> None:
         if self._bar is not None:
             self._bar.close()
@@ -82,5 +93,7 @@ class Progress:
     def __enter__(self) -> "Progress":
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None:
+            self._say_header()
         self.close()
