@@ -47,6 +47,17 @@ def test_simulate_a_robot_whose_joint_range_lies_beyond_the_small_span(tmp_path,
     assert len(q4) == 20 and np.all((q4 >= low) & (q4 <= high))
 
 
+def test_result_json_says_where_the_spot_sigma_came_from(simulated, tmp_path):
+    """Without --spot-sigma the options said spot_sigma_source 'given' (spot_sigma null)."""
+    for name, given in (("estimated", []), ("given", ["--spot-sigma", "0.001"])):
+        out = tmp_path / name
+        assert main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"), "--samples",
+                     str(simulated / "case2_cal.csv"), *given, "--out", str(out)]) == 0
+        result = json.loads((out / "result.json").read_text())
+        assert result["options"]["spot_sigma_source"] == name
+        assert result["spot_sigma_estimated"] == (result["options"]["spot_sigma"] is None) == (not given)
+
+
 @pytest.mark.parametrize("method", ["lm", "ekf"])
 def test_estimate_writes_calibrated_robot_result_and_report(simulated, tmp_path, method):
     out = tmp_path / "est"

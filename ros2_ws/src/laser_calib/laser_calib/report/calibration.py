@@ -177,6 +177,8 @@ class Calibration:
             errors.append(entry)
         ident = est.identifiability
         options_dict = {k: v for k, v in asdict(options).items() if k not in ("lm", "ekf")}
+        if options.spot_sigma is None:  # no --spot-sigma: the fit estimated it (spot_sigma_estimated)
+            options_dict["spot_sigma_source"] = "estimated"
         solver = asdict(options.ekf if options.method == "ekf" else options.lm)
         solver.pop("progress", None)
         options_dict[options.method] = solver
