@@ -58,6 +58,17 @@ def test_result_json_says_where_the_spot_sigma_came_from(simulated, tmp_path):
         assert result["spot_sigma_estimated"] == (result["options"]["spot_sigma"] is None) == (not given)
 
 
+def test_result_json_notes_the_errors_fix_held(simulated, tmp_path):
+    """The errors --fix held were 'identifiable': false with no note, the field the README uses
+    for what the data cannot separate; the data's own have theirs."""
+    out = tmp_path / "est"
+    assert main(["estimate", "--robot", str(simulated / "robot_nominal.yaml"), "--samples",
+                 str(simulated / "case2_cal.csv"), "--fix", "a1", "d1", "--out", str(out)]) == 0
+    errors = {e["name"]: e for e in json.loads((out / "result.json").read_text())["errors"]}
+    assert [errors[name]["note"] for name in ("a1", "d1")] == ["held at nominal: --fix"] * 2
+    assert not errors["a1"]["identifiable"] and "note" not in errors["alpha1"]
+
+
 @pytest.mark.parametrize("method", ["lm", "ekf"])
 def test_estimate_writes_calibrated_robot_result_and_report(simulated, tmp_path, method):
     out = tmp_path / "est"

@@ -120,6 +120,11 @@ def test_calibrate_poses_command_writes_result_and_calibrated_robot(run, tmp_pat
     assert run(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples",
                 str(tmp_path / "samples.csv"), "--fix", "nope", "--out", str(out)]) == 2
     assert "cannot fix unknown parameter 'nope'" in capsys.readouterr().err
+    # a parameter --fix holds is said to be the user's, not 'held' as one the robot file held
+    assert run(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples",
+                str(tmp_path / "samples.csv"), "--folds", "0", "--fix", "a1", "--out", str(out)]) == 0
+    a1 = json.loads((out / "result.json").read_text())["parameters"][0]
+    assert a1["name"] == "a1" and a1["value"] is None and a1["note"] == "held at nominal: --fix"
 
 
 def test_calibrate_poses_writes_no_stale_effects(run, tmp_path, capsys):

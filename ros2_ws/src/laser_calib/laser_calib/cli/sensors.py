@@ -25,7 +25,7 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
-from laser_calib.estimation.identifiability import TooFewValues, carried_note
+from laser_calib.estimation.identifiability import FIXED_NOTE, TooFewValues, carried_note
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
 from laser_calib.io.revisits import repeat_warnings
@@ -63,7 +63,7 @@ def _unit(name: str) -> str:
     return "rad" if tail in ("alpha", "theta", "rx", "ry", "rz") else "m"
 
 
-def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
+def _parameters(fit: SensorFit, robot: Robot, fixed: list[str]) -> list[dict]:
     est = fit.estimate
     # The robot's own kinds: a joint placement's offset is m or rad by its joint type.
     units = {n: "m" if kind == "length" else "rad" for n, kind in zip(robot.param_names, robot.param_kinds())}
@@ -76,8 +76,8 @@ def _parameters(fit: SensorFit, robot: Robot) -> list[dict]:
         if name in fit.absorbed:  # held before the fit: said to be the frames' only where a frame carries it
             held = fit.absorbed[name]
             entry["note"] = ("carried by the frames: " if held.by_frames else "") + held.why
-        elif not est.identifiable[i]:
-            entry["note"] = est.identifiability.merged.get(name, "held")
+        elif not est.identifiable[i]:  # --fix's, or the data's (merged), or the robot file's (held:)
+            entry["note"] = FIXED_NOTE if name in fixed else est.identifiability.merged.get(name, "held")
         elif name in fit.undetermined:  # a failed fit's: where it went is no value (errors), the file has nominal
             entry["note"] = UNDETERMINED
         elif name in carried:  # as the spot estimate's result.json says it
@@ -251,7 +251,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     result = {"robot": robot.name, "samples": str(args.samples), "kind": samples.kind, "poses": len(samples),
               "rotation_length_m_per_rad": fit.rotation_length, "sigma_m": fit.estimate.sigma,
               "chi2": fit.estimate.fit.chi2, "dof": fit.estimate.fit.dof,
-              "parameters": _parameters(fit, robot), "insample": _summaries(table, rows=used),
+              "parameters": _parameters(fit, robot, args.fix), "insample": _summaries(table, rows=used),
               "insample_not_fitted": {w: _summaries(table, "", status == w) for w in NOT_FITTED if (status == w).any()},
               "rejected_poses": [int(samples.pose[p]) for p, _ in fit.estimate.rejected],
               "robust": fit.estimate.robust,

@@ -135,6 +135,11 @@ def carried_by_kept(carriers: dict[str, tuple[str, ...]]) -> dict[str, tuple[str
     return out
 
 
+# result.json's note on a parameter the user held (EstimateOptions.fixed: --fix), not identifiable
+# for that reason, not for the data's: as the merged and carried ones say why
+FIXED_NOTE = "held at nominal: --fix"
+
+
 def carried_note(name: str, held: tuple[str, ...]) -> str:
     """What a kept parameter's value is when it carries held ones' combination (Identifiability.carried)."""
     return (f"carries its combination with {', '.join(held)} (held at nominal): the value is that combination's, "

@@ -31,7 +31,7 @@ from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.failures import UNDETERMINED, first_failure
 from laser_calib.estimation.folds import test_range_warnings
-from laser_calib.estimation.identifiability import carried_note
+from laser_calib.estimation.identifiability import FIXED_NOTE, carried_note
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples
@@ -168,6 +168,8 @@ class Calibration:
                      "identifiable": bool(est.identifiable[i]), "unit": unit}
             if name in est.undetermined:  # a failed fit's: where it went is no value (errors), the file has nominal
                 entry["note"] = UNDETERMINED
+            elif name in options.fixed and name not in held(self.robot):  # the user's, not the data's
+                entry["note"] = FIXED_NOTE
             elif name in est.identifiability.merged:
                 entry["note"] = est.identifiability.merged[name]
             elif name in est.identifiability.carried:
