@@ -106,6 +106,28 @@ def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
     assert "run again with the same --out to resume" in ros.log("run-session")
 
 
+def test_a_refused_plan_is_one_line_on_stderr_and_leaves_no_folder(ros: Ros, tmp_path):
+    """--poses 0 or --span medium: the sequencer's error line came on stdout (stderr empty) after
+    every node had started, and the folder was left holding .lock, logs/ and robot_true.yaml. Now
+    the graph refuses the plan before it takes the folder."""
+    for option, value, said in (("--poses", "0", "poses: need at least one pose, got 0"),
+                                ("--span", "medium", "span: expected 'small' or 'whole', got 'medium'")):
+        out = tmp_path / option.strip("-")
+        result = ros.run([RUN_SESSION, "--no-setup", "--out", str(out), option, value], timeout=120)
+        assert result.returncode == 2 and result.stderr == f"run-session: {said}\n", result
+        assert "error" not in result.stdout and not out.exists(), result
+
+
+def test_a_start_the_sequencer_refuses_is_said_on_stderr_and_leaves_no_folder(ros: Ros, tmp_path):
+    """A refusal only the sequencer makes (resume:=yes with no session to resume): its error line
+    on stderr, not among the results, and no folder of this run's left (nothing was measured)."""
+    out = tmp_path / "new" / "session"
+    result = ros.run([RUN_SESSION, "--no-setup", "--out", str(out), "--", "-p", "resume:='yes'"], timeout=120)
+    assert result.returncode == 2, result
+    assert result.stderr.strip().splitlines()[-1] == f"error: {out}: no session to resume", result
+    assert "error" not in result.stdout and not (tmp_path / "new").exists(), result
+
+
 def test_env_sh_puts_the_wheels_packages_on_the_ament_path(ros: Ros):
     """ament_index (ros2 interface, launch) finds the wheels' packages after `source scripts/env.sh`."""
     found = ros.run([str(ROOT / ".venv" / "bin" / "python"), "-c",

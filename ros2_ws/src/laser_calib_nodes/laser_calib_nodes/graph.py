@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -34,6 +35,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
 from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, refuse_finished
 from laser_calib.session.lock import SessionLock
+from laser_calib.session.poses import check_plan
 from laser_calib_nodes.arguments import arm_section, existing_files, integer, loadable_robot, positive_number
 from laser_calib_nodes.shutdown import GRACE
 
@@ -132,6 +134,7 @@ def session_nodes(values: dict) -> list[NodeSpec]:
     sequencer = dict(robot, output_dir=values["output_dir"], poses=integer(values, "poses"),
                      test_poses=integer(values, "test_poses"), span=values["span"], seed=integer(values, "seed"),
                      **{"estimate.method": values["method"]})
+    check_plan(sequencer["poses"], sequencer["span"], sequencer["seed"], test_poses=sequencer["test_poses"])
     return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", files, arm), NodeSpec("camera_sim", files),
             NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)]
 
@@ -151,6 +154,8 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
     sequencer = dict(robot, output_dir=values["output_dir"], poses_file=values["poses_file"],
                      poses=integer(values, "poses"), test_poses=integer(values, "test_poses"), span=values["span"],
                      seed=integer(values, "seed"))
+    check_plan(None if values["poses_file"] else sequencer["poses"], sequencer["span"], sequencer["seed"],
+               test_poses=sequencer["test_poses"])
     return [NodeSpec("estimator", files, robot),
             NodeSpec("arm_driver", (values["arm_params"],), dict(robot, backend="dynamixel")),
             NodeSpec("spot_detector", files, {"calibration": values["calibration"]},
@@ -290,11 +295,22 @@ def last_line(path: Path) -> str:
     return lines[-1] if lines else "(no output)"
 
 
+def outermost_missing(folder: Path) -> Path | None:
+    """The outermost folder that creating ``folder`` makes (None: it exists)."""
+    missing = None
+    while not folder.exists():
+        missing, folder = folder, folder.parent
+    return missing
+
+
 def run_session(values: dict, extra: list[str]) -> int:
     """Start the graph like `ros2 launch` does: each node's output in output_dir/logs/NAME.log,
-    the sequencer's also on stdout; end when the sequencer ends, a node dies, or on a signal."""
+    the sequencer's also on this process's stdout and stderr, as it wrote them (its error line on
+    stderr); end when the sequencer ends, a node dies, or on a signal. A start the sequencer
+    refuses (exit 2, no session begun) leaves no folder this run created: its line says why."""
     specs = session_nodes(values)
     die_with_parent()  # scripts/run-session killed: this process stops the nodes
+    created = outermost_missing(Path(values["output_dir"]))
     take_folder(values["output_dir"], values)
     logs = Path(values["output_dir"]) / "logs"
     logs.mkdir(exist_ok=True)
@@ -307,30 +323,42 @@ def run_session(values: dict, extra: list[str]) -> int:
         with open(logs / f"{spec.executable}.log", "ab") as log:
             procs[spec.executable] = subprocess.Popen(spec.command(), stdout=log, stderr=subprocess.STDOUT,
                                                       preexec_fn=die_with_parent, env=env)
-    sequencer = subprocess.Popen(specs[-1].command() + extra, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    sequencer = subprocess.Popen(specs[-1].command() + extra, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                  preexec_fn=die_with_parent, env=env)
-    tee = threading.Thread(target=copy_lines, args=(sequencer.stdout, logs / "sequencer.log"), daemon=True)
-    tee.start()
+    log, written = open(logs / "sequencer.log", "ab"), threading.Lock()
+    tees = [threading.Thread(target=copy_lines, args=(stream, shown, log, written), daemon=True)
+            for stream, shown in ((sequencer.stdout, sys.stdout), (sequencer.stderr, sys.stderr))]
+    for tee in tees:
+        tee.start()
     failed = None
     while sequencer.poll() is None and not stopping.is_set() and failed is None:
         failed = next((name for name, proc in procs.items() if proc.poll() is not None), None)
         time.sleep(0.1)
     stop([*procs.values(), sequencer])
-    tee.join(timeout=2)
+    for tee in tees:
+        tee.join(timeout=2)
+    with written:
+        log.close()
     if failed:
         print(f"run-session: {failed} exited with code {procs[failed].returncode}: "
               f"{last_line(logs / f'{failed}.log')}", file=sys.stderr)
         return 1
-    return 130 if stopping.is_set() else sequencer.returncode
+    if stopping.is_set():
+        return 130
+    if sequencer.returncode == 2 and created is not None and SessionDir(values["output_dir"]).state() == "new":
+        shutil.rmtree(created, ignore_errors=True)  # refused at its start: nothing measured, nothing to resume
+    return sequencer.returncode
 
 
-def copy_lines(stream, path: Path) -> None:
-    with open(path, "ab") as log:
-        for line in stream:
-            sys.stdout.buffer.write(line)
-            sys.stdout.flush()
-            log.write(line)
-            log.flush()
+def copy_lines(stream, shown, log, written: threading.Lock) -> None:
+    """Each line of ``stream`` to ``shown`` (stdout or stderr) and to the shared ``log``."""
+    for line in stream:
+        shown.buffer.write(line)
+        shown.flush()
+        with written:
+            if not log.closed:
+                log.write(line)
+                log.flush()
 
 
 def stop(procs: list[subprocess.Popen]) -> None:

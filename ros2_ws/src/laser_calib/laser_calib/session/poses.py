@@ -132,18 +132,26 @@ def _check_seed(seed: int) -> None:
         raise InputError("seed", f"must be >= 0, got {seed}")
 
 
+def check_plan(count: int | None, span: str, seed: int, repeats: int = 0, test_poses: int = 0) -> None:
+    """The pose plan's arguments as generate_poses and with_test_poses take them (count None:
+    a pose file's plan, nothing generated), refused before a session starts (its folder, its nodes)."""
+    if count is not None and count < 1:
+        raise InputError("poses", f"need at least one pose, got {count}")
+    if count is not None and span not in ("small", "whole"):
+        raise InputError("span", f"expected 'small' or 'whole', got {span!r}")
+    if repeats < 0:
+        raise InputError("repeats", f"must be >= 0, got {repeats}")
+    if test_poses < 0:
+        raise InputError("test_poses", f"must be >= 0, got {test_poses}")
+    _check_seed(seed)
+
+
 def generate_poses(robot: Robot, count: int, span: str, seed: int, repeats: int = 0,
                    margin: float = 0.02) -> PoseSequence:
     """``count`` poses whose two beams hit the screen (laser_calib.sim.simulation.sample_poses,
     nominal model), span 'small' (+-10 deg) or 'whole' (workspace); then ``repeats``
     of them, evenly spread over the list, measured again at the end with their ids."""
-    if count < 1:
-        raise InputError("poses", f"need at least one pose, got {count}")
-    if span not in ("small", "whole"):
-        raise InputError("span", f"expected 'small' or 'whole', got {span!r}")
-    if repeats < 0:
-        raise InputError("repeats", f"must be >= 0, got {repeats}")
-    _check_seed(seed)
+    check_plan(count, span, seed, repeats)
     q = _sample(robot, count, np.random.default_rng(seed), span, margin)
     ids = np.arange(count)
     if repeats > 0:
