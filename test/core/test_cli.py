@@ -32,6 +32,19 @@ def test_simulate_writes_the_papers_sets(simulated):
     assert len((simulated / "case3_cal.csv").read_text().splitlines()) == 61
 
 
+@pytest.mark.parametrize("case", ["paper-4dof", None])
+def test_simulate_names_the_files_it_wrote(tmp_path, capsys, case):
+    """Its line said 'case1..3 calibration/test sets' where case3 has only case3_cal.csv, and left
+    out truth.csv: now the names of what it wrote, each once."""
+    robot = [] if case else ["--robot", str(tmp_path / "robot.yaml")]
+    if not case:
+        save_robot(bundled_robot("paper-4dof"), tmp_path / "robot.yaml")
+    assert main(["simulate", *(["--case", case] if case else robot), "--seed", "1", "--poses-per-span", "6",
+                 "--out", str(tmp_path / "sim")]) == 0
+    said = re.findall(r"\b[\w]+\.(?:yaml|csv|json)\b", capsys.readouterr().out.split("/: ", 1)[1])
+    assert sorted(said) == sorted(p.name for p in (tmp_path / "sim").iterdir())
+
+
 @pytest.mark.parametrize("low, high", [(0.2, 0.3), (-0.3, -0.2)])
 def test_simulate_a_robot_whose_joint_range_lies_beyond_the_small_span(tmp_path, low, high):
     """A joint range 0.2 .. 0.3 rad misses the small span's +-10 deg about zero: its small-range

@@ -65,28 +65,33 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     else:
         session = paper_session(args.case, args.seed, args.poses_per_span, noise, random_errors=args.random_errors)
     with staged_folder(args.out) as out:
-        _write_simulation(args, session, noise, out)
-    print(f"wrote {args.out}/: robot_nominal.yaml robot_true.yaml samples.csv (all {len(session.samples)} poses), "
-          f"case1..3 calibration/test sets, truth.json")
+        cases = _write_simulation(args, session, noise, out)
+    print(f"wrote {args.out}/: robot_nominal.yaml, robot_true.yaml, samples.csv (all {len(session.samples)} poses), "
+          f"truth.csv (their spots without noise), {', '.join(cases)}, truth.json")
     return 0
 
 
-def _write_simulation(args: argparse.Namespace, session, noise: NoiseSpec, out: Path) -> None:
+def _write_simulation(args: argparse.Namespace, session, noise: NoiseSpec, out: Path) -> list[str]:
+    """The files of a simulation into out; the names of the cases' sets written, in order."""
     label = args.case or args.robot
     save_robot(session.nominal, out / "robot_nominal.yaml", header=f"Nominal model ({label}).")
     save_robot(session.true, out / "robot_true.yaml", header=f"True model of the simulation ({label}, seed {args.seed}).")
     save_samples(session.samples, out / "samples.csv")
     save_samples(session.truth, out / "truth.csv")
+    cases = []
     for case, (cal, test) in session.cases.items():
         save_samples(session.samples.subset(cal), out / f"{case}_cal.csv")
+        cases.append(f"{case}_cal.csv")
         if len(test):
             save_samples(session.samples.subset(test), out / f"{case}_test.csv")
             save_samples(session.truth.subset(test), out / f"{case}_test_truth.csv")
+            cases += [f"{case}_test.csv", f"{case}_test_truth.csv"]
     (out / "truth.json").write_text(json.dumps({
         "case": args.case, "robot": args.robot, "seed": args.seed, "spot_noise_halfwidth_m": noise.spot,
         "joint_noise_halfwidth_rad": noise.joint, "spot_sigma_m": noise.spot_sigma,
         "joint_sigma_rad": noise.joint_sigma,
         "errors": dict(zip(session.nominal.param_names, map(float, session.errors)))}, indent=2))
+    return cases
 
 
 def _options(args: argparse.Namespace, progress: Progress | None = None) -> EstimateOptions:
