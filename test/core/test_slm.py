@@ -97,6 +97,47 @@ def test_a_wrong_spot_among_three_is_refused(tmp_path, capsys, sigma):
     assert "cannot be told" in err[0] and not (tmp_path / "out.yaml").exists()
 
 
+def _two_off(rows: list[list]) -> list[list]:
+    """The report's file: laser 1's u 30 mm off at 1.0 m and -30 mm off at 1.5 m, two of its four spots."""
+    rows[1][2] += 0.03
+    rows[2][2] -= 0.03
+    return rows
+
+
+def _both_ends_off(rows: list[list]) -> list[list]:
+    """Laser 1's u 30 mm off at both ends: every spot of it off its repeated-median lines, none stands out."""
+    rows[0][2] += 0.03
+    rows[3][2] += 0.03
+    return rows
+
+
+@pytest.mark.parametrize("sigma", [None, SIGMA])
+@pytest.mark.parametrize("spoil", [_two_off, _both_ends_off])
+def test_two_wrong_spots_of_four_are_refused(tmp_path, capsys, sigma, spoil):
+    """Two of laser 1's four spots 30 mm off: all were readmitted (the line through the others, the second
+    wrong spot among them, inflated the residual they were judged by) and beta moved from 1.27 to 0.66 deg,
+    written with exit 0 and no word (with --spot-sigma, a warning). Now the laser's residual is judged
+    against laser 2's, and the file is refused in one line naming the file and the laser."""
+    rows = spoil(_spots(0, distances=(0.5, 1.0, 1.5, 2.0)))
+    assert _run(tmp_path, rows, *(() if sigma is None else ("--spot-sigma", str(SIGMA)))) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"laser-calib: {tmp_path / 'slm.csv'}: laser 1: "), err
+    assert "times the other laser's" in err[0] and "cannot be told" in err[0], err
+    assert not (tmp_path / "out.yaml").exists()
+
+
+@pytest.mark.parametrize("distances", [DISTANCES, tuple(np.linspace(0.5, 1.25, 8))])
+def test_clean_files_pass_the_lasers_comparison(distances):
+    """The comparison of the lasers refuses at most 2 in 10000 clean files (F at 1e-4 for each): none of 300."""
+    refused = []
+    for seed in range(300):
+        try:
+            calibrate(ROBOT, _measurements(_spots(seed, distances=distances)))
+        except InputError as exc:
+            refused.append((seed, exc.problem))
+    assert not [r for r in refused if "times the other laser's" in r[1]], refused
+
+
 def _measurements(rows: list[list]) -> Measurements:
     """The rows as slm-calibrate reads them (line k + 2 of a file is rows[k])."""
     lines = {j: [(k + 2, d, u, v) for k, (laser, d, u, v) in enumerate(rows) if laser == j] for j in (1, 2)}
