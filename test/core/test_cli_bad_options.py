@@ -95,6 +95,15 @@ CASES = {
     "simulate --spot-noise 2 (m)": (lambda d: _simulate(d, "--spot-noise", "2"), "--spot-noise"),
     "simulate --joint-noise-deg 1000": (lambda d: _simulate(d, "--joint-noise-deg", "1000"), "--joint-noise-deg"),
     "estimate --prior-length 10 (m)": (lambda d: _estimate(d, "--prior-length", "10"), "--prior-length"),
+    # 0.5 mm typed as metres: accepted as a camera's noise of half a metre (under the 1 m of every noise level)
+    "estimate --spot-sigma 0.5 (m)": (lambda d: _estimate(d, "--spot-sigma", "0.5"), "--spot-sigma: 0.5 m is not a "
+                                                                                       "plausible spot noise"),
+    "slm-calibrate --spot-sigma 0.5 (m)": (lambda d: [*_slm(d), "--spot-sigma", "0.5"], "--spot-sigma: 0.5 m"),
+    "identify --spot-sigma 0.5 (m)": (lambda d: [*_no_spots(d, "identify"), "--spot-sigma", "0.5"], "--spot-sigma"),
+    "plan --spot-sigma 0.5 (m)": (lambda d: ["plan", "--robot", _files(d)[0], "--n", "5", "--out", str(d / "out"),
+                                             "--spot-sigma", "0.5"], "--spot-sigma: 0.5 m"),
+    "diagnose --spot-sigma 0.5 (m)": (lambda d: ["diagnose", "--robot", _files(d)[0], "--samples", _files(d)[1],
+                                                 "--out", str(d / "out"), "--spot-sigma", "0.5"], "--spot-sigma: 0.5 m"),
 }
 
 
@@ -126,6 +135,12 @@ def test_plausible_sizes_and_seeds_are_accepted():
     args = build_parser().parse_args(["estimate", "--robot", "r", "--samples", "s", "--out", "o",
                                       "--prior-length", "0.01"])
     assert args.prior_length == 0.01
+    # a spot sigma up to 50 mm passes; other lengths keep the 1 m bound (a position sensor's noise, a tolerance)
+    assert build_parser().parse_args(["slm-calibrate", "--robot", "r", "--measurements", "m", "--out", "o",
+                                      "--spot-sigma", "0.05"]).spot_sigma == 0.05
+    args = build_parser().parse_args(["calibrate-poses", "--robot", "r", "--samples", "s", "--out", "o",
+                                      "--sigma", "0.5", "--frame-prior-length", "0.5"])
+    assert (args.sigma, args.frame_prior_length) == (0.5, 0.5)
     assert build_parser().parse_args(["render-calibration-images", "--out", "o", "--seed", "7"]).seed == 7
 
 

@@ -37,6 +37,11 @@ class OneLineParser(argparse.ArgumentParser):
 # joint noise over 0.5 rad (29 deg), is a unit mistake, not a sensor. A length
 # tolerance is bounded alike: 10 (mm typed as m) is no arm's tolerance.
 SIGMA_LENGTH = (1e-9, 1.0)
+# A spot sigma is a camera's noise on a screen: sub-millimetre to a few millimetres (the paper's +-2 mm
+# uniform is 1.15 mm; a 640-pixel camera framing a 4 m wall sees 6 mm a pixel). Over 50 mm (a spot
+# scattered over a hand's width) it is no camera but millimetres typed as metres (0.5 for 0.5 mm). Only
+# spot sigmas: a position sensor's noise, a tolerance or a simulated noise keep SIGMA_LENGTH.
+MAX_SPOT_SIGMA = 0.05
 MAX_SIGMA_ANGLE = 0.5
 MAX_SIGMA_DEG = math.degrees(MAX_SIGMA_ANGLE)
 
@@ -60,18 +65,23 @@ def non_negative(text: str) -> float:
     return _number(text, allow_zero=True)
 
 
-def _length(text: str, what: str, low: float) -> float:
-    """A length in metres within low .. SIGMA_LENGTH[1] (low 0: zero allowed)."""
+def _length(text: str, what: str, low: float, high: float = SIGMA_LENGTH[1]) -> float:
+    """A length in metres within low .. high (low 0: zero allowed)."""
     value = _number(text, allow_zero=low == 0)
-    if not low <= value <= SIGMA_LENGTH[1]:
+    if not low <= value <= high:
         raise argparse.ArgumentTypeError(f"{text} m is not a plausible {what} (expected {low:g} .. "
-                                         f"{SIGMA_LENGTH[1]:g} m; lengths are in metres)")
+                                         f"{high:g} m; lengths are in metres)")
     return value
 
 
 def sigma_length(text: str) -> float:
     """A noise standard deviation in metres."""
     return _length(text, "noise level", SIGMA_LENGTH[0])
+
+
+def spot_sigma(text: str) -> float:
+    """A spot's noise standard deviation on the screen in metres, at most MAX_SPOT_SIGMA."""
+    return _length(text, "spot noise for a camera on a screen", SIGMA_LENGTH[0], MAX_SPOT_SIGMA)
 
 
 def tolerance_length(text: str) -> float:

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from laser_calib.cli.arguments import (fold_count, no_spot_to_fit, non_negative, non_negative_int, out_folder, positive,
-                                      print_notes, print_warnings, staged_folder)
+from laser_calib.cli.arguments import (fold_count, no_spot_to_fit, non_negative, non_negative_int, out_folder,
+                                      print_notes, print_warnings, spot_sigma, staged_folder)
 from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
@@ -73,7 +73,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description=__doc__.splitlines()[0])
     p.add_argument("--robot", required=True, help="nominal robot model (YAML)")
     add_sample_arguments(p, "calibration samples (CSV, rows in measurement order)")
-    p.add_argument("--spot-sigma", type=positive, default=None,
+    p.add_argument("--spot-sigma", type=spot_sigma, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual; the level is then tested against repeated poses, if any)")
     p.add_argument("--joint-sigma", type=non_negative, default=None,
                    help="joint reading noise std, rad (default: estimated from the residual)")

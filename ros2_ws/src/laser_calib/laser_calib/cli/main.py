@@ -43,7 +43,7 @@ from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, OneLineParser, add_replay_arguments,
                                       noise_angle_deg, noise_length, non_negative_int, no_spot_to_fit, out_file,
                                       out_folder, positive, positive_int, print_warnings, readable_file, replay_argv,
-                                      require_measured, sigma_angle, sigma_length, staged_folder, tolerance_length)
+                                      require_measured, sigma_angle, spot_sigma, staged_folder, tolerance_length)
 
 EXIT_BAD_INPUT = 2
 # The reader of the output went away (| head): the status a shell gives a program SIGPIPE ends (128 + 13).
@@ -239,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robot", required=True)
     add_sample_arguments(p)
     p.add_argument("--method", choices=METHODS, default="lm")
-    p.add_argument("--spot-sigma", type=sigma_length, default=None,
+    p.add_argument("--spot-sigma", type=spot_sigma, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual)")
     p.add_argument("--joint-sigma", type=sigma_angle, default=0.0, help="joint reading noise std, rad")
     p.add_argument("--prior", action="store_true", help="tolerance prior: 10 mm and 1 deg per error")
@@ -257,14 +257,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("identify", help="identifiability table of a pose set")
     p.add_argument("--robot", required=True)
     p.add_argument("--samples", required=True)
-    p.add_argument("--spot-sigma", type=sigma_length, default=0.001)
+    p.add_argument("--spot-sigma", type=spot_sigma, default=0.001)
     p.add_argument("--joint-sigma", type=sigma_angle, default=0.0)
     p.set_defaults(func=cmd_identify)
 
     p = sub.add_parser("slm-calibrate", help="laser angles from spots at known fixture distances (eq. 16)")
     p.add_argument("--robot", required=True)
     p.add_argument("--measurements", required=True, help="CSV laser,distance,u,v (m)")
-    p.add_argument("--spot-sigma", type=sigma_length, default=None,
+    p.add_argument("--spot-sigma", type=spot_sigma, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual; outliers are "
                         "judged robustly)")
     p.add_argument("--accept-large-change", action="store_true",

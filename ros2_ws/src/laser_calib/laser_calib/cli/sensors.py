@@ -21,7 +21,7 @@ import numpy as np
 
 from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fraction, non_negative, non_negative_int,
                                       out_file, out_folder, positive, positive_int, print_notes, print_warnings,
-                                      require_measured, sigma_angle, sigma_length, staged_folder,
+                                      require_measured, sigma_angle, sigma_length, spot_sigma, staged_folder,
                                       tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
@@ -387,7 +387,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robot", required=True)
     p.add_argument("--n", type=int, required=True, help="number of poses (the planner checks it)")
     p.add_argument("--out", required=True, type=out_file, help="CSV pose,q1..qN (rad)")
-    p.add_argument("--spot-sigma", type=sigma_length, default=PlanOptions(1).spot_sigma,
+    p.add_argument("--spot-sigma", type=spot_sigma, default=PlanOptions(1).spot_sigma,
                    help="spot noise std per coordinate, m (default: the paper's +-2 mm uniform)")
     p.add_argument("--joint-sigma", type=sigma_angle, default=PlanOptions(1).joint_sigma,
                    help="joint disturbance std, rad (default: the paper's +-0.1 deg uniform)")
