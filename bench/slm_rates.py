@@ -22,8 +22,8 @@ from _common import write_results  # first: sets up the import path and BLAS thr
 import numpy as np  # noqa: E402
 
 from laser_calib.io.errors import InputError  # noqa: E402
-from laser_calib.model.kinematics import rot_x, rot_y  # noqa: E402
 from laser_calib.sim.simulation import bundled_robot  # noqa: E402
+from laser_calib.sim.slm_fixture import fixture_spots  # noqa: E402
 from laser_calib.slm import Measurements, Spots, calibrate  # noqa: E402
 
 ROBOT = bundled_robot("paper-4dof")
@@ -34,15 +34,7 @@ OUTCOMES = ("refused (laser vs laser)", "refused (other rule)", "wrong spots rej
 
 def spots(seed: int, distances: tuple[float, ...]) -> list[list]:
     """[laser, distance, u, v] rows of the robot's two beams, with Gaussian noise SIGMA."""
-    rng = np.random.default_rng(seed)
-    rows = []
-    for j, (gamma, beta) in enumerate(ROBOT.laser_angles()):
-        direction = rot_x(gamma) @ rot_y(beta) @ np.array([0.0, 0.0, 1.0])
-        offset = rng.uniform(-0.05, 0.05, 2)
-        for distance in distances:
-            u, v = offset + distance * direction[:2] / direction[2] + rng.normal(0, SIGMA, 2)
-            rows.append([j + 1, distance, float(u), float(v)])
-    return rows
+    return fixture_spots(ROBOT, seed, distances, SIGMA)
 
 
 def measurements(rows: list[list]) -> Measurements:

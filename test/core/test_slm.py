@@ -10,7 +10,7 @@ import pytest
 
 from cli_status import exit_status
 from laser_calib.io.errors import InputError
-from laser_calib.model.kinematics import rot_x, rot_y
+from laser_calib.sim.slm_fixture import fixture_spots
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.sim.simulation import bundled_robot
 from laser_calib.slm import Measurements, Spots, calibrate
@@ -22,15 +22,7 @@ SIGMA = 1e-4
 
 def _spots(seed: int, noise: float = SIGMA, distances: tuple[float, ...] = DISTANCES) -> list[list]:
     """[laser, distance, u, v] rows of the robot's two beams on a fixture, with Gaussian noise."""
-    rng = np.random.default_rng(seed)
-    rows = []
-    for j, (gamma, beta) in enumerate(ROBOT.laser_angles()):
-        direction = rot_x(gamma) @ rot_y(beta) @ np.array([0.0, 0.0, 1.0])
-        offset = rng.uniform(-0.05, 0.05, 2)
-        for distance in distances:
-            u, v = offset + distance * direction[:2] / direction[2] + rng.normal(0, noise, 2)
-            rows.append([j + 1, distance, float(u), float(v)])
-    return rows
+    return fixture_spots(ROBOT, seed, distances, noise)
 
 
 def _run(folder, rows: list[list], *options: str) -> tuple[list[str], int]:
