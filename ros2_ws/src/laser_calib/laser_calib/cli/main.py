@@ -24,12 +24,11 @@ from laser_calib.estimation.ekf import EkfOptions
 from laser_calib.estimation.lm import LmOptions
 from laser_calib.estimation.problem import whitened_factor
 from laser_calib.report.progress import Progress
-from laser_calib.estimation.identifiability import STD_FACTOR, TooFewValues, analyse
+from laser_calib.estimation.identifiability import STD_FACTOR, TooFewValues, UnknownFixed, analyse
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.calibration import shown_mm
 from laser_calib.report.files import run_estimate
-from laser_calib.effects.catalog import effects_from_robot
 from laser_calib.model.robot_file import load_robot, save_robot
 from laser_calib.io.ament import installed
 from laser_calib.io.bag import bag_topics
@@ -103,19 +102,8 @@ def _options(args: argparse.Namespace, progress: Progress | None = None) -> Esti
                            robust=args.robust, fixed=tuple(args.fix), lm=lm, ekf=ekf)
 
 
-def _check_fixed(names: list[str], robot, source: str) -> None:
-    """--fix names only what the estimate fits: the robot's errors and its file's effects' parameters."""
-    effects, _ = effects_from_robot(robot, source)
-    known = (*robot.param_names, *(name for effect in effects for name in effect.names))
-    unknown = [name for name in names if name not in known]
-    if unknown:
-        raise InputError("--fix", f"{unknown[0]!r} is not a parameter of {source} (its parameters: "
-                                  f"{', '.join(known)})")
-
-
 def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
-    _check_fixed(args.fix, robot, str(args.robot))
     sets = read_sample_sets(args, robot)
     samples, test = sets.samples, sets.test
     compensator = None
@@ -134,6 +122,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                                        compensator=compensator)
         except TooFewValues as exc:  # the estimator counts the values, the command knows their file
             raise InputError(sets.source, str(exc)) from None
+        except UnknownFixed as exc:  # the estimator knows the parameters, the command the option
+            raise InputError("--fix", f"{exc.name!r} is not a parameter of {args.robot} (its parameters: "
+                                      f"{', '.join(exc.names)})") from None
         except NoSpotToFit:  # every measured spot refused at the nominal model: the robot file's doing
             raise no_spot_to_fit(str(args.robot), sets.source, args.compensator) from None
     status = _summary(calibration)
@@ -249,8 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
                    help="robust fit: outlier spots rejected and listed (default; the rule is in result.json)")
     p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")
-    p.add_argument("--compensator", type=readable_file, help="a diagnosis's compensator.json, applied to every pose (made for the "
-                                         "robot file's model: its robot_calibrated.yaml's effects)")
+    p.add_argument("--compensator", type=readable_file,
+                   help="a diagnosis's compensator.json, applied to every pose (made for the robot file's model: "
+                        "its robot_calibrated.yaml's effects)")
     p.add_argument("--out", required=True, type=out_folder)
     p.set_defaults(func=cmd_estimate)
 

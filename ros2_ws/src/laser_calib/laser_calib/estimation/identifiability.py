@@ -83,6 +83,15 @@ class TooFewValues(ValueError):
         self.n_values, self.n_free, self.rejected = n_values, n_free, rejected
 
 
+class UnknownFixed(ValueError):
+    """A name to hold (EstimateOptions.fixed) that is no parameter of the model: the estimator knows the
+    parameters, the command where the name was given (estimate's --fix)."""
+
+    def __init__(self, name: str, names: tuple[str, ...]):
+        super().__init__(f"cannot fix unknown parameter {name!r}; parameters are {', '.join(names)}")
+        self.name, self.names = name, names
+
+
 @dataclass(frozen=True)
 class Identifiability:
     """singular_values (min(M,n),) of the scaled Jacobian; rank (directions kept);
