@@ -98,7 +98,7 @@ from laser_calib.estimation.folds import kfold_labels, test_range_warnings
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.io.errors import InputError
 from laser_calib.io.revisits import repeat_warnings
-from laser_calib.io.samples import Samples
+from laser_calib.io.samples import Samples, reading_warnings
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import held
@@ -132,10 +132,8 @@ def diagnose(robot: Robot, samples: Samples, test: Samples | None = None, spot_s
                      f"{', '.join(held(robot))}")
     diagnosis = run(SpotData(robot, samples, held(robot)), options, None if test is None else SpotData(robot, test),
                     tuple(notes))
-    # what reading them found (a bag's damaged segments skipped, joints the robot does not have): warnings, as
-    # estimate gives them
-    reading = tuple(dict.fromkeys((*samples.warnings, *(test.warnings if test is not None else ()))))
-    return replace(diagnosis, warnings=reading + diagnosis.warnings)
+    # warnings, as estimate gives them
+    return replace(diagnosis, warnings=(*reading_warnings(samples, test), *diagnosis.warnings))
 
 
 class TooFewPoses(InputError):

@@ -118,6 +118,12 @@ class Samples:
                        labels={k: v[index] for k, v in self.labels.items()})
 
 
+def reading_warnings(samples: Samples, test: Samples | None = None) -> list[str]:
+    """What reading the calibration and test sets found (Samples.warnings: a bag's damaged segments
+    skipped, joints the robot does not have), each once: a segment lost to both topics is one line."""
+    return list(dict.fromkeys((*samples.warnings, *(test.warnings if test is not None else ()))))
+
+
 def split_labels(header: list[str], rows: list[list[str]], first: int
                  ) -> tuple[list[str], list[list[str]], dict[str, np.ndarray]]:
     """The text columns among the columns from index ``first`` on (the covariates): a

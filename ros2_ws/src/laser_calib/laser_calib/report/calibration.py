@@ -34,7 +34,7 @@ from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.identifiability import FIXED_NOTE, carried_note
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.revisits import repeat_warnings
-from laser_calib.io.samples import Samples
+from laser_calib.io.samples import Samples, reading_warnings
 from laser_calib.measurement.base import RobotModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
@@ -282,9 +282,7 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     model = spot_model(robot, samples, effects, compensator)
     start = np.concatenate([np.zeros(robot.n_params), *values])
     est = estimate(robot, samples, options, model, start)
-    # what reading them found (a bag's damaged segments skipped, joints the robot does not have)
-    said = list(dict.fromkeys((*samples.warnings, *(test.warnings if test is not None else ()))))
-    said += repeat_warnings(samples, test, robot.joint_names, sources)
+    said = reading_warnings(samples, test) + repeat_warnings(samples, test, robot.joint_names, sources)
     if test is not None:  # a test pose beyond the joint ranges calibrated on is an extrapolation: said with the fit's
         said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)
         beyond = extrapolation_note([e.label for e in effects if isinstance(e, Surface)], samples.spots, test.spots)
