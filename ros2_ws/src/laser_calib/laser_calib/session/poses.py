@@ -132,6 +132,11 @@ def _check_seed(seed: int) -> None:
         raise InputError("seed", f"must be >= 0, got {seed}")
 
 
+def _check_test_poses(count: int) -> None:
+    if count < 0:
+        raise InputError("test_poses", f"must be >= 0, got {count}")
+
+
 def check_plan(count: int | None, span: str, seed: int, repeats: int = 0, test_poses: int = 0) -> None:
     """The pose plan's arguments as generate_poses and with_test_poses take them (count None:
     a pose file's plan, nothing generated), refused before a session starts (its folder, its nodes)."""
@@ -141,8 +146,7 @@ def check_plan(count: int | None, span: str, seed: int, repeats: int = 0, test_p
         raise InputError("span", f"expected 'small' or 'whole', got {span!r}")
     if repeats < 0:
         raise InputError("repeats", f"must be >= 0, got {repeats}")
-    if test_poses < 0:
-        raise InputError("test_poses", f"must be >= 0, got {test_poses}")
+    _check_test_poses(test_poses)
     _check_seed(seed)
 
 
@@ -165,8 +169,7 @@ def with_test_poses(poses: PoseSequence, robot: Robot, count: int, seed: int, ma
     """``poses`` followed by ``count`` test poses over the whole workspace, drawn from their
     own random stream (seed, 1) so that adding them leaves the fit poses as they were; ids
     continue after the largest id of ``poses``."""
-    if count < 0:
-        raise InputError("test_poses", f"must be >= 0, got {count}")
+    _check_test_poses(count)
     if count == 0:
         return poses
     _check_seed(seed)
