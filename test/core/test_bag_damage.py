@@ -36,7 +36,8 @@ def test_a_damaged_segment_is_skipped_said_and_kept_in_the_files(session, tmp_pa
     said = f"{path}: segment bag_3.mcap (cannot read bag ("
     err = capsys.readouterr().err
     assert err.count(said) == 1 and "its samples are lost, the other segments were read" in err
-    written = json.loads((tmp_path / "out" / ("result.json" if command == "estimate" else "diagnosis.json")).read_text())
+    name = "result.json" if command == "estimate" else "diagnosis.json"
+    written = json.loads((tmp_path / "out" / name).read_text())
     assert any(line.startswith(said) for line in written["warnings"])
     if command == "estimate":  # the 15 intact poses fitted, the 8 test poses tested
         assert written["inputs"]["test"] == f"{path} /test_samples"

@@ -264,7 +264,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                           + repeat_warnings(samples, test, robot.joint_names,
                                             {"samples": args.samples, "test": args.test})
                           + held_warnings(robot, str(args.robot))}
-    if stale := robot.extra.get("effects"):  # their values belong to the geometry they were fitted with, not to this calibration's
+    # their values belong to the geometry they were fitted with, not to this calibration's
+    if stale := robot.extra.get("effects"):
         result["warnings"].append(f"{args.robot}: its effects ({len(stale)}) are not fitted by calibrate-poses (the "
                                   "geometric model and the frames only): the calibrated robot is written without "
                                   "them; --diagnose selects effects anew")
