@@ -104,7 +104,25 @@ CASES = {
                                              "--spot-sigma", "0.5"], "--spot-sigma: 0.5 m"),
     "diagnose --spot-sigma 0.5 (m)": (lambda d: ["diagnose", "--robot", _files(d)[0], "--samples", _files(d)[1],
                                                  "--out", str(d / "out"), "--spot-sigma", "0.5"], "--spot-sigma: 0.5 m"),
+    # degrees typed as radians: taken as a joint-reading noise of 30 rad
+    "diagnose --joint-sigma 30 (deg)": (lambda d: ["diagnose", "--robot", _files(d)[0], "--samples", _files(d)[1],
+                                                   "--out", str(d / "out"), "--joint-sigma", "30"],
+                                        "--joint-sigma: 30 rad is not a plausible joint noise"),
+    # the robot file's rated noise in millimetres: the estimated noise was tested against half a metre,
+    # so a joint error the noise estimate took in was never evidence of structure
+    "robot file spot_sigma 0.5 (m)": (lambda d: _diagnose_rated(d, "spot_sigma", 0.5),
+                                      "robot.yaml: spot_sigma: 0.5 m is not a plausible spot noise"),
+    "robot file joint_reading_sigma 2 (deg)": (lambda d: _diagnose_rated(d, "joint_reading_sigma", 2),
+                                               "robot.yaml: joint_reading_sigma: 2 rad is not a plausible "
+                                               "joint-reading noise"),
 }
+
+
+def _diagnose_rated(folder: Path, key: str, value: float) -> list[str]:
+    """diagnose with a robot file whose rated noise ``key`` is ``value``."""
+    robot, samples = _files(folder)
+    (folder / "robot.yaml").write_text(yaml.safe_dump({**robot_to_dict(ROBOT), key: value}, sort_keys=False))
+    return ["diagnose", "--robot", robot, "--samples", samples, "--out", str(folder / "out")]
 
 
 @pytest.mark.parametrize("name", list(CASES))

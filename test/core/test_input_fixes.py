@@ -58,7 +58,7 @@ def test_the_keys_only_a_diagnosis_reads_are_checked_when_the_robot_file_is_read
     """A negative or textual rated noise, an unknown sensor kind, limits that are no mapping: every
     command took them silently (simulate copied them into its robot files), and diagnose refused
     them only after the whole diagnosis, naming 'robot' instead of the file."""
-    cases = {"spot_sigma": (-0.001, "spot_sigma: must be positive"),
+    cases = {"spot_sigma": (-0.001, "spot_sigma: -0.001 m is not a plausible spot noise"),
              "joint_reading_sigma": ("small", "joint_reading_sigma: expected a number"),
              "sensor_kind": ("laser_tracker_x", "sensor_kind: expected one of"),
              "sensor_limits": ({"scale": -1.0}, "sensor_limits.scale: must be positive")}

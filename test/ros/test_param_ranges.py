@@ -3,7 +3,8 @@ exit 2, as the nodes' other parameters are. Before: a negative seed of the simul
 arm_driver and camera_sim with numpy's traceback (exit 1); rate:=.inf started a timer of
 period 0 (a busy loop 'publishing at inf Hz'); camera_sim's spot_sigma:=0.0 rendered no spot
 (a divide-by-zero warning, every spot unseen) and spot_detector's screen.half_y:=-1.0 saw no
-spot in any frame, both without a word."""
+spot in any frame, both without a word. The estimator's spot_sigma:=0.5 (0.5 mm meant) was taken as a
+camera's noise of half a metre."""
 
 from __future__ import annotations
 
@@ -16,6 +17,9 @@ CASES = {  # name: (node, parameters, the reason's start)
     "camera_rate": ("camera_sim", ["rate:=.inf"], "error: parameter rate: expected > 0"),
     "camera_sigma": ("camera_sim", ["spot_sigma:=0.0"], "error: parameter spot_sigma: expected > 0"),
     "detector_half": ("spot_detector", ["screen.half_y:=-1.0"], "error: parameter screen.half_y: expected > 0"),
+    # millimetres typed as metres: a camera's noise of half a metre, every spot weighted as noise
+    "estimator_sigma": ("estimator", [f"robot:={ROBOT}", "spot_sigma:=0.5"],
+                        "error: parameter spot_sigma: 0.5 m is not a plausible spot noise"),
 }
 
 

@@ -71,7 +71,7 @@ class Estimator(Node):
         self.joints = JointStateReader(self.robot, names, self.get_logger())
         if self.input not in ("samples", "stream"):
             raise parameters.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
-        parameters.dynamic(self, {"spot_sigma": ("spot_sigma", parameters.non_negative_metres),
+        parameters.dynamic(self, {"spot_sigma": ("spot_sigma", parameters.spot_sigma),
                               "stream.max_joint_speed": ("max_speed", parameters.positive),
                               "markers": ("markers_on", lambda value: None)})
 

@@ -20,6 +20,7 @@ from laser_calib.estimation.failures import NoSpotToFit, is_failure
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import parse_int, parse_number
 from laser_calib.io.sensor_samples import POINT_COLUMNS, QUATERNION_COLUMNS
+from laser_calib.measurement.noise_bounds import MAX_SIGMA_ANGLE, MAX_SPOT_SIGMA, SIGMA_LENGTH
 from laser_calib.session.folder import refuse_finished
 
 
@@ -33,16 +34,8 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: {message}\n")
 
 
-# Plausible noise levels: a spot or position noise outside 1 nm .. 1 m, or a
-# joint noise over 0.5 rad (29 deg), is a unit mistake, not a sensor. A length
-# tolerance is bounded alike: 10 (mm typed as m) is no arm's tolerance.
-SIGMA_LENGTH = (1e-9, 1.0)
-# A spot sigma is a camera's noise on a screen: sub-millimetre to a few millimetres (the paper's +-2 mm
-# uniform is 1.15 mm; a 640-pixel camera framing a 4 m wall sees 6 mm a pixel). Over 50 mm (a spot
-# scattered over a hand's width) it is no camera but millimetres typed as metres (0.5 for 0.5 mm). Only
-# spot sigmas: a position sensor's noise, a tolerance or a simulated noise keep SIGMA_LENGTH.
-MAX_SPOT_SIGMA = 0.05
-MAX_SIGMA_ANGLE = 0.5
+# Plausible noise levels (measurement.noise_bounds); a length tolerance is bounded like a noise
+# level: 10 (mm typed as m) is no arm's tolerance.
 MAX_SIGMA_DEG = math.degrees(MAX_SIGMA_ANGLE)
 
 

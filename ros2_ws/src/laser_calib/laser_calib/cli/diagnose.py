@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from laser_calib.cli.arguments import (fold_count, no_spot_to_fit, non_negative, non_negative_int, out_folder,
-                                      print_notes, print_warnings, spot_sigma, staged_folder)
+from laser_calib.cli.arguments import (fold_count, no_spot_to_fit, non_negative_int, out_folder, print_notes,
+                                      print_warnings, sigma_angle, spot_sigma, staged_folder)
 from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.estimation.estimate import METHODS
@@ -75,7 +75,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_sample_arguments(p, "calibration samples (CSV, rows in measurement order)")
     p.add_argument("--spot-sigma", type=spot_sigma, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual; the level is then tested against repeated poses, if any)")
-    p.add_argument("--joint-sigma", type=non_negative, default=None,
+    p.add_argument("--joint-sigma", type=sigma_angle, default=None,
                    help="joint reading noise std, rad (default: estimated from the residual)")
     p.add_argument("--method", choices=METHODS, default="lm", help="estimator of every fit")
     p.add_argument("--folds", type=fold_count, default=5, help="cross-validation folds (at least 2)")

@@ -22,6 +22,7 @@ import yaml
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.measurement.frames import robot_frames
+from laser_calib.measurement.noise_bounds import joint_sigma_problem, spot_sigma_problem
 from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, LIMIT_TRAVEL, MAX_ANGLE, MAX_LENGTH, MAX_SLM_OFFSET,
                                      PAPER, Joint, Laser, Robot, Screen, Slm, plausible_angle, plausible_length)
 from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, link_ends, load_urdf_robot,
@@ -103,11 +104,11 @@ def _check_sensor(robot: Robot, source: str) -> None:
     file's name is known: their readers run after the work, and some only for some effects."""
     from laser_calib.effects.bounds import check_sensor_keys  # effects/ reads robots: imported when used
 
-    for key in RATED_NOISE_KEYS:
+    for key, problem in zip(RATED_NOISE_KEYS, (spot_sigma_problem, joint_sigma_problem)):
         if key in robot.extra:
-            value = finite_number(robot.extra[key], f"{source}: {key}")
-            if value <= 0:
-                raise InputError(f"{source}: {key}", f"must be positive, got {value:g}")
+            why = problem(finite_number(robot.extra[key], f"{source}: {key}"))
+            if why:
+                raise InputError(f"{source}: {key}", why)
     check_sensor_keys(robot, source)
 
 
