@@ -215,8 +215,8 @@ def test_ros2_run_service_param_and_topics(tmp_path):
         changed = ros2(ros, "param", "set", "/estimator", "spot_sigma", "0.001", *spin)
         assert "Set parameter successful" in changed.stdout, changed
         assert "0.001" in ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin).stdout
-        refused = ros2(ros, "param", "set", "/estimator", "spot_sigma", "-1.0", *spin)
-        assert "expected >= 0 m" in refused.stdout + refused.stderr, refused
+        refused = ros2(ros, "param", "set", "/estimator", "spot_sigma", "0.5", *spin)  # 0.5 mm typed as m
+        assert "0.5 m is not a plausible spot noise" in refused.stdout + refused.stderr, refused
         assert "0.001" in ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin).stdout
         read_only = ros2(ros, "param", "set", "/estimator", "robot", "x.yaml", *spin)
         assert "read-only" in (read_only.stdout + read_only.stderr).lower(), read_only
