@@ -36,6 +36,9 @@ class CalibrateServer:
         # reentrant: cancel requests are taken while a goal executes
         self.server = ActionServer(node, Calibrate, common.PRIVATE_CALIBRATE, self.execute,
                                    cancel_callback=lambda goal: CancelResponse.ACCEPT,
+                                   goal_service_qos_profile=common.SERVICE_QOS,
+                                   result_service_qos_profile=common.SERVICE_QOS,
+                                   cancel_service_qos_profile=common.SERVICE_QOS,
                                    callback_group=ReentrantCallbackGroup())
 
     def execute(self, goal):

@@ -64,6 +64,11 @@ SENSOR_QOS = qos_profile_sensor_data
 # transient-local one. The estimator subscribes with both and counts each sample once.
 SAMPLES_INPUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                                durability=DurabilityPolicy.VOLATILE)
+# Service requests wait in the server's request reader while an estimate runs: the default
+# services profile keeps the last 10, so the 11th request in flight pushed out the oldest one
+# unanswered (its client waited for ever). Every request is kept until it is taken.
+SERVICE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+                         history=HistoryPolicy.KEEP_ALL)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # Every sample of a session is kept for late subscribers (an estimator started late).
 SAMPLES_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,

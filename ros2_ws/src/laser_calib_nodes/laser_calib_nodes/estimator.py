@@ -100,8 +100,9 @@ class Estimator(Node):
             self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.STREAM_QOS,
                                      callback_group=inputs)
         self.estimate_service = self.create_service(Estimate, common.PRIVATE_ESTIMATE, self.on_estimate,
-                                                    callback_group=services)
-        self.create_service(Trigger, common.PRIVATE_RESET, self.on_reset, callback_group=services)
+                                                    qos_profile=common.SERVICE_QOS, callback_group=services)
+        self.create_service(Trigger, common.PRIVATE_RESET, self.on_reset, qos_profile=common.SERVICE_QOS,
+                            callback_group=services)
         self.calibrate = CalibrateServer(self)
         self.get_logger().info(f"robot '{self.robot.name}' ({self.robot.n_params} parameters), input "
                                f"'{self.input}'")
