@@ -20,7 +20,7 @@ from laser_calib.estimation.failures import NoSpotToFit, is_failure
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import parse_int, parse_number
 from laser_calib.io.sensor_samples import POINT_COLUMNS, QUATERNION_COLUMNS
-from laser_calib.measurement.noise_bounds import MAX_SIGMA_ANGLE, MAX_SPOT_SIGMA, SIGMA_LENGTH
+from laser_calib.measurement.noise_bounds import MAX_SIGMA_ANGLE, SIGMA_LENGTH, spot_sigma_problem
 from laser_calib.session.folder import refuse_finished
 
 
@@ -73,8 +73,12 @@ def sigma_length(text: str) -> float:
 
 
 def spot_sigma(text: str) -> float:
-    """A spot's noise standard deviation on the screen in metres, at most MAX_SPOT_SIGMA."""
-    return _length(text, "spot noise for a camera on a screen", SIGMA_LENGTH[0], MAX_SPOT_SIGMA)
+    """A spot's noise standard deviation on the screen in metres (measurement.noise_bounds)."""
+    value = positive(text)
+    problem = spot_sigma_problem(value)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return value
 
 
 def tolerance_length(text: str) -> float:
