@@ -18,6 +18,8 @@
                                                input stream); LAYOUT: 'robot' (joint1..jointN in order),
                                                'reversed' (the same readings, names in reverse order) or
                                                'gripper' (robot order and one more joint)
+    ros_client.py stream-replay ROBOT N RATE   N exact still frames as a live stream has them (5 joint_states at
+                                               50 Hz per spots frame at 10 Hz), played RATE times faster
 """
 
 from __future__ import annotations
@@ -426,6 +428,53 @@ def stream(robot_path: str, layout: str, count: int) -> dict:
             "largest_error": float(np.nanmax(np.abs(last.errors))) if last else None}
 
 
+def stream_replay(robot_path: str, count: int, rate: float) -> dict:
+    """As a replay of a recorded stream at --rate RATE (its QoS: reliable, keep last 100): per still
+    frame 5 joint_states 20 ms apart and one spots message with the stamp of the third; then the
+    estimator's latest sample_count once it has stopped changing for 3 s."""
+    from builtin_interfaces.msg import Time
+    from sensor_msgs.msg import JointState
+    from laser_calib_interfaces.msg import SpotPair
+    from laser_calib.model.kinematics import predict
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.sim.simulation import sample_poses
+    robot = load_robot(robot_path)
+    n = robot.n_joints
+    q = sample_poses([robot], count, np.random.default_rng(3))
+    spots = predict(robot, q).spots
+    node = rclpy.create_node("test_stream_replay")
+    got = []
+    node.create_subscription(DhParameters, "dh_parameters", got.append, latched())
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    states = node.create_publisher(JointState, "joint_states", qos)
+    pairs = node.create_publisher(SpotPair, "spots", qos)
+    deadline = time.monotonic() + TIMEOUT
+    while (states.get_subscription_count() == 0 or pairs.get_subscription_count() == 0) \
+            and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    start = time.monotonic()
+    for k in range(5 * count):
+        t = 1000.0 + 0.02 * k
+        while time.monotonic() < start + 0.02 * k / rate:
+            time.sleep(0.0005)
+        stamp = Time(sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
+        state = JointState(name=[f"joint{i + 1}" for i in range(n)], position=[float(v) for v in q[k // 5]],
+                           velocity=[0.0] * n)
+        state.header.stamp = stamp
+        states.publish(state)
+        if k % 5 == 2:
+            pair = SpotPair(spots=[Spot(y=float(spots[k // 5, j, 0]), z=float(spots[k // 5, j, 1]), seen=True)
+                                   for j in range(2)])
+            pair.header.stamp, pair.header.frame_id = stamp, "screen"
+            pairs.publish(pair)
+    last, quiet_since = None, time.monotonic()
+    while time.monotonic() - quiet_since < 3.0 and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        if got and got[-1].sample_count != last:
+            last, quiet_since = got[-1].sample_count, time.monotonic()
+    return {"sample_count": last or 0}
+
+
 def main() -> int:
     rclpy.init()
     try:
@@ -454,6 +503,8 @@ def main() -> int:
             result = parameters_of(sys.argv[2])
         elif command == "stream":
             result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]))
+        elif command == "stream-replay":
+            result = stream_replay(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]))
         elif command == "samples-by-name":
             result = samples_by_name(sys.argv[2])
         elif command == "bad-and-concurrent":

@@ -53,6 +53,11 @@ SCREEN_FRAME = "screen"
 # QoS. Results and session state are transient-local (a late subscriber gets the last one).
 STREAM_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
                         history=HistoryPolicy.KEEP_LAST)
+# The estimator's 'stream' input (joint_states, spots): every message kept until taken. Keep-last 50
+# dropped the oldest while its callbacks lagged (a replay at --rate 10: 180 of 200 still frames lost,
+# unsaid, the spots finding no joint state to pair with).
+STREAM_INPUT_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+                              history=HistoryPolicy.KEEP_ALL)
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 # Images (4 MB) are reliable: best effort over Fast DDS loses most frames of this size.
 IMAGE_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)

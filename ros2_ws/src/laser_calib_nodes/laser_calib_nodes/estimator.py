@@ -94,10 +94,10 @@ class Estimator(Node):
                 self.create_subscription(Sample, common.SAMPLES, self.on_sample, qos, callback_group=inputs)
                 self.create_subscription(Sample, common.TEST_SAMPLES, self.on_test_sample, qos, callback_group=inputs)
         else:
-            self.sync = StampSynchronizer(self.sync_tol)
-            self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.STREAM_QOS,
+            self.sync, self.reported_drops = StampSynchronizer(self.sync_tol), 0
+            self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.STREAM_INPUT_QOS,
                                      callback_group=inputs)
-            self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.STREAM_QOS,
+            self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.STREAM_INPUT_QOS,
                                      callback_group=inputs)
         self.estimate_service = self.create_service(Estimate, common.PRIVATE_ESTIMATE, self.on_estimate,
                                                     qos_profile=common.SERVICE_QOS, callback_group=services)
@@ -151,12 +151,18 @@ class Estimator(Node):
         reading = self.joints.read(msg)
         if reading is None:
             return
-        for pair in self.sync.add_a(common.stamp_seconds(msg.header.stamp), reading):
-            self.add_pair(pair)
+        self.take_pairs(self.sync.add_a(common.stamp_seconds(msg.header.stamp), reading))
 
     def on_spots(self, msg) -> None:
-        for pair in self.sync.add_b(common.stamp_seconds(msg.header.stamp), common.spots_from_msg(msg.spots)):
+        self.take_pairs(self.sync.add_b(common.stamp_seconds(msg.header.stamp), common.spots_from_msg(msg.spots)))
+
+    def take_pairs(self, pairs) -> None:
+        for pair in pairs:
             self.add_pair(pair)
+        if self.sync.dropped > self.reported_drops:  # none in a steady stream: each one said
+            self.reported_drops = self.sync.dropped
+            self.get_logger().warning(f"stream: {self.reported_drops} spot frames dropped so far: no joint state "
+                                      f"within sync_tolerance of the stamp, or over {self.sync.max_pending} waiting")
 
     def add_pair(self, pair) -> None:
         q, v = pair.a
@@ -195,6 +201,7 @@ class Estimator(Node):
             self.online = self.make_online()
             if self.input == "stream":
                 self.sync.reset()
+                self.reported_drops = 0
         response.success = True
         response.message = "accumulated samples cleared, online EKF restarted"
         self.get_logger().info(response.message)
