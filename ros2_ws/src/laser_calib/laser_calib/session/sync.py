@@ -39,9 +39,15 @@ class StampSynchronizer:
 
     ``history`` bounds how many A items are kept (older ones are forgotten);
     ``max_pending`` bounds the B items waiting for A (the oldest is dropped).
+    When both streams back up behind a busy subscriber, B runs ahead of A: an
+    executor takes one message of each topic per round, and A has several per B
+    item (five joint states per spot frame). A bound of 100 then dropped
+    measured frames of any backlog of more than about 125 (a replay at --rate 10:
+    65 of 200); 10000 B items (a pair of spots each, about 1 MB) only bound the
+    memory of a B stream whose A stream has died.
     """
 
-    def __init__(self, tolerance: float, history: int = 1000, max_pending: int = 100):
+    def __init__(self, tolerance: float, history: int = 1000, max_pending: int = 10000):
         if not tolerance >= 0:
             raise ValueError(f"tolerance must be >= 0, got {tolerance}")
         self.tolerance = float(tolerance)
