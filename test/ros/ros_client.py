@@ -382,29 +382,38 @@ def parameters_of(node_name: str) -> dict:
     return {"names": names, "values": {name: parameter_value_to_python(v) for name, v in zip(names, values)}}
 
 
-def stream(robot_path: str, layout: str, count: int) -> dict:
-    """Publish ``count`` still poses, each as a joint_states message and a spots message of one stamp,
-    with the robot's exact spots (nominal model), in the joint layout asked; then the latest
-    dh_parameters (the online EKF: errors ~0 when every reading went to its joint)."""
+def _stream_publishers(robot_path: str, count: int, name: str, depth: int):
+    """The robot, ``count`` poses q (count,N) and their exact spots (count,2,2) (nominal model), a
+    node ``name`` with the dh_parameters it receives (a list), reliable joint_states and spots
+    publishers of history ``depth`` matched to a subscriber, and the deadline of the whole call."""
     from sensor_msgs.msg import JointState
     from laser_calib_interfaces.msg import SpotPair
     from laser_calib.model.kinematics import predict
     from laser_calib.model.robot_file import load_robot
     from laser_calib.sim.simulation import sample_poses
     robot = load_robot(robot_path)
-    n = robot.n_joints
     q = sample_poses([robot], count, np.random.default_rng(3))
-    spots = predict(robot, q).spots
-    node = rclpy.create_node("test_stream")
+    node = rclpy.create_node(name)
     got = []
     node.create_subscription(DhParameters, "dh_parameters", got.append, latched())
-    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
     states = node.create_publisher(JointState, "joint_states", qos)
     pairs = node.create_publisher(SpotPair, "spots", qos)
     deadline = time.monotonic() + TIMEOUT
     while (states.get_subscription_count() == 0 or pairs.get_subscription_count() == 0) \
             and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
+    return robot, q, predict(robot, q).spots, node, got, states, pairs, deadline
+
+
+def stream(robot_path: str, layout: str, count: int) -> dict:
+    """Publish ``count`` still poses, each as a joint_states message and a spots message of one stamp,
+    with the robot's exact spots (nominal model), in the joint layout asked; then the latest
+    dh_parameters (the online EKF: errors ~0 when every reading went to its joint)."""
+    from sensor_msgs.msg import JointState
+    from laser_calib_interfaces.msg import SpotPair
+    robot, q, spots, node, got, states, pairs, deadline = _stream_publishers(robot_path, count, "test_stream", 50)
+    n = robot.n_joints
     order = list(reversed(range(n))) if layout == "reversed" else list(range(n))
     extra = ["gripper"] if layout == "gripper" else []
     for k in range(count):
@@ -435,23 +444,9 @@ def stream_replay(robot_path: str, count: int, rate: float) -> dict:
     from builtin_interfaces.msg import Time
     from sensor_msgs.msg import JointState
     from laser_calib_interfaces.msg import SpotPair
-    from laser_calib.model.kinematics import predict
-    from laser_calib.model.robot_file import load_robot
-    from laser_calib.sim.simulation import sample_poses
-    robot = load_robot(robot_path)
+    robot, q, spots, node, got, states, pairs, deadline = _stream_publishers(robot_path, count, "test_stream_replay",
+                                                                             100)
     n = robot.n_joints
-    q = sample_poses([robot], count, np.random.default_rng(3))
-    spots = predict(robot, q).spots
-    node = rclpy.create_node("test_stream_replay")
-    got = []
-    node.create_subscription(DhParameters, "dh_parameters", got.append, latched())
-    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    states = node.create_publisher(JointState, "joint_states", qos)
-    pairs = node.create_publisher(SpotPair, "spots", qos)
-    deadline = time.monotonic() + TIMEOUT
-    while (states.get_subscription_count() == 0 or pairs.get_subscription_count() == 0) \
-            and time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.1)
     start = time.monotonic()
     for k in range(5 * count):
         t = 1000.0 + 0.02 * k
