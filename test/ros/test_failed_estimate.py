@@ -103,3 +103,33 @@ def test_a_run_whose_first_poses_see_no_spot_ends_early_and_keeps_them(ros, tmp_
     assert code == 2 and "Traceback" not in log, log[-3000:]
     assert "no spot seen in this run's first 2 poses" in log and "unseen_limit:=0" in log, log[-3000:]
     assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + 2  # the header and the 2 poses
+
+
+def test_an_estimator_that_dies_before_answering_ends_the_session_with_status_3(ros, tmp_path):
+    """The estimator is killed (SIGKILL: a crash) while the last pose is measured, so the sequencer's
+    request is never answered. The sequencer waited its whole estimate.timeout (600 s) before it said
+    so; now it sees the service leave the graph (the estimator's DDS lease, about 20 s) and ends with
+    status 3 at once, naming where the measured poses are kept."""
+    import os
+    import signal
+    import time
+    out = tmp_path / "out"
+    ros.start("estimator", "-p", f"robot:={ROBOT}")
+    ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
+    ros.start("camera_sim")
+    ros.start("spot_detector")
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=4",
+              "-p", "test_poses:=0", "-p", "seed:=5", "-p", "estimate.mode:=service",
+              "-p", "estimate.diagnose:=false")
+    deadline = time.monotonic() + 240
+    while ros.log("sequencer").count(" measured in ") < 3:
+        assert time.monotonic() < deadline and ros.procs["sequencer"].poll() is None, ros.log("sequencer")[-3000:]
+        time.sleep(0.05)
+    os.killpg(ros.procs["estimator"].pid, signal.SIGKILL)
+    killed = time.monotonic()
+    code = ros.wait_exit("sequencer", 120)
+    log = ros.log("sequencer")
+    assert code == 3 and "Traceback" not in log, log[-3000:]
+    assert "went away before answering" in log and f"the data are in {out}" in log, log[-3000:]
+    assert time.monotonic() - killed < 90, log[-3000:]  # the lease, not the 600 s timeout
+    assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + 4

@@ -262,6 +262,12 @@ def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, boo
     while not answered.wait(0.2):
         if node.stopping.is_set():
             raise Stop()
+        # An estimator that crashed or was killed never answers: DDS drops it from the graph once its
+        # lease runs out (about 20 s), and waiting the whole timeout (600 s) would say nothing more.
+        if not node.estimate_client.service_is_ready():
+            raise parameters.NodeError(f"the Estimate service on {name} went away before answering (the estimator "
+                                       f"stopped or crashed); the data are in {path}: estimate offline with "
+                                       "laser-calib estimate", 3)
         if time.monotonic() > deadline:
             raise parameters.NodeError(f"the Estimate service did not answer within {end.timeout:g} s", 3)
     response = future.result()
