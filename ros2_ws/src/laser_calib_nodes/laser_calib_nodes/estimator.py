@@ -36,6 +36,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from laser_calib.io.errors import InputError
+from laser_calib.measurement.noise_bounds import spot_sigma_or_zero_problem
 
 from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
@@ -71,7 +72,7 @@ class Estimator(Node):
         self.joints = JointStateReader(self.robot, names, self.get_logger())
         if self.input not in ("samples", "stream"):
             raise parameters.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
-        parameters.dynamic(self, {"spot_sigma": ("spot_sigma", parameters.spot_sigma),
+        parameters.dynamic(self, {"spot_sigma": ("spot_sigma", spot_sigma_or_zero_problem),
                               "stream.max_joint_speed": ("max_speed", parameters.positive),
                               "markers": ("markers_on", lambda value: None)})
 

@@ -10,8 +10,6 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from laser_calib.measurement.noise_bounds import spot_sigma_problem
-
 
 class NodeError(RuntimeError):
     """A fatal condition a node reports in one line before exiting non-zero."""
@@ -116,11 +114,6 @@ def checked(name: str, value: Any, check: Callable[[Any], str | None]) -> Any:
 
 def non_negative(value: float) -> str | None:
     return None if math.isfinite(value) and value >= 0 else f"expected >= 0, got {value}"
-
-
-def spot_sigma(value: float) -> str | None:
-    """A spot sigma in metres, or 0 (estimate it): within measurement.noise_bounds."""
-    return None if value == 0 else spot_sigma_problem(value)
 
 
 def positive(value: float) -> str | None:

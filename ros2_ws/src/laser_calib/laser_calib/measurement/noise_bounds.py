@@ -26,6 +26,13 @@ def spot_sigma_problem(value: float) -> str | None:
             f"{MAX_SPOT_SIGMA:g} m; lengths are in metres)")
 
 
+def spot_sigma_or_zero_problem(value: float) -> str | None:
+    """Why ``value`` (m) is neither 0 (the spot sigma estimated) nor a spot sigma, or None: the
+    rule of the ROS requests' and parameters' spot sigma."""
+    problem = None if value == 0 else spot_sigma_problem(value)
+    return problem and f"{problem}, or 0 to estimate it"
+
+
 def joint_sigma_problem(value: float) -> str | None:
     """Why ``value`` (rad) is no joint-reading sigma, or None."""
     if math.isfinite(value) and 0 < value <= MAX_SIGMA_ANGLE:

@@ -23,7 +23,7 @@ from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples, check_spot_units
 from laser_calib.io.spot_columns import check_spot_columns
-from laser_calib.measurement.noise_bounds import spot_sigma_problem
+from laser_calib.measurement.noise_bounds import spot_sigma_or_zero_problem
 from laser_calib.model.robot import Robot
 from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.files import write_outputs
@@ -35,8 +35,8 @@ def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool) 
     method = method or "lm"
     if method not in METHODS:
         raise InputError("method", f"expected one of {', '.join(METHODS)}, got {method!r}")
-    if spot_sigma != 0 and spot_sigma_problem(spot_sigma):
-        raise InputError("spot_sigma", f"{spot_sigma_problem(spot_sigma)}, or 0 to estimate it")
+    if problem := spot_sigma_or_zero_problem(spot_sigma):
+        raise InputError("spot_sigma", problem)
     return EstimateOptions(method=method, spot_sigma=spot_sigma or None, prior=bool(prior), robust=bool(robust))
 
 
