@@ -2,7 +2,7 @@
 at --rate 10, or a stall of the process). Its joint_states and spots subscriptions kept the last
 50 messages: of 200 still frames replayed 10 times faster, 20 to 84 were counted and the rest
 dropped, the spots finding no joint state to pair with, with no line in the log. Then, with
-every message kept until taken (STREAM_INPUT_QOS, keep all), the stamp pairing still dropped
+every message kept until taken (KEEP_ALL_QOS), the stamp pairing still dropped
 about 65 in the burst: the spots ran ahead of the joint states (five per frame) past its bound
 of 100 waiting frames, now 10000. A frame the pairing drops is said in a WARN line with the
 count so far, so counted plus said dropped is every frame; here none may be dropped."""

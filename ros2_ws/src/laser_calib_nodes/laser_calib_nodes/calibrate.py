@@ -36,9 +36,9 @@ class CalibrateServer:
         # reentrant: cancel requests are taken while a goal executes
         self.server = ActionServer(node, Calibrate, common.PRIVATE_CALIBRATE, self.execute,
                                    cancel_callback=lambda goal: CancelResponse.ACCEPT,
-                                   goal_service_qos_profile=common.SERVICE_QOS,
-                                   result_service_qos_profile=common.SERVICE_QOS,
-                                   cancel_service_qos_profile=common.SERVICE_QOS,
+                                   goal_service_qos_profile=common.KEEP_ALL_QOS,
+                                   result_service_qos_profile=common.KEEP_ALL_QOS,
+                                   cancel_service_qos_profile=common.KEEP_ALL_QOS,
                                    callback_group=ReentrantCallbackGroup())
 
     def execute(self, goal):

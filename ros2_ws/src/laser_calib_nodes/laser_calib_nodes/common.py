@@ -53,11 +53,15 @@ SCREEN_FRAME = "screen"
 # QoS. Results and session state are transient-local (a late subscriber gets the last one).
 STREAM_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
                         history=HistoryPolicy.KEEP_LAST)
-# The estimator's 'stream' input (joint_states, spots): every message kept until taken. Keep-last 50
-# dropped the oldest while its callbacks lagged (a replay at --rate 10: 180 of 200 still frames lost,
-# unsaid, the spots finding no joint state to pair with).
-STREAM_INPUT_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-                              history=HistoryPolicy.KEEP_ALL)
+# Every message kept until taken, for what must not be pushed out while a node is busy:
+# - the estimator's 'stream' input (joint_states, spots). Keep-last 50 dropped the oldest while its
+#   callbacks lagged (a replay at --rate 10: 180 of 200 still frames lost, unsaid, the spots finding
+#   no joint state to pair with);
+# - service requests, waiting in the server's request reader while an estimate runs. The default
+#   services profile keeps the last 10, so the 11th request in flight pushed out the oldest one
+#   unanswered (its client waited for ever).
+KEEP_ALL_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+                          history=HistoryPolicy.KEEP_ALL)
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 # Images (4 MB) are reliable: best effort over Fast DDS loses most frames of this size.
 IMAGE_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
@@ -69,11 +73,6 @@ SENSOR_QOS = qos_profile_sensor_data
 # transient-local one. The estimator subscribes with both and counts each sample once.
 SAMPLES_INPUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                                durability=DurabilityPolicy.VOLATILE)
-# Service requests wait in the server's request reader while an estimate runs: the default
-# services profile keeps the last 10, so the 11th request in flight pushed out the oldest one
-# unanswered (its client waited for ever). Every request is kept until it is taken.
-SERVICE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-                         history=HistoryPolicy.KEEP_ALL)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # Every sample of a session is kept for late subscribers (an estimator started late).
 SAMPLES_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,

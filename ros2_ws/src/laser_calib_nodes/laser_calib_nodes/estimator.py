@@ -96,13 +96,13 @@ class Estimator(Node):
                 self.create_subscription(Sample, common.TEST_SAMPLES, self.on_test_sample, qos, callback_group=inputs)
         else:
             self.sync, self.reported_drops = StampSynchronizer(self.sync_tol), 0
-            self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.STREAM_INPUT_QOS,
+            self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.KEEP_ALL_QOS,
                                      callback_group=inputs)
-            self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.STREAM_INPUT_QOS,
+            self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.KEEP_ALL_QOS,
                                      callback_group=inputs)
         self.estimate_service = self.create_service(Estimate, common.PRIVATE_ESTIMATE, self.on_estimate,
-                                                    qos_profile=common.SERVICE_QOS, callback_group=services)
-        self.create_service(Trigger, common.PRIVATE_RESET, self.on_reset, qos_profile=common.SERVICE_QOS,
+                                                    qos_profile=common.KEEP_ALL_QOS, callback_group=services)
+        self.create_service(Trigger, common.PRIVATE_RESET, self.on_reset, qos_profile=common.KEEP_ALL_QOS,
                             callback_group=services)
         self.calibrate = CalibrateServer(self)
         self.get_logger().info(f"robot '{self.robot.name}' ({self.robot.n_params} parameters), input "

@@ -239,6 +239,7 @@ def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, boo
     end, path = node.end, node.session.path
     name = node.resolve_service_name(common.ESTIMATE_SERVICE)
     deadline = time.monotonic() + end.timeout
+    offline = f"the data are in {path}: estimate offline with laser-calib estimate"
     if not node.estimate_client.service_is_ready():  # else minutes of silence when no estimator runs
         node.get_logger().info(f"waiting up to {end.timeout:g} s for the Estimate service on {name} "
                                "(is the estimator running?)")
@@ -246,8 +247,7 @@ def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, boo
         if node.stopping.is_set():
             raise Stop()
         if time.monotonic() > deadline:
-            raise parameters.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; the data are in "
-                                   f"{path}: estimate offline with laser-calib estimate", 3)
+            raise parameters.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; {offline}", 3)
     request = node.estimate_client.srv_type.Request(
         samples=[sample_msg(node, samples, r) for r in range(len(samples))],
         test_samples=[sample_msg(node, test, r) for r in range(len(test))] if test is not None else [],
@@ -266,8 +266,7 @@ def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, boo
         # lease runs out (about 20 s), and waiting the whole timeout (600 s) would say nothing more.
         if not node.estimate_client.service_is_ready():
             raise parameters.NodeError(f"the Estimate service on {name} went away before answering (the estimator "
-                                       f"stopped or crashed); the data are in {path}: estimate offline with "
-                                       "laser-calib estimate", 3)
+                                       f"stopped or crashed); {offline}", 3)
         if time.monotonic() > deadline:
             raise parameters.NodeError(f"the Estimate service did not answer within {end.timeout:g} s", 3)
     response = future.result()
