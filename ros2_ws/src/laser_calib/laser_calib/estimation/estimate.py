@@ -49,7 +49,7 @@ from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.failures import (NOT_CONVERGED, NoSpotToFit, beyond_data, first_failure, fit_failures,
                                              implausible)
 from laser_calib.estimation.folds import still_joint_warnings
-from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, UnknownFixed, analyse
+from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse, check_fixed
 from laser_calib.estimation.impossible import impossible_spots, judged_again
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses, rescaled,
@@ -230,9 +230,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     names = tuple(model.names)
     n = len(names)
     x0 = np.zeros(n) if x0 is None else np.asarray(x0, float)
-    unknown = [name for name in options.fixed if name not in names]
-    if unknown:
-        raise UnknownFixed(unknown[0], names)
+    check_fixed(options.fixed, names)
     user_fixed = np.array([name in options.fixed for name in names])
     warnings: list[str] = []
 

@@ -92,6 +92,13 @@ class UnknownFixed(ValueError):
         self.name, self.names = name, names
 
 
+def check_fixed(fixed, names) -> None:
+    """UnknownFixed for the first of the names to hold ``fixed`` that is none of the model's ``names``."""
+    unknown = [name for name in fixed if name not in names]
+    if unknown:
+        raise UnknownFixed(unknown[0], tuple(names))
+
+
 @dataclass(frozen=True)
 class Identifiability:
     """singular_values (min(M,n),) of the scaled Jacobian; rank (directions kept);

@@ -34,7 +34,7 @@ import numpy as np
 from laser_calib.estimation.failures import FAR_SCALES, MAX_RESIDUAL, within_data
 from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate_model, prior_sigmas
-from laser_calib.estimation.identifiability import UnknownFixed, analyse, carried_by_kept
+from laser_calib.estimation.identifiability import analyse, carried_by_kept, check_fixed
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, whiten
 from laser_calib.model.robot import Robot
 from laser_calib.measurement.frames import FRAME_PARAMS, frame_list, is_frame_param, robot_frames, with_frames
@@ -258,9 +258,7 @@ def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = 
     length = options.rotation_length or 1.0
     model = build(length)
     user = options.estimate.fixed
-    unknown = [name for name in user if name not in model.names]
-    if unknown:
-        raise UnknownFixed(unknown[0], tuple(model.names))
+    check_fixed(user, model.names)
     sigma = options.estimate.spot_sigma or 1e-3
     held = np.array([name in user for name in model.names])
     noise = NoiseModel(sigma, options.estimate.joint_sigma)
