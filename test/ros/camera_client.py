@@ -1,12 +1,14 @@
 """A camera driver as most publish (sensor-data QoS: best effort) for spot_detector, run as a
 subprocess in the workspace environment. Prints one JSON document.
 
-    camera_client.py ENCODING [INFO_WIDTH [SECONDS [QOS [FRAMES [image_first]]]]]   rendered frames
+    camera_client.py ENCODING [INFO_WIDTH [SECONDS [QOS [FRAMES [INFO]]]]]   rendered frames
         of known spots in ENCODING with CameraInfo (its width INFO_WIDTH, 0: the camera's), published
         with QoS 'sensor_data' (best effort, default) or 'reliable' until 3 spot pairs came back or
-        SECONDS (60) passed; with FRAMES (0: as without), exactly FRAMES frames, one per PERIOD s;
-        each frame's CameraInfo first, or its image first with image_first. Prints the spots
-        spot_detector published back, their stamps and the frames published.
+        SECONDS (60) passed; with FRAMES (0: as without), exactly FRAMES frames, one per PERIOD s.
+        INFO: each frame's CameraInfo first ('first', default), or its image first ('image_first');
+        or one CameraInfo only, before any subscriber matched, volatile ('once': lost) or latched
+        ('once_latched': transient local). Prints the spots spot_detector published back, their
+        stamps and the frames published.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import time
 
 import numpy as np
 import rclpy
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
 from laser_calib.vision import RenderOptions, default_camera, render_frame
@@ -46,13 +48,23 @@ def main() -> None:
     info_width = int(sys.argv[2]) if len(sys.argv) > 2 and int(sys.argv[2]) else camera.width
     qos = 10 if len(sys.argv) > 4 and sys.argv[4] == "reliable" else qos_profile_sensor_data
     frames = int(sys.argv[5]) if len(sys.argv) > 5 else 0
-    image_first = len(sys.argv) > 6 and sys.argv[6] == "image_first"
+    info_mode = sys.argv[6] if len(sys.argv) > 6 else "first"
     rclpy.init()
     node = rclpy.create_node("test_camera")
     got = []
     node.create_subscription(SpotPair, "spots", got.append, 10)
     image_pub = node.create_publisher(Image, "camera/image_raw", qos)
-    info_pub = node.create_publisher(CameraInfo, "camera/camera_info", qos)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    info_pub = node.create_publisher(CameraInfo, "camera/camera_info", latched if info_mode == "once_latched" else qos)
+
+    def info(stamp) -> CameraInfo:
+        msg = CameraInfo(width=info_width, height=camera.height, distortion_model="plumb_bob",
+                         k=[float(v) for v in camera.K.ravel()])
+        msg.header.stamp = stamp
+        return msg
+
+    if info_mode.startswith("once"):
+        info_pub.publish(info(node.get_clock().now().to_msg()))
     frame = render_frame(camera, TRUE, np.ones(2, bool), np.random.default_rng(5), RenderOptions())
     data, step = encode(frame, encoding)
     deadline = time.monotonic() + (float(sys.argv[3]) if len(sys.argv) > 3 else 60.0)
@@ -61,12 +73,11 @@ def main() -> None:
     published = 0
     while (published < frames if frames else len(got) < 3) and time.monotonic() < deadline:
         stamp = node.get_clock().now().to_msg()
-        info = CameraInfo(width=info_width, height=camera.height, distortion_model="plumb_bob",
-                          k=[float(v) for v in camera.K.ravel()])
-        info.header.stamp = stamp
         image = Image(height=camera.height, width=camera.width, encoding=encoding, step=step, data=data)
         image.header.stamp = stamp
-        for publisher, msg in ((image_pub, image), (info_pub, info))[::1 if image_first else -1]:
+        sent = {"first": [(info_pub, info(stamp)), (image_pub, image)],
+                "image_first": [(image_pub, image), (info_pub, info(stamp))]}.get(info_mode, [(image_pub, image)])
+        for publisher, msg in sent:
             publisher.publish(msg)
         published += 1
         end = time.monotonic() + PERIOD

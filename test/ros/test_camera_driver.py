@@ -55,6 +55,27 @@ def test_camera_info_of_another_size_refuses_frames_in_one_line(ros):
     assert "CameraInfo says 640x1024, the calibration is for 1280x1024" in log and "Traceback" not in log
 
 
+def test_a_latched_camera_info_is_checked(ros):
+    """A driver that latches its CameraInfo (sent once, transient local) before the detector
+    started: the detector's transient-local subscription gets it, so its size is checked (here a
+    wrong one: every frame refused). Without it the frames waited for an info that never came."""
+    ros.start("spot_detector")
+    got = run_camera(ros, "bgr8", "640", "8", "reliable", "3", "once_latched")
+    assert got["frames"] == 0
+    assert "CameraInfo says 640x1024, the calibration is for 1280x1024" in ros.log("spot_detector")
+
+
+def test_a_camera_info_sent_once_and_lost_holds_back_a_few_frames_with_a_warning(ros):
+    """A driver that sent its CameraInfo once, volatile, before anyone listened: the detector holds
+    back INFO_WAIT_FRAMES frames for it, says so, then detects the rest. It waited for ever: every
+    frame of the session was dropped without a word."""
+    from laser_calib_nodes.spot_detector import INFO_WAIT_FRAMES
+    ros.start("spot_detector")
+    got = run_camera(ros, "bgr8", "0", "20", "reliable", str(INFO_WAIT_FRAMES + 3), "once")
+    assert got["frames"] == 3, ros.log("spot_detector")
+    assert f"no CameraInfo on /camera/camera_info in {INFO_WAIT_FRAMES} frames" in ros.log("spot_detector")
+
+
 def test_sequencer_records_a_best_effort_camera(ros, tmp_path):
     """The bag holds camera_info (and the images, record_images) of a best-effort driver, whose
     frames a reliable subscription never matched (none were recorded), and each frame of a

@@ -11,6 +11,9 @@ Subscribes  camera/image_raw (sensor_msgs/Image), best effort (the sensor-data Q
             must be the calibration's (else frames are refused, one line); its
             intrinsics are compared with the calibration's (a warning when they
             differ: the camera was changed or refocused since screen-calibrate).
+            Also transient local, for a driver that latches it. While the topic
+            has a publisher but none has come, INFO_WAIT_FRAMES frames are held
+            back; then a warning, and the frames are detected unchecked.
 Publishes   laser1/spot, laser2/spot (geometry_msgs/PointStamped, frame
             `screen`: x = 0, y, z in metres), only when that laser is seen.
             spots (laser_calib_interfaces/SpotPair): both lasers of every
@@ -44,6 +47,11 @@ from laser_calib.vision.detect import DetectorOptions, SpotDetector
 from laser_calib.vision.encodings import pattern_of, to_bgr8
 
 from laser_calib_nodes import common, parameters
+
+# Frames held back waiting for a CameraInfo a publisher on the topic has not sent. A driver sends one
+# with each frame, and it may come second; one that sent it once, volatile, before this node started
+# never will, and waiting for it would refuse the whole session's frames.
+INFO_WAIT_FRAMES = 5
 
 
 class SpotDetectorNode(Node):
@@ -95,10 +103,14 @@ class SpotDetectorNode(Node):
         for qos in (qos_profile_sensor_data, reliable):
             self.create_subscription(Image, common.IMAGE, self.on_image, qos, event_callbacks=quiet)
             self.create_subscription(CameraInfo, common.CAMERA_INFO, self.on_info, qos, event_callbacks=quiet)
+        # a latched CameraInfo (sent once, transient local) reaches only a transient-local subscription
+        self.create_subscription(CameraInfo, common.CAMERA_INFO, self.on_info, common.LATCHED_QOS,
+                                 event_callbacks=quiet)
         self.recent = deque(maxlen=20)   # (stamp sec, nanosec, frame_id) of the frames used
         self.bad_frames = 0
         self.info_problem: str | None = None
         self.info_checked = False
+        self.held_back = 0   # frames held back waiting for CameraInfo
 
     @property
     def min_peak_dn(self) -> float:
@@ -145,8 +157,16 @@ class SpotDetectorNode(Node):
             return  # the same frame through the other subscription
         if key[:2] != (0, 0):  # an unstamped camera's frames cannot be told apart: all are used
             self.recent.append(key)
-        if not self.info_checked and self.count_publishers(common.CAMERA_INFO) > 0:
-            return  # the driver's CameraInfo, sent with each frame, may arrive second: its size is checked first
+        if (not self.info_checked and self.held_back < INFO_WAIT_FRAMES
+                and self.count_publishers(common.CAMERA_INFO) > 0):
+            # the driver's CameraInfo, sent with each frame, may arrive second: its size is checked first
+            self.held_back += 1
+            if self.held_back == INFO_WAIT_FRAMES:
+                self.get_logger().warning(
+                    f"no CameraInfo on {self.resolve_topic_name(common.CAMERA_INFO)} in {INFO_WAIT_FRAMES} frames, "
+                    "though it has a publisher (one that sent it once, before this node started?): frames are "
+                    "detected without checking their size against it")
+            return
         if self.info_problem:
             return self.reject(self.info_problem)
         try:
