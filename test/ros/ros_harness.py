@@ -119,15 +119,15 @@ class Ros:
     def log(self, name: str) -> str:
         return self.logs[name].read_text(errors="replace")
 
-    def wait_log(self, name: str, text: str, timeout: float, watch: str | None = None) -> None:
-        """Wait until ``text`` is in ``name``'s log; fail when ``timeout`` s pass or the process
-        ``watch`` (``name`` unless given) has exited first."""
+    def wait_log(self, name: str, text: str, timeout: float, watch: str | None = None, count: int = 1) -> None:
+        """Wait until ``text`` is ``count`` times in ``name``'s log; fail when ``timeout`` s pass or
+        the process ``watch`` (``name`` unless given) has exited first."""
         watch = watch or name
         deadline = time.monotonic() + timeout
-        while text not in self.log(name):
+        while self.log(name).count(text) < count:
             if self.procs[watch].poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"no {text!r} in {name}'s log within {timeout} s, or {watch} exited; {watch}'s log:\n"
-                            f"{self.log(watch)[-3000:]}")
+                pytest.fail(f"not {count} x {text!r} in {name}'s log within {timeout} s, or {watch} exited; "
+                            f"{watch}'s log:\n{self.log(watch)[-3000:]}")
             time.sleep(0.05)
 
     def wait_exit(self, name: str, timeout: float) -> int:

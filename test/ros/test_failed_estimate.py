@@ -69,17 +69,13 @@ def test_a_pose_that_fails_is_named_as_its_progress_line_would(ros, tmp_path):
     the progress lines count (it said 'pose 2 (step 3)' after 'pose 2/N (id 1) measured', so the
     user took the second pose for the failed one); the two measured poses are kept."""
     import re
-    import time
     out = tmp_path / "out"
     ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
     ros.start("camera_sim")
     ros.start("spot_detector")
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=6",
               "-p", "test_poses:=0", "-p", "estimate.mode:=none", "-p", "frame_timeout:=3.0")
-    deadline = time.monotonic() + 240
-    while ros.log("sequencer").count(" measured in ") < 2:
-        assert ros.procs["sequencer"].poll() is None and time.monotonic() < deadline, ros.log("sequencer")[-3000:]
-        time.sleep(0.05)
+    ros.wait_log("sequencer", " measured in ", 240, count=2)
     ros.stop("camera_sim")
     assert ros.wait_exit("sequencer", 120) == 3, ros.log("sequencer")[-3000:]
     log = ros.log("sequencer")
@@ -121,10 +117,7 @@ def test_an_estimator_that_dies_before_answering_ends_the_session_with_status_3(
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=4",
               "-p", "test_poses:=0", "-p", "seed:=5", "-p", "estimate.mode:=service",
               "-p", "estimate.diagnose:=false")
-    deadline = time.monotonic() + 240
-    while ros.log("sequencer").count(" measured in ") < 3:
-        assert time.monotonic() < deadline and ros.procs["sequencer"].poll() is None, ros.log("sequencer")[-3000:]
-        time.sleep(0.05)
+    ros.wait_log("sequencer", " measured in ", 240, count=3)
     os.killpg(ros.procs["estimator"].pid, signal.SIGKILL)
     killed = time.monotonic()
     code = ros.wait_exit("sequencer", 120)
