@@ -57,10 +57,13 @@ class Recorder:
                 continue
             # A camera driver publishes best effort (sensor-data QoS), which a reliable subscription never
             # matches, and camera_sim reliable: both, as spot_detector subscribes, each frame written once.
-            for reliability in (ReliabilityPolicy.BEST_EFFORT, ReliabilityPolicy.RELIABLE):
-                node.create_subscription(msg_type, name, lambda data, t=topic: self.write_frame(t, data),
-                                         QoSProfile(depth=deep.depth, reliability=reliability), raw=True,
-                                         event_callbacks=quiet)
+            profiles = [QoSProfile(depth=deep.depth, reliability=reliability)
+                        for reliability in (ReliabilityPolicy.BEST_EFFORT, ReliabilityPolicy.RELIABLE)]
+            if msg_type is CameraInfo:  # a driver that latches it sends it once, maybe before this node started
+                profiles.append(common.LATCHED_QOS)
+            for profile in profiles:
+                node.create_subscription(msg_type, name, lambda data, t=topic: self.write_frame(t, data), profile,
+                                         raw=True, event_callbacks=quiet)
 
     def write(self, topic: str, data: bytes) -> None:
         with self.lock:
