@@ -18,8 +18,9 @@
                                                input stream); LAYOUT: 'robot' (joint1..jointN in order),
                                                'reversed' (the same readings, names in reverse order) or
                                                'gripper' (robot order and one more joint)
-    ros_client.py stream-replay ROBOT N RATE   N exact still frames as a live stream has them (5 joint_states at
-                                               50 Hz per spots frame at 10 Hz), played RATE times faster
+    ros_client.py stream-replay ROBOT N RATE [SUBS]  N exact still frames as a live stream has them (5 joint_states
+                                               at 50 Hz per spots frame at 10 Hz), played RATE times faster, once
+                                               each topic has SUBS subscriptions (default 1)
 """
 
 from __future__ import annotations
@@ -382,10 +383,11 @@ def parameters_of(node_name: str) -> dict:
     return {"names": names, "values": {name: parameter_value_to_python(v) for name, v in zip(names, values)}}
 
 
-def _stream_publishers(robot_path: str, count: int, name: str, depth: int):
+def _stream_publishers(robot_path: str, count: int, name: str, depth: int, subscribers: int = 1):
     """The robot, ``count`` poses q (count,N) and their exact spots (count,2,2) (nominal model), a
     node ``name`` with the dh_parameters it receives (a list), reliable joint_states and spots
-    publishers of history ``depth`` matched to a subscriber, and the deadline of the whole call."""
+    publishers of history ``depth`` matched to ``subscribers`` subscriptions each, and the deadline
+    of the whole call."""
     from sensor_msgs.msg import JointState
     from laser_calib_interfaces.msg import SpotPair
     from laser_calib.model.kinematics import predict
@@ -400,7 +402,7 @@ def _stream_publishers(robot_path: str, count: int, name: str, depth: int):
     states = node.create_publisher(JointState, "joint_states", qos)
     pairs = node.create_publisher(SpotPair, "spots", qos)
     deadline = time.monotonic() + TIMEOUT
-    while (states.get_subscription_count() == 0 or pairs.get_subscription_count() == 0) \
+    while (states.get_subscription_count() < subscribers or pairs.get_subscription_count() < subscribers) \
             and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
     return robot, q, predict(robot, q).spots, node, got, states, pairs, deadline
@@ -437,7 +439,7 @@ def stream(robot_path: str, layout: str, count: int) -> dict:
             "largest_error": float(np.nanmax(np.abs(last.errors))) if last else None}
 
 
-def stream_replay(robot_path: str, count: int, rate: float) -> dict:
+def stream_replay(robot_path: str, count: int, rate: float, subscribers: int = 1) -> dict:
     """As a replay of a recorded stream at --rate RATE (its QoS: reliable, keep last 100): per still
     frame 5 joint_states 20 ms apart and one spots message with the stamp of the third; then the
     estimator's latest sample_count once it has stopped changing for 3 s."""
@@ -445,7 +447,7 @@ def stream_replay(robot_path: str, count: int, rate: float) -> dict:
     from sensor_msgs.msg import JointState
     from laser_calib_interfaces.msg import SpotPair
     robot, q, spots, node, got, states, pairs, deadline = _stream_publishers(robot_path, count, "test_stream_replay",
-                                                                             100)
+                                                                             100, subscribers)
     n = robot.n_joints
     start = time.monotonic()
     for k in range(5 * count):
@@ -499,7 +501,7 @@ def main() -> int:
         elif command == "stream":
             result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]))
         elif command == "stream-replay":
-            result = stream_replay(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]))
+            result = stream_replay(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), *map(int, sys.argv[5:6]))
         elif command == "samples-by-name":
             result = samples_by_name(sys.argv[2])
         elif command == "bad-and-concurrent":

@@ -9,7 +9,7 @@ from collections import deque
 from geometry_msgs.msg import PointStamped
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
@@ -49,15 +49,18 @@ class Recorder:
         quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)  # one of the two never matches
         for name, msg_type, _, qos in recorded:
             topic = node.resolve_topic_name(name)
-            # The publisher's reliability and durability, but a deep queue: the recorder must not drop
-            # (a latched topic's depth 1 would lose messages published in a burst).
-            deep = QoSProfile(depth=max(qos.depth, 200), reliability=qos.reliability, durability=qos.durability)
             if msg_type not in (Image, CameraInfo):
-                node.create_subscription(msg_type, name, lambda data, t=topic: self.write(t, data), deep, raw=True)
+                # The publisher's reliability and durability, every message kept until taken: the executor
+                # stalls at each segment roll-over (40-400 ms), and a 500 Hz joint_states filled a keep-last
+                # 200 queue behind one (test_bag_backlog).
+                every = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=qos.reliability,
+                                   durability=qos.durability)
+                node.create_subscription(msg_type, name, lambda data, t=topic: self.write(t, data), every, raw=True)
                 continue
+            # Frames of 4 MB: a bounded queue, 20 s of a 10 Hz camera (a roll-over stalled it 0.4 s at most).
             # A camera driver publishes best effort (sensor-data QoS), which a reliable subscription never
             # matches, and camera_sim reliable: both, as spot_detector subscribes, each frame written once.
-            profiles = [QoSProfile(depth=deep.depth, reliability=reliability)
+            profiles = [QoSProfile(depth=max(qos.depth, 200), reliability=reliability)
                         for reliability in (ReliabilityPolicy.BEST_EFFORT, ReliabilityPolicy.RELIABLE)]
             if msg_type is CameraInfo:  # a driver that latches it sends it once, maybe before this node started
                 profiles.append(common.LATCHED_QOS)
