@@ -1,4 +1,4 @@
-"""Effect diagnosis on both paper arms (issue 4).
+"""Effect diagnosis on both paper arms (issue 4), or on arms of robot files (--robots).
 
 For every library effect on each arm: 80 calibration and 80 test poses over the
 whole workspace (effects.truth.effect_session: random geometric errors within
@@ -52,6 +52,12 @@ following |another angle|):
 
     .venv/bin/python bench/effects_bench.py --seeds 12 13 --name effects_probe2 \
         --kinds s_load_backlash s_ratio s_warmup s_twist s_vee
+
+and on arms it was never tuned on, given as D-H robot files (the effects placed by the rules of
+``places``; bench/robots/ur5e_laser.yaml: a UR5e with the paper's laser module):
+
+    .venv/bin/python bench/effects_bench.py --robots bench/robots/ur5e_laser.yaml --seeds 1 2 \
+        --jobs 2 --name effects_ur5e
 """
 
 from __future__ import annotations
@@ -78,8 +84,9 @@ from laser_calib.sim.effect_truth import (TEMPERATURE, ForeignError, ForeignJoin
 from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
+from laser_calib.model.robot_file import load_robot
 from laser_calib.io.samples import Samples
-from laser_calib.sim.simulation import NoiseSpec
+from laser_calib.sim.simulation import NoiseSpec, bundled_robot
 
 NOISE = NoiseSpec(spot=0.5e-3, joint=float(np.deg2rad(0.02)))
 N_CAL = N_TEST = 80
@@ -115,6 +122,28 @@ PLACES: dict[str, dict[str, Maker]] = {
         "camera_distortion": lambda r, c: camera_distortion(r),
     },
 }
+LIBRARY = tuple(PLACES["paper-7dof"])
+
+
+def places(robot: Robot) -> dict[str, Maker]:
+    """Where each effect sits on an arm of a robot file, by rules fixed before any of its results:
+    scale on the base joint, compliance on joint 2 (the shoulder: it carries the whole arm),
+    periodic on the joint of widest range (over a small part of a turn a harmonic is mostly an
+    offset and a scale), backlash on joint 3, drift with the temperature on the longest link
+    length beyond link 1 (whose a and d place the arm before the screen)."""
+    low, high = robot.pose_range()
+    widest = int(np.argmax(high - low))
+    lengths = [i for i in range(4, robot.n_link_params) if robot.param_kinds()[i] == "length"]
+    longest = robot.param_names[max(lengths, key=lambda i: abs(robot.vector()[i]))]
+    return {
+        "joint_scale": lambda r, c: JointScale(joint=0),
+        "compliance": lambda r, c: Compliance.make(r, c, 1),
+        "periodic": lambda r, c: Periodic(joint=widest),
+        "backlash": lambda r, c: Backlash(joint=2),
+        "drift": lambda r, c: Drift.make(r, c, longest, TEMPERATURE),
+        "screen_shape": lambda r, c: screen_shape(r),
+        "camera_distortion": lambda r, c: camera_distortion(r),
+    }
 
 
 def cubic(robot: Robot, joint: int) -> ForeignJointError:
@@ -142,6 +171,9 @@ OUTSIDE = {"cubic": cubic, "step": step, "coupling": coupling}
 # the coupling sits on joint 2 there.
 OUTSIDE_JOINT = {"paper-7dof": {"cubic": 0, "step": 1, "coupling": 3},
                  "paper-4dof": {"cubic": 2, "step": 1, "coupling": 1}}
+# On an arm of a robot file: the base joint, whose axis is not parallel to the shoulder's, and
+# the shoulder.
+FILE_OUTSIDE_JOINT = {"cubic": 0, "step": 1, "coupling": 0}
 # q^3 is not outside the library's span: periodic (1st and 2nd harmonic) plus
 # joint scale fit it to 0.5 % over any of these joint ranges, so "explained" by
 # those effects is the right answer; only its test error is checked.
@@ -348,14 +380,24 @@ def case_diagnosis(session, given: str):
                     options=DiagnoseOptions(nested=False))
 
 
+def arm(case: str) -> tuple[Robot, dict[str, Maker], dict[str, int]]:
+    """The nominal robot of ``case`` (a paper arm's name or a robot file), where the library
+    effects sit on it and the joints of the outside effects."""
+    if case in PLACES:
+        return bundled_robot(case), PLACES[case], OUTSIDE_JOINT[case]
+    robot = load_robot(case)
+    return robot, places(robot), FILE_OUTSIDE_JOINT
+
+
 def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given: str = "both") -> dict:
     options = EstimateOptions(spot_sigma=NOISE.spot_sigma, joint_sigma=NOISE.joint_sigma)
-    robot_joint = OUTSIDE_JOINT[case].get(kind, 0)
+    nominal, place, outside_joint = arm(case)
+    robot_joint = outside_joint.get(kind, 0)
     truth_effects: list[Truth] = []
 
     def make_truth(robot, errors, context, rng):
-        if kind in PLACES[case]:
-            drawn = draw_truth(PLACES[case][kind](robot, context), rng)
+        if kind in place:
+            drawn = draw_truth(place[kind](robot, context), rng)
             truth_effects.append(sized(robot, errors, context, drawn, NOISE, visible))
         elif kind in OUTSIDE:
             truth_effects.append(OUTSIDE[kind](robot, robot_joint))
@@ -363,7 +405,7 @@ def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given
             truth_effects.append(sized(robot, errors, context, FOREIGN[kind](robot, rng), NOISE, visible))
         return list(truth_effects)
 
-    session = effect_session(case, seed, make_truth, N_CAL, N_TEST, NOISE, PERIOD)
+    session = effect_session(nominal, seed, make_truth, N_CAL, N_TEST, NOISE, PERIOD)
     start = time.perf_counter()
     diagnosis = case_diagnosis(session, given)
     elapsed = time.perf_counter() - start
@@ -371,15 +413,15 @@ def run_case(case: str, kind: str, seed: int, visible: float = VISIBILITY, given
     stages = result["stages"]
     chosen = [f"{e['name']} ({e['where']}" + (f" with {e['covariate']})" if "covariate" in e else ")")
               for e in result["effects"]]
-    row = {"arm": case, "effect": kind, "seed": seed, "noise_given": given,
-           "visibility": visible if kind in PLACES[case] else None,
+    row = {"arm": nominal.name if case not in PLACES else case, "effect": kind, "seed": seed, "noise_given": given,
+           "visibility": visible if kind in place else None,
            "chosen": chosen, "verdict": result["verdict"], "warned_worse_on_test": warned_worse_on_test(result),
            "geometric_test_rms_mm": stages[0]["test"]["rms_mm"], "final_test_rms_mm": stages[-1]["test"]["rms_mm"],
            "time_s": elapsed, "evidence": result["evidence"],
            "detector_gain": result["detector"]["heldout_gain"], "detector_p": result["detector"]["p"],
            "compensated_test_rms_mm": (result["compensator"]["test"]["rms_mm"] if result["compensator"]
                                        else stages[-1]["test"]["rms_mm"])}
-    if kind in PLACES[case]:
+    if kind in place:
         truth = truth_effects[0]
         row["truth"] = truth.effect.label
         row["true_values"] = truth.values.tolist()
@@ -424,7 +466,7 @@ def summary(rows: list[dict]) -> dict:
         out["library_all_checks"] = [sum(all(r["checks"].values()) for r in library), len(library)]
     # A false alarm: "structure remains" where the model is the true one; "undetermined" there is
     # counted apart (the selection's rule: effects the data cannot tell apart, selection.ambiguous_verdict).
-    clean = [r for r in library if r["effect"] in PLACES[r["arm"]] or r["effect"] == "none"]
+    clean = [r for r in library if r["effect"] in LIBRARY + ("none",)]
     if clean:
         out["false_alarms"] = [sum(r["verdict"] == "structure remains" for r in clean), len(clean)]
         out["clean_undetermined"] = [sum(r["verdict"] == "undetermined" for r in clean), len(clean)]
@@ -487,11 +529,16 @@ def main() -> None:
     parser.add_argument("--kinds", nargs="+", help="only these simulated kinds (default: all)")
     parser.add_argument("--jobs", type=int, default=1, help="cases run in parallel (processes)")
     parser.add_argument("--name", default="effects", help="results file name in bench/results (NAME.md, .json)")
+    parser.add_argument("--robots", nargs="+", metavar="FILE",
+                        help="D-H robot files of the arms to run on, in place of the two paper arms")
     args = parser.parse_args()
+    for path in args.robots or []:
+        if load_robot(path).chain is not None:
+            parser.error(f"{path}: the foreign kinds put their errors on D-H parameters; give a D-H robot file")
     rows = []
     start = time.perf_counter()
-    kinds = args.kinds or [k for k in FOREIGN if k not in PROBE_KINDS + PROBE2_KINDS] + ["none"] + list(PLACES["paper-7dof"]) + list(OUTSIDE)
-    jobs = [(given, case, kind, seed) for given in args.given for case in PLACES for kind in kinds
+    kinds = args.kinds or [k for k in FOREIGN if k not in PROBE_KINDS + PROBE2_KINDS] + ["none"] + list(LIBRARY) + list(OUTSIDE)
+    jobs = [(given, case, kind, seed) for given in args.given for case in args.robots or PLACES for kind in kinds
             for seed in args.seeds]
     # Each case is seeded on its own, so the rows do not depend on --jobs (their times do: shared cores).
     with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:

@@ -287,11 +287,11 @@ def temperature(stamps: np.ndarray, duration: float, rng: np.random.Generator) -
     return warmup(stamps, duration) + rng.normal(0.0, 0.05, len(stamps))
 
 
-def effect_session(case: str, seed: int,
+def effect_session(case: str | Robot, seed: int,
                    make_truth: Callable[[Robot, np.ndarray, Samples, np.random.Generator], Sequence[Truth]],
                    n_cal: int = 80, n_test: int = 80, noise: NoiseSpec = NoiseSpec(),
                    period: float = 10.0, camera: tuple[float, float, float] | None = None) -> EffectSession:
-    """A seeded session of ``case`` (simulation.CASES) over the whole workspace:
+    """A seeded session of ``case`` (simulation.CASES, or a nominal robot) over the whole workspace:
     random geometric errors (uniform within 10 mm / 1 deg), the true effects
     ``make_truth(nominal, true errors, calibration context, rng)`` (effects whose
     constants depend on the data, e.g. a drift's reference, see the calibration
@@ -299,7 +299,7 @@ def effect_session(case: str, seed: int,
     noise as in simulation.measure. Rows are ``period`` s apart; ``camera``: the
     centre of the camera watching the screen (the robots' screen.camera)."""
     rng = np.random.default_rng(seed)
-    nominal = bundled_robot(case)
+    nominal = case if isinstance(case, Robot) else bundled_robot(case)
     nominal = replace(nominal, screen=replace(nominal.screen, camera=camera))
     errors = true_errors(nominal, rng)
     true = nominal.with_errors(errors)
