@@ -11,8 +11,9 @@
     ros_client.py estimate-csv-diagnose SAMPLES.csv      the same, with the diagnosis
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
     ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
-    ros_client.py set-param NODE NAME JSON     set a parameter to a JSON value (its type: int, float, ...)
-                                               through the node's set_parameters service, then get it back
+    ros_client.py set-param NODE NAME JSON [NODE NAME JSON ...]   set each parameter in turn to a JSON
+                                               value (its type: int, float, ...) through the node's
+                                               set_parameters service, then get it back; a list of results
     ros_client.py parameters-of NODE          every parameter of NODE with its value, as `ros2 param dump` gets them
     ros_client.py stream ROBOT LAYOUT N        N exact still poses on joint_states + spots (an estimator with
                                                input stream); LAYOUT: 'robot' (joint1..jointN in order),
@@ -357,18 +358,22 @@ def samples_by_name(robot_path: str) -> dict:
     return out
 
 
-def set_param(node_name: str, name: str, value) -> dict:
-    """As `ros2 param set NODE NAME VALUE` does (an integer stays an integer), then as `ros2 param get`."""
+def set_params(settings: list[tuple[str, str, object]]) -> list[dict]:
+    """For each (node, name, value) in turn, as `ros2 param set NODE NAME VALUE` does (an integer
+    stays an integer), then as `ros2 param get`: one process for them all (each costs ~2 s)."""
     from rcl_interfaces.srv import GetParameters, SetParameters
     from rclpy.parameter import Parameter
     node = rclpy.create_node("test_set_param")
-    request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
-    result = call(node, node.create_client(SetParameters, f"{node_name}/set_parameters"), request).results[0]
-    got = call(node, node.create_client(GetParameters, f"{node_name}/get_parameters"),
-               GetParameters.Request(names=[name])).values[0]
-    stored = Parameter.from_parameter_msg(type("P", (), {"name": name, "value": got})())
-    return {"successful": result.successful, "reason": result.reason, "type": stored.type_.name,
-            "value": stored.value}
+    out = []
+    for node_name, name, value in settings:
+        request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+        result = call(node, node.create_client(SetParameters, f"{node_name}/set_parameters"), request).results[0]
+        got = call(node, node.create_client(GetParameters, f"{node_name}/get_parameters"),
+                   GetParameters.Request(names=[name])).values[0]
+        stored = Parameter.from_parameter_msg(type("P", (), {"name": name, "value": got})())
+        out.append({"successful": result.successful, "reason": result.reason, "type": stored.type_.name,
+                    "value": stored.value})
+    return out
 
 
 def parameters_of(node_name: str) -> dict:
@@ -495,7 +500,8 @@ def main() -> int:
         elif command == "calibrate-until-diagnosis":
             result = calibrate_until_diagnosis(sys.argv[2])
         elif command == "set-param":
-            result = set_param(sys.argv[2], sys.argv[3], json.loads(sys.argv[4]))
+            args = sys.argv[2:]
+            result = set_params([(args[k], args[k + 1], json.loads(args[k + 2])) for k in range(0, len(args), 3)])
         elif command == "parameters-of":
             result = parameters_of(sys.argv[2])
         elif command == "stream":

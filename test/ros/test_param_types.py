@@ -14,20 +14,20 @@ def test_an_integer_for_a_double_parameter_is_stored_as_a_double(ros):
     ros.start("spot_detector")
     ros.wait_log("estimator", "input 'samples'", 60)
     ros.wait_log("spot_detector", "calibration:", 60)
-    for node, name, value in (("/estimator", "spot_sigma", 0), ("/estimator", "stream.max_joint_speed", 1),
-                              ("/spot_detector", "min_peak_dn", 30)):
-        got = ros.client("set-param", node, name, str(value))
-        assert got == {"successful": True, "reason": "", "type": "DOUBLE", "value": float(value)}, (name, got)
-    # the checks still apply, and a wrong type is still refused with the reason
-    for value in ("-1", "0.5"):
-        got = ros.client("set-param", "/estimator", "spot_sigma", value)
-        assert not got["successful"] and got["reason"].startswith(
-            f"spot_sigma: {float(value):g} m is not a plausible spot noise for a camera on a screen"), got
-        assert got["value"] == 0.0
-    got = ros.client("set-param", "/estimator", "spot_sigma", "0.002")
-    assert got["successful"] and got["value"] == 0.002, got
-    got = ros.client("set-param", "/estimator", "markers", "1")
-    assert not got["successful"] and got["reason"] == "markers: expected bool, got int", got
-    got = ros.client("set-param", "/estimator", "spot_sigma", '"abc"')
-    assert not got["successful"] and got["reason"] == "spot_sigma: expected float, got str", got
+    settings = [("/estimator", "spot_sigma", "0"), ("/estimator", "stream.max_joint_speed", "1"),
+                ("/spot_detector", "min_peak_dn", "30"),
+                # the checks still apply, and a wrong type is still refused with the reason
+                ("/estimator", "spot_sigma", "-1"), ("/estimator", "spot_sigma", "0.5"),
+                ("/estimator", "spot_sigma", "0.002"), ("/estimator", "markers", "1"),
+                ("/estimator", "spot_sigma", '"abc"')]
+    got = ros.client("set-param", *[part for setting in settings for part in setting])
+    for (_, name, value), result in zip(settings[:3], got):
+        assert result == {"successful": True, "reason": "", "type": "DOUBLE", "value": float(value)}, (name, result)
+    for value, result in zip(("-1", "0.5"), got[3:5]):
+        assert not result["successful"] and result["reason"].startswith(
+            f"spot_sigma: {float(value):g} m is not a plausible spot noise for a camera on a screen"), result
+        assert result["value"] == 0.0
+    assert got[5]["successful"] and got[5]["value"] == 0.002, got[5]
+    assert not got[6]["successful"] and got[6]["reason"] == "markers: expected bool, got int", got[6]
+    assert not got[7]["successful"] and got[7]["reason"] == "spot_sigma: expected float, got str", got[7]
     assert ros.stop("estimator") == 0 and ros.stop("spot_detector") == 0
