@@ -2,8 +2,8 @@
 #   source scripts/env.sh
 # It activates .venv (ROS 2 Jazzy from PyPI wheels) and the colcon install of
 # ros2_ws, so the node executables in ros2_ws/install/laser_calib_nodes/lib/
-# laser_calib_nodes/ and `python -c "import rclpy, laser_calib_interfaces"` work, and
-# `ros2` when the ROS 2 command line is installed in .venv (.ci/run does it).
+# laser_calib_nodes/, `laser-calib` and `python -c "import rclpy, laser_calib_interfaces"` work,
+# and `ros2` when the ROS 2 command line is installed in .venv (.ci/run does it).
 # Without .venv but on a ROS install (/opt/ros/<distro>, e.g. docker/Dockerfile),
 # it sources that ROS instead.
 # Traffic stays on this host unless ROS_AUTOMATIC_DISCOVERY_RANGE is already set.
@@ -34,6 +34,12 @@ if [ -x "$_lc_root/.venv/bin/python" ]; then
   # shellcheck disable=SC1091
   if [ -f "$_lc_root/.venv/opt/ros2cli/env.sh" ]; then source "$_lc_root/.venv/opt/ros2cli/env.sh"; fi
 fi
+# The command line as the docs write it, `laser-calib` (colcon installs the entry point where
+# `ros2 run laser_calib laser-calib` finds it, not on PATH).
+case ":$PATH:" in
+  *":$_lc_root/ros2_ws/install/laser_calib/lib/laser_calib:"*) ;;
+  *) export PATH="$_lc_root/ros2_ws/install/laser_calib/lib/laser_calib:$PATH" ;;
+esac
 [ -n "$_lc_nounset" ] && set -u
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
 # Fast DDS's profile for 4 MB camera frames (config/fastdds_large_frames.xml: why), for every

@@ -134,3 +134,9 @@ def test_env_sh_puts_the_wheels_packages_on_the_ament_path(ros: Ros):
                      "from ament_index_python.packages import get_package_share_directory as share; "
                      "print(share('std_msgs')); print(share('laser_calib_interfaces'))"])
     assert found.returncode == 0, found.stderr
+
+
+def test_env_sh_puts_the_command_line_on_the_path(ros: Ros):
+    """`laser-calib`, as the README and docs/ write it, works after `source scripts/env.sh`."""
+    found = ros.run(["laser-calib", "--help"])
+    assert found.returncode == 0 and found.stdout.startswith("usage: laser-calib"), found
