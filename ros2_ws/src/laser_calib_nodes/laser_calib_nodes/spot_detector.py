@@ -23,7 +23,9 @@ Publishes   laser1/spot, laser2/spot (geometry_msgs/PointStamped, frame
 Capture     ``capture_dir`` non-empty: also save ``capture_count`` frames, one
             every ``capture_period`` s, as PNG (bgr8) for `laser-calib
             screen-calibrate` (board views while the board is moved, or screen
-            views), then carry on detecting.
+            views), then carry on detecting. Frames are saved whatever the
+            calibration (they are for making one): a camera of another size than
+            the calibration's has its frames saved, and refused for detection.
 All outputs carry the image's stamp.
 """
 
@@ -167,14 +169,18 @@ class SpotDetectorNode(Node):
                     "though it has a publisher (one that sent it once, before this node started?): frames are "
                     "detected without checking their size against it")
             return
+        try:
+            image = to_bgr8(bytes(msg.data), msg.width, msg.height, msg.step, msg.encoding, self.mono_pattern)
+        except ValueError as exc:  # an encoding or layout it cannot read
+            return self.reject(str(exc))
+        # captured whatever the calibration: the frames are for making one, of a camera of any size
+        self.capture(image, common.stamp_seconds(msg.header.stamp))
         if self.info_problem:
             return self.reject(self.info_problem)
         try:
-            image = to_bgr8(bytes(msg.data), msg.width, msg.height, msg.step, msg.encoding, self.mono_pattern)
             spots, seen = self.detector(msg.encoding).detect(image)
-        except ValueError as exc:  # encoding, layout, or a size the calibration is not for
+        except ValueError as exc:  # a size the calibration is not for
             return self.reject(str(exc))
-        self.capture(image, common.stamp_seconds(msg.header.stamp))
         pair = self.SpotPair()
         pair.header.stamp = msg.header.stamp
         pair.header.frame_id = common.SCREEN_FRAME
