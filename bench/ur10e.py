@@ -16,6 +16,7 @@ Usage: python bench/ur10e.py
 
 from __future__ import annotations
 
+import argparse
 import math
 import tempfile
 import time
@@ -82,5 +83,7 @@ def table(r: dict) -> str:
 
 
 if __name__ == "__main__":
+    # no options; --help says what it does instead of running it (and rewriting bench/results/ur10e.*)
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     result = run()
     write_results("ur10e", result, table(result))
