@@ -15,10 +15,11 @@
                                                value (its type: int, float, ...) through the node's
                                                set_parameters service, then get it back; a list of results
     ros_client.py parameters-of NODE          every parameter of NODE with its value, as `ros2 param dump` gets them
-    ros_client.py stream ROBOT LAYOUT N        N exact still poses on joint_states + spots (an estimator with
+    ros_client.py stream ROBOT LAYOUT N [WAIT]  N exact still poses on joint_states + spots (an estimator with
                                                input stream); LAYOUT: 'robot' (joint1..jointN in order),
                                                'reversed' (the same readings, names in reverse order) or
-                                               'gripper' (robot order and one more joint)
+                                               'gripper' (robot order and one more joint); then up to WAIT s
+                                               (10) for the estimator to have taken the N
     ros_client.py stream-replay ROBOT N RATE [SUBS]  N exact still frames as a live stream has them (5 joint_states
                                                at 50 Hz per spots frame at 10 Hz), played RATE times faster, once
                                                each topic has SUBS subscriptions (default 1)
@@ -413,10 +414,11 @@ def _stream_publishers(robot_path: str, count: int, name: str, depth: int, subsc
     return robot, q, predict(robot, q).spots, node, got, states, pairs, deadline
 
 
-def stream(robot_path: str, layout: str, count: int) -> dict:
+def stream(robot_path: str, layout: str, count: int, wait: float = 10.0) -> dict:
     """Publish ``count`` still poses, each as a joint_states message and a spots message of one stamp,
     with the robot's exact spots (nominal model), in the joint layout asked; then the latest
-    dh_parameters (the online EKF: errors ~0 when every reading went to its joint)."""
+    dh_parameters (the online EKF: errors ~0 when every reading went to its joint), once it counts
+    them all or ``wait`` s have passed (an estimator that refuses the poses never counts them)."""
     from sensor_msgs.msg import JointState
     from laser_calib_interfaces.msg import SpotPair
     robot, q, spots, node, got, states, pairs, deadline = _stream_publishers(robot_path, count, "test_stream", 50)
@@ -436,7 +438,7 @@ def stream(robot_path: str, layout: str, count: int) -> dict:
         until = time.monotonic() + 0.1
         while time.monotonic() < until:
             rclpy.spin_once(node, timeout_sec=0.02)
-    until = time.monotonic() + 10.0
+    until = time.monotonic() + wait
     while time.monotonic() < until and not (got and got[-1].sample_count >= count):
         rclpy.spin_once(node, timeout_sec=0.1)
     last = got[-1] if got else None
@@ -505,7 +507,7 @@ def main() -> int:
         elif command == "parameters-of":
             result = parameters_of(sys.argv[2])
         elif command == "stream":
-            result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]))
+            result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]), *map(float, sys.argv[5:6]))
         elif command == "stream-replay":
             result = stream_replay(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), *map(int, sys.argv[5:6]))
         elif command == "samples-by-name":
