@@ -18,7 +18,9 @@ from rclpy.executors import ExternalShutdownException, Executor, SingleThreadedE
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException, ParameterException
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo
 
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
@@ -65,9 +67,6 @@ KEEP_ALL_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durab
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 # Images (4 MB) are reliable: best effort over Fast DDS loses most frames of this size.
 IMAGE_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-# Camera input: the sensor-data profile (best effort, keep last 5) that camera drivers publish
-# with; a best-effort subscription also takes a reliable publisher's frames (camera_sim's).
-SENSOR_QOS = qos_profile_sensor_data
 # Samples from any publisher: a default-QoS one (volatile, e.g. `ros2 topic pub`) matches
 # only a volatile subscription; the sequencer's history (transient local) only a
 # transient-local one. The estimator subscribes with both and counts each sample once.
@@ -77,6 +76,25 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durabi
 # Every sample of a session is kept for late subscribers (an estimator started late).
 SAMPLES_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def subscribe_camera(node: Node, msg_type, name: str, callback: Callable, depth: int, raw: bool = False) -> None:
+    """Subscribe to a camera topic (image or CameraInfo) with every profile a driver may publish it
+    with; a message two of them deliver reaches ``callback`` twice (the caller keeps one by its stamp):
+    - best effort: the sensor-data QoS camera drivers publish with, which a reliable subscription
+      never matches (a best-effort 4 MB frame also needs the driver's Fast DDS profile,
+      config/fastdds_large_frames.xml);
+    - reliable: camera_sim and drivers that publish reliable;
+    - CameraInfo also transient local: a driver that latches it sends it once, maybe before this
+      node started, and a volatile subscription never gets that one.
+    ``depth`` frames kept per profile; the profiles a publisher does not match stay quiet."""
+    quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)
+    profiles = [QoSProfile(depth=depth, reliability=reliability)
+                for reliability in (ReliabilityPolicy.BEST_EFFORT, ReliabilityPolicy.RELIABLE)]
+    if msg_type is CameraInfo:
+        profiles.append(LATCHED_QOS)
+    for profile in profiles:
+        node.create_subscription(msg_type, name, callback, profile, raw=raw, event_callbacks=quiet)
 
 
 def bag_qos(profile: QoSProfile):

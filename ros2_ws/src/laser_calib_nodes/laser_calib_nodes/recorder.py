@@ -7,9 +7,8 @@ import threading
 from collections import deque
 
 from geometry_msgs.msg import PointStamped
-from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
@@ -46,7 +45,6 @@ class Recorder:
         for name in self.bag.discarded:
             node.get_logger().warning(f"bag: discarded unfinished segment {name} (the pose in progress at the crash)")
         self.recent_frames: deque = deque(maxlen=40)
-        quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)  # one of the two never matches
         for name, msg_type, _, qos in recorded:
             topic = node.resolve_topic_name(name)
             if msg_type not in (Image, CameraInfo):
@@ -57,16 +55,10 @@ class Recorder:
                                    durability=qos.durability)
                 node.create_subscription(msg_type, name, lambda data, t=topic: self.write(t, data), every, raw=True)
                 continue
-            # Frames of 4 MB: a bounded queue, 20 s of a 10 Hz camera (a roll-over stalled it 0.4 s at most).
-            # A camera driver publishes best effort (sensor-data QoS), which a reliable subscription never
-            # matches, and camera_sim reliable: both, as spot_detector subscribes, each frame written once.
-            profiles = [QoSProfile(depth=max(qos.depth, 200), reliability=reliability)
-                        for reliability in (ReliabilityPolicy.BEST_EFFORT, ReliabilityPolicy.RELIABLE)]
-            if msg_type is CameraInfo:  # a driver that latches it sends it once, maybe before this node started
-                profiles.append(common.LATCHED_QOS)
-            for profile in profiles:
-                node.create_subscription(msg_type, name, lambda data, t=topic: self.write_frame(t, data), profile,
-                                         raw=True, event_callbacks=quiet)
+            # Frames of 4 MB: a bounded queue, 20 s of a 10 Hz camera (a roll-over stalled it 0.4 s at most);
+            # subscribed as spot_detector is, each frame written once (write_frame).
+            common.subscribe_camera(node, msg_type, name, lambda data, t=topic: self.write_frame(t, data),
+                                    depth=max(qos.depth, 200), raw=True)
 
     def write(self, topic: str, data: bytes) -> None:
         with self.lock:

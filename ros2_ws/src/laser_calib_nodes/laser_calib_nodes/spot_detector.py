@@ -40,8 +40,6 @@ import cv2
 import numpy as np
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
-from rclpy.event_handler import SubscriptionEventCallbacks
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
 from laser_calib.vision.camera import default_camera, load_calibration
@@ -96,18 +94,9 @@ class SpotDetectorNode(Node):
         self.point_pubs = [self.create_publisher(PointStamped, topic, common.STREAM_QOS)
                            for topic in common.LASER_SPOT]
         self.pair_pub = self.create_publisher(SpotPair, common.SPOTS, common.STREAM_QOS)
-        # Each camera topic twice: best effort (the sensor-data QoS camera drivers publish with) and
-        # reliable (camera_sim and drivers that publish reliable; a best-effort 4 MB frame also needs the
-        # driver's Fast DDS profile, config/fastdds_large_frames.xml). A publisher meets the
-        # subscriptions it is compatible with, whenever it starts; a frame both deliver is used once.
-        quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)  # one of the two never matches
-        reliable = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        for qos in (qos_profile_sensor_data, reliable):
-            self.create_subscription(Image, common.IMAGE, self.on_image, qos, event_callbacks=quiet)
-            self.create_subscription(CameraInfo, common.CAMERA_INFO, self.on_info, qos, event_callbacks=quiet)
-        # a latched CameraInfo (sent once, transient local) reaches only a transient-local subscription
-        self.create_subscription(CameraInfo, common.CAMERA_INFO, self.on_info, common.LATCHED_QOS,
-                                 event_callbacks=quiet)
+        # a frame two subscriptions deliver is used once (on_image's recent stamps; on_info takes the first)
+        common.subscribe_camera(self, Image, common.IMAGE, self.on_image, depth=5)
+        common.subscribe_camera(self, CameraInfo, common.CAMERA_INFO, self.on_info, depth=5)
         self.recent = deque(maxlen=20)   # (stamp sec, nanosec, frame_id) of the frames used
         self.bad_frames = 0
         self.info_problem: str | None = None
