@@ -292,32 +292,33 @@ def bad_and_concurrent(robot_path: str) -> dict:
     for node, _ in nodes.values():  # after the warm-up: a node is in one executor at a time
         executor.add_node(node)
     barrier_time = time.monotonic()
-    sent = {}
     for name, (node, client) in nodes.items():  # all in flight at once
-        futures[name], sent[name] = client.call_async(cases[name]), time.monotonic()
+        futures[name] = client.call_async(cases[name])
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
+    # No resend: each client had an answer in its warm-up, so a request unanswered here was lost
+    # by the server (its request queue once held 10 and dropped the oldest); on a loaded machine
+    # the 13 (one a diagnosis) take up to a minute.
     deadline = time.monotonic() + 120
-    resent = 0
     while not all(f.done() for f in futures.values()):
         if time.monotonic() > deadline:
-            raise SystemExit("not every concurrent request was answered")
-        for name, future in futures.items():  # a lost answer (discovery race): ask again
-            if not future.done() and time.monotonic() - sent[name] > 4 * ATTEMPT:
-                nodes[name][1].remove_pending_request(future)
-                futures[name], sent[name] = nodes[name][1].call_async(cases[name]), time.monotonic()
-                resent += 1
+            unanswered = [name for name, future in futures.items() if not future.done()]
+            raise SystemExit(f"not answered in 120 s: {', '.join(unanswered)}")
         time.sleep(0.05)
     out = {name: response_dict(f.result()) for name, f in futures.items()}
     out["_elapsed"] = time.monotonic() - barrier_time
-    out["_resent"] = resent
     # the node still serves afterwards
     node, client = nodes["good_lm_1"]
     after = client.call_async(cases["good_lm_1"])
     while not after.done():
         time.sleep(0.05)
     out["after_all"] = response_dict(after.result())
+    # the spin thread joined and the nodes destroyed before rclpy shuts down: a daemon thread
+    # still in the executor's wait at interpreter exit aborted this client (std::terminate)
     executor.shutdown()
+    spin.join(timeout=10)
+    for node, _ in nodes.values():
+        node.destroy_node()
     for name in out:
         if isinstance(out[name], dict):
             out[name].pop("report", None)

@@ -11,10 +11,9 @@ from ros_harness import CLIENT, ROBOT
 
 def test_bad_requests_and_concurrent_clients(ros):
     ros.start("estimator", "-p", f"robot:={ROBOT}")
+    # 13 requests in flight at once, every one answered, none sent twice (the client fails when one
+    # is not): the services profile's depth of 10 dropped the oldest waiting one
     out = ros.client("bad-and-concurrent", str(ROBOT))
-    # 13 requests in flight at once, every one answered the first time: the services profile's
-    # depth of 10 dropped the oldest waiting one, which its client waited 60 s for and sent again
-    assert out["_resent"] == 0, out["_elapsed"]
     expected_refusals = {
         "empty": "no samples",
         "wrong_joint_count": "6 joint positions",
