@@ -34,7 +34,10 @@ NODES = ("arm_driver", "camera_sim", "spot_detector", "sequencer", "estimator", 
 # cores; a node that hangs on Ctrl-C still fails
 STOP_TIMEOUT = 30.0
 
-_domains = itertools.count(random.Random(os.getpid()).randrange(0, 40) * 5)
+# each test its own domain; a random start keeps clear of a killed earlier run's leftovers, and
+# each pytest-xdist worker (PYTEST_XDIST_WORKER=gwN) draws from its own block of 100
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+_domains = itertools.count(random.Random(os.getpid()).randrange(0, 20) * 5)
 
 
 def workspace_missing() -> str | None:
@@ -73,7 +76,7 @@ class Ros:
 
     def __init__(self, tmp: Path):
         self.tmp = tmp
-        self.domain = 10 + next(_domains) % 200
+        self.domain = 10 + 100 * (_WORKER % 2) + next(_domains) % 100
         self.env = workspace_env()
         # PYTHONFAULTHANDLER: a node that does not exit on Ctrl-C is aborted (SIGABRT) before it is
         # killed, so its log shows where each of its threads was stuck
