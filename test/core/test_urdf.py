@@ -187,6 +187,23 @@ def test_xacro_includes_found_through_dirname(tmp_path, monkeypatch):
     assert np.abs(forward(from_xacro, q).origin - forward(from_urdf, q).origin).max() < 1e-12
 
 
+def test_a_xacro_failure_names_the_included_file_it_is_in(tmp_path):
+    """xacro refuses a property named __x (ROS 2's xacro; ur_description's older includes had them);
+    the line named the top-level file, not the include the property is in."""
+    header = '<robot xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
+    (tmp_path / "inc").mkdir()
+    (tmp_path / "inc" / "common.xacro").write_text(
+        f'{header}  <xacro:property name="__pi" value="3.14"/>\n</robot>\n')
+    (tmp_path / "arm.xacro").write_text('<robot name="arm" xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
+                                        '  <xacro:include filename="$(dirname)/inc/common.xacro"/>\n'
+                                        '  <link name="base_link"/>\n</robot>\n')
+    with pytest.raises(InputError) as refused:
+        urdf_text(tmp_path / "arm.xacro")
+    where = f"{tmp_path / 'inc' / 'common.xacro'} (included from {tmp_path / 'arm.xacro'})"
+    assert str(refused.value).startswith(f"{where}: xacro failed"), refused.value
+    assert "__pi" in str(refused.value)
+
+
 def test_parameters_of_a_urdf_chain():
     robot, *_ = _robot("column (prismatic, continuous, tilted axis, fixed frames)")
     assert robot.chain.readings == ("lift", "shoulder_yaw", "shoulder_pitch", "elbow")

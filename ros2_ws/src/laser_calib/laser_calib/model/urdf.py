@@ -103,7 +103,7 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None, args_w
             raise InputError(str(path), f"xacro: package '{missing[1]}' ($(find {missing[1]})) is not in "
                                         "AMENT_PREFIX_PATH or ROS_PACKAGE_PATH: source the workspace that installs "
                                         "it, or add its source folder to ROS_PACKAGE_PATH") from None
-        raise InputError(str(path), f"xacro failed ({' '.join(str(exc).split())})") from None
+        raise InputError(_failed_in(path), f"xacro failed ({' '.join(str(exc).split())})") from None
     unknown = sorted(set(xacro_args or {}) - args.asked)
     if unknown:
         declared = sorted(args.asked)
@@ -111,6 +111,17 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None, args_w
                                                   f"{', '.join(map(repr, unknown))}: {path.name} declares "
                                                   + (', '.join(declared) if declared else "no arguments"))
     return text
+
+
+def _failed_in(path: Path) -> str:
+    """The file xacro was reading when it failed, with the includes that led there: xacro's own
+    include stack (a property named __x in an included file was blamed on the top-level one)."""
+    import xacro
+
+    stack = [str(name) for name in (getattr(xacro, "filestack", None) or []) if name]
+    if len(stack) < 2 or Path(stack[0]) != path:
+        return str(path)
+    return f"{stack[-1]} (included from {' <- '.join(reversed(stack[:-1]))})"
 
 
 def _parse(text: str, source: str):
