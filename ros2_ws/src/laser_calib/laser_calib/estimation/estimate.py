@@ -20,11 +20,11 @@ estimate(robot, samples, options) runs, in order:
    final least-squares minimum (by LM), which without a prior is that trial;
    with LM and no joint noise it is also the fit, rescaled to the sigma);
    from few residual values it is uncertain, said (redundancy.sigma_warnings);
-4. identifiability again with the noise in use: a direction whose standard
-   deviation exceeds STD_FACTOR times its tolerance scale is held too (not
-   with the prior, which bounds every direction by its tolerance); without
-   joint noise from step 1's factor, rescaled to the noise and without the
-   rejected spots (a downdate: the model evaluated on their poses only);
+4. identifiability again with the noise in use: a direction whose standard deviation exceeds
+   STD_FACTOR times its tolerance scale is held too (not with the prior, which bounds every
+   direction by its tolerance); without joint noise from step 1's factor, rescaled to the noise and
+   without the rejected spots (a downdate: the model evaluated on their poses only); holding more
+   than step 2 or 3's fit, step 5 starts from x0 (that fit's kept values carry the held ones' moves);
 5. the fit (LM or the paper's EKF), with the optional prior (a manufacturing
    tolerance per parameter type, mean zero);
 6. with a known sigma, a chi^2 test: if chi^2 exceeds dof by more than
@@ -325,6 +325,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     if sigma_estimated or rejected:
         ident = analyse(_factor_without(model, start_factor, start_noise, noise, x0, excluded, removed),
                         model.scales, names, user_fixed, std_factor=factor)
+        start_x = start_x if np.array_equal(ident.free, free) else x0   # holding more: no start (step 4)
         free = ident.free
     held = [name for name, keep, user in zip(names, free, user_fixed) if not keep and not user]
     if held:  # a wrong sigma, not the data, holds those by_noise
@@ -332,7 +333,6 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                  "for it)" if ident.by_noise and not sigma_estimated else "")
         warnings.append(f"rank deficient: the data determine {ident.rank} of {n - int(user_fixed.sum())} "
                         f"parameters{given}; held at nominal, reported as combinations: {', '.join(held)}")
-    start_x = np.where(free, start_x, x0)
 
     problem = Problem(model, noise, free, prior_sigma, excluded)
     if (options.method == "lm" and least_squares is not None and not noise.joint_noise
