@@ -171,11 +171,18 @@ def calibrate(diagnose: bool, cancel: bool) -> dict:
     if not client.wait_for_server(timeout_sec=TIMEOUT):
         raise SystemExit("no action server estimator/calibrate")
     stages = []
+    # The feedback topic read directly: rclpy's ActionClient drops a goal's feedback callback when its
+    # result arrives, and feedback and result travel on separate DDS channels, so a 'done' published
+    # just before the result but delivered after it never reached feedback_callback (loaded machine).
+    feedback = node.create_subscription(Calibrate.Impl.FeedbackMessage, "estimator/calibrate/_action/feedback",
+                                        lambda msg: stages.append(msg.feedback.stage), 10)
+    deadline = time.monotonic() + TIMEOUT
+    while feedback.get_publisher_count() == 0 and time.monotonic() < deadline:  # matched before the goal
+        rclpy.spin_once(node, timeout_sec=0.05)
     # To be canceled, the goal runs the paper's EKF (hundreds of iterations, against LM's few
     # milliseconds on 10 poses), so the cancel sent on acceptance arrives while the estimate runs.
     method = "ekf" if cancel else "lm"
-    sent = client.send_goal_async(Calibrate.Goal(use_accumulated=True, method=method, diagnose=diagnose),
-                                  feedback_callback=lambda msg: stages.append(msg.feedback.stage))
+    sent = client.send_goal_async(Calibrate.Goal(use_accumulated=True, method=method, diagnose=diagnose))
     rclpy.spin_until_future_complete(node, sent, timeout_sec=TIMEOUT)
     handle = sent.result()
     if handle is None or not handle.accepted:
@@ -189,8 +196,8 @@ def calibrate(diagnose: bool, cancel: bool) -> dict:
     names = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_CANCELED: "canceled",
              GoalStatus.STATUS_ABORTED: "aborted"}
     result = done.result()
-    # Feedback and result travel on separate DDS channels: the 'done' feedback, published just before
-    # the result, may arrive after it (seconds later on a loaded machine)
+    # the 'done' feedback, published just before the result, may arrive after it (seconds later on a
+    # loaded machine)
     deadline = time.monotonic() + TIMEOUT
     while result.status == GoalStatus.STATUS_SUCCEEDED and "done" not in stages and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)

@@ -62,8 +62,8 @@ def assert_clean_stop(log: str) -> None:
     assert "Failed to publish log message" not in log, log[-4000:]
 
 
-def launch_session(ros: Ros, name: str, out, *args: str):
-    return ros.start_command(name, LAUNCH + [f"output_dir:={out}", f"poses:={POSES}", "speed:=4.0", "seed:=3",
+def launch_session(ros: Ros, name: str, out, *args: str, speed: float = 4.0):
+    return ros.start_command(name, LAUNCH + [f"output_dir:={out}", f"poses:={POSES}", f"speed:={speed}", "seed:=3",
                                              *args])
 
 
@@ -118,7 +118,9 @@ def test_launch_on_a_finished_folder_is_refused_before_any_node_starts(finished,
 def test_ctrl_c_once_on_a_partial_session_then_resume(tmp_path):
     ros = Ros(tmp_path)
     out = tmp_path / "session"
-    proc = launch_session(ros, "launch", out)
+    # a slow arm (0.3 rad/s): the 8 poses left must outlast the two refused starts below, which took
+    # longer than they do at 4 rad/s on a loaded machine (the session ended before its Ctrl-C)
+    proc = launch_session(ros, "launch", out, speed=0.3)
     try:
         wait_for(lambda: csv_rows(out / "samples.csv") >= 2, SESSION_SECONDS, "2 measured poses", ros, "launch")
         # a second session on the live folder: one line naming the owner (the launch process)
