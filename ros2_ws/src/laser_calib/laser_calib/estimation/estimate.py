@@ -364,10 +364,10 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         warnings.extend(sigma_warnings(sigma, sigma_dof))
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
     own = free & np.array([not is_frame_param(name) for name in names])
-    # a value's std excuses it beyond FAR_SCALES only when the sigma behind it is sound (not from 1-7 dof)
+    # std and carried held errors excuse a value beyond FAR_SCALES only on a sound sigma (not from 1-7 dof)
     sound = not sigma_estimated or (sigma >= MIN_SIGMA and not sigma_warnings(sigma, sigma_dof))
-    warnings.extend(implausible(names, result.x, model.scales, own,
-                                getattr(getattr(model, "robot", None), "param_names", ()), result.std if sound else None))
+    warnings.extend(implausible(names, result.x, model.scales, own, getattr(getattr(model, "robot", None),
+                                "param_names", ()), *((result.std, ident.carry) if sound else (None, None))))
     if getattr(model, "robot", None) is not None and getattr(model, "samples", None) is not None:
         warnings.extend(still_joint_warnings(model.samples.q, model.robot.joint_names))
     if not result.converged:

@@ -86,20 +86,27 @@ def fit_failures(lost: int, level: float) -> list[str]:
 
 
 def implausible(names: tuple[str, ...], x: np.ndarray, scales: np.ndarray, own: np.ndarray,
-                geometric_names: tuple[str, ...], std: np.ndarray | None = None) -> list[str]:
+                geometric_names: tuple[str, ...], std: np.ndarray | None = None,
+                carry: np.ndarray | None = None) -> list[str]:
     """The line for the largest fitted value x (n,) beyond FAR_SCALES of its tolerance scale among
     ``own`` (n,) (the free values that have a tolerance), and beyond it by more than FAR_SIGMAS of
-    its standard deviation ``std`` (n,; where given and finite): of a geometric error (geometric_names,
-    the robot's own), no calibration, since no manufacturing error is that large (a column of q7's
-    readings negated was taken up as a 181-scale laser-module angle, 1.5 mm in-sample, 154 mm on
-    the test poses; shoulder and elbow columns swapped as a 93-degree offset, exit 0); of an
-    effect's value, a warning."""
+    its standard deviation ``std`` (n,; where given and finite). A value that carries held errors'
+    combinations (Identifiability.carry (n,), c) stands for its own error plus c times theirs, each
+    as large as any manufacturing error: its bound is FAR_SCALES (1 + c) (a random arm's a3 and a4
+    carried five held errors, c = 84: both at 33 scales, a4's combination in the truth at 37). The
+    estimate passes neither std nor carry when its sigma rests on few residual values: 6 poses of
+    the 4-DOF arm hold four errors there and put alpha2 (c = 4) at 12 scales, the truth at 1.
+    Of a geometric error (geometric_names, the robot's own), no calibration, since no manufacturing
+    error is that large (a column of q7's readings negated was taken up as a 181-scale laser-module
+    angle, 1.5 mm in-sample, 154 mm on the test poses; shoulder and elbow columns swapped as a
+    93-degree offset, exit 0); of an effect's value, a warning."""
     size = np.abs(x) / scales
-    far = own & (size > FAR_SCALES)
+    bound = FAR_SCALES * (1.0 + (np.zeros(len(x)) if carry is None else np.asarray(carry, float)))
+    far = own & (size > bound)
     if std is not None:
         std = np.asarray(std, float)
         known = np.isfinite(std) & (std > 0)
-        beyond = (np.abs(x) - FAR_SCALES * scales) / np.where(known, std, 1.0)
+        beyond = (np.abs(x) - bound * scales) / np.where(known, std, 1.0)
         far &= ~known | (beyond > FAR_SIGMAS)
     geometric = far & np.isin(names, geometric_names)
     if geometric.any():

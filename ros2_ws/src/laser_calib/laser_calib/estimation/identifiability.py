@@ -118,6 +118,9 @@ class Identifiability:
     min_singular: float = 0.0
     carriers: dict[str, tuple[str, ...]] = field(default_factory=dict)
     by_noise: int = 0  # directions held only by the std_factor threshold: the noise level decides them
+    # (n,) per kept parameter, the sum over the held ones it carries of |its coefficient| in their
+    # combination, in tolerance scales per tolerance scale (0 where it carries none)
+    carry: np.ndarray | None = None
 
     @property
     def carried(self) -> dict[str, tuple[str, ...]]:
@@ -232,13 +235,14 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     free = np.zeros(n, bool)
     free[kept] = True
 
-    combinations, merged, carriers = [], {}, {}
+    combinations, merged, carriers, carry = [], {}, {}, np.zeros(n)
     for j in np.flatnonzero(~free & ~fixed):
         direction = np.zeros(n)
         direction[j] = 1.0
         if kept:
             direction[kept] = -np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0]
         combinations.append(describe(direction, names, held=j))
+        carry[kept] += np.abs(direction[kept])
         weight = np.abs(direction) / np.abs(direction).max()
         partners = [names[i] for i in kept if weight[i] > TERM_THRESHOLD]
         carriers[names[j]] = tuple(partners)
@@ -249,4 +253,4 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     condition = float(kept_singular[0] / kept_singular[-1]) if kept else float("inf")
     return Identifiability(tuple(names), singular, len(kept), condition, free, tuple(combinations), merged,
                            float(threshold), carriers,
-                           int(np.count_nonzero((singular > numerical) & (singular <= threshold))))
+                           int(np.count_nonzero((singular > numerical) & (singular <= threshold))), carry)
