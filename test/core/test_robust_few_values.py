@@ -48,7 +48,7 @@ def test_the_limit_is_fishers_F_and_chi2_with_many_values():
     assert redundancy.outlier_limit(2, 6, 12) > 4 * chi2.isf(0.01 / 12, 2)
 
 
-def test_the_testers_six_poses_lose_no_clean_spot_and_are_no_calibration(tmp_path, capsys):
+def test_the_testers_six_poses_lose_no_clean_spot_and_say_their_sigma_is_uncertain(tmp_path, capsys):
     """The tester's command lines: no spot rejected (without the ones farthest out the rest would be
     fitted exactly: nothing to judge them by), and no exact fit written as a calibration. The noise
     threshold keeps 16 of the 19 parameters the sigma trial fitted: 8 of the 24 values to spare, a
