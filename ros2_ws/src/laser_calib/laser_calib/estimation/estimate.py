@@ -357,15 +357,15 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         "deviations are overstated)")
     lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
     warnings.extend(fit_failures(lost, sigma * float(np.sqrt(result.chi2 / max(result.dof, 1)))))
+    noise_doubts = sigma_warnings(sigma, sigma_dof) if sigma_estimated and sigma >= MIN_SIGMA else []
     if sigma_estimated and sigma < MIN_SIGMA:
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")
-    elif sigma_estimated:
-        warnings.extend(sigma_warnings(sigma, sigma_dof))
+    warnings.extend(noise_doubts)
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
     own = free & np.array([not is_frame_param(name) for name in names])
     # std and carried held errors excuse a value beyond FAR_SCALES only on a sound sigma (not from 1-7 dof)
-    sound = not sigma_estimated or (sigma >= MIN_SIGMA and not sigma_warnings(sigma, sigma_dof))
+    sound = not sigma_estimated or (sigma >= MIN_SIGMA and not noise_doubts)
     warnings.extend(implausible(names, result.x, model.scales, own, getattr(getattr(model, "robot", None),
                                 "param_names", ()), *((result.std, ident.carry) if sound else (None, None))))
     if getattr(model, "robot", None) is not None and getattr(model, "samples", None) is not None:

@@ -31,7 +31,7 @@ FAR_SCALES = 10.0  # a fitted error beyond 10 tolerance scales (100 mm, 10 deg) 
 # ... when the data put it there: beyond FAR_SCALES by more than FAR_SIGMAS of its standard deviation (as
 # slm.CHANGE_SIGMAS judges a laser angle). The estimate keeps every direction up to 10 tolerance scales of
 # standard deviation (identifiability.STD_FACTOR), so a value's noise alone can reach past FAR_SCALES: on random
-# sensible arms (audit_random_arms/) 6 of 90 seeded sessions exited 3 with a kept angle at 11-18 scales and a
+# sensible arms (a seeded audit; test_random_arm.py) 6 of 90 sessions exited 3 with a kept angle at 11-18 scales and a
 # std of 5-7 (theta7 -0.194 rad, std 0.079, truth +0.007), a correct calibration the old rule called a wrong model.
 # A std from a sigma estimated from few residual values (redundancy.sigma_warnings) excuses nothing: the
 # estimate passes none, and the old rule holds (the 4-DOF arm from 6 poses: alpha2 12 deg, the truth 1).
@@ -101,7 +101,7 @@ def implausible(names: tuple[str, ...], x: np.ndarray, scales: np.ndarray, own: 
     angle, 1.5 mm in-sample, 154 mm on the test poses; shoulder and elbow columns swapped as a
     93-degree offset, exit 0); of an effect's value, a warning."""
     size = np.abs(x) / scales
-    bound = FAR_SCALES * (1.0 + (np.zeros(len(x)) if carry is None else np.asarray(carry, float)))
+    bound = FAR_SCALES * (1.0 + (0.0 if carry is None else np.asarray(carry, float)))
     far = own & (size > bound)
     if std is not None:
         std = np.asarray(std, float)
