@@ -1,15 +1,16 @@
-"""An arm nobody here designed: a random sensible 6-joint D-H arm (audit_random_arms/arms.py,
-seed 0, arm 29: a nearly still first joint, 0.6 deg of travel, then five revolute joints
-before the screen) in the paper's session with random errors.
+"""Arms nobody here designed: random sensible D-H arms (a seeded generator of a random-arm
+audit; each arm inlined below by its seed and number) in the paper's session with random
+errors, estimated as `laser-calib estimate` does. Each determined error that carries no held
+one is checked against the true error: 4 standard deviations, which ~26 normal errors all stay
+within with probability 99.8 %.
 
-Its weakest kept direction has a standard deviation of 5-6 tolerance scales (alpha2, about
-0.1 rad), inside the 10 the estimate keeps (identifiability.STD_FACTOR). The noise then puts
-alpha2 at 17-18 scales in seeds 1 and 2, and the fit exited 3 (NOT A CALIBRATION: "the nominal
-model is wrong"), though the values agree with the truth within their standard deviations:
-a value beyond FAR_SCALES is a wrong model only when it lies beyond it by more than its
-noise (failures.FAR_SIGMAS). Each determined error that carries no held one is checked
-against the true error: 4 standard deviations, which ~26 normal errors all stay within with
-probability 99.8 %.
+Seed 0, arm 29 (a nearly still first joint, 0.6 deg of travel, then five revolute joints before
+the screen): its weakest kept direction has a standard deviation of 5-6 tolerance scales
+(alpha2, about 0.1 rad), inside the 10 the estimate keeps (identifiability.STD_FACTOR). The
+noise then puts alpha2 at 17-18 scales in seeds 1 and 2, and the fit exited 3 (NOT A
+CALIBRATION: "the nominal model is wrong"), though the values agree with the truth within their
+standard deviations: a value beyond FAR_SCALES is a wrong model only when it lies beyond it by
+more than its noise (failures.FAR_SIGMAS).
 """
 
 import numpy as np
@@ -44,7 +45,24 @@ ARM = {
 }
 Z_MAX = 4.0
 
-# audit_random_arms/arms.py seed 0, arms 9 and 23: spots of both lasers at every calibration pose.
+
+def _calibrated(arm: dict, seed: int):
+    """The robot of ``arm``, its session (seed) with random errors, the case-2 calibration poses
+    (30 + 30) and their estimate with the options `laser-calib estimate` has by default."""
+    robot = robot_from_dict(arm, arm["name"])
+    session = robot_session(robot, seed, 30, random_errors=True)
+    cal = session.samples.subset(session.cases["case2"][0])
+    return robot, session, cal, estimate(robot, cal, EstimateOptions())
+
+
+def _assert_own_errors_agree(est, session) -> None:
+    """Every determined error that carries no held one within Z_MAX of its std of the true error."""
+    carriers = set(est.identifiability.carried)
+    own = [i for i, name in enumerate(est.names) if np.isfinite(est.errors[i]) and name not in carriers]
+    z = (est.errors[own] - session.errors[own]) / est.std[own]
+    assert np.abs(z).max() < Z_MAX, dict(zip(np.array(est.names)[own], np.round(z, 2)))
+
+# Seed 0, arms 9 and 23: spots of both lasers at every calibration pose.
 # Arm 9 (revolute, nearly still, revolute; its wrist 160 deg of twist): the sigma trial, holding
 # nothing, moved theta2 and theta3 by +-45 tolerance scales along a weak pair; the noise threshold
 # then held theta3, the fit started with theta2 still there and lost all 60 spots. Arm 23 (two
@@ -86,18 +104,11 @@ START_ARMS = {
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_weak_direction_beyond_far_scales_by_noise_is_a_calibration(seed):
-    robot = robot_from_dict(ARM, "random_0_29")
-    session = robot_session(robot, seed, 30, random_errors=True)
-    cal = session.samples.subset(session.cases["case2"][0])
-    est = estimate(robot, cal, EstimateOptions())
+    _, session, _, est = _calibrated(ARM, seed)
     assert first_failure(est.warnings) is None, est.warnings
     alpha2 = est.names.index("alpha2")
-    assert est.errors[alpha2] / np.deg2rad(1.0) > 10.0 or est.errors[alpha2] / np.deg2rad(1.0) < -10.0, \
-        "the case this test is about: alpha2 fitted beyond FAR_SCALES"
-    carriers = set(est.identifiability.carried)
-    own = [i for i, name in enumerate(est.names) if np.isfinite(est.errors[i]) and name not in carriers]
-    z = (est.errors[own] - session.errors[own]) / est.std[own]
-    assert np.abs(z).max() < Z_MAX, dict(zip(np.array(est.names)[own], np.round(z, 2)))
+    assert abs(est.errors[alpha2]) / np.deg2rad(1.0) > 10.0, "the case this test is about: alpha2 beyond FAR_SCALES"
+    _assert_own_errors_agree(est, session)
 
 
 @pytest.mark.parametrize("arm", sorted(START_ARMS))
@@ -108,10 +119,7 @@ def test_fit_holding_more_than_the_sigma_trial_starts_from_nominal(arm):
     reaches the minimum a start at the truth reaches (the held ones at nominal, same free set and
     sigma; the costs agree to LM's convergence: arm 23's old fit stopped at 67.2, not 51.3), fits
     every measured spot, and the errors that carry no held one agree with the truth (Z_MAX)."""
-    robot = robot_from_dict(START_ARMS[arm][0], arm)
-    session = robot_session(robot, START_ARMS[arm][1], 30, random_errors=True)
-    cal = session.samples.subset(session.cases["case2"][0])
-    est = estimate(robot, cal, EstimateOptions())
+    robot, session, cal, est = _calibrated(*START_ARMS[arm])
     assert first_failure(est.warnings) is None, est.warnings
     measured = int(residuals_at(SpotModel(robot, cal), np.zeros(len(est.names))).valid.sum())
     assert est.fit.n_values == 2 * measured == 120
@@ -120,13 +128,10 @@ def test_fit_holding_more_than_the_sigma_trial_starts_from_nominal(arm):
     from_truth = levenberg_marquardt(problem, np.where(free, session.errors, 0.0))
     assert from_truth.converged and from_truth.n_values == 120
     assert est.fit.cost == pytest.approx(from_truth.cost, abs=1e-6)   # LM stops within 1e-4 std: 5e-9
-    carriers = set(est.identifiability.carried)
-    own = [i for i, name in enumerate(est.names) if np.isfinite(est.errors[i]) and name not in carriers]
-    z = (est.errors[own] - session.errors[own]) / est.std[own]
-    assert np.abs(z).max() < Z_MAX, dict(zip(np.array(est.names)[own], np.round(z, 2)))
+    _assert_own_errors_agree(est, session)
 
 
-# audit_random_arms/arms.py seed 1, arm 0: a nearly still third joint (0.23 deg of travel)
+# Seed 1, arm 0: a nearly still third joint (0.23 deg of travel)
 ARM_STILL_THIRD_JOINT = {
     "name": "random_1_0",
     "joints": [
@@ -150,14 +155,8 @@ def test_a_value_carrying_held_errors_is_judged_with_them():
     tolerance scales and the fit exited 3 (NOT A CALIBRATION), though a4's combination in the truth
     is at 37: a carried value's bound is FAR_SCALES (1 + carry). The errors that carry no held one
     agree with the truth (Z_MAX)."""
-    robot = robot_from_dict(ARM_STILL_THIRD_JOINT, "random_1_0")
-    session = robot_session(robot, 1, 30, random_errors=True)
-    cal = session.samples.subset(session.cases["case2"][0])
-    est = estimate(robot, cal, EstimateOptions())
+    _, session, _, est = _calibrated(ARM_STILL_THIRD_JOINT, 1)
     assert first_failure(est.warnings) is None, est.warnings
     a4 = est.names.index("a4")
     assert abs(est.errors[a4]) > 10 * 0.010 and est.identifiability.carry[a4] > 10, "the case this test is about"
-    carriers = set(est.identifiability.carried)
-    own = [i for i, name in enumerate(est.names) if np.isfinite(est.errors[i]) and name not in carriers]
-    z = (est.errors[own] - session.errors[own]) / est.std[own]
-    assert np.abs(z).max() < Z_MAX, dict(zip(np.array(est.names)[own], np.round(z, 2)))
+    _assert_own_errors_agree(est, session)
