@@ -34,10 +34,11 @@ NODES = ("arm_driver", "camera_sim", "spot_detector", "sequencer", "estimator", 
 # cores; a node that hangs on Ctrl-C still fails
 STOP_TIMEOUT = 30.0
 
-# each test its own domain; a random start keeps clear of a killed earlier run's leftovers, and
-# each pytest-xdist worker (PYTEST_XDIST_WORKER=gwN) draws from its own block of 100
+# each test its own domain of 10..209; a random start keeps clear of a killed earlier run's leftovers,
+# and each pytest-xdist worker (PYTEST_XDIST_WORKER=gwN of PYTEST_XDIST_WORKER_COUNT) its own block
 _WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-_domains = itertools.count(random.Random(os.getpid()).randrange(0, 20) * 5)
+_BLOCK = 200 // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+_domains = itertools.count(random.Random(os.getpid()).randrange(0, _BLOCK))
 
 
 def workspace_missing() -> str | None:
@@ -76,7 +77,7 @@ class Ros:
 
     def __init__(self, tmp: Path):
         self.tmp = tmp
-        self.domain = 10 + 100 * (_WORKER % 2) + next(_domains) % 100
+        self.domain = 10 + _BLOCK * _WORKER + next(_domains) % _BLOCK
         self.env = workspace_env()
         # PYTHONFAULTHANDLER: a node that does not exit on Ctrl-C is aborted (SIGABRT) before it is
         # killed, so its log shows where each of its threads was stuck
