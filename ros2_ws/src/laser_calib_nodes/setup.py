@@ -3,6 +3,9 @@ from glob import glob
 from setuptools import find_packages, setup
 
 package_name = "laser_calib_nodes"
+# The node executables: links to bin/node, which runs laser_calib_nodes.<name>.main (not
+# console_scripts: its wrapper imports importlib.metadata before any line of ours can take a Ctrl-C).
+executables = ("arm_driver", "camera_sim", "spot_detector", "sequencer", "estimator", "replay")
 
 setup(
     name=package_name,
@@ -11,6 +14,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("lib/" + package_name, [f"bin/{name}" for name in executables]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
         # config is a link to the repository's config/ folder (parameters, robots).
         ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")),
@@ -23,14 +27,4 @@ setup(
     description="ROS 2 nodes of laser kinematic calibration.",
     license="Apache-2.0",
     tests_require=["pytest"],
-    entry_points={
-        "console_scripts": [
-            "arm_driver = laser_calib_nodes.arm_driver:main",
-            "camera_sim = laser_calib_nodes.camera_sim:main",
-            "spot_detector = laser_calib_nodes.spot_detector:main",
-            "sequencer = laser_calib_nodes.sequencer:main",
-            "estimator = laser_calib_nodes.estimator:main",
-            "replay = laser_calib_nodes.replay:main",
-        ],
-    },
 )
