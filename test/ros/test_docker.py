@@ -26,7 +26,10 @@ def packages() -> set[str]:
 
 
 def entry_point_modules() -> set[str]:
-    modules = set()
+    """The console_scripts' modules and the node executables' (links to laser_calib_nodes/bin/node,
+    which runs laser_calib_nodes.<link name>)."""
+    modules = {f"laser_calib_nodes.{link.name}" for link in (SRC / "laser_calib_nodes" / "bin").iterdir()
+               if link.is_symlink()}
     for setup in SRC.glob("*/setup.py"):
         for node in ast.walk(ast.parse(setup.read_text())):
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and " = " in node.value:
