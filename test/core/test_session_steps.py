@@ -127,6 +127,10 @@ def test_joint_order_maps_a_real_arms_joint_states():
         joint_order(["finger", "b", "a"], None, 2)
     with pytest.raises(ValueError, match="joint 'c' .* is not in joint_states"):
         joint_order(["a", "b"], ["a", "c"], 2)
+    # a robot joint named twice: two readings, and nothing says which one is the joint's (the first was taken)
+    with pytest.raises(ValueError, match="joint 'a' .* is named twice in joint_states"):
+        joint_order(["a", "b", "a"], ["a", "b"], 2)
+    assert joint_order(["finger", "a", "finger", "b"], ["a", "b"], 2) == [1, 3]  # a joint not read: no matter
 
 
 def test_move_time_from_the_largest_joint_move():

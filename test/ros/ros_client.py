@@ -11,6 +11,7 @@
     ros_client.py estimate-csv-diagnose SAMPLES.csv      the same, with the diagnosis
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
     ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
+    ros_client.py samples-named-twice ROBOT   Estimate requests whose samples name joint1 twice, then once
     ros_client.py set-param NODE NAME JSON [NODE NAME JSON ...]   set each parameter in turn to a JSON
                                                value (its type: int, float, ...) through the node's
                                                set_parameters service, then get it back; a list of results
@@ -365,6 +366,41 @@ def samples_by_name(robot_path: str) -> dict:
     return out
 
 
+def samples_named_twice(robot_path: str) -> dict:
+    """Estimate requests whose samples name joint1 twice, the other reading 0.01 rad off (last, then
+    first), and the same samples named once; an Estimate answer for each."""
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.sim.simulation import NoiseSpec, measure, sample_poses, true_errors
+    robot = load_robot(robot_path)
+    rng = np.random.default_rng(5)
+    true = robot.with_errors(true_errors(robot))
+    measured, _ = measure(true, sample_poses([robot, true], 30, rng, "whole"), rng, NoiseSpec())
+    names = [f"joint{i + 1}" for i in range(robot.n_joints)]
+
+    def samples(case):
+        msgs = []
+        for k in range(len(measured)):
+            q = [float(v) for v in measured.q[k]]
+            msg = sample(k, q, measured.spots[k])
+            msg.joint_names, msg.joint_positions = {
+                "once": (names, q),
+                "twice_last": (names + ["joint1"], q + [q[0] + 0.01]),
+                "twice_first": (["joint1"] + names, [q[0] + 0.01] + q)}[case]
+            msgs.append(msg)
+        return msgs
+
+    node = rclpy.create_node("test_samples_named_twice")
+    client = node.create_client(Estimate, "estimator/estimate")
+    out = {}
+    for case in ("twice_last", "twice_first", "once"):
+        request = Estimate.Request()
+        request.samples, request.method = samples(case), "lm"
+        out[case] = response_dict(call(node, client, request))
+        out[case].pop("report", None)
+    node.destroy_node()
+    return out
+
+
 def set_params(settings: list[tuple[str, str, object]]) -> list[dict]:
     """For each (node, name, value) in turn, as `ros2 param set NODE NAME VALUE` does (an integer
     stays an integer), then as `ros2 param get`: one process for them all (each costs ~2 s)."""
@@ -520,6 +556,8 @@ def main() -> int:
             result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]), *map(float, sys.argv[5:6]))
         elif command == "stream-replay":
             result = stream_replay(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), *map(int, sys.argv[5:6]))
+        elif command == "samples-named-twice":
+            result = samples_named_twice(sys.argv[2])
         elif command == "samples-by-name":
             result = samples_by_name(sys.argv[2])
         elif command == "bad-and-concurrent":

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import threading
+import traceback
 from dataclasses import replace
 
 from rclpy.action import ActionServer, CancelResponse
@@ -67,6 +68,11 @@ class CalibrateServer:
             except InputError as exc:
                 result.message = str(exc)
                 node.get_logger().warning(f"calibration refused: {exc}")
+                goal.abort()
+                return result
+            except Exception as exc:  # as ~/estimate: rclpy aborted the goal with an empty message
+                result.message = f"internal error: {type(exc).__name__}: {exc}"
+                node.get_logger().error(result.message + "\n" + traceback.format_exc())
                 goal.abort()
                 return result
         responses.fill(result, outcome, node.robot, len(samples), node.get_clock().now().to_msg())

@@ -52,6 +52,10 @@ class Estimator(Node):
         super().__init__("estimator")
         d = lambda *a, **k: parameters.declare(self, *a, **k)  # noqa: E731
         self.robot, self.robot_path = common.robot_param(self)
+        if len(self.robot.lasers) != 2:  # a robot file for another sensor: every request failed inside the fit
+            raise parameters.NodeError(f"parameter robot: {self.robot_path}: spot samples need the robot's lasers, "
+                                       f"but robot '{self.robot.name}' has no 'lasers:' (add the two lasers' "
+                                       "gamma, beta and the 'slm:' to its file)", 2)
         self.compensator, self.compensator_path = common.compensator_param(self)
         self.input = d("input", "samples", "'samples' (synchronized Sample messages) or 'stream' (joint_states "
                                            "and spots paired by stamp).")

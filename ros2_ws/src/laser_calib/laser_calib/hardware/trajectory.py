@@ -93,6 +93,12 @@ def joint_order(available: Sequence[str], wanted: Sequence[str] | None, n_joints
     if missing:
         raise ValueError(f"joint '{missing[0]}' ({wanted_by}) is not in {source} "
                          f"({', '.join(available)})")
+    # a robot joint named twice has two readings, and nothing tells which is the joint's: the first
+    # was taken, silently (a Sample naming joint1 twice calibrated theta1 on the wrong reading)
+    twice = [name for name in wanted if available.count(name) > 1]
+    if twice:
+        raise ValueError(f"joint '{twice[0]}' ({wanted_by}) is named twice in {source} "
+                         f"({', '.join(available)}): which reading is it?")
     return [available.index(name) for name in wanted]
 
 
