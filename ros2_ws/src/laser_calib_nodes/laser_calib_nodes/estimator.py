@@ -28,6 +28,7 @@ import traceback
 
 import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -95,9 +96,16 @@ class Estimator(Node):
         inputs = MutuallyExclusiveCallbackGroup()
         self.service_group = services = MutuallyExclusiveCallbackGroup()
         if self.input == "samples":
-            for qos in (common.SAMPLES_QOS, common.SAMPLES_INPUT_QOS):
-                self.create_subscription(Sample, common.SAMPLES, self.on_sample, qos, callback_group=inputs)
-                self.create_subscription(Sample, common.TEST_SAMPLES, self.on_test_sample, qos, callback_group=inputs)
+            # A volatile publisher (`ros2 topic pub`) matches only the volatile subscription: the transient-local
+            # one warned 'offering incompatible QoS. No messages will be received from it' at each, while the
+            # other took its samples. It keeps quiet; the volatile one still says so of a publisher neither
+            # matches (best effort).
+            quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)
+            for qos, events in ((common.SAMPLES_QOS, quiet), (common.SAMPLES_INPUT_QOS, None)):
+                self.create_subscription(Sample, common.SAMPLES, self.on_sample, qos, callback_group=inputs,
+                                         event_callbacks=events)
+                self.create_subscription(Sample, common.TEST_SAMPLES, self.on_test_sample, qos, callback_group=inputs,
+                                         event_callbacks=events)
         else:
             self.sync, self.reported_drops = StampSynchronizer(self.sync_tol), 0
             self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.KEEP_ALL_QOS,
