@@ -201,7 +201,9 @@ def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
     """A parameter or robot file that does not exist: launch_ros only warned of the parameter file
     and ran the session on the nodes' defaults; now one line naming the argument, no node started.
     A robot file that does not load: each node refused it after the launch had made the session
-    folder and its lock; now one line naming the file, before the folder is made."""
+    folder and its lock; now one line naming the file, before the folder is made. So is one
+    without lasers (allowed for other sensors), with which the estimator answered every request
+    with an internal error."""
     from ros_harness import ros2_missing
     if ros2_missing():
         pytest.skip(ros2_missing())
@@ -214,8 +216,13 @@ def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
     malformed.write_text("name: arm\njoints: [\n")
     ros.start_command("session_malformed", ["ros2", "launch", "laser_calib_nodes", "session.launch.py",
                                             f"output_dir:={tmp_path / 'malformed'}", f"robot:={malformed}"])
+    no_lasers = tmp_path / "no_lasers.yaml"  # an arm for another sensor: no spot to model
+    no_lasers.write_text(ROBOT.read_text().split("\nslm:")[0] + "\n")
+    ros.start_command("session_nolasers", ["ros2", "launch", "laser_calib_nodes", "session.launch.py",
+                                           f"output_dir:={tmp_path / 'nolasers'}", f"robot:={no_lasers}"])
     reasons = {name: f"{name.split('_')[1]}: no such file: {missing}" for name in ros.procs}
     reasons["session_malformed"] = f"{malformed}: line 3: not valid YAML"
+    reasons["session_nolasers"] = f"robot: {no_lasers}: spot samples need the robot's lasers"
     for name, reason in reasons.items():
         assert ros.wait_exit(name, 60) != 0, ros.log(name)
         log = ros.log(name)
@@ -223,6 +230,7 @@ def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
         assert "process started" not in log and "Traceback" not in log, log
         assert len(errors) == 1 and reason in errors[0], log
     assert not (tmp_path / "malformed").exists()  # refused before the session folder (and its lock) is made
+    assert not (tmp_path / "nolasers").exists()
 
 
 def test_a_parameter_the_node_does_not_take_is_one_warning(ros):

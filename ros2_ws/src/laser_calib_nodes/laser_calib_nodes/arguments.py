@@ -9,6 +9,7 @@ import os
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import load_yaml
+from laser_calib.io.samples import check_lasers
 from laser_calib.model.robot_file import load_robot
 
 
@@ -38,11 +39,12 @@ def existing_files(values: dict, *names: str) -> None:
 
 
 def loadable_robot(values: dict) -> None:
-    """Refuse a robot file that does not load (InputError naming it) before any node starts:
-    each node would refuse it in turn, after the launch had made the session folder and its
-    lock. A file completed by robot_description_topic is checked by the nodes, with the URDF."""
+    """Refuse a robot file that does not load, or has no lasers (InputError naming it), before
+    any node starts: each node would refuse it in turn, after the launch had made the session
+    folder and its lock. A file completed by robot_description_topic is checked by the nodes,
+    with the URDF."""
     if values["robot"] and not values["robot_description_topic"]:
-        load_robot(values["robot"])
+        check_lasers(load_robot(values["robot"]), f"robot: {values['robot']}")
 
 
 def arm_section(path: str) -> None:

@@ -45,7 +45,7 @@ class ArmDriver(Node):
         super().__init__("arm_driver")
         declare = lambda *a, **k: parameters.declare(self, *a, **k)  # noqa: E731
         backend = declare("backend", "sim", "Arm backend: 'sim' (simulated true robot) or 'dynamixel'.")
-        self.robot, robot_path = common.robot_param(self)
+        self.robot, robot_path = common.robot_param(self, lasers=backend == "sim")  # sim: it publishes the true spots
         n = self.robot.n_joints
         names = declare("joint_names", Parameter.Type.STRING_ARRAY,
                         "Joint names, base to tip (default joint1..jointN; a URDF arm's: its joints').",

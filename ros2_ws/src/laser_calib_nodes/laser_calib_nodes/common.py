@@ -23,6 +23,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import CameraInfo
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.samples import check_lasers
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import load_robot
 
@@ -118,14 +119,19 @@ class RobotSource:
     topic: str
     timeout: float
 
-    def load(self, node: Node) -> tuple[Robot, str]:
-        """The robot and a label of its source (for result.json); waits for the topic."""
+    def load(self, node: Node, lasers: bool) -> tuple[Robot, str]:
+        """The robot and a label of its source (for result.json); waits for the topic. ``lasers``:
+        the node handles laser spots, and a robot file without lasers is refused (InputError)."""
         if not self.path:
             raise NodeError("parameter 'robot' is empty: give the robot model file (YAML)", 2)
         if not self.topic:
-            return load_robot(self.path), self.path
-        text, name = wait_for_description(node, self.topic, self.timeout)
-        return load_robot(self.path, description=text), f"{self.path} with the URDF of {name}"
+            robot, label = load_robot(self.path), self.path
+        else:
+            text, name = wait_for_description(node, self.topic, self.timeout)
+            robot, label = load_robot(self.path, description=text), f"{self.path} with the URDF of {name}"
+        if lasers:
+            check_lasers(robot, f"parameter robot: {self.path}")
+        return robot, label
 
 
 def robot_source(node: Node) -> RobotSource:
@@ -142,8 +148,8 @@ def robot_source(node: Node) -> RobotSource:
     return RobotSource(path, topic, timeout)
 
 
-def robot_param(node: Node) -> tuple[Robot, str]:
-    return robot_source(node).load(node)
+def robot_param(node: Node, lasers: bool) -> tuple[Robot, str]:
+    return robot_source(node).load(node, lasers)
 
 
 def compensator_param(node: Node) -> tuple[Any, str | None]:

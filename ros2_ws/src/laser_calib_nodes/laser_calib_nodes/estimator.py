@@ -52,11 +52,7 @@ class Estimator(Node):
     def __init__(self):
         super().__init__("estimator")
         d = lambda *a, **k: parameters.declare(self, *a, **k)  # noqa: E731
-        self.robot, self.robot_path = common.robot_param(self)
-        if len(self.robot.lasers) != 2:  # a robot file for another sensor: every request failed inside the fit
-            raise parameters.NodeError(f"parameter robot: {self.robot_path}: spot samples need the robot's lasers, "
-                                       f"but robot '{self.robot.name}' has no 'lasers:' (add the two lasers' "
-                                       "gamma, beta and the 'slm:' to its file)", 2)
+        self.robot, self.robot_path = common.robot_param(self, lasers=True)
         self.compensator, self.compensator_path = common.compensator_param(self)
         self.input = d("input", "samples", "'samples' (synchronized Sample messages) or 'stream' (joint_states "
                                            "and spots paired by stamp).")
@@ -97,9 +93,7 @@ class Estimator(Node):
         self.service_group = services = MutuallyExclusiveCallbackGroup()
         if self.input == "samples":
             # A volatile publisher (`ros2 topic pub`) matches only the volatile subscription: the transient-local
-            # one warned 'offering incompatible QoS. No messages will be received from it' at each, while the
-            # other took its samples. It keeps quiet; the volatile one still says so of a publisher neither
-            # matches (best effort).
+            # one keeps quiet of it ("incompatible QoS ... no messages"); the other still warns of a best-effort one.
             quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)
             for qos, events in ((common.SAMPLES_QOS, quiet), (common.SAMPLES_INPUT_QOS, None)):
                 self.create_subscription(Sample, common.SAMPLES, self.on_sample, qos, callback_group=inputs,

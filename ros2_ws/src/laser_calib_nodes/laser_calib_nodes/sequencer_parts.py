@@ -73,12 +73,12 @@ def open_session(node):
         raise parameters.NodeError(f"{session.path}: no session to resume", 2)
     if state == "partial":
         if robot_source.path:  # a robot given must be the session's (its poses, samples, report are of it)
-            session.check_robot(*robot_source.load(node))
+            session.check_robot(*robot_source.load(node, lasers=True))
         session.check_plan(plan)
         warn_settings(node, session)
         robot, poses = session.load_for_resume()
         return session, lock, robot, poses, state
-    robot, robot_label = robot_source.load(node)
+    robot, robot_label = robot_source.load(node, lasers=True)
     poses = (load_poses(plan["poses_file"], robot) if plan["poses_file"] else
              generate_poses(robot, plan["poses"], plan["span"], plan["seed"], plan["repeats"], plan["margin"]))
     poses = with_test_poses(poses, robot, plan["test_poses"], plan["seed"], plan["margin"])

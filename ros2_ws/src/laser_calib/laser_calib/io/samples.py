@@ -225,6 +225,14 @@ def check_all_or_none(block: np.ndarray, source: str, where: str, problem: str) 
         raise InputError(f"{source}: line {np.argmax(partial) + 2}{where}", problem)
 
 
+def check_lasers(robot: Robot, where: str) -> None:
+    """Refuse (InputError at ``where``) a robot without lasers for spot samples: its file may leave
+    them out (an arm measured by another sensor), and the spots then have no model."""
+    if not robot.lasers:
+        raise InputError(where, f"spot samples need the robot's lasers, but robot '{robot.name}' has no "
+                                "'lasers:' (add the 'slm:' and the two lasers' gamma, beta to its file)")
+
+
 def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = None) -> Samples:
     plain = plain_table(text)
     if plain is not None and [cell.strip() for cell in plain[0].split(",")][:2] != ["pose", "stamp"]:
@@ -236,9 +244,8 @@ def parse_samples(text: str, source: str = "<samples>", robot: Robot | None = No
         what = f"missing column {missing[0]}" if missing else f"expected {','.join(SPOT_COLUMNS)} after q{n_q}"
         raise _header_error(source, what)
     check_joint_count(n_q, robot, source)
-    if robot is not None and not robot.lasers:
-        raise InputError(source, f"spot samples need the robot's lasers, but robot '{robot.name}' has no "
-                                 "'lasers:' (add the two lasers' gamma, beta to its file)")
+    if robot is not None:
+        check_lasers(robot, source)
     labels: dict[str, np.ndarray] = {}
     if plain is not None and plain[1].shape[1] == len(header) and np.all(np.diff(plain[1][:, 1]) > 0):
         pose, values = plain[1][:, 0].astype(int), plain[1][:, 1:]
