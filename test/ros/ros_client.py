@@ -274,6 +274,7 @@ def bad_and_concurrent(robot_path: str) -> dict:
     tests = [sample(100 + k, held_out.q[k], held_out.spots[k]) for k in range(len(held_out))]
     nan_test = [sample(100 + k, held_out.q[k], held_out.spots[k]) for k in range(len(held_out))]
     nan_test[1].joint_positions[0] = math.nan
+    unseen_test = [sample(100 + k, held_out.q[k], np.full((2, 2), np.nan)) for k in range(len(held_out))]
     cases = {
         "empty": request([]),
         "wrong_joint_count": request(wrong_count),
@@ -283,6 +284,7 @@ def bad_and_concurrent(robot_path: str) -> dict:
         "negative_sigma": request(good, spot_sigma=-1.0),
         "too_few": request(good[:2]),
         "nan_test_joint": request(good, test_samples=nan_test),
+        "unseen_test": request(good, test_samples=unseen_test),
         "tested": request(good, test_samples=tests),
         "good_lm_1": request(good),
         "good_lm_2": request(good),
@@ -305,7 +307,7 @@ def bad_and_concurrent(robot_path: str) -> dict:
     spin.start()
     # No resend: each client had an answer in its warm-up, so a request unanswered here was lost
     # by the server (its request queue once held 10 and dropped the oldest); on a loaded machine
-    # the 13 (one a diagnosis) take up to a minute.
+    # the 14 (one a diagnosis) take up to a minute.
     deadline = time.monotonic() + 120
     while not all(f.done() for f in futures.values()):
         if time.monotonic() > deadline:

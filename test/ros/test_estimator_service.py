@@ -11,7 +11,7 @@ from ros_harness import CLIENT, ROBOT
 
 def test_bad_requests_and_concurrent_clients(ros):
     ros.start("estimator", "-p", f"robot:={ROBOT}")
-    # 13 requests in flight at once, every one answered, none sent twice (the client fails when one
+    # 14 requests in flight at once, every one answered, none sent twice (the client fails when one
     # is not): the services profile's depth of 10 dropped the oldest waiting one
     out = ros.client("bad-and-concurrent", str(ROBOT))
     expected_refusals = {
@@ -23,6 +23,7 @@ def test_bad_requests_and_concurrent_clients(ros):
         "negative_sigma": "spot_sigma",
         "too_few": "",
         "nan_test_joint": "request: test sample 2 (pose 101): joint_positions[0] is not finite",
+        "unseen_test": "request: test_samples: no spot is measured in the test set",
     }
     for name, text in expected_refusals.items():
         assert out[name]["success"] is False, (name, out[name]["message"])

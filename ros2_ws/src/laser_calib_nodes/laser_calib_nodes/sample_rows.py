@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from laser_calib.cli.arguments import require_measured
 from laser_calib.io import bag
 from laser_calib.io.errors import InputError
-from laser_calib.io.samples import Samples
+from laser_calib.io.samples import Samples, without_unmeasured_test
 from laser_calib.model.robot import Robot
 
 Row = tuple[int, float, np.ndarray, np.ndarray]
@@ -51,4 +52,7 @@ def request_sets(node, request) -> tuple[Samples, Samples | None, dict]:
                "test": f"{len(test_rows)} test samples {by}" if test_rows else None,
                "compensator": node.compensator_path}
     test = bag.samples_from_rows(test_rows, "request: test_samples") if test_rows else None
-    return bag.samples_from_rows(rows, "request"), test, sources
+    if test is not None and not request.use_accumulated:  # given, as a --test file is
+        require_measured(test, "request: test_samples", "no spot is measured in the test set")
+    samples, test = without_unmeasured_test(bag.samples_from_rows(rows, "request"), test)
+    return samples, test, dict(sources, test=sources["test"] if test is not None else None)

@@ -14,7 +14,7 @@ from laser_calib.cli.arguments import require_measured
 from laser_calib.io.bag import SAMPLES_TOPIC, TEST_SAMPLES_TOPIC, read_samples_checked
 from laser_calib.io.errors import InputError
 from laser_calib.io.joint_names import RobotJoints
-from laser_calib.io.samples import Samples, check_joint_range, check_spot_units, load_samples
+from laser_calib.io.samples import Samples, check_joint_range, check_spot_units, load_samples, without_unmeasured_test
 from laser_calib.io.spot_columns import check_spot_columns
 from laser_calib.model.robot import Robot
 
@@ -56,9 +56,10 @@ def read_sample_sets(args: argparse.Namespace, robot: Robot) -> SampleSets:
         test = bag_samples(args.bag, robot, args.joint_names, TEST_SAMPLES_TOPIC, required=False)
         test_source = None if test is None else f"{args.bag} {TEST_SAMPLES_TOPIC}"
     require_measured(samples, source)
-    if test is not None:
+    if args.test:
         require_measured(test, test_source, "no spot is measured in the test set")
-    return SampleSets(samples, source, test, test_source)
+    samples, test = without_unmeasured_test(samples, test)
+    return SampleSets(samples, source, test, test_source if test is not None else None)
 
 
 def bag_samples(path: str, robot: Robot, joint_names: list[str] | None, topic: str = SAMPLES_TOPIC,

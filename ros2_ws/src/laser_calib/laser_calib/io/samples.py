@@ -124,6 +124,17 @@ def reading_warnings(samples: Samples, test: Samples | None = None) -> list[str]
     return list(dict.fromkeys((*samples.warnings, *(test.warnings if test is not None else ()))))
 
 
+def without_unmeasured_test(samples: Samples, test: Samples | None) -> tuple[Samples, Samples | None]:
+    """A session's own test set (a bag's, the estimator's accumulated one) that measured nothing (the
+    camera covered after the calibration poses) gives no held-out figure: dropped, and said among
+    the calibration set's warnings. A test set given for the purpose (--test, a request's) is
+    refused instead (cli.arguments.require_measured)."""
+    if test is None or test.seen.any():
+        return samples, test
+    said = f"test: no {samples.kind} is measured in the {len(test)} test poses: there is no held-out figure"
+    return replace(samples, warnings=(*samples.warnings, said)), None
+
+
 def split_labels(header: list[str], rows: list[list[str]], first: int
                  ) -> tuple[list[str], list[list[str]], dict[str, np.ndarray]]:
     """The text columns among the columns from index ``first`` on (the covariates): a
