@@ -5,6 +5,7 @@ their tolerances are derived from the noise the renderer puts in (see
 test_spot_error_within_noise_tolerance), not fitted to one run.
 """
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,6 +13,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.vision import (DetectorOptions, RenderOptions, ScreenCalibration, SpotDetector, board_poses,
                                 calibrate_screen, default_camera, detect_fiducials, load_calibration,
                                 render_board_frame, render_fiducial_frame, render_frame, save_calibration)
+from laser_calib.vision.render import AMBIENT_BGR
 
 BOTH = np.array([True, True])
 # Calibration images are taken with the room lights up (brighter, lower-noise corners).
@@ -132,6 +134,25 @@ def test_dim_or_ambiguous_spot_is_not_seen(camera, detector):
     second = render_frame(camera, np.array([[-0.5, 0.6], [0.0, 0.0]]), np.array([True, False]), rng)
     found, seen = detector.detect(np.maximum(first, second))
     np.testing.assert_array_equal(seen, [False, True])
+
+
+def test_white_glint_is_not_a_laser(camera, detector):
+    # A glint off the arm (room light, so white) saturates a few pixels. Bilinear demosaicing leaves so
+    # small a blob colour fringes, >= 15 DN of green contrast over the box filter: it was reported as
+    # laser 2 while that laser was off or occluded. The glint is added to the frame's photosites (RGGB:
+    # demosaicing keeps each photosite's own value) and demosaiced again, as in the camera.
+    rng = np.random.default_rng(14)
+    spots = np.array([[0.3, -0.2], [-0.4, 0.35]])
+    frame = render_frame(camera, spots, np.array([True, False]), rng)
+    rows, cols = np.mgrid[:camera.height, :camera.width]
+    sites = np.where(rows % 2 == 0, np.where(cols % 2 == 0, 2, 1), np.where(cols % 2 == 0, 1, 0))  # B 0, G 1, R 2
+    raw = np.take_along_axis(frame, sites[..., None], axis=2)[..., 0].astype(float)
+    for sigma_px, peak_dn in ((0.8, 1000.0), (1.2, 300.0), (2.0, 300.0)):
+        glint = peak_dn * np.exp(-((cols - 700.3) ** 2 + (rows - 400.6) ** 2) / (2 * sigma_px ** 2))
+        mosaic = np.clip(np.rint(raw + glint * AMBIENT_BGR[sites]), 0, 255).astype(np.uint8)
+        found, seen = detector.detect(cv2.cvtColor(mosaic, cv2.COLOR_BayerBG2BGR))
+        np.testing.assert_array_equal(seen, [True, False], err_msg=f"glint sigma {sigma_px} px, {peak_dn} DN")
+        assert np.max(np.abs(found[0] - spots[0])) < 1e-3
 
 
 def test_laser_off_frames_have_no_spots(camera, detector):

@@ -9,7 +9,9 @@ Per laser (1: red, 2: green, see render.py):
    sigma ~1.3 px) and take its maximum. Below ``min_peak_dn`` the laser is
    not seen (too dim). If a second maximum outside ``exclusion_px`` reaches
    ``ambiguity_ratio`` of the first, which spot is the laser is unknown: not
-   seen.
+   seen. Nor is a spot whose other channel rises with its own (by over
+   ``max_other_ratio`` above the background): white or warm light, such as a
+   glint off the arm, whose small blob demosaicing fringes with colour.
 3. locate: weighted least-squares fit of a Gaussian on a tilted plane to the
    laser's own channel in a window around the maximum, using only photosites
    of the laser's colour (Bayer mosaic) that are not saturated, weighted by the
@@ -60,6 +62,13 @@ class DetectorOptions:
         vignetting dims it) to 70.
     exclusion_px, ambiguity_ratio: a second maximum farther than exclusion_px
         from the first and at least ambiguity_ratio of it makes the laser ambiguous.
+    max_other_ratio: over the unsaturated pixels of the smoothing box, a spot of this laser
+        raises the other channel by its crosstalk only (5-21 % of its own rise in the renderer,
+        up to 0.6 for a spot 50 times overexposed, blooming or not); white light raises both
+        alike, though bilinear demosaicing leaves a small saturated glint >= 15 DN of colour
+        contrast. Above it: not seen. Of 150 frames with the lasers off and a white glint
+        (sigma 0.5-3 px, 100-3000 DN), 22 gave a spot without this test, 3 with it (glints
+        narrower than a spot: fitted sigma 0.57-0.92 px).
     window_half_px: the fit window is (2 w + 1)^2 pixels, >= 5 spot sigmas.
     gain_e_per_dn, read_noise_dn, speckle_contrast: the noise model that
         weights the fit: variance = read^2 + signal / gain + (contrast * spot)^2.
@@ -76,6 +85,7 @@ class DetectorOptions:
     min_peak_dn: float = 15.0
     exclusion_px: int = 12
     ambiguity_ratio: float = 0.5
+    max_other_ratio: float = 0.7
     window_half_px: int = 7
     gain_e_per_dn: float = 10000.0 / 255.0
     read_noise_dn: float = 0.4
@@ -132,9 +142,28 @@ class SpotDetector:
         height, width = own.shape
         if u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
             return None  # a spot cut by the image edge has no trustworthy centre
+        own_rise, other_rise = self._rises(own, other, u, v)
+        if other_rise > o.max_other_ratio * own_rise:
+            return None  # white light (a glint, a lamp), not this laser's colour
         window = own[v - w:v + w + 1, u - w:u + w + 1].astype(float)
         offset = self._fit(window, self._photosites(u - w, v - w, colour))
         return None if offset is None else offset + (u, v)
+
+    def _rises(self, own: np.ndarray, other: np.ndarray, u: int, v: int) -> tuple[float, float]:
+        """Mean rise (DN) of the own and the other channel above the median of the fit window's rim, over
+        the pixels of the smoothing box at (u, v) saturated in neither: a clipped pixel, or a column
+        blooming from a saturated spot, says nothing of the light's colour. (0, 0) if none is left."""
+        w, h = self.options.window_half_px, self.options.smooth_px // 2
+        rises, boxes = [], []
+        for channel in (own, other):
+            window = channel[v - w:v + w + 1, u - w:u + w + 1].astype(float)
+            rim = np.concatenate([window[0], window[-1], window[1:-1, 0], window[1:-1, -1]])
+            boxes.append(window[max(w - h, 0):w + h + 1, max(w - h, 0):w + h + 1])
+            rises.append(np.median(rim))
+        keep = (boxes[0] < 255) & (boxes[1] < 255)
+        if not keep.any():
+            return 0.0, 0.0
+        return float(boxes[0][keep].mean() - rises[0]), float(boxes[1][keep].mean() - rises[1])
 
     def _photosites(self, col0: int, row0: int, colour: str) -> np.ndarray:
         """(2w+1, 2w+1) bool: which pixels of the window starting at (col0, row0) measured ``colour``."""
