@@ -155,6 +155,17 @@ def test_white_glint_is_not_a_laser(camera, detector):
         assert np.max(np.abs(found[0] - spots[0])) < 1e-3
 
 
+def test_large_spots_are_rendered(camera):
+    # A spot of 8 mm sigma (camera_sim's spot_sigma:=0.008) or a blurred lens (psf 3 px) made the spot's
+    # patch over 36 px wide: its 5 x 5 samples per pixel, remapped as one column, passed OpenCV's limit of
+    # 32767 rows: render_frame raised cv2.error.
+    spots = np.array([[0.1, 0.1], [-0.4, 0.3]])
+    centre = np.rint(camera.project(spots[:1])[0]).astype(int)
+    for options in (RenderOptions(spot_sigma_m=0.008), RenderOptions(psf_sigma_px=3.0)):
+        frame = render_frame(camera, spots, BOTH, np.random.default_rng(15), options).astype(int)
+        assert frame[centre[1], centre[0], 2] - frame[centre[1], centre[0], 1] > 15  # laser 1 (room light: < 0)
+
+
 def test_laser_off_frames_have_no_spots(camera, detector):
     rng = np.random.default_rng(6)
     for options in (RenderOptions(), CALIBRATION_LIGHT):

@@ -207,8 +207,9 @@ def _spot(camera: CameraModel, layout: ScreenLayout, spot_yz: np.ndarray, radian
     u, v = np.meshgrid(col0 + grid.ravel(), row0 + grid.ravel())
     yz = _rays_to_screen(camera, _undistort(camera, np.stack([u.ravel(), v.ravel()], axis=1)))
     texture, extent = _screen_texture(layout)
-    albedo = cv2.remap(texture, ((extent - yz[:, 0]) / _TEXEL - 0.5).astype(np.float32)[:, None],
-                       ((extent - yz[:, 1]) / _TEXEL - 0.5).astype(np.float32)[:, None], cv2.INTER_LINEAR,
+    n = size * _SPOT_SUPERSAMPLE  # maps of n x n, not n^2 x 1: remap takes fewer than 32767 rows
+    albedo = cv2.remap(texture, ((extent - yz[:, 0]) / _TEXEL - 0.5).astype(np.float32).reshape(n, n),
+                       ((extent - yz[:, 1]) / _TEXEL - 0.5).astype(np.float32).reshape(n, n), cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=WALL_ALBEDO).ravel()
     r2 = np.sum((yz - spot_yz) ** 2, axis=1) / options.spot_sigma_m ** 2
     samples = (radiance * albedo * np.exp(-0.5 * r2)).reshape(size, _SPOT_SUPERSAMPLE, size, _SPOT_SUPERSAMPLE)
