@@ -140,3 +140,21 @@ def test_env_sh_puts_the_command_line_on_the_path(ros: Ros):
     """`laser-calib`, as the README and docs/ write it, works after `source scripts/env.sh`."""
     found = ros.run(["laser-calib", "--help"])
     assert found.returncode == 0 and found.stdout.startswith("usage: laser-calib"), found
+
+
+def test_an_output_folder_that_cannot_be_made_is_one_line(ros: Ros, tmp_path):
+    """--out under a regular file (or on a read-only disk): run-session ended in a NotADirectoryError
+    traceback, exit 1, then 'run again with the same --out to resume', where nothing could ever be
+    written. Now one line naming the folder, exit 2; the sequencer started alone says the same."""
+    (tmp_path / "file").write_text("")
+    out = tmp_path / "file" / "session"
+    result = ros.run([RUN_SESSION, "--no-setup", "--out", str(out)], timeout=120)
+    assert result.returncode == 2, result
+    assert result.stderr == (f"run-session: {out}: cannot create the session folder or its .lock: "
+                             f"Not a directory ({out})\n"), result
+    ros.start("sequencer", "-p", f"robot:={ROOT / 'config' / 'robots' / 'humanoid_arm_7dof.yaml'}",
+              "-p", f"output_dir:={out}")
+    assert ros.wait_exit("sequencer", 60) == 2
+    assert ros.log("sequencer").strip().splitlines()[-1].startswith(f"error: {out}: cannot create"), \
+        ros.log("sequencer")
+    assert "Traceback" not in ros.log("sequencer")

@@ -44,8 +44,12 @@ class SessionLock:
         """Take the lock (creating the folder), or SessionBusy '<folder>: in use by the session of
         PID <pid>'. When the holder is this process's parent (the launcher of this session) the
         folder is this session's: returns without holding the lock."""
-        self.folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:  # an output_dir under a file, on a read-only or full disk: one line, not a traceback
+            self.folder.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise InputError(str(self.folder), f"cannot create the session folder or its {LOCK_FILE}: "
+                                               f"{exc.strerror} ({exc.filename})") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
