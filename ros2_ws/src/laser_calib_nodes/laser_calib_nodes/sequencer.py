@@ -28,7 +28,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from laser_calib.hardware.trajectory import joint_order, move_time
+from laser_calib.hardware.trajectory import move_time
 from laser_calib.io import bag
 from laser_calib.io.joint_names import RobotJoints, default_joint_names
 from laser_calib.session.average import FrameCollector
@@ -36,6 +36,7 @@ from laser_calib.session.folder import POSES_FILE, Progress
 from laser_calib.session.settle import SettleDetector, SettleRule
 
 from laser_calib_nodes import common, parameters, sequencer_parts
+from laser_calib_nodes.joint_states import ArmJointStates
 from laser_calib_nodes.recorder import Recorder
 
 
@@ -110,7 +111,7 @@ class Sequencer(Node):
 
         # ---- state shared with the worker thread ----
         self.cond = threading.Condition()
-        self.index: list[int] | None = None   # robot joint i is joint_states entry index[i]
+        self.arm_joints = ArmJointStates(self.joint_names, self.robot.n_joints, self.get_logger())
         self.last_state = None                 # (stamp, q (N,), velocity (N,) or None)
         self.state_count = self.spot_count = 0
         self.settle: SettleDetector | None = None
@@ -122,15 +123,11 @@ class Sequencer(Node):
     # ---- callbacks (executor thread) ----
     def on_joint_state(self, msg: JointState) -> None:
         with self.cond:
-            if self.index is None:
-                try:
-                    self.index = joint_order(list(msg.name), self.joint_names, self.robot.n_joints)
-                except ValueError as exc:
-                    raise parameters.NodeError(str(exc), 2) from None
-                self.joint_names = [msg.name[i] for i in self.index]
+            read = self.arm_joints.read(msg)  # None: not the robot's joints (another publisher's), said once
+            if read is None:
+                return
+            (q, v), self.joint_names = read, self.arm_joints.names
             stamp = common.stamp_seconds(msg.header.stamp)
-            q = np.array(msg.position, dtype=float)[self.index]
-            v = np.array(msg.velocity, dtype=float)[self.index] if len(msg.velocity) == len(msg.position) else None
             self.last_state = (stamp, q, v)
             self.state_count += 1
             if self.collector is not None:
@@ -166,7 +163,7 @@ class Sequencer(Node):
         self.progress = Progress(len(self.poses), int(self.done_steps.sum()))
         joints, spots = (self.resolve_topic_name(t) for t in (common.JOINT_STATES, common.SPOTS))
         self.wait(lambda: self.state_count > 0, self.wait_timeout,
-                  f"no joint states on {joints} after {self.wait_timeout:g} s (is the arm driver running?)")
+                  lambda: self.arm_joints.none_read(joints, self.wait_timeout))  # raises: exit 2 or 3
         self.wait(lambda: self.spot_count > 0, self.wait_timeout, f"no spot frames on {spots} after "
                   f"{self.wait_timeout:g} s (are the camera and spot_detector running?)")
         self.wait(lambda: self.traj_pub.get_subscription_count() > 0, self.wait_timeout,
