@@ -136,3 +136,26 @@ def test_joint_order_maps_a_real_arms_joint_states():
 def test_move_time_from_the_largest_joint_move():
     assert move_time(np.array([0.0, 1.0]), np.array([0.5, -1.0]), 0.5) == 4.0
     assert move_time(np.zeros(2), np.zeros(2), 0.5) == 0.1      # never 0: the controller would jump
+
+
+def test_a_collector_short_of_frames_says_what_their_stamps_were():
+    """A camera stamping 0 (or on another clock) had every frame ignored as taken before the arm
+    settled, and the session ended in 'fewer than 3 spot frames paired', as if the camera were
+    slow: the line now says how the frames were stamped."""
+    state = (np.zeros(1), None)
+    c = FrameCollector(frames=3, tolerance=0.01, settled_stamp=1000.0, settled_state=state)
+    assert c.shortfall() == "no spot frame came since the arm settled"
+    for k in range(5):
+        c.add_state(1000.0 + 0.02 * k, state)
+        c.add_frame(0.0, np.zeros((2, 2)))            # unstamped frames
+    assert not c.complete
+    assert c.shortfall() == ("0 paired, 5 stamped before the arm settled (the last 1000.000 s before: a camera stamping 0, "
+                             "or on another clock?)")
+    ahead = FrameCollector(frames=3, tolerance=0.01, settled_stamp=1000.0, settled_state=state)
+    ahead.add_frame(1015.0, np.zeros((2, 2)))         # a camera clock 15 s ahead: waits for joint states
+    assert ahead.shortfall().endswith("the newest frame is stamped 15.000 s after the newest joint state "
+                                      "(a camera clock ahead?)")
+    between = FrameCollector(frames=3, tolerance=0.001, settled_stamp=1000.0, settled_state=state)
+    between.add_frame(1000.01, np.zeros((2, 2)))
+    between.add_state(1000.02, state)                 # 10 ms from either joint state: tolerance 1 ms
+    assert between.shortfall() == "0 paired, 1 without a joint state within the tolerance"

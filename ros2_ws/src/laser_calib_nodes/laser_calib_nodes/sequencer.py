@@ -200,8 +200,9 @@ class Sequencer(Node):
                               f"({self.settle.worst_joint(self.joint_names)})")
             self.publish_progress("measuring", pose_id)
             self.wait(lambda: self.collector.complete, self.frame_timeout,
-                      f"{where}: fewer than {self.frames} spot frames paired with joint states within "
-                      f"{self.frame_timeout:g} s (sync_tolerance {self.sync_tol:g} s)")
+                      lambda: f"{where}: fewer than {self.frames} spot frames paired with joint states within "
+                              f"{self.frame_timeout:g} s (sync_tolerance {self.sync_tol:g} s): "
+                              f"{self.collector.shortfall()}")
             with self.cond:
                 sample, collector, self.collector = self.collector.sample(pose_id), self.collector, None
         finally:

@@ -41,14 +41,37 @@ class FrameCollector:
         self.after = float(settled_stamp)
         self.sync = StampSynchronizer(tolerance)
         self.pairs: list[Pair] = []
+        self.early = 0                       # frames stamped before the settle instant
+        self.last_frame: float | None = None  # the stamp of the newest frame
+        self.last_state = float(settled_stamp)
         self.add_state(settled_stamp, settled_state)  # a frame of this very instant pairs with it
 
     def add_state(self, stamp: float, state) -> None:
+        self.last_state = float(stamp)
         self.pairs.extend(self.sync.add_a(stamp, state))
 
     def add_frame(self, stamp: float, spots: np.ndarray) -> None:
+        self.last_frame = float(stamp)
         if stamp >= self.after:  # an earlier frame shows the arm still moving
             self.pairs.extend(self.sync.add_b(stamp, spots))
+        else:
+            self.early += 1
+
+    def shortfall(self) -> str:
+        """Why the frames are not complete, in words naming the stamps (a camera stamping 0, or
+        on another clock, looked like a camera too slow)."""
+        if self.last_frame is None:
+            return "no spot frame came since the arm settled"
+        said = f"{len(self.pairs)} paired"
+        if self.early:
+            said += (f", {self.early} stamped before the arm settled (the last {self.after - self.last_frame:.3f} s "
+                     f"before: a camera stamping 0, or on another clock?)")
+        if self.sync.dropped:
+            said += f", {self.sync.dropped} without a joint state within the tolerance"
+        if self.last_frame > self.last_state:
+            said += (f"; the newest frame is stamped {self.last_frame - self.last_state:.3f} s after the newest "
+                     "joint state (a camera clock ahead?)")
+        return said
 
     @property
     def complete(self) -> bool:
