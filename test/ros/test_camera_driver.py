@@ -104,3 +104,34 @@ def test_sequencer_records_a_best_effort_camera(ros, tmp_path):
     widths = [typestore.deserialize_cdr(data, kind).width
               for _, kind, _, data in bag.read_messages(out / "bag", ["/camera/camera_info"])]
     assert widths.count(640) == 1, widths
+
+
+HARDWARE_REMAPS = """import json, sys
+from laser_calib_nodes.graph import HARDWARE_ARGS, hardware_nodes
+values = {name: default for name, (default, _) in HARDWARE_ARGS.items()}
+values.update(output_dir=sys.argv[1], robot=sys.argv[2], calibration=sys.argv[3], image="/my_camera/image_raw")
+print(json.dumps([spec.remaps for spec in hardware_nodes(values) if spec.executable == "spot_detector"][0]))"""
+
+
+def test_hardware_launch_takes_the_cameras_info_beside_its_image(ros, tmp_path):
+    """hardware.launch.py image:=/my_camera/image_raw remapped the image alone: the driver's
+    CameraInfo (/my_camera/camera_info) never reached spot_detector, whose check of the camera's
+    size and intrinsics against the screen calibration then never ran, without a word. A driver
+    whose CameraInfo says another size has its frames refused, as with the topics remapped by hand,
+    the first too: spot_detector held frames back for a CameraInfo only when the unremapped
+    camera/camera_info had a publisher (rclpy's count_publishers does not remap), so the first
+    frame of a remapped driver was detected unchecked."""
+    import json
+    from laser_calib.vision.camera import default_camera, save_calibration
+    from ros_harness import ROBOT
+    save_calibration(default_camera().ideal_calibration(), tmp_path / "screen.yaml")
+    out = ros.run([sys.executable, "-c", HARDWARE_REMAPS, str(tmp_path / "out"), str(ROBOT),
+                   str(tmp_path / "screen.yaml")])
+    assert out.returncode == 0, out
+    remaps = json.loads(out.stdout)
+    assert ["camera/camera_info", "/my_camera/camera_info"] in remaps, remaps
+    ros.start("spot_detector", *[arg for old, new in remaps for arg in ("-r", f"{old}:={new}")])
+    got = run_camera(ros, "bgr8", "640", "8", "sensor_data", "0", "image_first", "--ros-args",
+                     "-r", "camera/image_raw:=/my_camera/image_raw", "-r", "camera/camera_info:=/my_camera/camera_info")
+    assert got["frames"] == 0, ros.log("spot_detector")
+    assert "CameraInfo says 640x1024, the calibration is for 1280x1024" in ros.log("spot_detector")

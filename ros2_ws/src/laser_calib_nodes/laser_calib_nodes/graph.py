@@ -83,7 +83,8 @@ HARDWARE_ARGS = {
     "robot_description_topic": ("", DESCRIPTION_TOPIC_HELP),
     "arm_params": (share("config", "dynamixel_arm.yaml"), "arm_driver parameters (Dynamixel port, ids, ticks)."),
     "calibration": (None, "Screen calibration file of the camera."),
-    "image": ("/camera/image_raw", "Camera image topic."),
+    "image": ("/camera/image_raw", "Camera image topic (its CameraInfo: camera_info beside it, as image_transport "
+                                   "has it)."),
     "poses_file": ("", "Pose list; empty: generate."),
     "poses": ("60", "Poses to generate."),
     "test_poses": SESSION_ARGS["test_poses"],
@@ -159,7 +160,9 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
     return [NodeSpec("estimator", files, robot),
             NodeSpec("arm_driver", (values["arm_params"],), dict(robot, backend="dynamixel")),
             NodeSpec("spot_detector", files, {"calibration": values["calibration"]},
-                     (("camera/image_raw", values["image"]),)),
+                     # the driver's CameraInfo too: remapped alone, the image's size and intrinsics went unchecked
+                     (("camera/image_raw", values["image"]),
+                      ("camera/camera_info", os.path.join(os.path.dirname(values["image"]), "camera_info")))),
             NodeSpec("sequencer", files, sequencer)]
 
 

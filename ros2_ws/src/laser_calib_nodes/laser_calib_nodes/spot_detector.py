@@ -149,7 +149,7 @@ class SpotDetectorNode(Node):
         if key[:2] != (0, 0):  # an unstamped camera's frames cannot be told apart: all are used
             self.recent.append(key)
         if (not self.info_checked and self.held_back < INFO_WAIT_FRAMES
-                and self.count_publishers(common.CAMERA_INFO) > 0):
+                and self.count_publishers(self.resolve_topic_name(common.CAMERA_INFO)) > 0):  # remapped: rclpy won't
             # the driver's CameraInfo, sent with each frame, may arrive second: its size is checked first
             self.held_back += 1
             if self.held_back == INFO_WAIT_FRAMES:

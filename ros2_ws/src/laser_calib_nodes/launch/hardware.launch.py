@@ -10,7 +10,8 @@ With ``robot_description_topic:=/robot_description`` the arm's URDF comes from
 robot_state_publisher and ``robot`` is the file of base, tip and lasers
 (docs/urdf.md). The camera driver is yours (any node publishing sensor_msgs/Image of the
 calibrated camera; the QoS spot_detector subscribes with is in the package
-README's table); its image topic is remapped to camera/image_raw. The node graph is
+README's table); its image topic is remapped to camera/image_raw, and the camera_info beside it
+to camera/camera_info. The node graph is
 laser_calib_nodes.graph.hardware_nodes; as session.launch.py, the launch takes
 the session folder's lock and ends when the sequencer or any node exits.
 """
