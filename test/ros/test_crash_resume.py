@@ -3,6 +3,7 @@ completed pose, and the resumed session does not measure those poses again."""
 
 from __future__ import annotations
 
+import shutil
 import signal
 import time
 
@@ -91,3 +92,42 @@ def test_kill_and_resume(ros, tmp_path):
     assert ros.wait_exit("sequencer_again", 60) == 2
     lines = [line for line in ros.log("sequencer_again").splitlines() if line.strip()]
     assert lines[-1].startswith("error: ") and "finished session" in lines[-1]
+
+
+def test_a_disk_that_refuses_the_bag_ends_the_session_in_one_line_and_keeps_the_poses(ros, tmp_path):
+    """A full disk under the session (seen on a 300 KB file system: 'No space left on device') ended
+    in three tracebacks and exit 1: the executor's recording callback raised, and the sequencer's
+    own 'failed' line raised again writing to the same bag. Now one line naming the bag and the
+    cause, exit 1, the poses measured before kept in samples.csv and the bag; made room, the
+    session resumes. Without a small file system (it needs root), the bag's working folder is
+    made a file: the next segment cannot be opened there."""
+    from laser_calib.io import bag
+    out = tmp_path / "out"
+    out.mkdir()
+    start_sim(ros, out)
+    args = ("-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=6", "-p", "span:=small",
+            "-p", "estimate.mode:=none")
+    proc = ros.start("sequencer", *args)
+    deadline = time.monotonic() + 120
+    while csv_rows(out / "samples.csv") < 2:
+        assert proc.poll() is None and time.monotonic() < deadline, ros.log("sequencer")
+        time.sleep(0.05)
+    work = out / ".recording"
+    while not work.is_file():   # the open segment goes with the folder, as a disk fault loses it
+        shutil.rmtree(work, ignore_errors=True)
+        try:
+            work.write_text("")
+        except (IsADirectoryError, FileExistsError):
+            pass   # the sequencer opened its next segment meanwhile
+    assert ros.wait_exit("sequencer", 60) == 1, ros.log("sequencer")
+    log = ros.log("sequencer")
+    assert "Traceback" not in log, log
+    errors = [line for line in log.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and f"recording into {out / 'bag'} failed" in errors[0] \
+        and "make room and run again to resume" in errors[0], log
+    kept = csv_rows(out / "samples.csv")
+    assert kept >= 2 and len(bag.read_samples(out / "bag")) == kept, log
+    work.unlink()   # room made
+    ros.start("resumed", *args, node="sequencer")
+    assert ros.wait_exit("resumed", 120) == 0, ros.log("resumed")
+    assert csv_rows(out / "samples.csv") == 6 and len(bag.read_samples(out / "bag")) == 6

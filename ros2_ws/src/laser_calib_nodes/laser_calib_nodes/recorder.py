@@ -10,17 +10,19 @@ from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.serialization import serialize_message
+from rosbags.rosbag2 import WriterError
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from laser_calib.io.bag_writer import SegmentedBagWriter
 
 from laser_calib_nodes import common
+from laser_calib_nodes.parameters import NodeError
 
 
 class Recorder:
     def __init__(self, node: Node, bag_dir, work_dir, robot_name: str, record_images: bool, segment_seconds: float):
         from laser_calib_interfaces.msg import DhParameters, SpotPair
-        self.node = node
+        self.node, self.bag_dir = node, bag_dir
         recorded = [
             (common.JOINT_STATES, JointState, "sensor_msgs/msg/JointState", common.STREAM_QOS),
             (common.SPOTS, SpotPair, "laser_calib_interfaces/msg/SpotPair", common.STREAM_QOS),
@@ -38,6 +40,7 @@ class Recorder:
         topics = {node.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, _, kind, qos in recorded}
         topics.update({node.resolve_topic_name(name): (kind, [common.bag_qos(qos)]) for name, kind, qos in own})
         self.lock = threading.Lock()
+        self.failed: str | None = None  # why recording stopped (a full disk); check() ends the session on it
         self.bag: SegmentedBagWriter | None = SegmentedBagWriter(
             bag_dir, work_dir, topics, custom_data={"robot": robot_name}, max_segment_seconds=segment_seconds)
         for name in self.bag.recovered:
@@ -61,9 +64,25 @@ class Recorder:
                                     depth=max(qos.depth, 200), raw=True)
 
     def write(self, topic: str, data: bytes) -> None:
+        self._do(lambda bag: bag.write(topic, common.now_ns(self.node), data))
+
+    def _do(self, action) -> None:
+        """A bag action; one the disk refuses (full, gone) stops the recording, and check() then ends the
+        session: it raised in the executor's callback (a traceback, exit 1), and again in the sequencer's
+        own 'failed' line (a second traceback). The segments closed before stay, and the samples.csv rows."""
         with self.lock:
-            if self.bag is not None:
-                self.bag.write(topic, common.now_ns(self.node), data)
+            if self.bag is None:
+                return
+            try:
+                action(self.bag)
+            except (OSError, WriterError) as exc:
+                self.bag = None
+                self.failed = (f"recording into {self.bag_dir} failed ({exc}): the poses measured before are kept "
+                               "there; make room and run again to resume")
+
+    def check(self) -> None:
+        if self.failed:
+            raise NodeError(self.failed, 1)
 
     def write_frame(self, topic: str, data: bytes) -> None:
         """A camera message, unless the other subscription delivered it already (same header stamp, the
@@ -79,21 +98,19 @@ class Recorder:
     def publish(self, publisher, name: str, msg, close_segment: bool = False) -> None:
         """Publish and record. close_segment: on disk (segment closed) before it is published."""
         if close_segment:
-            with self.lock:
-                self.bag.write(self.node.resolve_topic_name(name), common.now_ns(self.node), serialize_message(msg))
-                self.bag.rotate()
+            topic, data = self.node.resolve_topic_name(name), serialize_message(msg)
+            self._do(lambda bag: (bag.write(topic, common.now_ns(self.node), data), bag.rotate()))
+            self.check()  # not on disk: not published
             publisher.publish(msg)
             return
         publisher.publish(msg)
         self.write(self.node.resolve_topic_name(name), serialize_message(msg))
 
     def rotate(self) -> None:
-        with self.lock:
-            if self.bag is not None:
-                self.bag.rotate()
+        self._do(lambda bag: bag.rotate())
+        self.check()
 
     def close(self) -> None:
+        self._do(lambda bag: bag.close())
         with self.lock:
-            if self.bag is not None:
-                self.bag.close()
-                self.bag = None
+            self.bag = None

@@ -151,6 +151,7 @@ class Sequencer(Node):
             while not predicate():
                 if self.stopping.is_set():
                     raise sequencer_parts.Stop()
+                self.recorder.check()  # a full disk: the session ends, what was measured kept
                 if time.monotonic() > deadline:
                     raise parameters.NodeError(what() if callable(what) else what, 3)
                 self.cond.wait(0.1)
