@@ -159,3 +159,17 @@ def test_a_collector_short_of_frames_says_what_their_stamps_were():
     between.add_frame(1000.01, np.zeros((2, 2)))
     between.add_state(1000.02, state)                 # 10 ms from either joint state: tolerance 1 ms
     assert between.shortfall() == "0 paired, 1 without a joint state within the tolerance"
+
+
+def test_a_driver_stamping_its_joint_states_0_is_named_when_the_arm_does_not_settle():
+    """joint_states stamped 0 (a driver of the user's that leaves the header empty) are all before
+    the command, so none counts: the session ended in 'arm not settled (no joint state since the
+    command)' while joint states came at 50 Hz. The line now says they came, stamped before it."""
+    s = SettleDetector(np.zeros(2), SettleRule(), after=1000.0)
+    assert s.worst_joint(["a", "b"]) == "no joint state since the command"
+    for _ in range(3):
+        assert not s.update(0.0, np.zeros(2), None)
+    assert s.worst_joint(["a", "b"]) == ("3 joint states since the command, every one stamped before it (the "
+                                         "latest 1000.000 s before: a driver stamping 0, or on another clock?)")
+    s.update(1000.5, np.array([0.0, 0.5]), None)      # one stamped after it: the usual line
+    assert s.worst_joint(["a", "b"]) == "b at 0.50000 rad, goal 0.00000"

@@ -36,10 +36,12 @@ class SettleDetector:
         self.after = float(after)
         self.since: float | None = None   # stamp of the first reading of the current calm stretch
         self.last_q: np.ndarray | None = None
+        self.early, self.early_stamp = 0, 0.0   # readings stamped before the command: count, latest stamp
 
     def update(self, stamp: float, q: np.ndarray, velocity: np.ndarray | None) -> bool:
         """Feed one joint state (q (N,), velocity (N,) or None); True once settled."""
         if stamp < self.after:
+            self.early, self.early_stamp = self.early + 1, float(stamp)
             return False
         self.last_q = np.asarray(q, dtype=float)
         calm = bool(np.all(np.abs(self.last_q - self.goal) < self.rule.position_tolerance))
@@ -54,6 +56,9 @@ class SettleDetector:
 
     def worst_joint(self, names: list[str]) -> str:
         """'<joint> at <reading> rad, goal <goal>' for the joint farthest from its goal."""
+        if self.last_q is None and self.early:  # readings came, stamped in the past: said, not 'none came'
+            return (f"{self.early} joint states since the command, every one stamped before it (the latest "
+                    f"{self.after - self.early_stamp:.3f} s before: a driver stamping 0, or on another clock?)")
         if self.last_q is None:
             return "no joint state since the command"
         worst = int(np.argmax(np.abs(self.last_q - self.goal)))
