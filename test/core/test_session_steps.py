@@ -149,8 +149,8 @@ def test_a_collector_short_of_frames_says_what_their_stamps_were():
         c.add_state(1000.0 + 0.02 * k, state)
         c.add_frame(0.0, np.zeros((2, 2)))            # unstamped frames
     assert not c.complete
-    assert c.shortfall() == ("0 paired, 5 stamped before the arm settled (the last 1000.000 s before: a camera stamping 0, "
-                             "or on another clock?)")
+    assert c.shortfall() == ("0 paired, 5 stamped before the arm settled (the last 1000.000 s before: a camera "
+                             "stamping 0, or on another clock?)")
     ahead = FrameCollector(frames=3, tolerance=0.01, settled_stamp=1000.0, settled_state=state)
     ahead.add_frame(1015.0, np.zeros((2, 2)))         # a camera clock 15 s ahead: waits for joint states
     assert ahead.shortfall().endswith("the newest frame is stamped 15.000 s after the newest joint state "
