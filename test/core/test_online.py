@@ -4,6 +4,7 @@ import numpy as np
 
 from laser_calib.estimation.estimate import EstimateOptions, estimate
 from laser_calib.estimation.online import OnlineEkf
+from laser_calib.session.estimate import online_options
 from laser_calib.sim.simulation import paper_session
 
 
@@ -32,6 +33,17 @@ def test_online_ekf_skips_unseen_spots_and_resets():
     online.reset()
     assert online.n_samples == 0 and np.all(online.errors == 0)
 
+
+
+def test_the_estimator_nodes_default_options_run_the_filter():
+    """The node's spot_sigma 0 leaves both sigmas to be estimated, which a running filter
+    cannot: it takes its default spot sigma and no joint noise (it raised a TypeError on the
+    first pose when the batch estimate began to estimate the joint-reading sigma)."""
+    session = paper_session("paper-4dof", 3)
+    online = OnlineEkf(session.nominal, online_options(0.0))
+    for q, spots in zip(session.samples.q[:5], session.samples.spots[:5]):
+        online.update(q, spots)
+    assert np.all(np.isfinite(online.errors)) and np.any(online.errors != 0)
 
 def test_a_pose_delivered_late_is_filtered_in_its_place():
     """The estimator node takes samples as DDS delivers them; a subscriber matched late gets

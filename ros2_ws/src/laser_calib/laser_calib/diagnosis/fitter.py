@@ -10,7 +10,6 @@ import numpy as np
 from scipy import stats
 
 from laser_calib.diagnosis.data import Data
-from laser_calib.diagnosis.noise import noise_components
 from laser_calib.diagnosis.options import DiagnoseOptions
 from laser_calib.diagnosis.result import Fitted
 from laser_calib.effects.base import Effect
@@ -21,6 +20,7 @@ from laser_calib.estimation.folds import kfold_labels
 from laser_calib.estimation.identifiability import TooFewValues
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.measurement.base import NoiseModel, count_values, whiten
+from laser_calib.measurement.noise_components import noise_components
 
 ESTIMATED_SIGMA = "the diagnosis estimated from the geometric fit's residual"  # no spot sigma given (Fitter.start)
 FINAL_SIGMA = "the diagnosis estimated from the final model's residual"  # no spot sigma given (Fitter.at_noise)

@@ -10,7 +10,7 @@ from scipy import stats
 
 from laser_calib.diagnosis.data import Data
 from laser_calib.diagnosis.detector import Detection
-from laser_calib.diagnosis.noise import deviance, noise_components, pure_error
+from laser_calib.diagnosis.noise import pure_error
 from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_REPEAT_DOF, STRUCTURE,
                                            UNDETERMINED, DiagnoseOptions)
 from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo, Prediction, Stage
@@ -20,6 +20,7 @@ from laser_calib.effects.base import positive_number
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.estimation.redundancy import NOISE_RATIO
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
+from laser_calib.measurement.noise_components import deviance, noise_components
 from laser_calib.model.robot import Robot
 from laser_calib.report.statistics import worse_on_test_warning
 

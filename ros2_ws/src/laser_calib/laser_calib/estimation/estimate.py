@@ -15,7 +15,12 @@ estimate(robot, samples, options) runs, in order:
    on the same Jacobians, then gross outliers rejected and listed where the
    rest leave residual values to judge them by (never too few: TooFewValues);
 3. if no spot sigma is given, a fit estimates it from the residual
-   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used
+   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used;
+   with the joint sigma not given either (None), both components by maximum
+   likelihood, the joint-reading noise kept where the residual shows it
+   (measurement.noise_components.joint_noise_evidence, p < JOINT_NOISE_ALPHA):
+   joint noise moves a pose's spots by the length of its levers, and a single
+   sigma spread evenly over the spots reports standard deviations too small
    (when the robust rule rejected spots, the fits after it start from its
    final least-squares minimum (by LM), which without a prior is that trial;
    with LM and no joint noise it is also the fit, rescaled to the sigma);
@@ -51,10 +56,10 @@ from laser_calib.estimation.failures import (NOT_CONVERGED, NoSpotToFit, beyond_
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse, check_fixed
 from laser_calib.estimation.impossible import impossible_spots, judged_again
-from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
+from laser_calib.estimation.lm import LmOptions, levenberg_marquardt, restarted, suspect
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses, rescaled,
                                             residuals_at, whitened_factor)
-from laser_calib.estimation.redundancy import NOISE_RATIO, sigma_warnings
+from laser_calib.estimation.redundancy import NOISE_RATIO, joint_noise, sigma_warnings
 from laser_calib.estimation.robust import NO_JOINT_NOISE, ROBUST_RULE, robust_fit
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import is_frame_param
@@ -68,12 +73,14 @@ METHODS = ("lm", "ekf")
 TRIAL_SIGMA = 0.001
 LISTED = 8         # poses named in one warning line
 MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
+JOINT_NOISE_ALPHA = 0.05   # the joint-reading noise a residual must show before it weighs the fit
 
 
 @dataclass(frozen=True)
 class EstimateOptions:
     """method 'lm' or 'ekf'; spot_sigma (m) per spot coordinate, None to estimate it;
-    joint_sigma (rad) of the joint readings; prior: tolerance prior_length (m) /
+    joint_sigma (rad) of the joint readings, None: estimated with the spot sigma when that
+    is (step 3), else 0; prior: tolerance prior_length (m) /
     prior_angle (rad) per error; robust outlier rejection (robust.py); fixed:
     parameter names held at nominal; restarts of LM when the minimum is suspect;
     std_factor: the identifiability threshold (identifiability.py), None for
@@ -82,7 +89,7 @@ class EstimateOptions:
     method: str = "lm"
     spot_sigma: float | None = None
     spot_sigma_source: str = "given"  # where spot_sigma came from, as the warnings name it (a caller may estimate it)
-    joint_sigma: float = 0.0
+    joint_sigma: float | None = 0.0
     prior: bool = False
     prior_length: float = LENGTH_SCALE
     prior_angle: float = ANGLE_SCALE
@@ -104,7 +111,8 @@ class EstimateOptions:
 @dataclass(frozen=True)
 class Estimate:
     """The result: fit holds x, the covariance and the history; sigma is the spot sigma used (estimated
-    when sigma_estimated); rejected: (pose index, channel) of the spots the robust rule dropped; impossible:
+    when sigma_estimated), joint_sigma the joint-reading sigma (rad; estimated when
+    joint_sigma_estimated); rejected: (pose index, channel) of the spots the robust rule dropped; impossible:
     (pose index, channel, reason) of the spots refused before the fit; robust: the rule and its figures,
     None when off; predicted_at_start (P,C,D): what the model predicts at the start x0 (the nominal model),
     as fit.predicted at the result; undetermined: what a failed fit kept whose std at its values is beyond
@@ -124,6 +132,8 @@ class Estimate:
     robust: dict | None = None
     predicted_at_start: np.ndarray | None = field(default=None, repr=False)
     undetermined: tuple[str, ...] = ()
+    joint_sigma: float = 0.0
+    joint_sigma_estimated: bool = False
 
     @property
     def values(self) -> np.ndarray:
@@ -235,7 +245,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     warnings: list[str] = []
 
     sigma = options.spot_sigma or TRIAL_SIGMA
-    noise = NoiseModel(sigma, options.joint_sigma)
+    noise = NoiseModel(sigma, options.joint_sigma or 0.0)
     # one pass at the start: its residuals and the whitened factor of every unit measured there
     start_factor, _, at_start = factor_and_residuals(model, noise, x0)
     seen, dims = at_start.valid, at_start.r.shape[2]   # (P,C) the units measured at the start, D values each
@@ -315,12 +325,17 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
             warnings.append(f"robust: the weights did not settle in {outcome.rounds} rounds")
 
     sigma_estimated = options.spot_sigma is None
+    joint_sigma, joint_estimated = noise.joint_sigma, False
     if sigma_estimated:
         trial = least_squares or levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x,
                                                      options.lm)
         sigma = TRIAL_SIGMA * float(np.sqrt(trial.chi2 / trial.dof))
         sigma_dof = trial.n_values - int(trial.free.sum())   # the residual values it rests on
-        noise = NoiseModel(max(sigma, 1e-9), options.joint_sigma)
+        if options.joint_sigma is None and sigma >= MIN_SIGMA:
+            spot, joint, p = joint_noise(model, trial, excluded)
+            if p < JOINT_NOISE_ALPHA:
+                sigma, joint_sigma, joint_estimated = spot, joint, True
+        noise = NoiseModel(max(sigma, 1e-9), joint_sigma)
         start_x = trial.x
     if sigma_estimated or rejected:
         ident = analyse(_factor_without(model, start_factor, start_noise, noise, x0, excluded, removed),
@@ -341,10 +356,14 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         result = rescaled(least_squares, noise.sigma / robust_sigma)
     else:
         result = fit(problem, start_x)
+    if joint_estimated and prior_sigma is None:
+        # the variance factor a posteriori: the likelihood set the components' ratio, chi^2 / dof their level
+        ratio = float(np.sqrt(result.chi2 / result.dof))
+        result, sigma, joint_sigma = rescaled(result, ratio), sigma * ratio, joint_sigma * ratio
     restarts = 0
-    if not sigma_estimated and _suspect(result):
-        result, restarts = _restart(problem, result, x0, free, model.scales, options)
-        if _suspect(result):
+    if not sigma_estimated and suspect(result):
+        result, restarts = restarted(problem, result, x0, model.scales, options.restarts, options.seed, options.lm)
+        if suspect(result):
             warnings.append(f"chi^2/dof = {result.chi2 / result.dof:.2f} with spot sigma {sigma * 1e3:.3g} mm "
                             f"(the residual says {sigma * np.sqrt(result.chi2 / result.dof) * 1e3:.3g} mm): the "
                             "residual exceeds the noise model (outliers, an unmodelled effect, or a wrong noise "
@@ -375,26 +394,5 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         "values are not a minimum")
     undetermined = beyond_data(names, free, result.std, model.scales, factor) if first_failure(warnings) else ()
     return Estimate(names, free.copy(), ident, result, sigma, sigma_estimated, tuple(rejected), tuple(warnings),
-                    time.perf_counter() - start, restarts, tuple(impossible), robust, at_start.predicted, undetermined)
-
-
-def _suspect(result: Fit) -> bool:
-    dof = result.dof
-    return result.chi2 > dof + 6.0 * np.sqrt(2.0 * dof)
-
-
-def _restart(problem: Problem, result: Fit, x0: np.ndarray, free: np.ndarray, scales: np.ndarray,
-             options: EstimateOptions) -> tuple[Fit, int]:
-    """Seeded random LM starts within twice the scales; the lowest cost wins."""
-    rng = np.random.default_rng(options.seed)
-    restarts = 0
-    for _ in range(options.restarts):
-        restarts += 1
-        start_x = x0.copy()
-        start_x[free] += rng.uniform(-2, 2, int(free.sum())) * scales[free]
-        candidate = levenberg_marquardt(problem, start_x, options.lm)
-        if candidate.cost < result.cost - 1e-9 * max(result.cost, 1.0):
-            result = candidate
-        if not _suspect(result):
-            break
-    return result, restarts
+                    time.perf_counter() - start, restarts, tuple(impossible), robust, at_start.predicted, undetermined,
+                    joint_sigma, joint_estimated)

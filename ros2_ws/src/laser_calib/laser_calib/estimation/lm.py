@@ -84,3 +84,28 @@ def _trial(problem: Problem, trial: np.ndarray, current: Normal) -> Normal | Non
             return None
     finite = np.isfinite(candidate.cost_under) and np.isfinite(candidate.information).all()
     return candidate if finite else None
+
+
+def suspect(fit: Fit) -> bool:
+    """A minimum whose chi^2 exceeds its dof by more than 6 sqrt(2 dof), the noise being known:
+    a wrong local minimum, an outlier or an unmodelled effect."""
+    return fit.chi2 > fit.dof + 6.0 * np.sqrt(2.0 * fit.dof)
+
+
+def restarted(problem: Problem, fit: Fit, x0: np.ndarray, scales: np.ndarray, count: int, seed: int,
+              options: LmOptions) -> tuple[Fit, int]:
+    """LM from up to ``count`` seeded random starts within twice the scales about x0 while the
+    minimum is suspect; the lowest cost wins. Returns it and the starts tried."""
+    rng = np.random.default_rng(seed)
+    free = problem.free
+    restarts = 0
+    for _ in range(count):
+        restarts += 1
+        start_x = x0.copy()
+        start_x[free] += rng.uniform(-2, 2, int(free.sum())) * scales[free]
+        candidate = levenberg_marquardt(problem, start_x, options)
+        if candidate.cost < fit.cost - 1e-9 * max(fit.cost, 1.0):
+            fit = candidate
+        if not suspect(fit):
+            break
+    return fit, restarts

@@ -36,7 +36,8 @@ class OnlineEkf:
 
     def __init__(self, robot: Robot, options: EstimateOptions = EstimateOptions(), q_noise: float = 0.0):
         self.robot = robot
-        self.noise = NoiseModel(options.spot_sigma or DEFAULT_SPOT_SIGMA, options.joint_sigma)
+        # a running filter has no residual to estimate either sigma from: what is not given is the default
+        self.noise = NoiseModel(options.spot_sigma or DEFAULT_SPOT_SIGMA, options.joint_sigma or 0.0)
         model = SpotModel(robot, Samples(np.zeros(0, int), np.zeros(0), np.zeros((0, robot.n_joints)),
                                          np.zeros((0, 2, 2))))
         prior = prior_sigmas(model, robot.n_params, EstimateOptions(prior=True, prior_length=options.prior_length,

@@ -331,8 +331,8 @@ def make_fit(problem: Problem, x: np.ndarray, normal: Normal, iterations: int, c
 
 
 def rescaled(fit: Fit, ratio: float) -> Fit:
-    """A least-squares fit without joint noise or prior under a noise sigma
-    ``ratio`` times its own: x stays, chi^2 and the costs scale by 1 / ratio^2,
-    the covariance by ratio^2."""
+    """A least-squares fit without a prior under a noise model ``ratio`` times its own
+    (both sigmas, or the spot sigma without joint noise): x stays, chi^2 and the
+    costs scale by 1 / ratio^2, the covariance by ratio^2."""
     return replace(fit, covariance=fit.covariance * ratio ** 2, cost=fit.cost / ratio ** 2,
                    chi2=fit.chi2 / ratio ** 2, cost_history=fit.cost_history / ratio ** 2)

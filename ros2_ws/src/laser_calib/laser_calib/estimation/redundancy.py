@@ -15,17 +15,22 @@ residual degrees of freedom nu, are all that judges an outlier or estimates the 
 - sigma_warnings: a spot sigma estimated from the residual rests on nu values: from 1 or 2
   no standard deviation means anything (Student's t with nu <= 2 has no finite variance):
   NOT A CALIBRATION; up to 7 the noise may be more than NOISE_RATIO times larger (95 %).
+- joint_noise: the residual's two noise components (spot, joint reading) and whether it
+  shows any joint-reading noise at all.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 # F and chi^2 quantiles without importing scipy.stats (seconds)
 from scipy.special import betaincinv, chdtri
 
 from laser_calib.estimation.failures import NOT_A_CALIBRATION
-from laser_calib.estimation.problem import Fit, Problem, n_poses
-from laser_calib.measurement.base import NoiseModel, Residuals
+from laser_calib.estimation.problem import Fit, Problem, n_poses, residuals_at
+from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals
+from laser_calib.measurement.noise_components import joint_noise_evidence
 
 FAMILY_FALSE_REJECTION = 0.01  # probability that a clean set loses a unit
 NOISE_RATIO = 2.0  # the residual's noise beyond 2x or below 1/2 the given sigma: a warning
@@ -108,3 +113,15 @@ def sigma_warnings(sigma: float, dof: int, remedy: str = "measure more poses or 
                 "(95 %), and every standard deviation with it; the values are less precise than their standard "
                 f"deviations say ({remedy})"]
     return []
+
+
+def joint_noise(model: MeasurementModel, trial: Fit, excluded: np.ndarray | None) -> tuple[float, float, float]:
+    """(spot sigma, joint sigma, p of no joint noise) of the trial fit's residual over the units it
+    fitted; p 1 for a model whose measurements do not depend on joint readings."""
+    res = residuals_at(model, trial.x, jacobian=True, parameters=False)
+    if res.jac_q is None:
+        return 0.0, 0.0, 1.0
+    if excluded is not None:
+        res = replace(res, valid=res.valid & ~excluded)
+    m = int(res.valid.sum()) * res.r.shape[2]
+    return joint_noise_evidence(res, float(np.sqrt(m / trial.dof)))

@@ -195,6 +195,8 @@ class Calibration:
                                 "unseen_combinations": list(ident.null_combinations), "merged": ident.merged},
             "spot_sigma_m": est.sigma,
             "spot_sigma_estimated": est.sigma_estimated,
+            "joint_sigma_rad": est.joint_sigma,
+            "joint_sigma_estimated": est.joint_sigma_estimated,
             "chi2": est.fit.chi2,
             "dof": est.fit.dof,
             "spot_error": self.spot_error,

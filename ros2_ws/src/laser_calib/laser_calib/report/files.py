@@ -132,7 +132,9 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     lines = [f"# Kinematic calibration of {robot.name}", "",
              f"Method: **{calibration.options.method}**, {len(samples)} calibration poses"
              + (f", {len(test)} test poses" if test is not None else "") + ". "
-             f"Spot sigma {est.sigma * 1e3:.3g} mm ({'estimated from the residual' if est.sigma_estimated else 'given'}); "
+             f"Spot sigma {est.sigma * 1e3:.3g} mm ({'estimated from the residual' if est.sigma_estimated else 'given'}), "
+             f"joint-reading sigma {np.degrees(est.joint_sigma):.3g} deg ("
+             f"{'estimated with it' if est.joint_sigma_estimated else 'given' if est.joint_sigma else 'none used'}); "
              f"{est.fit.iterations} iterations ({'converged' if est.fit.converged else 'NOT converged'}), "
              f"{est.wall_time * 1e3:.0f} ms; chi^2/dof = {est.fit.chi2 / est.fit.dof:.3f}.", ""]
     if est.warnings:

@@ -31,13 +31,15 @@ from laser_calib.session.folder import refuse_finished
 
 
 def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool) -> EstimateOptions:
-    """EstimateOptions from ROS-style values (method '' = 'lm', spot_sigma 0 = estimate it)."""
+    """EstimateOptions from ROS-style values (method '' = 'lm', spot_sigma 0 = estimate it, and the
+    joint-reading sigma with it, as the command line does without --spot-sigma and --joint-sigma)."""
     method = method or "lm"
     if method not in METHODS:
         raise InputError("method", f"expected one of {', '.join(METHODS)}, got {method!r}")
     if problem := spot_sigma_or_zero_problem(spot_sigma):
         raise InputError("spot_sigma", problem)
-    return EstimateOptions(method=method, spot_sigma=spot_sigma or None, prior=bool(prior), robust=bool(robust))
+    return EstimateOptions(method=method, spot_sigma=spot_sigma or None, joint_sigma=0.0 if spot_sigma else None,
+                           prior=bool(prior), robust=bool(robust))
 
 
 def online_options(spot_sigma: float) -> EstimateOptions:
