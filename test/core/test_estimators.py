@@ -124,7 +124,7 @@ def test_joint_noise_is_estimated_with_the_spot_sigma(case):
     a pose's spots by the length of its levers, and one spot sigma spread evenly over them made
     the standard deviations too small (0.5 mm spots, +-0.1 deg joints: mean d^2 / dof 4.0 on the
     7-DOF arm, 5.4 on the 4-DOF). Both components are estimated, and the errors are as consistent
-    with their covariance as with both sigmas given (on the 4-DOF arm both give about 1.6 here:
+    with their covariance as with both sigmas given (on the 4-DOF arm both give about 1.7 here:
     the linearised joint noise, not its estimate)."""
     noise = NoiseSpec(spot=0.0005, joint=np.deg2rad(0.1))
     d2 = {"estimated": [], "given": []}
@@ -167,6 +167,18 @@ def test_robust_rejects_a_wrong_detection():
     assert _mahalanobis(robust, session.errors) < chi2.ppf(0.999, 33)
     assert _mahalanobis(plain, session.errors) > _mahalanobis(robust, session.errors)
 
+
+def test_a_rejection_judged_before_the_joint_noise_was_estimated_says_so():
+    """The robust rule runs before the noise is estimated, so without joint noise: a spot it
+    rejected may be one a long lever scattered; the warning gives the joint sigma found after."""
+    noise = NoiseSpec(spot=0.0005, joint=np.deg2rad(0.1))
+    session = paper_session("paper-7dof", 6, noise=noise)
+    spots = session.samples.spots.copy()
+    spots[17, 1] += [0.03, -0.02]  # one spot 36 mm off: a reflection taken for the laser
+    est = estimate(session.nominal, replace(session.samples, spots=spots), EstimateOptions(joint_sigma=None))
+    assert (17, 1) in est.rejected and est.joint_sigma_estimated
+    said = [w for w in est.warnings if w.startswith("robust: the joint-reading noise the residual then showed, ")]
+    assert len(said) == 1 and said[0].endswith("rad) to judge them with it"), est.warnings
 
 def test_fixed_parameters_stay_nominal_and_are_reported_without_value():
     session = paper_session("paper-7dof", 8)

@@ -16,11 +16,9 @@ estimate(robot, samples, options) runs, in order:
    rest leave residual values to judge them by (never too few: TooFewValues);
 3. if no spot sigma is given, a fit estimates it from the residual
    (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used;
-   with the joint sigma not given either (None), both components by maximum
-   likelihood, the joint-reading noise kept where the residual shows it
-   (measurement.noise_components.joint_noise_evidence, p < JOINT_NOISE_ALPHA):
-   joint noise moves a pose's spots by the length of its levers, and a single
-   sigma spread evenly over the spots reports standard deviations too small
+   with the joint sigma not given either (None), both by maximum likelihood, the joint one
+   kept where the residual shows it (noise_components.joint_noise_evidence): it moves a
+   pose's spots by its levers' length; one sigma spread over them made the stds too small
    (when the robust rule rejected spots, the fits after it start from its
    final least-squares minimum (by LM), which without a prior is that trial;
    with LM and no joint noise it is also the fit, rescaled to the sigma);
@@ -335,6 +333,10 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
             spot, joint, p = joint_noise(model, trial, excluded)
             if p < JOINT_NOISE_ALPHA:
                 sigma, joint_sigma, joint_estimated = spot, joint, True
+                if rejected:  # judged before the noise was known, as NO_JOINT_NOISE says
+                    warnings.append(f"robust: the joint-reading noise the residual then showed, "
+                                    f"{np.degrees(joint):.2g} deg, was not in the rule: give that sigma "
+                                    f"({joint:.2g} rad) to judge them with it")
         noise = NoiseModel(max(sigma, 1e-9), joint_sigma)
         start_x = trial.x
     if sigma_estimated or rejected:
