@@ -11,15 +11,21 @@ Per laser (1: red, 2: green, see render.py):
    ``ambiguity_ratio`` of the first, which spot is the laser is unknown: not
    seen. Nor is a spot whose other channel rises with its own (by over
    ``max_other_ratio`` above the background): white or warm light, such as a
-   glint off the arm, whose small blob demosaicing fringes with colour.
+   glint off the arm, whose small blob demosaicing fringes with colour. Nor
+   are two lasers whose maxima are within ``exclusion_px``: each one's
+   crosstalk is in the other's fit.
 3. locate: weighted least-squares fit of a Gaussian on a tilted plane to the
    laser's own channel in a window around the maximum, using only photosites
    of the laser's colour (Bayer mosaic) that are not saturated, weighted by the
-   camera's noise model (read noise, shot noise, speckle). Its error is close
-   to the shot- and speckle-limited floor; a thresholded centroid (tried) was
-   15-25 % worse under speckle and locked to the pixel grid by up to 0.05 px.
-   A spot whose window leaves the image, or whose fit does not settle, is
-   not seen.
+   camera's noise model (read noise, shot noise, speckle); spot_fit.py. Its
+   error is close to the shot- and speckle-limited floor; a thresholded
+   centroid (tried) was 15-25 % worse under speckle and locked to the pixel
+   grid by up to 0.05 px. The window grows with the spot (second moment, then
+   the fitted sigma) to 5 sigmas. A spot whose window leaves the image, that
+   is too large for the largest window, whose fit does not settle, or whose
+   fit's chi^2 says the window holds more than one clean spot (a touching
+   spot, a reflection, compression artefacts) is not seen: each of these moved
+   the centre by 0.3-2 px while the spot was reported.
 4. map: undistort the fitted centre (cv2.undistortPoints, P = K) and apply the
    homography to screen metres. A spot outside the measuring area
    (|y| > half_y or |z| > half_z) is not a measurement (conventions.md): not seen.
@@ -37,12 +43,14 @@ integrates it numerically), 50 times below the detector's noise.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from laser_calib.vision.camera import ScreenCalibration
+from laser_calib.vision.spot_fit import background_and_width, fit_spot
 
 
 @dataclass(frozen=True)
@@ -61,7 +69,9 @@ class DetectorOptions:
         render.RenderOptions defaults gives 25 (screen corners, where
         vignetting dims it) to 70.
     exclusion_px, ambiguity_ratio: a second maximum farther than exclusion_px
-        from the first and at least ambiguity_ratio of it makes the laser ambiguous.
+        from the first and at least ambiguity_ratio of it makes the laser ambiguous. The two lasers'
+        maxima within exclusion_px: each laser's crosstalk (6-12 %) is in the other's fit window, and
+        moved the centres by up to 0.46 px at 2-4 px apart (bench/results/spot_refusal.md): neither is seen.
     max_other_ratio: over the unsaturated pixels of the smoothing box, a spot of this laser
         raises the other channel by its crosstalk only (5-21 % of its own rise in the renderer,
         up to 0.6 for a spot 50 times overexposed, blooming or not); white light raises both
@@ -69,13 +79,27 @@ class DetectorOptions:
         contrast. Above it: not seen. Of 150 frames with the lasers off and a white glint
         (sigma 0.5-3 px, 100-3000 DN), 22 gave a spot without this test, 3 with it (glints
         narrower than a spot: fitted sigma 0.57-0.92 px).
-    window_half_px: the fit window is (2 w + 1)^2 pixels, >= 5 spot sigmas.
+    window_half_px, max_window_half_px: the fit window is (2 w + 1)^2 pixels, w >= 5 spot sigmas: it
+        starts at window_half_px and grows with the spot; a spot of sigma > max_window_half_px / 5 px
+        (defocused) is not seen.
+    false_refusal_rate: the fit's chi^2, weighted by the noise model below, of a clean spot follows the
+        chi^2 distribution of the window's fitted photosites less 7 parameters (~50 red, ~105 green in a
+        15 x 15 window; clean spots: chi^2 / dof 1.00-1.02). Above its upper false_refusal_rate quantile
+        the window holds more than one clean spot: not seen. A rate, not a tuned threshold: the quantile
+        follows the window's photosite count. Measured: 3 of 2400 clean spots refused (room and
+        calibration light, screen corners, 5x over-exposure; bench/results/spot_refusal.md), 5 of 1000 in
+        vision_bench's main run: 2.4e-3 at the default 1e-3 (this chi^2 spreads up to 1.13 times the
+        distribution's, chi^2 / dof 1.00-1.02 on average). Of the spots a
+        touching spot, a reflection or JPEG (quality <= 90) moved by > 0.3 px, 4 of 192 still pass (JPEG
+        at quality 50-75: smoothing lowers the chi^2). Only with a bayer_pattern: without one the pixels
+        are interpolations (demosaiced, 4:2:2 chroma) whose noise is not the model's (chi^2 / dof 1.4-2.5).
     gain_e_per_dn, read_noise_dn, speckle_contrast: the noise model that
         weights the fit: variance = read^2 + signal / gain + (contrast * spot)^2.
         read_noise_dn includes the 8-bit quantisation (0.29 DN). Defaults are
         those of render.RenderOptions; for a real camera take the
         gain and read noise from its data sheet and the speckle contrast from
-        the scatter of fits to a still spot (overestimating it costs little).
+        the scatter of fits to a still spot. Overestimating it costs little accuracy but blunts the
+        chi^2 test (false_refusal_rate); underestimating it refuses clean spots (bench/vision_bench.py).
     """
 
     half_y: float = 1.0
@@ -87,6 +111,8 @@ class DetectorOptions:
     ambiguity_ratio: float = 0.5
     max_other_ratio: float = 0.7
     window_half_px: int = 7
+    max_window_half_px: int = 40
+    false_refusal_rate: float = 1e-3
     gain_e_per_dn: float = 10000.0 / 255.0
     read_noise_dn: float = 0.4
     speckle_contrast: float = 0.1
@@ -107,8 +133,8 @@ class SpotDetector:
             raise ValueError(f"bayer_pattern must be 4 letters of R, G, B with both R and G, got {pattern!r}")
         self.calibration = calibration
         self.options = options
-        w = options.window_half_px
-        self._offsets = np.arange(-w, w + 1, dtype=float)
+        # see false_refusal_rate: no chi^2 test on interpolated pixels
+        self._refusal_rate = options.false_refusal_rate if pattern is not None else None
 
     def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(spots_yz (2,2) float m, NaN where not seen; seen (2,) bool) of lasers 1 and 2."""
@@ -117,8 +143,10 @@ class SpotDetector:
             raise ValueError(f"expected a bgr8 image of {calibration.width} x {calibration.height}, "
                              f"got {image.dtype} {image.shape}")
         channels = cv2.split(image)
-        pixels = [self._locate(channels[_OWN_CHANNEL[j]], channels[_OTHER_CHANNEL[j]], _COLOUR[j])
-                  for j in range(2)]
+        maxima, pixels = zip(*(self._locate(channels[_OWN_CHANNEL[j]], channels[_OTHER_CHANNEL[j]], _COLOUR[j])
+                               for j in range(2)))
+        if None not in maxima and np.hypot(*np.subtract(*maxima)) <= self.options.exclusion_px:
+            pixels = (None, None)  # each laser's crosstalk is in the other's fit: both centres pulled
         spots = np.full((2, 2), np.nan)
         found = [j for j in range(2) if pixels[j] is not None]
         if found:
@@ -127,27 +155,50 @@ class SpotDetector:
         spots[~inside] = np.nan
         return spots, inside
 
-    def _locate(self, own: np.ndarray, other: np.ndarray, colour: str) -> np.ndarray | None:
-        """Sub-pixel (u, v) of this laser's spot, or None if there is none or it is ambiguous."""
+    def _locate(self, own: np.ndarray, other: np.ndarray, colour: str
+                ) -> tuple[tuple[int, int] | None, np.ndarray | None]:
+        """(Pixel of the maximum of this laser's colour contrast, None if too dim; sub-pixel (u, v) of its
+        spot, or None if there is none, it is ambiguous or not one clean spot)."""
         o = self.options
         contrast = cv2.blur(cv2.subtract(own, other), (o.smooth_px, o.smooth_px))
         _, peak, _, (u, v) = cv2.minMaxLoc(contrast)
         if peak < o.min_peak_dn:
-            return None
+            return None, None
+        return (u, v), self._centre(own, other, contrast, peak, u, v, colour)
+
+    def _centre(self, own: np.ndarray, other: np.ndarray, contrast: np.ndarray, peak: float, u: int, v: int,
+                colour: str) -> np.ndarray | None:
+        """Sub-pixel (u, v) of the spot whose contrast peaks at pixel (u, v), or None."""
+        o = self.options
         r = o.exclusion_px
         contrast[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1] = 0
         if cv2.minMaxLoc(contrast)[1] >= o.ambiguity_ratio * peak:
             return None
-        w = o.window_half_px
         height, width = own.shape
+        w = o.window_half_px
         if u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
             return None  # a spot cut by the image edge has no trustworthy centre
         own_rise, other_rise = self._rises(own, other, u, v)
         if other_rise > o.max_other_ratio * own_rise:
             return None  # white light (a glint, a lamp), not this laser's colour
-        window = own[v - w:v + w + 1, u - w:u + w + 1].astype(float)
-        offset = self._fit(window, self._photosites(u - w, v - w, colour))
-        return None if offset is None else offset + (u, v)
+        width_px = 0.0
+        for _ in range(4):  # the window grows with the spot until it holds 5 of its sigmas
+            if u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
+                return None  # the spot's window is cut by the image edge
+            window = own[v - w:v + w + 1, u - w:u + w + 1].astype(float)
+            width_px = max(width_px, background_and_width(window)[2])
+            if 5.0 * width_px <= w:
+                fit = fit_spot(window, self._photosites(u - w, v - w, w, colour),
+                               (o.read_noise_dn, o.gain_e_per_dn, o.speckle_contrast), self._refusal_rate)
+                if fit is None:
+                    return None  # no spot, or not one clean spot: its centre would be biased
+                offset, width_px = fit
+                if 5.0 * width_px <= w:
+                    return offset + (u, v)
+            w = int(math.ceil(5.0 * width_px))
+            if w > o.max_window_half_px:
+                return None  # too large a spot (defocused) for the largest window
+        return None
 
     def _rises(self, own: np.ndarray, other: np.ndarray, u: int, v: int) -> tuple[float, float]:
         """Mean rise (DN) of the own and the other channel above the median of the fit window's rim, over
@@ -165,54 +216,12 @@ class SpotDetector:
             return 0.0, 0.0
         return float(boxes[0][keep].mean() - rises[0]), float(boxes[1][keep].mean() - rises[1])
 
-    def _photosites(self, col0: int, row0: int, colour: str) -> np.ndarray:
+    def _photosites(self, col0: int, row0: int, w: int, colour: str) -> np.ndarray:
         """(2w+1, 2w+1) bool: which pixels of the window starting at (col0, row0) measured ``colour``."""
-        size = 2 * self.options.window_half_px + 1
+        size = 2 * w + 1
         pattern = self.options.bayer_pattern
         if pattern is None:
             return np.ones((size, size), bool)
         rows = (row0 + np.arange(size))[:, None] % 2
         cols = (col0 + np.arange(size))[None, :] % 2
         return np.array([letter == colour for letter in pattern])[2 * rows + cols]
-
-    def _fit(self, window: np.ndarray, photosites: np.ndarray) -> np.ndarray | None:
-        """Offset (du, dv) of the spot from the window centre, by a weighted Gaussian fit.
-
-        Model: A exp(-r^2 / 2 s^2) + b0 + bu du + bv dv over the unsaturated
-        photosites (a clipped core carries no shape information), weighted by
-        the noise model, re-weighted each Gauss-Newton step with the current
-        model. Start: thresholded centroid. None if the fit does not settle on
-        a plausible spot (centre inside the window, 0.4 < s < 5 px, A > 0).
-        """
-        o = self.options
-        w = o.window_half_px
-        rim = np.concatenate([window[0], window[-1], window[1:-1, 0], window[1:-1, -1]])
-        background = np.median(rim)
-        signal = window - background
-        weights = np.maximum(signal - 0.1 * signal.max(), 0.0)
-        use = photosites & (window < 255)
-        if weights.sum() <= 0.0 or use.sum() < 12:
-            return None
-        start = np.array([weights.sum(axis=0) @ self._offsets, weights.sum(axis=1) @ self._offsets]) / weights.sum()
-        du, dv = np.meshgrid(self._offsets, self._offsets)
-        du, dv, z = du[use], dv[use], window[use]
-        q = np.array([signal.max(), start[0], start[1], 1.3, background, 0.0, 0.0])
-        for _ in range(12):
-            amplitude, u0, v0, s = q[:4]
-            x, y = du - u0, dv - v0
-            gauss = np.exp(-(x * x + y * y) / (2 * s * s))
-            spot = amplitude * gauss
-            model = spot + q[4] + q[5] * du + q[6] * dv
-            sigma = np.sqrt(o.read_noise_dn ** 2 + np.maximum(model, 0.0) / o.gain_e_per_dn
-                            + (o.speckle_contrast * spot) ** 2)
-            jacobian = np.column_stack([gauss, spot * x / s ** 2, spot * y / s ** 2, spot * (x * x + y * y) / s ** 3,
-                                        np.ones_like(x), du, dv]) / sigma[:, None]
-            step = np.linalg.lstsq(jacobian, (z - model) / sigma, rcond=None)[0]
-            q = q + step
-            if np.max(np.abs(step[1:3])) < 1e-4:
-                break
-        else:
-            return None
-        if not (q[0] > 0 and 0.4 < q[3] < 5.0 and np.all(np.abs(q[1:3]) < w - 1)):
-            return None
-        return q[1:3]
