@@ -81,6 +81,19 @@ def test_a_camera_info_sent_once_and_lost_holds_back_a_few_frames_with_a_warning
     assert f"no CameraInfo on /camera/camera_info in {held_back} frames" in ros.log("spot_detector")
 
 
+def test_a_refused_spot_is_a_warning_with_why(ros):
+    """A camera noisier than spot_detector's noise parameters say (here: no speckle, a near
+    noiseless sensor) has its clean spots refused as not one clean spot; the sequencer only sees
+    'not seen', so the detector's WARN names the laser and why, which says what to set."""
+    ros.start("spot_detector", "-p", "speckle_contrast:=0.0", "-p", "gain_e_per_dn:=1000000.0",
+              "-p", "read_noise_dn:=0.01")
+    got = run_camera(ros, "bgr8", "0", "20", "reliable", "3")
+    assert got["frames"] == 3 and not np.array(got["spots"])[:, :, 2].any(), got
+    log = ros.log("spot_detector")
+    assert "laser 1 refused: not one clean spot: its fit's chi^2 is" in log, log
+    assert "laser 2 refused: not one clean spot" in log and "Traceback" not in log
+
+
 def test_sequencer_records_a_best_effort_camera(ros, tmp_path):
     """The bag holds camera_info (and the images, record_images) of a best-effort driver, whose
     frames a reliable subscription never matched (none were recorded), and each frame of a

@@ -17,6 +17,8 @@ CASES = {  # name: (node, parameters, the reason's start)
     "camera_rate": ("camera_sim", ["rate:=.inf"], "error: parameter rate: expected > 0"),
     "camera_sigma": ("camera_sim", ["spot_sigma:=0.0"], "error: parameter spot_sigma: expected > 0"),
     "detector_half": ("spot_detector", ["screen.half_y:=-1.0"], "error: parameter screen.half_y: expected > 0"),
+    "detector_rate": ("spot_detector", ["false_refusal_rate:=1.5"],
+                      "error: parameter false_refusal_rate: expected 0..1, got 1.5"),
     # millimetres typed as metres: a camera's noise of half a metre, every spot weighted as noise
     "estimator_sigma": ("estimator", [f"robot:={ROBOT}", "spot_sigma:=0.5"],
                         "error: parameter spot_sigma: 0.5 m is not a plausible spot noise"),

@@ -127,13 +127,15 @@ def test_dim_or_ambiguous_spot_is_not_seen(camera, detector):
     rng = np.random.default_rng(5)
     spots = np.array([[0.1, 0.2], [-0.3, -0.4]])
     dim = RenderOptions(laser_radiance_dn=(60.0, 600.0))
-    found, seen = detector.detect(render_frame(camera, spots, BOTH, rng, dim))
+    found, seen, why = detector.detect_why(render_frame(camera, spots, BOTH, rng, dim))
     np.testing.assert_array_equal(seen, [False, True])
+    assert why == (None, None)  # too dim is no spot, not a refusal: the node says nothing of it
     # A second red spot (a reflection, say) makes laser 1 ambiguous; laser 2 is unaffected.
     first = render_frame(camera, spots, BOTH, rng)
     second = render_frame(camera, np.array([[-0.5, 0.6], [0.0, 0.0]]), np.array([True, False]), rng)
-    found, seen = detector.detect(np.maximum(first, second))
+    found, seen, why = detector.detect_why(np.maximum(first, second))
     np.testing.assert_array_equal(seen, [False, True])
+    assert why[0].startswith("a second spot of its colour") and why[1] is None, why
 
 
 def test_white_glint_is_not_a_laser(camera, detector):
@@ -230,8 +232,9 @@ def test_touching_spots_are_refused(camera, detector):
             angle = rng.uniform(0.0, 2.0 * np.pi)
             spots = np.array([first, _offset_px(camera, first, distance_px * np.cos(angle),
                                                 distance_px * np.sin(angle))])
-            found, seen = detector.detect(render_frame(camera, spots, BOTH, rng))
+            found, seen, why = detector.detect_why(render_frame(camera, spots, BOTH, rng))
             assert not seen.any(), (distance_px, _pixel_errors(camera, found, spots))
+            assert all("the other laser's spot" in reason for reason in why), why  # the node logs it
 
 
 def test_reflection_beside_spot_is_refused(camera, detector):
@@ -250,8 +253,9 @@ def test_reflection_beside_spot_is_refused(camera, detector):
         scene = _photosites(camera, base, layout, spots, BOTH, rng, options)
         scene += _photosites(camera, np.zeros_like(base), layout, blob, np.array([True, False]), rng,
                              RenderOptions(laser_radiance_dn=(120.0, 0.0)))
-        found, seen = detector.detect(_expose(scene, rng, options))
+        found, seen, why = detector.detect_why(_expose(scene, rng, options))
         np.testing.assert_array_equal(seen, [False, True])
+        assert why[0].startswith("not one clean spot: its fit's chi^2") and why[1] is None, why
 
 
 def test_defocused_spot_is_measured_within_noise(camera, detector):

@@ -19,7 +19,9 @@ Publishes   laser1/spot, laser2/spot (geometry_msgs/PointStamped, frame
             spots (laser_calib_interfaces/SpotPair): both lasers of every
             frame, with seen = false (and NaN) for a missing spot, which is what
             the sequencer and the estimator use: they can tell a frame without
-            a spot from a frame not yet arrived.
+            a spot from a frame not yet arrived. A spot there but refused (not one
+            clean spot, white light, ambiguous, cut by the image edge, too large)
+            is a WARN line with why, at most one every 5 s.
 Capture     ``capture_dir`` non-empty: also save ``capture_count`` frames, one
             every ``capture_period`` s, as PNG (bgr8) for `laser-calib
             screen-calibrate` (board views while the board is moved, or screen
@@ -69,17 +71,28 @@ class SpotDetectorNode(Node):
                                              "camera measuring every colour per pixel. Raw bayer_* images give it.")
         self.mono_pattern = d("mono_pattern", "", "mono8 images are this raw Bayer mosaic (e.g. RGGB); empty: "
                                                   "mono8 is refused (it cannot tell the lasers apart).") or None
+        defaults = DetectorOptions()
+        noise = {name: d(name, getattr(defaults, name), text) for name, text in (
+            ("gain_e_per_dn", "Camera gain, electrons per DN (data sheet): the spot fit's shot noise."),
+            ("read_noise_dn", "Read noise with the 8-bit quantisation, DN (data sheet)."),
+            ("speckle_contrast", "Speckle on the screen, std / spot signal (from the scatter of fits to a still "
+                                 "spot). Too low, clean spots are refused as not one clean spot (a WARN says so)."),
+            ("false_refusal_rate", "Chance that the spot fit's chi^2 test refuses a clean spot (0..1)."))}
         self.capture_dir = d("capture_dir", "", "Save frames here (PNG) for laser-calib screen-calibrate; empty: off.")
         self.capture_left = d("capture_count", 10, "Frames to save in capture_dir.")
         self.capture_period = d("capture_period", 1.0, "Seconds between saved frames (move the board meanwhile).")
         for name, value in (("screen.half_y", half_y), ("screen.half_z", half_z)):
             parameters.checked(name, value, parameters.positive)  # else no spot is ever inside: every frame 'not seen'
+        for name, check in (("gain_e_per_dn", parameters.positive), ("read_noise_dn", parameters.positive),
+                            ("speckle_contrast", parameters.non_negative),
+                            ("false_refusal_rate", lambda rate: None if 0 < rate < 1 else f"expected 0..1, got {rate}")):
+            parameters.checked(name, noise[name], check)
         if path:
             self.calibration = load_calibration(path)
         else:
             self.calibration = default_camera().ideal_calibration()
             self.get_logger().info("calibration: the simulated camera's exact one (parameter calibration is empty)")
-        self.options = DetectorOptions(half_y=half_y, half_z=half_z, min_peak_dn=min_peak,
+        self.options = DetectorOptions(half_y=half_y, half_z=half_z, min_peak_dn=min_peak, **noise,
                                        bayer_pattern=None if pattern.lower() == "none" else pattern.upper())
         try:
             self.detectors = {None: SpotDetector(self.calibration, self.options)}
@@ -167,9 +180,12 @@ class SpotDetectorNode(Node):
         if self.info_problem:
             return self.reject(self.info_problem)
         try:
-            spots, seen = self.detector(msg.encoding).detect(image)
+            spots, seen, refused = self.detector(msg.encoding).detect_why(image)
         except ValueError as exc:  # a size the calibration is not for
             return self.reject(str(exc))
+        if any(refused):  # a spot there, not measured: the sequencer sees only 'not seen'
+            said = "; ".join(f"laser {j + 1} refused: {why}" for j, why in enumerate(refused) if why)
+            self.get_logger().warning(said, throttle_duration_sec=5.0)
         pair = self.SpotPair()
         pair.header.stamp = msg.header.stamp
         pair.header.frame_id = common.SCREEN_FRAME

@@ -138,27 +138,36 @@ class SpotDetector:
 
     def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(spots_yz (2,2) float m, NaN where not seen; seen (2,) bool) of lasers 1 and 2."""
+        return self.detect_why(image)[:2]
+
+    def detect_why(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[str | None, str | None]]:
+        """detect, and why each laser's spot was refused (None where it is seen or none is there)."""
         calibration = self.calibration
         if image.shape != (calibration.height, calibration.width, 3) or image.dtype != np.uint8:
             raise ValueError(f"expected a bgr8 image of {calibration.width} x {calibration.height}, "
                              f"got {image.dtype} {image.shape}")
         channels = cv2.split(image)
-        maxima, pixels = zip(*(self._locate(channels[_OWN_CHANNEL[j]], channels[_OTHER_CHANNEL[j]], _COLOUR[j])
-                               for j in range(2)))
-        if None not in maxima and np.hypot(*np.subtract(*maxima)) <= self.options.exclusion_px:
-            pixels = (None, None)  # each laser's crosstalk is in the other's fit: both centres pulled
+        maxima, centres = zip(*(self._locate(channels[_OWN_CHANNEL[j]], channels[_OTHER_CHANNEL[j]], _COLOUR[j])
+                                for j in range(2)))
+        if None not in maxima and (apart := float(np.hypot(*np.subtract(*maxima)))) <= self.options.exclusion_px:
+            # each laser's crosstalk is in the other's fit: both centres pulled
+            centres = (f"the other laser's spot is {apart:.0f} px away, within exclusion_px: each one's light is in "
+                       "the other's fit",) * 2
+        why = tuple(c if isinstance(c, str) else None for c in centres)
         spots = np.full((2, 2), np.nan)
-        found = [j for j in range(2) if pixels[j] is not None]
+        found = [j for j in range(2) if isinstance(centres[j], np.ndarray)]
         if found:
-            spots[found] = calibration.pixels_to_screen(np.array([pixels[j] for j in found]))
+            spots[found] = calibration.pixels_to_screen(np.array([centres[j] for j in found]))
         inside = (np.abs(spots[:, 0]) <= self.options.half_y) & (np.abs(spots[:, 1]) <= self.options.half_z)
+        why = tuple(reason if reason or inside[j] or j not in found else "outside the screen's measuring area"
+                    for j, reason in enumerate(why))
         spots[~inside] = np.nan
-        return spots, inside
+        return spots, inside, why
 
     def _locate(self, own: np.ndarray, other: np.ndarray, colour: str
-                ) -> tuple[tuple[int, int] | None, np.ndarray | None]:
+                ) -> tuple[tuple[int, int] | None, np.ndarray | str | None]:
         """(Pixel of the maximum of this laser's colour contrast, None if too dim; sub-pixel (u, v) of its
-        spot, or None if there is none, it is ambiguous or not one clean spot)."""
+        spot, None if there is none, or why it is refused: ambiguous, not one clean spot, ...)."""
         o = self.options
         contrast = cv2.blur(cv2.subtract(own, other), (o.smooth_px, o.smooth_px))
         _, peak, _, (u, v) = cv2.minMaxLoc(contrast)
@@ -167,38 +176,40 @@ class SpotDetector:
         return (u, v), self._centre(own, other, contrast, peak, u, v, colour)
 
     def _centre(self, own: np.ndarray, other: np.ndarray, contrast: np.ndarray, peak: float, u: int, v: int,
-                colour: str) -> np.ndarray | None:
-        """Sub-pixel (u, v) of the spot whose contrast peaks at pixel (u, v), or None."""
+                colour: str) -> np.ndarray | str:
+        """Sub-pixel (u, v) of the spot whose contrast peaks at pixel (u, v), or why it is refused."""
         o = self.options
         r = o.exclusion_px
         contrast[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1] = 0
         if cv2.minMaxLoc(contrast)[1] >= o.ambiguity_ratio * peak:
-            return None
+            return f"a second spot of its colour, farther than {r} px, is at least {o.ambiguity_ratio:g} of it"
         height, width = own.shape
         w = o.window_half_px
+        edge = "its fit window is cut by the image edge"   # no trustworthy centre
         if u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
-            return None  # a spot cut by the image edge has no trustworthy centre
+            return edge
         own_rise, other_rise = self._rises(own, other, u, v)
         if other_rise > o.max_other_ratio * own_rise:
-            return None  # white light (a glint, a lamp), not this laser's colour
+            return "white light (a glint, a lamp), not the laser's colour"
         width_px = 0.0
         for _ in range(4):  # the window grows with the spot until it holds 5 of its sigmas
             if u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
-                return None  # the spot's window is cut by the image edge
+                return edge
             window = own[v - w:v + w + 1, u - w:u + w + 1].astype(float)
             width_px = max(width_px, background_and_width(window)[2])
             if 5.0 * width_px <= w:
                 fit = fit_spot(window, self._photosites(u - w, v - w, w, colour),
                                (o.read_noise_dn, o.gain_e_per_dn, o.speckle_contrast), self._refusal_rate)
-                if fit is None:
-                    return None  # no spot, or not one clean spot: its centre would be biased
+                if isinstance(fit, str):
+                    return fit  # no spot, or not one clean spot: its centre would be biased
                 offset, width_px = fit
                 if 5.0 * width_px <= w:
                     return offset + (u, v)
             w = int(math.ceil(5.0 * width_px))
             if w > o.max_window_half_px:
-                return None  # too large a spot (defocused) for the largest window
-        return None
+                return (f"a spot of sigma {width_px:.1f} px (defocused?) is larger than the largest fit window "
+                        f"holds (max_window_half_px / 5 = {o.max_window_half_px / 5:g} px)")
+        return "its fit window did not settle on the spot's size"
 
     def _rises(self, own: np.ndarray, other: np.ndarray, u: int, v: int) -> tuple[float, float]:
         """Mean rise (DN) of the own and the other channel above the median of the fit window's rim, over

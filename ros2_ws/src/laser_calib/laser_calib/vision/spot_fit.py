@@ -6,33 +6,21 @@ degrees of freedom (photosites fitted minus the 7 parameters). A window that
 holds more than the model (a second spot or the other laser's crosstalk
 touching it, a reflection, JPEG blocks, a spot cut by the image) leaves
 residual structure the noise cannot explain, and that structure is what moves
-the centre: such a fit is refused (None), as a spot that is not seen.
+the centre: such a fit is refused, as a spot that is not seen, with the reason.
 """
 
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
+from scipy.special import chdtri
 
 _PARAMETERS = 7  # amplitude, centre (2), sigma, plane (3)
 # A clean Gaussian thresholded at 10 % of its peak has a weighted second moment of 0.604 s^2 per axis:
 # <x^2> = s^2 (1 - t - t u - t u^2 / 2) / (1 - t - t u), t = 0.1, u = -ln t.
 _THRESHOLD = 0.1
 _MOMENT_PER_VARIANCE = 0.604
-
-
-@lru_cache(maxsize=256)
-def chi2_limit(dof: int, rate: float) -> float:
-    """Upper ``rate`` quantile of chi^2 with ``dof`` degrees of freedom (Wilson-Hilferty: within 0.6 % of
-    scipy's for dof >= 20 at rates down to 1e-4; fewer dof only where a saturated core is left out)."""
-    low, high = 0.0, 40.0
-    for _ in range(80):  # standard normal quantile by bisection: numpy/math have no inverse erfc
-        mid = 0.5 * (low + high)
-        low, high = (mid, high) if 0.5 * math.erfc(mid / math.sqrt(2.0)) > rate else (low, mid)
-    scale = 2.0 / (9.0 * dof)
-    return dof * (1.0 - scale + 0.5 * (low + high) * math.sqrt(scale)) ** 3
 
 
 def background_and_width(window: np.ndarray) -> tuple[float, np.ndarray, float]:
@@ -57,24 +45,25 @@ def background_and_width(window: np.ndarray) -> tuple[float, np.ndarray, float]:
 
 
 def fit_spot(window: np.ndarray, photosites: np.ndarray, noise: tuple[float, float, float], rate: float | None
-             ) -> tuple[np.ndarray, float] | None:
+             ) -> tuple[np.ndarray, float] | str:
     """(offset (du, dv) of the spot from the window centre, its sigma px) by a weighted Gaussian fit.
 
     Model: A exp(-r^2 / 2 s^2) + b0 + bu du + bv dv over the unsaturated
     photosites (a clipped core carries no shape information), weighted by the
     noise model ``noise`` = (read noise DN, gain e-/DN, speckle contrast),
     re-weighted each Gauss-Newton step with the current model. Start:
-    thresholded centroid and second moment. None if the fit does not settle
-    on a plausible spot (centre inside the window, s > 0.4 px, A > 0) or its
-    chi^2 exceeds the upper ``rate`` quantile of its degrees of freedom (no
-    test if ``rate`` is None: pixels whose noise is not the model's).
+    thresholded centroid and second moment. Why it is refused instead, if the
+    fit does not settle on a plausible spot (centre inside the window, s > 0.4
+    px, A > 0) or its chi^2 exceeds the upper ``rate`` quantile of chi^2 with its
+    degrees of freedom (no test if ``rate`` is None: pixels whose noise is not
+    the model's).
     """
     read, gain, speckle = noise
     w = window.shape[0] // 2
     background, weights, width = background_and_width(window)
     use = photosites & (window < 255)
     if weights.sum() <= 0.0 or use.sum() < 2 * _PARAMETERS:
-        return None
+        return "too few unsaturated photosites of its colour to fit"
     offsets = np.arange(-w, w + 1, dtype=float)
     start = np.array([weights.sum(axis=0) @ offsets, weights.sum(axis=1) @ offsets]) / weights.sum()
     du, dv = np.meshgrid(offsets, offsets)
@@ -95,11 +84,14 @@ def fit_spot(window: np.ndarray, photosites: np.ndarray, noise: tuple[float, flo
         if np.max(np.abs(step[1:3])) < 1e-4:
             break
     else:
-        return None
+        return "its fit did not settle"
     if not (q[0] > 0 and q[3] > 0.4 and np.all(np.abs(q[1:3]) < w - 1)):
-        return None
+        return "its fit settled on no plausible spot"
     # The residual of the last step, less what that step removed (linear in it): chi^2 at the solution.
     chi2 = float(np.sum((residual - jacobian @ step) ** 2))
-    if rate is not None and chi2 > chi2_limit(int(use.sum()) - _PARAMETERS, rate):
-        return None
+    dof = int(use.sum()) - _PARAMETERS
+    if rate is not None and chi2 > (limit := float(chdtri(dof, rate))):
+        return (f"not one clean spot: its fit's chi^2 is {chi2:.0f} on {dof} dof, beyond {limit:.0f} (a second "
+                "spot or a reflection in the window, compression, or more noise than the detector's gain, read "
+                "noise and speckle contrast say)")
     return q[1:3], float(q[3])
