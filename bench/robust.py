@@ -4,8 +4,8 @@ Two data sets, each calibrated clean and with a fraction of its measurements
 replaced by gross outliers, by plain least squares (--no-robust) and by the
 robust rule (estimation/robust.py):
 
-1. the paper's 7-DOF arm, case 3 (60 poses, both lasers; spot sigma
-   estimated, as the command line does by default): spots replaced by points
+1. the paper's 7-DOF arm, case 3 (60 poses, both lasers; spot and joint
+   sigma estimated, as the command line does by default): spots replaced by points
    uniform over the screen, or a single spot moved by 0.05 m .. 1e6 m; the
    test RMS is the distance of the calibrated model's spots to the true
    (noise-free) spots of 200 fresh whole-workspace poses;
@@ -87,7 +87,7 @@ def run_spots(seeds: int) -> list[dict]:
         clean = {}
         for robust in (False, True):
             start = time.perf_counter()
-            est = estimate(robot, cal, EstimateOptions(robust=robust))
+            est = estimate(robot, cal, EstimateOptions(robust=robust, joint_sigma=None))
             clean[robust] = spot_rms(robot, est.values, truth)
             rows.append({"data": "paper-7dof case 3", "seed": seed, "outliers": "none", "robust": robust,
                          "test_rms_mm": clean[robust] * 1e3, "ratio_to_clean": 1.0, "replaced": 0,
@@ -101,11 +101,11 @@ def run_spots(seeds: int) -> list[dict]:
             spots = cal.spots.copy()
             for p, j in replaced:
                 spots[p, j] = np.nan
-            oracle = spot_rms(robot, estimate(robot, replace(cal, spots=spots), EstimateOptions(robust=False)).values,
-                              truth)
+            oracle = spot_rms(robot, estimate(robot, replace(cal, spots=spots),
+                                              EstimateOptions(robust=False, joint_sigma=None)).values, truth)
             for robust in (False, True):
                 start = time.perf_counter()
-                est = estimate(robot, bad, EstimateOptions(robust=robust))
+                est = estimate(robot, bad, EstimateOptions(robust=robust, joint_sigma=None))
                 rms = spot_rms(robot, est.values, truth)
                 found = listed(est)
                 rows.append({"data": "paper-7dof case 3", "seed": seed, "outliers": label, "robust": robust,

@@ -171,17 +171,24 @@ def test_robust_rejects_a_wrong_detection():
     assert _mahalanobis(plain, session.errors) > _mahalanobis(robust, session.errors)
 
 
-def test_a_rejection_judged_before_the_joint_noise_was_estimated_says_so():
-    """The robust rule runs before the noise is estimated, so without joint noise: a spot it
-    rejected may be one a long lever scattered; the warning gives the joint sigma found after."""
+def test_the_robust_rule_judges_again_with_the_joint_noise_it_did_not_know():
+    """The robust rule runs before the noise is estimated, so without joint noise, and rejected clean
+    spots on long levers for the scatter it gives them (0.5 mm spots, +-0.1 deg joints, 20 sessions of
+    120 poses: 39 of 4800 spots on the 7-DOF arm, 54 on the 4-DOF; none with both sigmas given). With
+    the joint noise the residual shows, it runs again: none here, and a wrong spot is still rejected."""
     noise = NoiseSpec(spot=0.0005, joint=np.deg2rad(0.1))
+    for case in ("paper-7dof", "paper-4dof"):
+        for seed in range(5):
+            session = paper_session(case, seed, 60, noise=noise)
+            est = estimate(session.nominal, session.samples, EstimateOptions(joint_sigma=None))
+            assert est.joint_sigma_estimated and est.rejected == (), (case, seed, est.warnings)
     session = paper_session("paper-7dof", 6, noise=noise)
     spots = session.samples.spots.copy()
     spots[17, 1] += [0.03, -0.02]  # one spot 36 mm off: a reflection taken for the laser
     est = estimate(session.nominal, replace(session.samples, spots=spots), EstimateOptions(joint_sigma=None))
-    assert (17, 1) in est.rejected and est.joint_sigma_estimated
-    said = [w for w in est.warnings if w.startswith("robust: the joint-reading noise the residual then showed, ")]
-    assert len(said) == 1 and said[0].endswith("rad) to judge them with it"), est.warnings
+    assert est.rejected == ((17, 1),) and est.joint_sigma_estimated
+    said = [w for w in est.warnings if w.startswith("robust:")]
+    assert len(said) == 1 and "no joint-reading noise" not in said[0], est.warnings
 
 def test_fixed_parameters_stay_nominal_and_are_reported_without_value():
     session = paper_session("paper-7dof", 8)

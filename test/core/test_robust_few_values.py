@@ -19,7 +19,7 @@ import pytest
 from scipy.stats import chi2, f
 
 from cli_status import exit_status
-from laser_calib.estimation import estimate as estimate_module
+from laser_calib.estimation import outliers
 from laser_calib.estimation import robust
 from laser_calib.estimation.estimate import NOISE_RATIO, EstimateOptions, estimate
 from laser_calib.estimation.failures import NOT_A_CALIBRATION
@@ -125,7 +125,7 @@ def test_a_rejection_that_leaves_too_few_values_is_refused(monkeypatch, tmp_path
     session, samples = _first("paper-4dof", 0, 12)
     save_samples(samples, tmp_path / "samples.csv")
     save_robot(session.nominal, tmp_path / "robot.yaml")
-    monkeypatch.setattr(estimate_module, "robust_fit", _rejecting_all_but(9))   # 18 values for 19 parameters
+    monkeypatch.setattr(outliers, "robust_fit", _rejecting_all_but(9))   # 18 values for 19 parameters
     with pytest.raises(TooFewValues, match="18 measured values left after 15 rejected as outliers cannot "
                                            "determine and check 19 parameters"):
         estimate(session.nominal, samples, EstimateOptions())

@@ -18,7 +18,8 @@ estimate(robot, samples, options) runs, in order:
    (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used;
    with the joint sigma not given either (None), both by maximum likelihood, the joint one
    kept where the residual shows it (noise_components.joint_noise_evidence): it moves a
-   pose's spots by its levers' length; one sigma spread over them made the stds too small
+   pose's spots by its levers' length; one sigma spread over them made the stds too small,
+   and the robust rule, which ran without it, runs again with it (outliers.py)
    (when the robust rule rejected spots, the fits after it start from its
    final least-squares minimum (by LM), which without a prior is that trial;
    with LM and no joint noise it is also the fit, rescaled to the sigma);
@@ -58,7 +59,7 @@ from laser_calib.estimation.lm import LmOptions, levenberg_marquardt, restarted,
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses, rescaled,
                                             residuals_at, whitened_factor)
 from laser_calib.estimation.redundancy import NOISE_RATIO, joint_noise, sigma_warnings
-from laser_calib.estimation.robust import NO_JOINT_NOISE, ROBUST_RULE, robust_fit
+from laser_calib.estimation.outliers import LISTED, listing, model_samples, rejection
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import is_frame_param
 from laser_calib.measurement.spot import SpotModel
@@ -69,7 +70,6 @@ from laser_calib.io.samples import Samples
 Refusal = Callable[[Residuals], list[tuple[int, int, str]]]
 METHODS = ("lm", "ekf")
 TRIAL_SIGMA = 0.001
-LISTED = 8         # poses named in one warning line
 MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
 JOINT_NOISE_ALPHA = 0.05   # the joint-reading noise a residual must show before it weighs the fit
 
@@ -187,22 +187,6 @@ def estimate(robot: Robot, samples: Samples, options: EstimateOptions = Estimate
                    + second.warnings)
 
 
-def model_samples(model: MeasurementModel) -> Samples:
-    """The model's samples (effects wrap a base model)."""
-    while not hasattr(model, "samples") and hasattr(model, "base"):
-        model = model.base
-    return model.samples
-
-
-def listing(model: MeasurementModel, units: list[tuple[int, int]]) -> str:
-    """The units (pose index, channel) by pose id: a spot's laser always, since a pose has two;
-    a point's or pose's unit is its pose."""
-    samples = model_samples(model)
-    lasers = samples.kind == "spot"
-    names = [f"pose {samples.pose[p]}" + (f" laser {c + 1}" if lasers else "") for p, c in units[:LISTED]]
-    return ", ".join(names) + (f" and {len(units) - LISTED} more" if len(units) > LISTED else "")
-
-
 def _factor_without(model: MeasurementModel, factor: np.ndarray, then: NoiseModel, noise: NoiseModel,
                     x0: np.ndarray, excluded: np.ndarray | None, removed: np.ndarray | None) -> np.ndarray:
     """The whitened factor at x0 (whitened_factor) under ``noise`` without the units
@@ -284,43 +268,20 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     start_x = x0
     least_squares = None  # the robust rule's final least-squares fit, when the fits below can start from it
     robust_sigma = sigma  # the spot sigma it ran with (the given one or the trial)
+    refused = excluded    # the impossible units, left out before the rule
+    robust_at, robust_said = len(warnings), 0   # where its warnings are, and how many
     if options.robust:
-        outcome = robust_fit(model, noise, free, prior_sigma, x0,
-                             lambda problem, x, start: levenberg_marquardt(problem, x, options.lm, start), excluded,
-                             at_start, options.lm)
-        rejected = [(int(p), int(c)) for p, c in zip(*np.nonzero(outcome.rejected))]
+        # With spots rejected, the fits below start from the rule's minimum, and without a prior it is the
+        # sigma trial itself. Without, they start from x0 as without the rule: on clean data the result is
+        # least squares bit for bit whichever front end ran it, robust or not.
+        outcome = rejection(model, noise, free, prior_sigma, x0, refused, at_start, options.lm)
+        rejected, removed, robust = outcome.rejected, outcome.removed, outcome.summary
         if rejected:
-            removed = outcome.rejected
-            excluded = removed if excluded is None else excluded | removed
-        # Its final fit is least squares on the kept spots, by LM whatever the method (the
-        # EKF's fixed point is the same, in hundreds of iterations). With spots rejected,
-        # the fits below start from its minimum, and without a prior it is the sigma trial
-        # itself. Without, they start from x0 as without the robust rule: on clean data the
-        # result is least squares bit for bit whichever front end ran it, robust or not.
-        if rejected:
+            excluded = removed if refused is None else refused | removed
             start_x = outcome.fit.x
-            if prior_sigma is None:
-                least_squares = outcome.fit
-        kept = int((seen if excluded is None else seen & ~excluded).sum())
-        # a rejection leaving no residual value would make up sigma and stds: refused as before the fit
-        if rejected and kept * dims <= free.sum() and prior_sigma is None:
-            raise TooFewValues(kept * dims, int(free.sum()), len(rejected))
-        robust = {"rule": ROBUST_RULE, "scale": outcome.scale, "rounds": outcome.rounds,
-                  "weights_converged": outcome.converged, "rejected": len(rejected), "kept": kept}
-        if rejected:
-            warnings.append(f"robust: {len(rejected)} of {kept + len(rejected)} measurements rejected as outliers "
-                            f"and not fitted: {listing(model, rejected)}"
-                            + ("" if noise.joint_noise else NO_JOINT_NOISE))
-        if outcome.overflow:
-            warnings.append(f"robust: {outcome.overflow} of {kept} measurements lie beyond the outlier limit: "
-                            "the model does not fit the data (an unmodelled effect or wrong nominal model); "
-                            "none rejected")
-        if outcome.untestable:
-            warnings.append(f"robust: too few values to tell an outlier: without the {outcome.untestable} of {kept} "
-                            f"measurements farthest from the fit, {n_values - outcome.untestable * dims} values would "
-                            f"be left for {int(free.sum())} parameters (an exact fit); none rejected")
-        if not outcome.converged:
-            warnings.append(f"robust: the weights did not settle in {outcome.rounds} rounds")
+            least_squares = outcome.fit if prior_sigma is None else None
+        warnings.extend(outcome.warnings)
+        robust_said = len(outcome.warnings)
 
     sigma_estimated = options.spot_sigma is None
     joint_sigma, joint_estimated = noise.joint_sigma, False
@@ -332,11 +293,18 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         if options.joint_sigma is None and sigma >= MIN_SIGMA:
             spot, joint, p = joint_noise(model, trial, excluded)
             if p < JOINT_NOISE_ALPHA:
+                if options.robust:  # the rule again, with the noise it did not know (outliers.py)
+                    shown = NoiseModel(spot, joint)
+                    outcome = rejection(model, shown, free, prior_sigma, x0, refused, at_start, options.lm)
+                    warnings[robust_at:robust_at + robust_said] = outcome.warnings
+                    rejected, removed, robust = outcome.rejected, outcome.removed, outcome.summary
+                    excluded = refused if removed is None else removed if refused is None else refused | removed
+                    least_squares = outcome.fit if prior_sigma is None else None
+                    trial = least_squares or levenberg_marquardt(Problem(model, shown, free, excluded=excluded),
+                                                                 trial.x, options.lm)
+                    sigma_dof = trial.n_values - int(trial.free.sum())
+                    spot, joint, _ = joint_noise(model, trial, excluded)   # of the units it kept
                 sigma, joint_sigma, joint_estimated = spot, joint, True
-                if rejected:  # judged before the noise was known, as NO_JOINT_NOISE says
-                    warnings.append(f"robust: the joint-reading noise the residual then showed, "
-                                    f"{np.degrees(joint):.2g} deg, was not in the rule: give that sigma "
-                                    f"({joint:.2g} rad) to judge them with it")
         noise = NoiseModel(max(sigma, 1e-9), joint_sigma)
         start_x = trial.x
     if sigma_estimated or rejected:
