@@ -20,7 +20,7 @@ from laser_calib.effects.base import positive_number
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.estimation.redundancy import NOISE_RATIO
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
-from laser_calib.measurement.noise_components import deviance, noise_components
+from laser_calib.measurement.noise_components import boundary_p, deviance, noise_components
 from laser_calib.model.robot import Robot
 from laser_calib.report.statistics import worse_on_test_warning
 
@@ -104,7 +104,7 @@ def excess_tests(res: Residuals, scale: float, estimate: tuple[float, float], gi
             continue
         held = tuple(rated[i] if i == index else given[i] for i in range(2))
         ratio = value(*noise_components(res, scale, *held)) - at_estimate if estimate[index] > rated[index] else 0.0
-        out.append((name, estimate[index], rated[index], 0.5 * float(stats.chi2.sf(ratio, 1)) if ratio > 0 else 1.0))
+        out.append((name, estimate[index], rated[index], boundary_p(ratio)))
     return tuple(out)
 
 

@@ -73,13 +73,18 @@ def noise_components(res: Residuals, scale: float, spot: float | None, joint: fl
     return unpack(found.x)
 
 
+def boundary_p(ratio: float) -> float:
+    """p of a likelihood-ratio statistic (deviance difference) ``ratio`` for one sigma held at a
+    boundary value against it estimated on one side of it: chi^2(1) halved (the null on the boundary)."""
+    return 0.5 * float(chdtrc(1, ratio)) if ratio > 0 else 1.0
+
+
 def joint_noise_evidence(res: Residuals, scale: float) -> tuple[float, float, float]:
     """(spot sigma m, joint sigma rad, p) of a fit's residuals (scaled as in deviance) with
     both components estimated, and the p-value of "no joint-reading noise": the one-sided
-    likelihood-ratio test against the spot noise alone (chi^2(1) halved, the null on the
-    boundary, as verdict.excess_tests)."""
+    likelihood-ratio test against the spot noise alone (boundary_p)."""
     value = deviance(res, scale)
     spot, joint = noise_components(res, scale, None, None)
     alone = noise_components(res, scale, None, 0.0)
     ratio = value(*alone) - value(spot, joint)
-    return spot, joint, 0.5 * float(chdtrc(1, ratio)) if ratio > 0 else 1.0
+    return spot, joint, boundary_p(ratio)
