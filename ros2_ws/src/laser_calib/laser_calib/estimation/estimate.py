@@ -275,9 +275,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         # sigma trial itself. Without, they start from x0 as without the rule: on clean data the result is
         # least squares bit for bit whichever front end ran it, robust or not.
         outcome = rejection(model, noise, free, prior_sigma, x0, refused, at_start, options.lm)
-        rejected, removed, robust = outcome.rejected, outcome.removed, outcome.summary
+        rejected, removed, robust, excluded = outcome.rejected, outcome.removed, outcome.summary, outcome.left_out
         if rejected:
-            excluded = removed if refused is None else refused | removed
             start_x = outcome.fit.x
             least_squares = outcome.fit if prior_sigma is None else None
         warnings.extend(outcome.warnings)
@@ -298,7 +297,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                     outcome = rejection(model, shown, free, prior_sigma, x0, refused, at_start, options.lm)
                     warnings[robust_at:robust_at + robust_said] = outcome.warnings
                     rejected, removed, robust = outcome.rejected, outcome.removed, outcome.summary
-                    excluded = refused if removed is None else removed if refused is None else refused | removed
+                    excluded = outcome.left_out
                     least_squares = outcome.fit if prior_sigma is None else None
                     trial = least_squares or levenberg_marquardt(Problem(model, shown, free, excluded=excluded),
                                                                  trial.x, options.lm)

@@ -39,11 +39,13 @@ def listing(model: MeasurementModel, units: list[tuple[int, int]]) -> str:
 @dataclass(frozen=True)
 class Rejection:
     """rejected: (pose index, channel) of the units the rule rejected; removed (P,C) their mask,
-    None when none; fit: its final least-squares fit on the rest, None when none was rejected (the
-    fits after it then start where they would without the rule); summary: result.json's "robust"."""
+    None when none; left_out (P,C): those and the units excluded before it, None when neither; fit:
+    its final least-squares fit on the rest, None when none was rejected (the fits after it then start
+    where they would without the rule); summary: result.json's "robust"."""
 
     rejected: list[tuple[int, int]]
     removed: np.ndarray | None
+    left_out: np.ndarray | None
     fit: Fit | None
     summary: dict
     warnings: list[str]
@@ -80,4 +82,4 @@ def rejection(model: MeasurementModel, noise: NoiseModel, free: np.ndarray, prio
                         f"be left for {int(free.sum())} parameters (an exact fit); none rejected")
     if not outcome.converged:
         warnings.append(f"robust: the weights did not settle in {outcome.rounds} rounds")
-    return Rejection(rejected, removed, outcome.fit if rejected else None, summary, warnings)
+    return Rejection(rejected, removed, left_out, outcome.fit if rejected else None, summary, warnings)
