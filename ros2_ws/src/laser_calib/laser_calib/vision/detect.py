@@ -196,9 +196,10 @@ class SpotDetector:
             if u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
                 return edge
             window = own[v - w:v + w + 1, u - w:u + w + 1].astype(float)
-            width_px = max(width_px, background_and_width(window)[2])
+            spread = background_and_width(window)
+            width_px = max(width_px, spread[2])
             if 5.0 * width_px <= w:
-                fit = fit_spot(window, self._photosites(u - w, v - w, w, colour),
+                fit = fit_spot(window, spread, self._photosites(u - w, v - w, w, colour),
                                (o.read_noise_dn, o.gain_e_per_dn, o.speckle_contrast), self._refusal_rate)
                 if isinstance(fit, str):
                     return fit  # no spot, or not one clean spot: its centre would be biased

@@ -44,15 +44,16 @@ def background_and_width(window: np.ndarray) -> tuple[float, np.ndarray, float]:
     return background, weights, math.sqrt(max(0.5 * moment / _MOMENT_PER_VARIANCE, 0.0))
 
 
-def fit_spot(window: np.ndarray, photosites: np.ndarray, noise: tuple[float, float, float], rate: float | None
-             ) -> tuple[np.ndarray, float] | str:
+def fit_spot(window: np.ndarray, spread: tuple[float, np.ndarray, float], photosites: np.ndarray,
+             noise: tuple[float, float, float], rate: float | None) -> tuple[np.ndarray, float] | str:
     """(offset (du, dv) of the spot from the window centre, its sigma px) by a weighted Gaussian fit.
 
     Model: A exp(-r^2 / 2 s^2) + b0 + bu du + bv dv over the unsaturated
     photosites (a clipped core carries no shape information), weighted by the
     noise model ``noise`` = (read noise DN, gain e-/DN, speckle contrast),
     re-weighted each Gauss-Newton step with the current model. Start:
-    thresholded centroid and second moment. Why it is refused instead, if the
+    thresholded centroid and second moment, from ``spread`` =
+    background_and_width(window). Why it is refused instead, if the
     fit does not settle on a plausible spot (centre inside the window, s > 0.4
     px, A > 0) or its chi^2 exceeds the upper ``rate`` quantile of chi^2 with its
     degrees of freedom (no test if ``rate`` is None: pixels whose noise is not
@@ -60,7 +61,7 @@ def fit_spot(window: np.ndarray, photosites: np.ndarray, noise: tuple[float, flo
     """
     read, gain, speckle = noise
     w = window.shape[0] // 2
-    background, weights, width = background_and_width(window)
+    background, weights, width = spread
     use = photosites & (window < 255)
     if weights.sum() <= 0.0 or use.sum() < 2 * _PARAMETERS:
         return "too few unsaturated photosites of its colour to fit"
