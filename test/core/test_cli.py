@@ -370,3 +370,24 @@ def test_replay_hands_its_options_to_the_node_as_parsed(argv):
     add_replay_arguments(parser)
     parsed = parser.parse_args(argv)
     assert parser.parse_args(replay_argv(parsed)) == parsed
+
+
+@pytest.mark.parametrize("flags, spot_sigma, joint_sigma", [
+    ([], 0.0, -1.0), (["--spot-sigma", "0.001"], 0.001, -1.0), (["--joint-sigma", "0"], 0.0, 0.0),
+    (["--joint-sigma", "0.002"], 0.0, 0.002), (["--spot-sigma", "0.001", "--joint-sigma", "0.002"], 0.001, 0.002)])
+def test_the_ros_noise_values_give_the_command_lines_options(tmp_path, flags, spot_sigma, joint_sigma):
+    """The estimator node's spot_sigma and joint_sigma (parameters, or an Estimate request's), whose
+    'not given' are 0 and -1 (a ROS parameter cannot be None), make the options that `laser-calib
+    estimate` makes of --spot-sigma and --joint-sigma: without --joint-sigma, the joint-reading
+    sigma is estimated with the spot sigma when that is estimated, else 0; --joint-sigma 0 is none."""
+    from laser_calib.cli.main import _options, build_parser
+    args = build_parser().parse_args(["estimate", "--robot", "r.yaml", "--samples", "s.csv",
+                                      "--out", str(tmp_path / "out"), *flags])
+    assert estimate_options("lm", spot_sigma, False, True, joint_sigma) == _options(args)
+
+
+@pytest.mark.parametrize("value", [-3.0, -0.5, 0.6, math.nan, math.inf])
+def test_a_ros_joint_sigma_that_is_no_joint_noise_is_refused(value):
+    with pytest.raises(InputError, match=r"^joint_sigma: .* is not a plausible joint-reading noise .*, or 0 for none, "
+                                         r"or -1 for not given"):
+        estimate_options("lm", 0.0, False, True, value)

@@ -16,6 +16,9 @@ SIGMA_LENGTH = (1e-9, 1.0)
 MAX_SPOT_SIGMA = 0.05
 # A joint-reading noise over 0.5 rad (29 deg) is degrees typed as radians.
 MAX_SIGMA_ANGLE = 0.5
+# The ROS parameters' and requests' joint sigma that is not given (a ROS parameter cannot be None): as the
+# command line without --joint-sigma, estimated with the spot sigma when that is estimated, else 0.
+JOINT_SIGMA_NOT_GIVEN = -1.0
 
 
 def spot_sigma_problem(value: float) -> str | None:
@@ -39,3 +42,11 @@ def joint_sigma_problem(value: float) -> str | None:
         return None
     return (f"{value:g} rad is not a plausible joint-reading noise (expected more than 0, at most "
             f"{MAX_SIGMA_ANGLE:g} rad; angles are in radians)")
+
+
+def joint_sigma_or_unset_problem(value: float) -> str | None:
+    """Why ``value`` (rad) is neither JOINT_SIGMA_NOT_GIVEN (-1), 0 (no joint-reading noise) nor a
+    joint-reading sigma, or None: the rule of the ROS requests' and parameters' joint sigma."""
+    problem = None if value in (JOINT_SIGMA_NOT_GIVEN, 0.0) else joint_sigma_problem(value)
+    return problem and (f"{problem}, or 0 for none, or {JOINT_SIGMA_NOT_GIVEN:g} for not given (estimated with "
+                        "the spot sigma when that is estimated, else 0)")

@@ -23,28 +23,37 @@ from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples, check_spot_units
 from laser_calib.io.spot_columns import check_spot_columns
-from laser_calib.measurement.noise_bounds import spot_sigma_or_zero_problem
+from laser_calib.measurement.noise_bounds import (JOINT_SIGMA_NOT_GIVEN, joint_sigma_or_unset_problem,
+                                                  spot_sigma_or_zero_problem)
 from laser_calib.model.robot import Robot
 from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.files import write_outputs
 from laser_calib.session.folder import refuse_finished
 
 
-def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool) -> EstimateOptions:
-    """EstimateOptions from ROS-style values (method '' = 'lm', spot_sigma 0 = estimate it, and the
-    joint-reading sigma with it, as the command line does without --spot-sigma and --joint-sigma)."""
+def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool,
+                     joint_sigma: float = JOINT_SIGMA_NOT_GIVEN) -> EstimateOptions:
+    """EstimateOptions from ROS-style values, as the command line makes them from its options:
+    method '' = 'lm'; spot_sigma 0 = estimate it (no --spot-sigma); joint_sigma (rad)
+    JOINT_SIGMA_NOT_GIVEN (-1) = no --joint-sigma (None: estimated with the spot sigma when that is
+    estimated, else 0), 0 = no joint-reading noise, > 0 = that sigma. A bad value: InputError."""
     method = method or "lm"
     if method not in METHODS:
         raise InputError("method", f"expected one of {', '.join(METHODS)}, got {method!r}")
     if problem := spot_sigma_or_zero_problem(spot_sigma):
         raise InputError("spot_sigma", problem)
-    return EstimateOptions(method=method, spot_sigma=spot_sigma or None, joint_sigma=0.0 if spot_sigma else None,
+    if problem := joint_sigma_or_unset_problem(joint_sigma):
+        raise InputError("joint_sigma", problem)
+    return EstimateOptions(method=method, spot_sigma=spot_sigma or None,
+                           joint_sigma=None if joint_sigma == JOINT_SIGMA_NOT_GIVEN else joint_sigma,
                            prior=bool(prior), robust=bool(robust))
 
 
-def online_options(spot_sigma: float) -> EstimateOptions:
-    """The estimator node's online EKF options for its spot_sigma parameter (0: the core's default)."""
-    return estimate_options("ekf", spot_sigma, False, False)
+def online_options(spot_sigma: float, joint_sigma: float = JOINT_SIGMA_NOT_GIVEN) -> EstimateOptions:
+    """The estimator node's online EKF options for its spot_sigma and joint_sigma parameters: a
+    running filter has no residual to estimate them from, so spot_sigma 0 is the core's default
+    and a joint sigma not given is 0 (laser_calib.estimation.online)."""
+    return estimate_options("ekf", spot_sigma, False, False, joint_sigma)
 
 
 @dataclass(frozen=True)
@@ -132,12 +141,14 @@ def run_diagnosis(robot: Robot, samples: Samples, options: EstimateOptions, out:
     Its files (diagnosis.json, report.md with plots, robot_calibrated.yaml with
     the effects) go to out/diagnosis/, beside the geometric estimate's, when out
     is given, naming its inputs as ``sources`` does (the estimate's; without, the session's counts).
+    The noise as the estimate's options give it: a sigma None is not given (estimated, as `diagnose`
+    without --spot-sigma / --joint-sigma), a joint sigma 0 is none (--joint-sigma 0).
     Always LM: the diagnosis runs dozens of fits. Returns the JSON; too few
     poses for it is a data limit, not an error: {"skipped": "diagnosis skipped: ..."}.
     """
     try:
         diagnosis = diagnose(robot, samples, test, options=DiagnoseOptions(
-            method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma or None,
+            method="lm", spot_sigma=options.spot_sigma, joint_sigma=options.joint_sigma,
             robust=options.robust), sources=sources)
     except TooFewPoses as exc:
         return {"skipped": f"diagnosis skipped: {exc.n_poses} poses, at least {exc.needed} needed"}
