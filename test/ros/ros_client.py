@@ -9,6 +9,8 @@
     ros_client.py bad-and-concurrent ROBOT     the service test: bad requests and concurrent clients
     ros_client.py estimate-csv SAMPLES.csv [OUTPUT_DIR]  Estimate the samples of a CSV (spot samples, any robot)
     ros_client.py estimate-csv-diagnose SAMPLES.csv      the same, with the diagnosis
+    ros_client.py estimate-joint-sigma SAMPLES.csv SIGMA ...  the same, one request per joint_sigma in turn: the
+                                               noise result.json says (or success false and the message)
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
     ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
     ros_client.py samples-named-twice ROBOT   Estimate requests whose samples name joint1 twice, then once
@@ -151,6 +153,22 @@ def estimate_csv(path: str, output_dir: str = "", diagnose: bool = False) -> dic
     request.diagnose = diagnose
     r = call(node, node.create_client(Estimate, "estimator/estimate"), request)
     return dict(response_dict(r), names=list(r.parameters.names), calibrated_robot_yaml=r.calibrated_robot_yaml)
+
+
+def estimate_joint_sigma(path: str, sigmas: list[float]) -> list[dict]:
+    from laser_calib.io.samples import load_samples
+    samples = load_samples(path)
+    node = rclpy.create_node("test_estimate_joint_sigma")
+    client = node.create_client(Estimate, "estimator/estimate")
+    out = []
+    for sigma in sigmas:
+        request = Estimate.Request(method="lm", joint_sigma=sigma)
+        request.samples = [sample(int(samples.pose[k]), samples.q[k], samples.spots[k]) for k in range(len(samples))]
+        r = call(node, client, request)
+        result = json.loads(r.result_json) if r.result_json else {}
+        out.append({"success": r.success, "message": r.message} | {
+            key: result.get(key) for key in ("spot_sigma_estimated", "joint_sigma_rad", "joint_sigma_estimated")})
+    return out
 
 
 def estimate_accumulated() -> dict:
@@ -543,6 +561,8 @@ def main() -> int:
             result = estimate_csv(*sys.argv[2:4])
         elif command == "estimate-csv-diagnose":
             result = estimate_csv(sys.argv[2], diagnose=True)
+        elif command == "estimate-joint-sigma":
+            result = estimate_joint_sigma(sys.argv[2], [float(v) for v in sys.argv[3:]])
         elif command == "estimate-accumulated":
             result = estimate_accumulated()
         elif command == "calibrate":

@@ -86,6 +86,39 @@ def test_the_estimate_applies_the_learned_compensator(ros, tmp_path):
     assert ros.stop("estimator") == 0
 
 
+def test_the_joint_sigma_parameter_and_request_field_give_the_joint_reading_noise(ros, tmp_path):
+    """The estimator had no joint_sigma: with spot_sigma given the joint-reading noise was 0, and an arm
+    with noisy encoders got standard deviations too small. Its parameter joint_sigma (and an Estimate
+    request's, 0 there being the node's) is the command line's --joint-sigma: a given sigma is used, not
+    estimated; a value that is no joint noise is refused with the reason (`ros2 param set`, a request),
+    the parameter then unchanged. (Its 0, none, and -1, not given: test/core/test_cli.py.)"""
+    import pytest
+    from laser_calib.cli.main import main
+    from ros_harness import ros2_missing
+    if ros2_missing():
+        pytest.skip(ros2_missing())
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-7dof", "--seed", "0", "--out", str(sim)]) == 0
+    ros.start("estimator", "-p", f"robot:={sim / 'robot_nominal.yaml'}", "-p", "joint_sigma:=0.0005",
+              "-p", "markers:=false")
+    ros.wait_log("estimator", "input 'samples'", 60)
+    # --no-daemon: one process discovers the node (--timeout: waits for it), without starting the daemon (2 s more)
+    refused = ros.run(["ros2", "param", "set", "--no-daemon", "--timeout", "30", "/estimator", "joint_sigma", "-3"],
+                      timeout=90)
+    said = refused.stdout + refused.stderr
+    assert "Setting parameter failed: joint_sigma: -3 rad is not a plausible joint-reading noise" in said, refused
+    assert "or 0 for none, or -1 for not given" in said, refused
+    node, own, bad = ros.client("estimate-joint-sigma", str(sim / "case3_cal.csv"), "0", "0.001", "-3")
+    assert node["success"] and own["success"], (node["message"], own["message"])
+    # the spot sigma (node and request 0) estimated, the joint sigma given: the parameter's, then the request's
+    assert node["spot_sigma_estimated"] and own["spot_sigma_estimated"]
+    assert node["joint_sigma_rad"] == 0.0005 and not node["joint_sigma_estimated"], node
+    assert own["joint_sigma_rad"] == 0.001 and not own["joint_sigma_estimated"], own
+    assert not bad["success"] and bad["message"].startswith("joint_sigma: -3 rad is not a plausible"), bad
+    assert ros.stop("estimator") == 0
+    assert "Traceback" not in ros.log("estimator")
+
+
 def test_an_estimate_that_is_no_calibration_answers_success_false(ros, tmp_path):
     """What the command line refuses or exits 3 for, the service answers with success false:
     samples whose spot columns are swapped (nothing estimated), and a robot file that marks a

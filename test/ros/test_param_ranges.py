@@ -4,7 +4,7 @@ arm_driver and camera_sim with numpy's traceback (exit 1); rate:=.inf started a 
 period 0 (a busy loop 'publishing at inf Hz'); camera_sim's spot_sigma:=0.0 rendered no spot
 (a divide-by-zero warning, every spot unseen) and spot_detector's screen.half_y:=-1.0 saw no
 spot in any frame, both without a word. The estimator's spot_sigma:=0.5 (0.5 mm meant) was taken as a
-camera's noise of half a metre."""
+camera's noise of half a metre; its joint_sigma:=3.0 (degrees meant) is refused the same way."""
 
 from __future__ import annotations
 
@@ -22,6 +22,9 @@ CASES = {  # name: (node, parameters, the reason's start)
     # millimetres typed as metres: a camera's noise of half a metre, every spot weighted as noise
     "estimator_sigma": ("estimator", [f"robot:={ROBOT}", "spot_sigma:=0.5"],
                         "error: parameter spot_sigma: 0.5 m is not a plausible spot noise"),
+    # degrees typed as radians
+    "estimator_joint_sigma": ("estimator", [f"robot:={ROBOT}", "joint_sigma:=3.0"],
+                              "error: parameter joint_sigma: 3 rad is not a plausible joint-reading noise"),
 }
 
 

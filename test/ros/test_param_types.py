@@ -2,7 +2,8 @@
 sends an integer, which the node takes as 1.0 rad/s. Before, the parameter was stored as the integer
 given (`ros2 param get`: 'Integer value is: 1', `ros2 param dump`: 1) while `ros2 param describe`
 still said double. A spot sigma beyond what a camera can have (0.5: millimetres typed as metres) is
-refused like the command line's --spot-sigma."""
+refused like the command line's --spot-sigma, and a joint sigma that is no joint noise (-3) like
+--joint-sigma (its 0, none, and -1, not given, are taken)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,10 @@ def test_an_integer_for_a_double_parameter_is_stored_as_a_double(ros):
                 # the checks still apply, and a wrong type is still refused with the reason
                 ("/estimator", "spot_sigma", "-1"), ("/estimator", "spot_sigma", "0.5"),
                 ("/estimator", "spot_sigma", "0.002"), ("/estimator", "markers", "1"),
-                ("/estimator", "spot_sigma", '"abc"')]
+                ("/estimator", "spot_sigma", '"abc"'),
+                # joint_sigma: 0 (none) and -1 (not given) are its values, other negatives are not
+                ("/estimator", "joint_sigma", "0"), ("/estimator", "joint_sigma", "-3"),
+                ("/estimator", "joint_sigma", "-1")]
     got = ros.client("set-param", *[part for setting in settings for part in setting])
     for (_, name, value), result in zip(settings[:3], got):
         assert result == {"successful": True, "reason": "", "type": "DOUBLE", "value": float(value)}, (name, result)
@@ -30,4 +34,9 @@ def test_an_integer_for_a_double_parameter_is_stored_as_a_double(ros):
     assert got[5]["successful"] and got[5]["value"] == 0.002, got[5]
     assert not got[6]["successful"] and got[6]["reason"] == "markers: expected bool, got int", got[6]
     assert not got[7]["successful"] and got[7]["reason"] == "spot_sigma: expected float, got str", got[7]
+    assert got[8] == {"successful": True, "reason": "", "type": "DOUBLE", "value": 0.0}, got[8]
+    assert not got[9]["successful"] and got[9]["reason"].startswith(
+        "joint_sigma: -3 rad is not a plausible joint-reading noise"), got[9]
+    assert got[9]["value"] == 0.0
+    assert got[10] == {"successful": True, "reason": "", "type": "DOUBLE", "value": -1.0}, got[10]
     assert ros.stop("estimator") == 0 and ros.stop("spot_detector") == 0

@@ -23,10 +23,10 @@ from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 
 from laser_calib.io.errors import InputError
-from laser_calib.session.estimate import estimate_options, run_calibration, run_diagnosis
+from laser_calib.session.estimate import run_calibration, run_diagnosis
 
 from laser_calib_nodes import common, responses
-from laser_calib_nodes.sample_rows import request_sets
+from laser_calib_nodes.sample_rows import request_options, request_sets
 
 
 class CalibrateServer:
@@ -52,8 +52,7 @@ class CalibrateServer:
             try:
                 samples, test, sources = request_sets(node, request)
                 output_dir = common.request_output_dir(request.output_dir)
-                options = estimate_options(request.method, request.spot_sigma or node.spot_sigma, request.prior,
-                                           request.robust)
+                options = request_options(node, request)
                 stage("estimate", 0.0)
                 outcome = run_calibration(node.robot, samples, options, output_dir, sources=sources,
                                           compensator=node.compensator, test=test)

@@ -16,7 +16,11 @@ laser_calib.session.estimate.run_calibration (the command line's code path: the
 robot file's effects, the 'compensator' file when set), one request at a time
 while measurements flow in, a bad request answered with success = false and one
 line; ~/reset forgets the samples; ~/calibrate is the action (calibrate.py).
-spot_sigma, stream.max_joint_speed and markers can be set at run time; the rest are read-only.
+spot_sigma and joint_sigma (parameters.noise), the noise of the requests that leave theirs 0
+and of the online EKF, are the command line's --spot-sigma and --joint-sigma; not given:
+spot_sigma 0 (estimated), joint_sigma -1 (estimated with the spot sigma when that is, else
+0); joint_sigma 0: no joint-reading noise. They, stream.max_joint_speed and markers can be
+set at run time; the rest are read-only.
 """
 
 from __future__ import annotations
@@ -37,14 +41,13 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from laser_calib.io.errors import InputError
-from laser_calib.measurement.noise_bounds import spot_sigma_or_zero_problem
 
 from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
 from laser_calib_nodes.joint_states import JointStateReader
 from laser_calib_nodes.markers import MAX_POINTS, calibration_markers, online_parameters
-from laser_calib_nodes.sample_rows import Row, check_row, request_sets, row_from_msg
-from laser_calib.session.estimate import estimate_options, online_options, run_calibration
+from laser_calib_nodes.sample_rows import Row, check_row, request_options, request_sets, row_from_msg
+from laser_calib.session.estimate import online_options, run_calibration
 from laser_calib.session.sync import StampSynchronizer
 
 
@@ -61,9 +64,7 @@ class Estimator(Node):
         self.max_speed = d("stream.max_joint_speed", 0.002, "'stream': a pair counts only when every |joint "
                                                             "velocity| is below this, rad/s.",
                            read_only=False)
-        self.spot_sigma = d("spot_sigma", 0.0, "Spot sigma, m, for requests with spot_sigma 0 and the online "
-                                               "EKF (from its next reset); 0: estimate it (batch) / 1 mm (online).",
-                            read_only=False)
+        self.spot_sigma, self.joint_sigma = parameters.noise(self)
         self.markers_on = d("markers", True, "Publish calibration_markers.", read_only=False)
         names = d("joint_names", Parameter.Type.STRING_ARRAY, "The robot's joints, base to tip, found by name in "
                   "joint_states ('stream') and in each Sample's joint_names (either may list them in any order, and "
@@ -73,9 +74,9 @@ class Estimator(Node):
         self.joints = JointStateReader(self.robot, names, self.get_logger())
         if self.input not in ("samples", "stream"):
             raise parameters.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
-        parameters.dynamic(self, {"spot_sigma": ("spot_sigma", spot_sigma_or_zero_problem),
-                              "stream.max_joint_speed": ("max_speed", parameters.positive),
-                              "markers": ("markers_on", lambda value: None)})
+        parameters.dynamic(self, {**parameters.NOISE_RULES,
+                                  "stream.max_joint_speed": ("max_speed", parameters.positive),
+                                  "markers": ("markers_on", lambda value: None)})
 
         from laser_calib_interfaces.msg import DhParameters, Sample, SpotPair
         from laser_calib_interfaces.srv import Estimate
@@ -126,7 +127,7 @@ class Estimator(Node):
     # ---- online ----
     def make_online(self):
         from laser_calib.estimation.online import OnlineEkf
-        return OnlineEkf(self.robot, online_options(self.spot_sigma))
+        return OnlineEkf(self.robot, online_options(self.spot_sigma, self.joint_sigma))
 
     def on_sample(self, msg) -> None:
         row = self.new_row(msg, "sample", self.keys)
@@ -221,9 +222,8 @@ class Estimator(Node):
             self.get_logger().info(f"estimating from {sources['samples']}"
                                    + (f", tested on {sources['test']}" if test is not None else "")
                                    + (", then the diagnosis" if request.diagnose else ""))
-            options = estimate_options(request.method, request.spot_sigma or self.spot_sigma, request.prior,
-                                       request.robust)
-            outcome = run_calibration(self.robot, samples, options, common.request_output_dir(request.output_dir),
+            outcome = run_calibration(self.robot, samples, request_options(self, request),
+                                      common.request_output_dir(request.output_dir),
                                       request.diagnose, sources, self.compensator, test)
         except InputError as exc:
             response.success = False

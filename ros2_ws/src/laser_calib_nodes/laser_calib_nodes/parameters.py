@@ -10,6 +10,9 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from laser_calib.measurement.noise_bounds import (JOINT_SIGMA_NOT_GIVEN, joint_sigma_or_unset_problem,
+                                                  spot_sigma_or_zero_problem)
+
 
 class NodeError(RuntimeError):
     """A fatal condition a node reports in one line before exiting non-zero."""
@@ -118,3 +121,24 @@ def non_negative(value: float) -> str | None:
 
 def positive(value: float) -> str | None:
     return None if math.isfinite(value) and value > 0 else f"expected > 0, got {value}"
+
+
+def noise(node: Node) -> tuple[float, float]:
+    """Declare the estimator's noise parameters, spot_sigma (m) and joint_sigma (rad), run-time (their
+    rules for dynamic(): NOISE_RULES), and return their values: the command line's --spot-sigma and
+    --joint-sigma, 'not given' written 0 and -1 (a ROS parameter cannot be None), for the requests that
+    leave theirs 0 (sample_rows.request_options) and the online EKF (session.estimate.online_options)."""
+    spot = declare(node, "spot_sigma", 0.0, "Spot sigma, m, for requests with spot_sigma 0 and the online EKF "
+                                            "(from its next reset); 0: estimate it (batch) / 1 mm (online).",
+                   read_only=False)
+    joint = declare(node, "joint_sigma", JOINT_SIGMA_NOT_GIVEN,
+                    "Joint-reading sigma, rad (at most 0.5), for requests with joint_sigma 0 and the online EKF "
+                    "(from its next reset); 0: no joint-reading noise; -1: not given, as laser-calib estimate "
+                    "without --joint-sigma: estimated with the spot sigma when that is estimated, else 0 (batch) "
+                    "/ 0 (online).", read_only=False)
+    return spot, joint
+
+
+# the noise() parameters' rules for dynamic(), their values held in the node's attributes of the same names
+NOISE_RULES = {"spot_sigma": ("spot_sigma", spot_sigma_or_zero_problem),
+               "joint_sigma": ("joint_sigma", joint_sigma_or_unset_problem)}

@@ -1,16 +1,18 @@
 """The estimator's sample rows (pose id, stamp s, q (N,) rad, spots (2,2) m), from Sample
 messages and joint-state pairs, and the sets an Estimate request or a Calibrate goal
-names: its own samples and test samples, or those the node accumulated."""
+names: its own samples and test samples, or those the node accumulated; and its options."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from laser_calib.cli.arguments import require_measured
+from laser_calib.estimation.estimate import EstimateOptions
 from laser_calib.io import bag
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples, without_unmeasured_test
 from laser_calib.model.robot import Robot
+from laser_calib.session.estimate import estimate_options
 
 Row = tuple[int, float, np.ndarray, np.ndarray]
 
@@ -56,3 +58,11 @@ def request_sets(node, request) -> tuple[Samples, Samples | None, dict]:
         require_measured(test, "request: test_samples", "no spot is measured in the test set")
     samples, test = without_unmeasured_test(bag.samples_from_rows(rows, "request"), test)
     return samples, test, dict(sources, test=sources["test"] if test is not None else None)
+
+
+def request_options(node, request) -> EstimateOptions:
+    """An Estimate request's (or a Calibrate goal's) options, as the command line makes them of
+    its own (session.estimate.estimate_options): a spot_sigma or joint_sigma left 0 is the node's
+    parameter (parameters.noise). A bad value: InputError naming it."""
+    return estimate_options(request.method, request.spot_sigma or node.spot_sigma, request.prior, request.robust,
+                            request.joint_sigma or node.joint_sigma)
