@@ -4,7 +4,9 @@ arm_driver and camera_sim with numpy's traceback (exit 1); rate:=.inf started a 
 period 0 (a busy loop 'publishing at inf Hz'); camera_sim's spot_sigma:=0.0 rendered no spot
 (a divide-by-zero warning, every spot unseen) and spot_detector's screen.half_y:=-1.0 saw no
 spot in any frame, both without a word. The estimator's spot_sigma:=0.5 (0.5 mm meant) was taken as a
-camera's noise of half a metre; its joint_sigma:=3.0 (degrees meant) is refused the same way."""
+camera's noise of half a metre; its joint_sigma:=3.0 (degrees meant) is refused the same way, and so is
+the sequencer's estimate.joint_sigma:=-3 (no joint noise; its -1 is not given), and its 0 (none) when it
+would ask the estimator, whose request cannot say none (its 0 is the estimator's joint_sigma)."""
 
 from __future__ import annotations
 
@@ -25,6 +27,11 @@ CASES = {  # name: (node, parameters, the reason's start)
     # degrees typed as radians
     "estimator_joint_sigma": ("estimator", [f"robot:={ROBOT}", "joint_sigma:=3.0"],
                               "error: parameter joint_sigma: 3 rad is not a plausible joint-reading noise"),
+    "sequencer_joint_sigma": ("sequencer", [f"robot:={ROBOT}", "estimate.joint_sigma:=-3"],
+                              "error: parameter estimate.joint_sigma: -3 rad is not a plausible joint-reading noise"),
+    "sequencer_no_joint_noise": ("sequencer", [f"robot:={ROBOT}", "estimate.joint_sigma:=0.0"],
+                                 "error: parameter estimate.joint_sigma: 0 (no joint-reading noise) cannot be asked "
+                                 "of the estimator"),
 }
 
 

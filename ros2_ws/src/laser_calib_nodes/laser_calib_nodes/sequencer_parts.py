@@ -19,6 +19,7 @@ from builtin_interfaces.msg import Duration
 from laser_calib.io.errors import InputError
 from laser_calib.io.joint_names import default_joint_names
 from laser_calib.io.samples import Samples
+from laser_calib.measurement.noise_bounds import JOINT_SIGMA_NOT_GIVEN
 from laser_calib.model.robot_file import load_robot
 from laser_calib.report import truth
 from laser_calib.session.folder import (PLAN_DEFAULTS, ROBOT_FILE, SAMPLES_FILE, TEST_SAMPLES_FILE, SessionDir,
@@ -112,7 +113,13 @@ def declare(node) -> SimpleNamespace:
     d = lambda *a, **k: parameters.declare(node, *a, **k)  # noqa: E731
     end = SimpleNamespace(
         method=d("estimate.method", "lm", "Final estimate: 'lm' or 'ekf'."),
-        spot_sigma=d("estimate.spot_sigma", 0.0, "Final estimate: spot sigma, m (0: estimate it)."),
+        spot_sigma=d("estimate.spot_sigma", 0.0, "Final estimate: spot sigma, m (0: estimate it; 'service': the "
+                                                  "estimator's spot_sigma, whose 0 is that)."),
+        joint_sigma=d("estimate.joint_sigma", JOINT_SIGMA_NOT_GIVEN, "Final estimate: joint-reading sigma, rad (at "
+                      "most 0.5); -1: not given, as laser-calib estimate without --joint-sigma: estimated with the "
+                      "spot sigma when that is estimated, else 0 ('service': the estimator's joint_sigma, whose -1 "
+                      "is that); 0: no joint-reading noise ('local' only: an Estimate request's 0 is the "
+                      "estimator's); > 0: that sigma."),
         prior=d("estimate.prior", False, "Final estimate: tolerance prior."),
         robust=d("estimate.robust", True, "Final estimate: robust fit, outlying spots rejected."),
         diagnose=d("estimate.diagnose", False, "Final estimate: residual diagnosis."),
@@ -126,12 +133,29 @@ def declare(node) -> SimpleNamespace:
     parameters.checked("estimate.timeout", end.timeout, parameters.positive)
     if end.mode not in ("service", "local", "none"):
         raise parameters.NodeError(f"parameter estimate.mode: expected 'service', 'local' or 'none', got {end.mode!r}", 2)
-    from laser_calib.session.estimate import estimate_options  # as the final estimate imports it
     try:  # at the start, not after every pose is measured
-        estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
+        final_options(end)
     except InputError as exc:
         raise parameters.NodeError(f"parameter estimate.{exc.where}: {exc.problem}", 2) from None
+    if end.mode == "service" and end.joint_sigma == 0:
+        raise parameters.NodeError("parameter estimate.joint_sigma: 0 (no joint-reading noise) cannot be asked of the "
+                                   "estimator (an Estimate request's 0 is its joint_sigma parameter): set the "
+                                   "estimator's joint_sigma to 0 and leave this -1, or estimate.mode:=local", 2)
     return end
+
+
+def final_options(end):
+    """The final estimate's options (end: declare()'s), as the command line makes them of its own
+    (session.estimate.estimate_options): checked at the start, then the in-process estimate's. A bad
+    value: InputError naming it."""
+    from laser_calib.session.estimate import estimate_options  # as the final estimate imports it
+    return estimate_options(end.method, end.spot_sigma, end.prior, end.robust, end.joint_sigma)
+
+
+def request_joint_sigma(end) -> float:
+    """The Estimate request's joint_sigma: the parameter's, not given (-1) left to the estimator's
+    joint_sigma (the request's 0), as a spot_sigma 0 is left to its spot_sigma."""
+    return 0.0 if end.joint_sigma == JOINT_SIGMA_NOT_GIVEN else float(end.joint_sigma)
 
 
 def measured(node, line: str, spots: np.ndarray) -> None:
@@ -197,12 +221,12 @@ def finish(node) -> None:
     if end.mode != "none":
         node.publish_progress("estimating", -1)
         if end.mode == "local":
-            from laser_calib.session.estimate import estimate_options, run_calibration
-            options = estimate_options(end.method, end.spot_sigma, end.prior, end.robust)
+            from laser_calib.session.estimate import run_calibration
             sources = {"robot": str(session.path / ROBOT_FILE), "samples": str(session.path / SAMPLES_FILE),
                        "test": str(session.path / TEST_SAMPLES_FILE) if test is not None else None,
                        "compensator": None}  # the files just read, as `laser-calib estimate` names its inputs
-            outcome = run_calibration(node.robot, samples, options, session.path, end.diagnose, sources, test=test)
+            outcome = run_calibration(node.robot, samples, final_options(end), session.path, end.diagnose, sources,
+                                      test=test)
             message, warned = outcome.message, outcome.warned
             failed = outcome.calibration.failure is not None
         else:
@@ -252,7 +276,8 @@ def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, boo
         samples=[sample_msg(node, samples, r) for r in range(len(samples))],
         test_samples=[sample_msg(node, test, r) for r in range(len(test))] if test is not None else [],
         method=end.method,
-        spot_sigma=float(end.spot_sigma), prior=bool(end.prior), robust=bool(end.robust),
+        spot_sigma=float(end.spot_sigma), joint_sigma=request_joint_sigma(end), prior=bool(end.prior),
+        robust=bool(end.robust),
         diagnose=bool(end.diagnose), output_dir=str(path) if end.shared_fs else "")
     node.get_logger().info(f"calling {name} with {len(samples)} samples"
                            + (f" and {len(test)} test samples" if test is not None else "") + f" ({end.method})")
