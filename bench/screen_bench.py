@@ -86,7 +86,7 @@ def run_case(arm: str, shape: str, seed: int, visible: float, camera: str) -> di
     return {"arm": arm, "shape": shape, "seed": seed, "visibility": visible, "camera": camera,
             "held_out": shape in HELD_OUT_SHAPES or seed not in TUNED_SEEDS, "truth": truth[0].effect.label,
             "amplitude_mm": float(truth[0].values[0]) * 1e3,
-            "chosen": [e["name"] + (f" (order {e['penalty_order']}, rho {e['smoothing_m'] * 1e3:.2g} mm)"
+            "chosen": [e["name"] + (f" ({surface(e)}, rho {e['smoothing_m'] * 1e3:.2g} mm)"
                                     if "smoothing_m" in e else "") for e in result["effects"]],
             "verdict": result["verdict"], "warned_worse_on_test": warned_worse_on_test(result),
             "geometric_test_rms_mm": stages[0]["test"]["rms_mm"],
@@ -95,6 +95,13 @@ def run_case(arm: str, shape: str, seed: int, visible: float, camera: str) -> di
             "test_spots_outside_hull": int(seen.sum() - inside.sum()),
             "nested_heldout_rms_mm": result["heldout_nested"]["rms_mm"], "cpu_s": cpu,
             "within_15pct": final_rms <= RMS_MARGIN * true_rms}
+
+
+def surface(effect: dict) -> str:
+    """The screen spline's kind as the table names it: its penalty order, or its Matern length."""
+    if "matern_length" in effect:
+        return f"Matern, length {effect['matern_length']:g}"
+    return f"order {effect['penalty_order']}"
 
 
 def _case(job: tuple) -> dict:

@@ -48,8 +48,10 @@ def test_surface_and_curved_truth_jacobians_are_exact(shape, camera):
     s = effect_session("paper-4dof", 2, lambda r, e, c, g: [TrueEffect(curved_screen(r, shape, g), np.array([3e-3]))],
                        16, 4, NoiseSpec(0.0, 0.0), camera=camera)
     spline = ScreenSpline.make(s.cal.spots, 4, camera).variants()[4]
+    matern = ScreenSpline.make(s.cal.spots, 2, camera, length=0.6).variants()[4]
     # sizes at which no beam grazes the surface (1 - grad f . t well away from 0)
-    for surface, sizes in ((spline, np.minimum(spline.prior, 1e-3)), (ScreenSurface.make(s.cal.spots, 4), 3e-4)):
+    for surface, sizes in ((spline, np.minimum(spline.prior, 1e-3)), (matern, np.minimum(matern.prior, 1e-3)),
+                           (ScreenSurface.make(s.cal.spots, 4), 3e-4)):
         surface = replace(surface, camera=camera)
         model = EffectModel(SpotModel(s.nominal, s.cal), [s.truth[0].effect, surface])
         x = np.concatenate([s.errors, s.truth[0].values, rng.normal(0, 1, len(surface.params)) * sizes])
@@ -100,30 +102,51 @@ def test_the_camera_is_read_and_written_with_the_screen():
 
 
 def test_spline_spans_its_polynomial_and_its_knot_form_is_the_same_surface():
-    """Order 3 holds the quadratic unpenalised, order 4 the cubic, neither a
-    constant; the knot form a robot file holds (to_yaml) evaluates the same
-    surface; a bad entry names its key."""
+    """Order 3 holds the quadratic unpenalised, order 4 the cubic, the Matern
+    surface the plane, none a constant; the knot form a robot file holds
+    (to_yaml) evaluates the same surface; a bad entry names its key."""
     rng = np.random.default_rng(1)
     spots = rng.uniform(-0.8, 0.6, (40, 2, 2))
     robot = replace(bundled_robot("paper-4dof"), screen=replace(bundled_robot("paper-4dof").screen, camera=CAMERA))
-    for order, n_null in ((3, 5), (4, 9)):
-        spline = ScreenSpline.make(spots, order, CAMERA).variants()[3]
+    for order, length, n_null in ((3, None, 5), (4, None, 9), (2, 0.6, 2)):
+        spline = ScreenSpline.make(spots, order, CAMERA, length).variants()[3]
         prior = spline.prior
         assert np.all(np.isinf(prior[:n_null])) and np.all(np.diff(prior[n_null:]) <= 0) and prior[n_null] > 0
         centre = np.array([[spline.centre_y, spline.centre_z]])
         assert np.abs(spline.terms(centre)[0]).max() < 1e-12
         values = rng.normal(0, 1, len(spline.params)) * np.minimum(prior, 1e-3)
         effects, read = effects_from_robot(replace(robot, extra={"effects": [spline.to_yaml(values)]}))
-        assert effects[0].camera == CAMERA and effects[0].prior is None
+        assert effects[0].camera == CAMERA and effects[0].prior is None and effects[0].length == length
         points = rng.uniform(-0.9, 0.9, (30, 2))
         assert np.abs(effects[0].terms(points)[0] @ read[0] - spline.terms(points)[0] @ values).max() < 1e-12
     quadratic = screen_shape(robot).terms(spots)[0].reshape(-1, 5)
     null = np.column_stack([np.ones(80), ScreenSpline.make(spots, 3).terms(spots)[0].reshape(80, -1)[:, :5]])
     assert np.abs(null @ np.linalg.lstsq(null, quadratic, rcond=None)[0] - quadratic).max() < 1e-12
     entry = spline.to_yaml(values)
-    for key, bad in (("penalty_order", 5), ("knots", [[0.1, 0.2], [0.3]])):
+    for key, bad in (("penalty_order", 5), ("penalty_order", 3), ("length", -0.6), ("length", "long"),
+                     ("knots", [[0.1, 0.2], [0.3]])):
         with pytest.raises(InputError, match=rf"effects\[0\].{key}"):
             effects_from_robot(replace(robot, extra={"effects": [{**entry, key: bad}]}))
+
+
+def test_beyond_its_knots_the_matern_surface_returns_to_its_plane():
+    """Why the Matern surface is offered (screen_spline's docstring): fitted to
+    a bump, two lengths beyond the spots it has no curvature left (its second
+    difference over 0.3 half sizes under 1 % of the bump), where the thin-plate
+    spline fitted to the same bump keeps its quadratic's, a tenth of the bump
+    and more."""
+    rng = np.random.default_rng(3)
+    spots = rng.uniform(-0.6, 0.6, (60, 2, 2))
+    bump = 2e-3 * np.exp(-((spots - 0.1) ** 2).sum(axis=-1) / (2 * 0.2 ** 2)).ravel()
+    step = np.array([0.3, 0.0])
+    far = np.array([0.6 + 2 * 0.6 * 1.2, 0.0])      # 2 lengths of 0.6 half sizes beyond the spots
+    curvature = {}
+    for name, order, length in (("thin-plate", 3, None), ("matern", 2, 0.6)):
+        surface = ScreenSpline.make(spots, order, length=length)
+        values = np.linalg.lstsq(surface.terms(spots.reshape(-1, 2))[0], bump, rcond=None)[0]
+        height = surface.terms(np.array([far - step, far, far + step]))[0] @ values
+        curvature[name] = abs(height[0] - 2 * height[1] + height[2])
+    assert curvature["matern"] < 0.01 * bump.max() and curvature["thin-plate"] > 0.1 * bump.max()
 
 
 def test_surface_of_degree_two_spans_the_quadratic_and_has_no_constant():

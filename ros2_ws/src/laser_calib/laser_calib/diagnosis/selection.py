@@ -31,7 +31,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.bounds import limit_of
 from laser_calib.effects.catalog import same_place
 from laser_calib.effects.screen import ScreenShape, Surface
-from laser_calib.effects.screen_spline import ORDERS, ScreenSpline
+from laser_calib.effects.screen_spline import SURFACES, ScreenSpline
 
 # A parameter this correlated with another free one has no value of its own to
 # report, however small its standard error: a slight misfit moves it along the other.
@@ -122,8 +122,8 @@ def screen_candidate(fitter: Fitter, effect: Effect) -> Effect:
 
 def screen_fit(fitter: Fitter, current: Fitted, spline: ScreenSpline, alpha: float) -> Fitted:
     """The screen: the library's quadratic, or the spline of the penalty order
-    and smoothing the linearised held-out error chooses (Fitter.screen over
-    ORDERS and SMOOTHINGS) where its held-out chi^2 over the poses is lower in
+    (or Matern length) and smoothing the linearised held-out error chooses
+    (Fitter.screen over SURFACES and SMOOTHINGS) where its held-out chi^2 over the poses is lower in
     total and significantly lower than the quadratic's by its mean or by its
     ranks (paired_p or ranked_p below alpha / 2: a screen's gain often lies in
     a few poses at the edge of the spots, which the rank test misses, or in
@@ -132,8 +132,8 @@ def screen_fit(fitter: Fitter, current: Fitted, spline: ScreenSpline, alpha: flo
     robot = fitter.base.robot
     quadratic = extended_fit(fitter, current, ScreenShape(robot.screen.half_y, robot.screen.half_z,
                                                           camera=spline.camera))
-    orders = [spline.with_order(order) for order in ORDERS]
-    chosen, _, _ = fitter.screen(current, orders)[0]
+    surfaces = [spline.with_order(order, length) for order, length in SURFACES]
+    chosen, _, _ = fitter.screen(current, surfaces)[0]
     fitted = extended_fit(fitter, current, chosen)
     significant = min(paired_p(quadratic, fitted), ranked_p(quadratic, fitted)) < alpha / 2
     return fitted if significant and fitted.cv_chi2.sum() < quadratic.cv_chi2.sum() else quadratic
@@ -218,6 +218,8 @@ def parameter_report(fitted: Fitted, alternatives: Sequence[Sequence[str]]) -> t
             item["covariate"] = effect.covariate
         if isinstance(effect, ScreenSpline):
             item["penalty_order"], item["smoothing_m"] = effect.penalty_order, effect.smoothing
+            if effect.length is not None:
+                item["matern_length"] = effect.length   # box half sizes
             # what the data saw of the screen: beyond it the surface is extrapolated
             item["known_over_m"] = {"y": [effect.centre_y - effect.half_y, effect.centre_y + effect.half_y],
                                     "z": [effect.centre_z - effect.half_z, effect.centre_z + effect.half_z]}

@@ -1,4 +1,4 @@
-"""The screen of any shape: a penalised thin-plate regression spline (Surface).
+"""The screen of any shape: a penalised thin-plate regression spline, or a Matern surface (Surface).
 
 A screen that is not flat is fitted as the surface x = f(y, z) (effects.screen.Surface:
 the beam meets it, the camera sees the spot through the plane's homography)
@@ -29,6 +29,19 @@ effective parameters, not its coefficients. A robot file holds the fitted
 surface in its knot form (``to_yaml``): the knots, the polynomial and one
 weight per knot, a_i = sum_k (Z U)_ik g_k, which evaluates the same surface
 without the eigenbasis.
+
+Beyond the spots a thin-plate spline goes on as its polynomial: right for a
+sag (a cubic continues), wrong for a bump or a wave of the sheet, where the
+quadratic the spots happen to show grows without bound (on the 4-DOF arm's
+wave screens, 9 mm off at a test spot 0.37 m beyond the calibration spots,
+against 1.8 mm for the true model). The Matern surface (``length`` given,
+in box half sizes) replaces eta by the Matern 5/2 covariance
+k(r) = (1 + a + a^2 / 3) exp(-a), a = sqrt(5) r / length, over the plane's
+null space (ORDER 2): within about a length of the knots it follows the
+shape, beyond them it returns to the plane, as kriging does. The same
+eigenform and prior hold (k is positive definite; its eigenvalues play the
+energies' part); the held-out error chooses among the thin-plate orders and
+the Matern lengths (SURFACES) as among the smoothings.
 """
 
 from __future__ import annotations
@@ -46,6 +59,10 @@ from laser_calib.io.read import finite_number
 from laser_calib.model.robot import Robot
 
 ORDERS = (3, 4)     # penalised derivative: the null space is the quadratic (ScreenShape's), or the cubic
+# Matern lengths (box half sizes): from a bump a sixth of the spots' range across to a bend over all of it
+LENGTHS = (0.3, 0.6, 1.2, 2.4)
+MATERN_ORDER = 2    # the Matern surface's null space: the plane (its constant removed)
+SURFACES = tuple((order, None) for order in ORDERS) + tuple((MATERN_ORDER, length) for length in LENGTHS)
 MAX_KNOTS = 60     # knots spread over the spots (farthest-point subsample)
 MODES = 30         # smoothest eigenfunctions kept; rougher ones carry nothing a prior would let through
 # rho (m) the screening tries (Effect.variants): from a surface barely off its polynomial to bends of
@@ -53,9 +70,14 @@ MODES = 30         # smoothest eigenfunctions kept; rougher ones carry nothing a
 SMOOTHINGS = tuple(float(v) * 1e-3 for v in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0))
 
 
-def kernel(r2: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
+def kernel(r2: np.ndarray, order: int, length: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """eta = (-1)^m r^(2m-2) log r of order m in the plane (the sign makes it conditionally
-    positive definite) and d eta / d r^2, at squared distances r2 (0 at r = 0)."""
+    positive definite) and d eta / d r^2, at squared distances r2 (0 at r = 0); with a
+    ``length``, the Matern 5/2 covariance k of that length and d k / d r^2 (module docstring)."""
+    if length is not None:
+        a = np.sqrt(5.0 * r2) / length
+        decay = np.exp(-a)
+        return (1 + a + a * a / 3) * decay, -(5.0 / (6 * length ** 2)) * (1 + a) * decay
     positive = r2 > 0
     r2 = np.where(positive, r2, 1.0)
     log, sign = np.log(r2), (-1) ** order
@@ -93,7 +115,8 @@ def spread_knots(points: np.ndarray, count: int) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class ScreenSpline(BoxSurface):
     """A screen of any smooth shape (module docstring). ``penalty_order`` m (the null
-    space: polynomials of degree < m); ``knots`` (n,2) in the normalised
+    space: polynomials of degree < m); ``length`` the Matern surface's (None:
+    thin-plate); ``knots`` (n,2) in the normalised
     coordinates; ``modes`` (n,K) and ``tails`` (len(exponents(m)),K) the knot
     weights and polynomial of each eigenfunction, ``bending`` (K,) their
     energies, ``smoothing`` rho (m); ``modes`` None is the knot form (one
@@ -109,10 +132,11 @@ class ScreenSpline(BoxSurface):
     tails: np.ndarray | None = None
     bending: np.ndarray | None = None
     smoothing: float | None = None
+    length: float | None = None
 
     @classmethod
     def make(cls, spots: np.ndarray, order: int = ORDERS[0],
-             camera: tuple[float, float, float] | None = None) -> "ScreenSpline":
+             camera: tuple[float, float, float] | None = None, length: float | None = None) -> "ScreenSpline":
         """The spline of ``order`` over the box of the measured spots (P,L,2) m (NaN where not
         seen), knots spread over them; no smoothing chosen yet (variants)."""
         seen = spots.reshape(-1, 2)
@@ -120,15 +144,15 @@ class ScreenSpline(BoxSurface):
         centre, half = cls.box(spots)
         knot_form = cls(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), order,
                         spread_knots((seen - centre) / half, MAX_KNOTS), camera=camera)
-        return knot_form.with_order(order)
+        return knot_form.with_order(order, length)
 
-    def with_order(self, order: int) -> "ScreenSpline":
-        """The eigenform of ``order`` over the same box and knots."""
+    def with_order(self, order: int, length: float | None = None) -> "ScreenSpline":
+        """The eigenform of ``order`` (and Matern ``length``) over the same box and knots."""
         null, _ = polynomial(self.knots, order)
         if len(self.knots) <= null.shape[1]:
             raise ValueError(f"a screen spline needs more than {null.shape[1]} distinct spots, got {len(self.knots)}")
         z = np.linalg.qr(null, mode="complete")[0][:, null.shape[1]:]     # (n, n - m) side conditions
-        gram, _ = kernel(((self.knots[:, None] - self.knots[None]) ** 2).sum(axis=-1), order)
+        gram, _ = kernel(((self.knots[:, None] - self.knots[None]) ** 2).sum(axis=-1), order, length)
         eigenvalues, vectors = np.linalg.eigh(z.T @ gram @ z)
         # The largest eigenvalues are the smoothest modes: their values (E Z U = Z U D plus a
         # polynomial) are large for their energy (Wood 2003).
@@ -138,13 +162,15 @@ class ScreenSpline(BoxSurface):
         tails = -np.linalg.lstsq(null, values, rcond=None)[0]
         rms = np.sqrt(np.mean((values + null @ tails) ** 2, axis=0))
         return replace(self, penalty_order=order, modes=modes / rms, tails=tails / rms, bending=eigenvalues[keep] / rms ** 2,
-                       smoothing=None)
+                       smoothing=None, length=length)
 
     def variants(self) -> tuple["ScreenSpline", ...]:
         return tuple(replace(self, smoothing=rho) for rho in SMOOTHINGS)
 
     @property
     def label(self) -> str:
+        if self.length is not None:
+            return f"{self.kind} (screen, Matern of length {self.length:g})"
         return f"{self.kind} (screen, penalty order {self.penalty_order})"
 
     @property
@@ -165,7 +191,8 @@ class ScreenSpline(BoxSurface):
         return np.concatenate([np.full(len(exponents(self.penalty_order)) - 1, np.inf), modes])
 
     def constants(self) -> dict:
-        return {**super().constants(), "penalty_order": self.penalty_order, "knots": self.knots.tolist()}
+        length = {} if self.length is None else {"length": self.length}
+        return {**super().constants(), "penalty_order": self.penalty_order, **length, "knots": self.knots.tolist()}
 
     def to_yaml(self, values: np.ndarray) -> dict[str, Any]:
         """The knot form: polynomial coefficients and one weight per knot."""
@@ -179,20 +206,24 @@ class ScreenSpline(BoxSurface):
 
     @classmethod
     def from_yaml(cls, robot: Robot, entry: Mapping[str, Any], where: str) -> "ScreenSpline":
-        order = entry.get("penalty_order")
-        if order not in ORDERS or isinstance(order, bool):
-            raise InputError(f"{where}.penalty_order", f"expected one of {', '.join(map(str, ORDERS))}, got {order!r}")
+        length = None if entry.get("length") is None else finite_number(entry["length"], f"{where}.length")
+        order, orders = entry.get("penalty_order"), ORDERS if length is None else (MATERN_ORDER,)
+        if order not in orders or isinstance(order, bool):
+            raise InputError(f"{where}.penalty_order", f"expected one of {', '.join(map(str, orders))}"
+                             f"{'' if length is None else ' with a length'}, got {order!r}")
+        if length is not None and length <= 0:
+            raise InputError(f"{where}.length", f"expected a length above 0 (box half sizes), got {length:g}")
         knots = entry.get("knots")
         if (not isinstance(knots, list) or not knots
                 or not all(isinstance(k, list) and len(k) == 2 for k in knots)):
             raise InputError(f"{where}.knots", "expected a list of [u, v] pairs (normalised knot positions)")
         points = np.array([[finite_number(value, f"{where}.knots[{n}]") for value in k] for n, k in enumerate(knots)])
-        return cls(*cls.box_from_yaml(robot, entry, where), order, points, camera=robot.screen.camera)
+        return cls(*cls.box_from_yaml(robot, entry, where), order, points, length=length, camera=robot.screen.camera)
 
     def _in_box(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """phi (...,k) and d phi / d x (...,k,2) at normalised points x (...,2), before the centre's value is removed."""
         offset = x[..., None, :] - self.knots                                 # (..., n, 2)
-        eta, slope = kernel(np.einsum("...nd,...nd->...n", offset, offset), self.penalty_order)
+        eta, slope = kernel(np.einsum("...nd,...nd->...n", offset, offset), self.penalty_order, self.length)
         null, d_null = polynomial(x, self.penalty_order)
         d_eta = [2 * slope * offset[..., 0], 2 * slope * offset[..., 1]]      # d eta / du, dv (..., n)
         if self.modes is None:
