@@ -7,6 +7,7 @@ of freedom as free parameters; the bounds are its 99.9 % quantiles.
 
 import warnings
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -287,3 +288,23 @@ def test_a_parameter_held_for_the_given_sigma_says_so():
     assert len(ranks) == 1 and "33 parameters at the spot sigma given (11.5 mm; 1 held for it)" in ranks[0], ranks
     right = estimate(session.nominal, cal, _options(session))
     assert not any(w.startswith("rank deficient") for w in right.warnings), right.warnings
+
+
+def test_a_spot_sigma_at_zero_beside_joint_noise_is_not_an_exact_fit():
+    """A simulated session (scripts/main's, recorded: 60 poses of the 7-DOF arm, detection noise
+    about 0.09 mm, joint readings about 0.06 deg) where the likelihood puts the spot component at
+    its boundary, 0: the joint noise carries the residual (1.7 mm mean spot error). It was
+    reported as "the data are fitted exactly (repeated poses?) ... the standard deviations mean
+    nothing", and the spot sigma as 5.63e-08 mm "estimated from the residual"."""
+    from laser_calib.io.samples import load_samples
+    from laser_calib.model.robot_file import load_robot
+    from laser_calib.report.files import spot_sigma_phrase
+
+    folder = Path(__file__).parent / "data" / "joint_noise_session"
+    robot = load_robot(folder / "robot.yaml")
+    est = estimate(robot, load_samples(folder / "samples.csv", robot), EstimateOptions(joint_sigma=None))
+    assert est.sigma_estimated and est.joint_sigma_estimated and est.sigma < 1e-7
+    assert est.joint_sigma == pytest.approx(np.deg2rad(0.06), rel=0.3)
+    assert not [w for w in est.warnings if "fitted exactly" in w], est.warnings
+    assert np.isfinite(est.std[est.identifiable]).all() and (est.std[est.identifiable] > 0).all()
+    assert spot_sigma_phrase(est).startswith("Spot sigma below what the data resolve")

@@ -345,15 +345,18 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         "deviations are overstated)")
     lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
     warnings.extend(fit_failures(lost, sigma * float(np.sqrt(result.chi2 / max(result.dof, 1)))))
+    # a spot component at 0 beside an estimated joint noise is the likelihood's boundary (the joint
+    # noise carries the residual), not an exact fit
+    exact = sigma_estimated and sigma < MIN_SIGMA and not joint_sigma
     noise_doubts = sigma_warnings(sigma, sigma_dof) if sigma_estimated and sigma >= MIN_SIGMA else []
-    if sigma_estimated and sigma < MIN_SIGMA:
+    if exact:
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")
     warnings.extend(noise_doubts)
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
     own = free & np.array([not is_frame_param(name) for name in names])
     # std and carried held errors excuse a value beyond FAR_SCALES only on a sound sigma (not from 1-7 dof)
-    sound = not sigma_estimated or (sigma >= MIN_SIGMA and not noise_doubts)
+    sound = not sigma_estimated or (not exact and not noise_doubts)
     warnings.extend(implausible(names, result.x, model.scales, own, getattr(getattr(model, "robot", None),
                                 "param_names", ()), *((result.std, ident.carry) if sound else (None, None))))
     if getattr(model, "robot", None) is not None and getattr(model, "samples", None) is not None:

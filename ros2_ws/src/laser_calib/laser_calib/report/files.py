@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from laser_calib import __version__
-from laser_calib.estimation.estimate import EstimateOptions
+from laser_calib.estimation.estimate import MIN_SIGMA, EstimateOptions
 from laser_calib.estimation.failures import undetermined_note
 from laser_calib.estimation.identifiability import carried_note
 from laser_calib.io.samples import Samples
@@ -124,6 +124,14 @@ def write_plots(calibration: Calibration, out: Path, truth: np.ndarray | None) -
     plot_histogram(groups, out / "histogram.png")
 
 
+def spot_sigma_phrase(est) -> str:
+    """The spot sigma as the report states it; an estimated spot component at 0 beside an estimated
+    joint noise is below what the data resolve (the joint noise carries the residual)."""
+    if est.sigma_estimated and est.sigma < MIN_SIGMA and est.joint_sigma_estimated:
+        return "Spot sigma below what the data resolve beside the joint-reading noise (estimated 0 mm)"
+    return f"Spot sigma {est.sigma * 1e3:.3g} mm ({'estimated from the residual' if est.sigma_estimated else 'given'})"
+
+
 def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     """report.md; its plots are the PNGs write_plots puts beside it."""
     est, robot, samples = calibration.estimate, calibration.robot, calibration.samples
@@ -132,7 +140,7 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     lines = [f"# Kinematic calibration of {robot.name}", "",
              f"Method: **{calibration.options.method}**, {len(samples)} calibration poses"
              + (f", {len(test)} test poses" if test is not None else "") + ". "
-             f"Spot sigma {est.sigma * 1e3:.3g} mm ({'estimated from the residual' if est.sigma_estimated else 'given'}), "
+             + spot_sigma_phrase(est) + ", "
              f"joint-reading sigma {np.degrees(est.joint_sigma):.3g} deg ("
              f"{'estimated with it' if est.joint_sigma_estimated else 'given' if est.joint_sigma else 'none used'}); "
              f"{est.fit.iterations} iterations ({'converged' if est.fit.converged else 'NOT converged'}), "
