@@ -30,7 +30,7 @@ from laser_calib.model.robot_file import load_robot
 from laser_calib.io import bag
 from laser_calib_nodes import graph
 from laser_calib_nodes.parameters import NodeError, declare
-from laser_calib_nodes.shutdown import ExitWatchdog
+from laser_calib_nodes.shutdown import ExitWatchdog, interruptible
 
 # Topic and service names (relative: a namespace or a remap moves them).
 JOINT_STATES = "joint_states"
@@ -274,11 +274,12 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     # session was stopped while its nodes started).
     initialising = True
 
-    def on_signal(signum, _frame):
+    def on_signal(signum, frame):
         first = not stopped.is_set()
         stopped.set()
         watchdog.arm()
-        if first and signum == signal.SIGINT and not initialising:  # a second Ctrl-C must not break the cleanup
+        # a second Ctrl-C must not break the cleanup; one inside rclpy's code is left to the context it shut
+        if first and signum == signal.SIGINT and not initialising and interruptible(frame):
             raise KeyboardInterrupt
 
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -16,6 +16,9 @@ Python thread with it. So once the cleanup is done two native backstops are arme
 faulthandler's own thread writes every thread's stack to stderr, and a POSIX timer whose
 expiry runs _exit(code) on a thread of its own (timer_create with SIGEV_THREAD) ends the
 process with the node's code; neither needs the GIL.
+
+A Ctrl-C's KeyboardInterrupt is raised where the main thread happens to be when its Python
+handler runs; interruptible() tells whether that place can take it (see there).
 """
 
 from __future__ import annotations
@@ -29,6 +32,30 @@ import time
 
 GRACE = 15.0  # s: ten times what the nodes need to exit on two loaded cores
 BACKSTOP = 1.0  # s after GRACE: the native backstops, when the watchdog thread could not run
+
+
+OWN_PACKAGES = ("laser_calib", "laser_calib_nodes")
+
+
+def interruptible(frame) -> bool:
+    """Whether a KeyboardInterrupt raised at ``frame`` (where a stop signal's Python handler runs:
+    any line of the main thread) lands where it can be taken: the nodes' own code and what it calls.
+    Not inside rclpy: its executor builds a Task for each callback, and one interrupted in
+    Future.__init__ lacks the attributes its __del__ reads ("Exception ignored in: <function
+    Future.__del__> ... AttributeError: 'Task' object has no attribute '_exception'", seen in
+    camera_sim's log when a launch shut down on two loaded cores). Nor inside any __del__: an
+    exception there is printed and dropped. In both the stop is left to rclpy's signal handler,
+    which has shut the context, and so ends the spin (ExternalShutdownException)."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return False
+        package = str(frame.f_globals.get("__name__", "")).partition(".")[0]
+        if package == "rclpy":
+            return False
+        if package in OWN_PACKAGES:
+            return True
+        frame = frame.f_back  # the standard library, numpy, message classes: decided by their caller
+    return True
 
 
 class _Sigevent(ctypes.Structure):
