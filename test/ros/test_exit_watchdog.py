@@ -210,3 +210,73 @@ def test_a_ctrl_c_inside_rclpys_task_handling_exits_0_without_a_traceback(method
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
     assert "Exception ignored" not in result.stderr and not result.stdout, result
     assert time.monotonic() - started < 10, "the stop waited for the exit watchdog"
+
+
+
+# SIGTERM (launch's escalation: rclpy's handler shuts the context, ours raises nothing) while the node
+# is built.
+STOP_WHILE_BUILDING = """
+import os, signal, sys, time
+import rclpy
+from rclpy.node import Node
+from laser_calib_nodes import common
+
+class Built(Node):
+    def __init__(self):
+        super().__init__("built")
+        os.kill(os.getpid(), signal.SIGTERM)
+        while rclpy.ok():
+            time.sleep(0.01)
+
+sys.exit(common.run(Built))
+"""
+
+# The same while the node waits for its robot description (robot_description_topic): the SIGTERM
+# lands as an executor is made for that wait (Executor.__init__ stands in), or else 0.5 s into it.
+STOP_WHILE_WAITING = """
+import os, signal, sys, threading, time
+import rclpy
+from rclpy import executors
+from rclpy.node import Node
+from laser_calib_nodes import common
+
+def stop():
+    os.kill(os.getpid(), signal.SIGTERM)
+    while rclpy.ok():
+        time.sleep(0.01)
+
+building = []
+real_init = executors.Executor.__init__
+def __init__(self, *args, **kwargs):
+    if building:
+        stop()
+    real_init(self, *args, **kwargs)
+executors.Executor.__init__ = __init__
+
+class Waiting(Node):
+    def __init__(self):
+        super().__init__("waiting")
+        building.append(1)
+        threading.Timer(0.5, stop).start()
+        common.wait_for_description(self, "robot_description", 10.0)
+
+sys.exit(common.run(Waiting))
+"""
+
+
+@pytest.mark.parametrize("program", [STOP_WHILE_BUILDING, STOP_WHILE_WAITING], ids=["built", "waiting"])
+def test_a_stop_while_the_node_is_built_exits_0_without_a_traceback(program):
+    """rclpy's Executor.__init__ on a context the stop signal had shut fails halfway (TypeError from
+    its guard condition), and the half-made executor's __del__ printed 'Exception ignored in:
+    <function Executor.__del__> ... AttributeError: 'SingleThreadedExecutor' object has no attribute
+    '_sigint_gc'' (camera_sim, Ctrl-C right after its start, two loaded cores). run() makes its
+    executor before rclpy's signal handlers are installed, and the wait for the robot description
+    spins that one."""
+    from ros_harness import workspace_env
+    env = workspace_env()
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    started = time.monotonic()
+    result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60, env=env)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
+    assert "Exception ignored" not in result.stderr, result.stderr
+    assert time.monotonic() - started < 10, "the stop waited for the exit watchdog or the description's timeout"

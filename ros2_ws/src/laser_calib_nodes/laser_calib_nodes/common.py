@@ -20,6 +20,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions, install_signal_handlers
 from sensor_msgs.msg import CameraInfo
 
 from laser_calib.io.errors import InputError
@@ -167,7 +168,8 @@ def compensator_param(node: Node) -> tuple[Any, str | None]:
 def wait_for_description(node: Node, topic: str, timeout: float) -> tuple[str, str]:
     """The first URDF text on topic (its latched one) and the topic's resolved name;
     NodeError (exit 2) after timeout s. Spins only this subscription's node, before
-    the node is given to its executor."""
+    the node is given to its executor: run()'s, made before a stop signal could shut the
+    context (one made here, on a context shut meanwhile, failed halfway: see run)."""
     from std_msgs.msg import String
 
     texts: list[str] = []
@@ -175,7 +177,7 @@ def wait_for_description(node: Node, topic: str, timeout: float) -> tuple[str, s
     name = subscription.topic_name
     node.get_logger().info(f"waiting up to {timeout:g} s for the robot description on {name} (std_msgs/String, "
                            "transient local, as robot_state_publisher publishes it)")
-    executor = SingleThreadedExecutor()
+    executor = _executor or SingleThreadedExecutor()
     executor.add_node(node)
     deadline = time.monotonic() + timeout
     try:
@@ -183,7 +185,8 @@ def wait_for_description(node: Node, topic: str, timeout: float) -> tuple[str, s
             executor.spin_once(timeout_sec=0.1)
     finally:
         executor.remove_node(node)
-        executor.shutdown()
+        if executor is not _executor:
+            executor.shutdown()
         node.destroy_subscription(subscription)
     if not texts:
         raise NodeError(f"no robot description on {name} within {timeout:g} s: is robot_state_publisher running "
@@ -253,6 +256,9 @@ def spots_from_msg(spots) -> np.ndarray:
     return out
 
 
+_executor: Executor | None = None  # run()'s
+
+
 def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         make_executor: Callable[[], Executor] | None = None,
         until: Callable[[Node], bool] | None = None) -> int:
@@ -263,9 +269,10 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     node's close() returns when the exit would otherwise be 0 (a fault found
     while cleaning up; an earlier fault keeps its own code, the cause).
     """
+    global _executor
     graph.die_with_parent()
     watchdog = ExitWatchdog(Path(sys.argv[0]).name)
-    # rclpy's signal handlers call the one installed before rclpy.init: this one notes the
+    # rclpy's signal handlers call the one installed before them: this one notes the
     # signal, so that an error it causes inside rclpy (a KeyboardInterrupt while a large
     # message is converted surfaces as RuntimeError) is taken for the stop it is.
     stopped = threading.Event()
@@ -284,10 +291,15 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
-    rclpy.init(args=args)
+    # rclpy's handlers, which shut the context on SIGINT and SIGTERM, are installed once the executor is
+    # made: rclpy's Executor.__init__ on a context a stop had shut fails halfway, and the half-made
+    # executor's __del__ printed a traceback ("AttributeError: ... no attribute '_sigint_gc'", camera_sim
+    # stopped right after its start).
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    executor = _executor = make_executor() if make_executor else SingleThreadedExecutor()
+    install_signal_handlers(SignalHandlerOptions.ALL)
     initialising = False
     node = None
-    executor = None
     code = 0
     try:
         try:
@@ -295,7 +307,6 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
                 raise KeyboardInterrupt
             node = make_node()
             warn_undeclared(node)
-            executor = make_executor() if make_executor else SingleThreadedExecutor()
             executor.add_node(node)
             if until is None:
                 executor.spin()
@@ -349,7 +360,6 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         watchdog.cleanup_done(code)
         if node is not None:
             node.destroy_node()
-        if executor is not None:
-            executor.shutdown(timeout_sec=1.0)
+        executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
     return code
