@@ -74,6 +74,13 @@ MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a m
 JOINT_NOISE_ALPHA = 0.05   # the joint-reading noise a residual must show before it weighs the fit
 
 
+def spot_sigma_at_zero(sigma: float, sigma_estimated: bool) -> bool:
+    """The estimated spot sigma is at 0 (below MIN_SIGMA): with no joint-reading noise the data
+    are fitted exactly; beside one it is the likelihood's boundary, the joint noise carrying the
+    residual (the spot component is below what the data resolve, not an exact fit)."""
+    return sigma_estimated and sigma < MIN_SIGMA
+
+
 @dataclass(frozen=True)
 class EstimateOptions:
     """method 'lm' or 'ekf'; spot_sigma (m) per spot coordinate, None to estimate it;
@@ -345,10 +352,9 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         "deviations are overstated)")
     lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
     warnings.extend(fit_failures(lost, sigma * float(np.sqrt(result.chi2 / max(result.dof, 1)))))
-    # a spot component at 0 beside an estimated joint noise is the likelihood's boundary (the joint
-    # noise carries the residual), not an exact fit
-    exact = sigma_estimated and sigma < MIN_SIGMA and not joint_sigma
-    noise_doubts = sigma_warnings(sigma, sigma_dof) if sigma_estimated and sigma >= MIN_SIGMA else []
+    at_zero = spot_sigma_at_zero(sigma, sigma_estimated)
+    exact = at_zero and not joint_sigma
+    noise_doubts = sigma_warnings(sigma, sigma_dof) if sigma_estimated and not at_zero else []
     if exact:
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")

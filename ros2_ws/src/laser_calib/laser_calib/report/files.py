@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from laser_calib import __version__
-from laser_calib.estimation.estimate import MIN_SIGMA, EstimateOptions
+from laser_calib.estimation.estimate import EstimateOptions, spot_sigma_at_zero
 from laser_calib.estimation.failures import undetermined_note
 from laser_calib.estimation.identifiability import carried_note
 from laser_calib.io.samples import Samples
@@ -125,9 +125,9 @@ def write_plots(calibration: Calibration, out: Path, truth: np.ndarray | None) -
 
 
 def spot_sigma_phrase(est) -> str:
-    """The spot sigma as the report states it; an estimated spot component at 0 beside an estimated
-    joint noise is below what the data resolve (the joint noise carries the residual)."""
-    if est.sigma_estimated and est.sigma < MIN_SIGMA and est.joint_sigma_estimated:
+    """The spot sigma as the report states it; an estimated spot component at 0 beside joint-reading
+    noise is below what the data resolve (spot_sigma_at_zero)."""
+    if spot_sigma_at_zero(est.sigma, est.sigma_estimated) and est.joint_sigma:
         return "Spot sigma below what the data resolve beside the joint-reading noise (estimated 0 mm)"
     return f"Spot sigma {est.sigma * 1e3:.3g} mm ({'estimated from the residual' if est.sigma_estimated else 'given'})"
 
