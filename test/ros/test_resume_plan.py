@@ -59,6 +59,33 @@ def test_resume_with_another_plan_is_refused(ros, tmp_path):
         in warnings[0], ros.log("same")
 
 
+def test_resume_with_other_noise_sigmas_says_so(ros, tmp_path):
+    """The final estimate's noise (estimate.spot_sigma, estimate.joint_sigma) sets the calibration's
+    standard deviations: a resume with others is said in a WARN line each, as the method is (it
+    changed them silently). A session recorded before the sigmas were (no such keys) warns of none."""
+    import yaml
+    out = tmp_path / "session"
+    partial_session(ros, out)
+    sigmas = ("estimate.spot_sigma:=0.001", "estimate.joint_sigma:=0.002")
+    ros.start("sigmas", *ros_params(f"robot:={ROBOT}", f"output_dir:={out}", "wait_timeout:=1.0", *sigmas),
+              node="sequencer")
+    assert ros.wait_exit("sigmas", 60) == 3, ros.log("sigmas")
+    warnings = [line for line in ros.log("sigmas").splitlines() if "WARN" in line]
+    assert len(warnings) == 2, ros.log("sigmas")
+    assert "estimate.spot_sigma is 0.001, the session's previous run used 0.0: this run uses 0.001" in warnings[0]
+    assert "estimate.joint_sigma is 0.002, the session's previous run used -1.0: this run uses 0.002" in warnings[1]
+    info = yaml.safe_load((out / "session.yaml").read_text())
+    assert (info["settings"]["estimate.spot_sigma"], info["settings"]["estimate.joint_sigma"]) == (0.001, 0.002)
+    # an older session's record: the sigmas it ran with are unknown, so nothing to compare
+    for name in ("estimate.spot_sigma", "estimate.joint_sigma"):
+        del info["settings"][name]
+    (out / "session.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
+    ros.start("old", *ros_params(f"robot:={ROBOT}", f"output_dir:={out}", "wait_timeout:=1.0", *sigmas),
+              node="sequencer")
+    assert ros.wait_exit("old", 60) == 3, ros.log("old")
+    assert "WARN" not in ros.log("old") and f"resuming {out}" in ros.log("old"), ros.log("old")
+
+
 def test_launch_resume_with_another_plan_is_refused_before_any_node_starts(ros, tmp_path):
     if ros2_missing():
         pytest.skip(ros2_missing())

@@ -93,8 +93,11 @@ def open_session(node):
 
 def settings(node) -> dict:
     """The session's parameters that do not change its pose plan, recorded to say on a resume
-    which differ (a resume may change them)."""
-    return {"estimate.method": node.end.method, "move.joint_speed": node.joint_speed}
+    which differ (a resume may change them): the sigmas as declared, so "not given" (0, -1)
+    compares equal to itself."""
+    end = node.end
+    return {"estimate.method": end.method, "estimate.spot_sigma": end.spot_sigma,
+            "estimate.joint_sigma": end.joint_sigma, "move.joint_speed": node.joint_speed}
 
 
 def warn_settings(node, session: SessionDir) -> None:
