@@ -10,6 +10,7 @@ import os
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import load_yaml
 from laser_calib.io.samples import check_lasers
+from laser_calib.measurement.noise_bounds import joint_sigma_or_unset_problem, spot_sigma_or_zero_problem
 from laser_calib.model.robot_file import load_robot
 
 
@@ -28,6 +29,31 @@ def positive_number(values: dict, name: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise InputError(name, f"expected a positive number, got {values[name]!r}")
     return value
+
+
+# The noise arguments and the rule of each: the nodes' own for their parameters (the estimator's
+# parameters.NOISE_RULES, the sequencer's estimate options), so that the launch refuses what a node would.
+NOISE_ARGUMENTS = {"spot_sigma": spot_sigma_or_zero_problem, "joint_sigma": joint_sigma_or_unset_problem}
+
+
+def noise_params(values: dict) -> tuple[dict, dict]:
+    """The estimator's and the sequencer's parameters of the noise arguments given (spot_sigma m,
+    joint_sigma rad; an empty one, the parameter file's, is left out). A value the nodes' rule
+    refuses: InputError naming it. The estimator gets them too: the sequencer's "not given" (spot
+    0, joint -1) goes in its Estimate request as 0, which is the estimator's parameter (a parameter
+    file may set another), and the estimator's online EKF then takes the noise stated."""
+    noise = {}
+    for name, problem_of in NOISE_ARGUMENTS.items():
+        if not values[name]:
+            continue
+        try:
+            value = float(values[name])
+        except ValueError:
+            raise InputError(name, f"expected a number, got {values[name]!r}") from None
+        if problem := problem_of(value):
+            raise InputError(name, problem)
+        noise[name] = value
+    return noise, {f"estimate.{name}": value for name, value in noise.items()}
 
 
 def existing_files(values: dict, *names: str) -> None:

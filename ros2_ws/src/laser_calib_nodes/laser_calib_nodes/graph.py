@@ -36,7 +36,8 @@ from laser_calib.model.robot_file import load_robot
 from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, refuse_finished
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import check_plan
-from laser_calib_nodes.arguments import arm_section, existing_files, integer, loadable_robot, positive_number
+from laser_calib_nodes.arguments import (arm_section, existing_files, integer, loadable_robot, noise_params,
+                                         positive_number)
 from laser_calib_nodes.shutdown import GRACE
 
 PACKAGE = "laser_calib_nodes"
@@ -76,6 +77,10 @@ SESSION_ARGS = {
     "method": ("lm", "Final estimate: 'lm' or 'ekf'."),
     "params": (share("config", "session.yaml"), "ROS parameter file of the nodes."),
     "speed": ("", "Simulated joint speed, rad/s (empty: the parameter file's)."),
+    "spot_sigma": ("", "Spot noise, m, of the final estimate and the online EKF; 0: estimated (empty: the "
+                       "parameter file's)."),
+    "joint_sigma": ("", "Joint-reading noise, rad (at most 0.5), of the final estimate and the online EKF; -1: not "
+                        "given, 0: none (empty: the parameter file's)."),
 }
 HARDWARE_ARGS = {
     "output_dir": (None, "Session directory (created; a partial session is resumed)."),
@@ -90,6 +95,8 @@ HARDWARE_ARGS = {
     "test_poses": SESSION_ARGS["test_poses"],
     "span": SESSION_ARGS["span"],
     "seed": SESSION_ARGS["seed"],
+    "spot_sigma": SESSION_ARGS["spot_sigma"],
+    "joint_sigma": SESSION_ARGS["joint_sigma"],
     "params": (share("config", "session.yaml"), "ROS parameter file of the other nodes."),
 }
 
@@ -132,12 +139,13 @@ def session_nodes(values: dict) -> list[NodeSpec]:
         arm["sim.joint_speed"] = positive_number(values, "speed")
     if values["method"] not in METHODS:  # refused now, not after every pose is measured
         raise InputError("method", f"expected one of {', '.join(METHODS)}, got {values['method']!r}")
+    estimator_noise, estimate_noise = noise_params(values)
     sequencer = dict(robot, output_dir=values["output_dir"], poses=integer(values, "poses"),
                      test_poses=integer(values, "test_poses"), span=values["span"], seed=integer(values, "seed"),
-                     **{"estimate.method": values["method"]})
+                     **{"estimate.method": values["method"]}, **estimate_noise)
     check_plan(sequencer["poses"], sequencer["span"], sequencer["seed"], test_poses=sequencer["test_poses"])
-    return [NodeSpec("estimator", files, robot), NodeSpec("arm_driver", files, arm), NodeSpec("camera_sim", files),
-            NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)]
+    return [NodeSpec("estimator", files, dict(robot, **estimator_noise)), NodeSpec("arm_driver", files, arm),
+            NodeSpec("camera_sim", files), NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)]
 
 
 def hardware_nodes(values: dict) -> list[NodeSpec]:
@@ -152,12 +160,13 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
     load_calibration(values["calibration"])  # bad YAML now, not after the arm's torque is on
     files = (values["params"],)
     robot = robot_params(values)
+    estimator_noise, estimate_noise = noise_params(values)
     sequencer = dict(robot, output_dir=values["output_dir"], poses_file=values["poses_file"],
                      poses=integer(values, "poses"), test_poses=integer(values, "test_poses"), span=values["span"],
-                     seed=integer(values, "seed"))
+                     seed=integer(values, "seed"), **estimate_noise)
     check_plan(None if values["poses_file"] else sequencer["poses"], sequencer["span"], sequencer["seed"],
                test_poses=sequencer["test_poses"])
-    return [NodeSpec("estimator", files, robot),
+    return [NodeSpec("estimator", files, dict(robot, **estimator_noise)),
             NodeSpec("arm_driver", (values["arm_params"],), dict(robot, backend="dynamixel")),
             NodeSpec("spot_detector", files, {"calibration": values["calibration"]},
                      # the driver's CameraInfo too: remapped alone, the image's size and intrinsics went unchecked
