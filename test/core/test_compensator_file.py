@@ -78,8 +78,10 @@ CASES = {
     "JSON null": ("null", "not a compensator file", "expected a JSON object"),
     "not JSON": ("{version: 2", "not a compensator file", ""),
     "no knots": (lambda d: d.pop("knots"), "no key 'knots'", ""),
-    "version 3": (_set("version", 3), "version", "expected one of 1, 2"),
-    "version true": (_set("version", True), "version", "expected one of 1, 2"),
+    "version 4": (_set("version", 4), "version", "expected one of 1, 2, 3"),
+    "version true": (_set("version", True), "version", "expected one of 1, 2, 3"),
+    "tensor a string": (_set("tensor", "yes"), "tensor", "expected true or false"),
+    "tensor missing": (lambda d: d.pop("tensor"), "no key 'tensor'", ""),
     "inputs a string": (_set("inputs", "q1"), "inputs", "list of names"),
     "no inputs": (_set("inputs", []), "inputs", "empty"),
     "target x9": (_set_in("targets", 0, "x9"), "targets[0]", "'x9' is not a target"),
@@ -130,6 +132,26 @@ def test_the_valid_file_and_its_version_1_form_load_and_predict(tmp_path):
     assert spots.shape == SAMPLES.spots.shape and np.isfinite(spots).all()
     old = _edited(lambda d: d.update(version=1, coef_rad=d.pop("coef")))
     assert np.array_equal(load_compensator(_write(tmp_path, old, "v1.json")).coef, compensator.coef)
+    # version 2, from before the key tensor: a pair is the product of its readings
+    two = _edited(lambda d: (d.update(version=2), d.pop("tensor")))
+    assert np.array_equal(load_compensator(_write(tmp_path, two, "v2.json")).predict(model), spots)
+
+
+def test_a_tensor_basis_round_trips_through_its_file(tmp_path):
+    """A pair as the products of its splines (Basis.tensor): the file holds it, and the loaded
+    compensator predicts what the one written did; its pair columns are not the product's."""
+    plain = Basis.of(SAMPLES.q, ROBOT.n_joints)
+    basis = Basis(plain.mean, plain.std, plain.knots, plain.pairs[:1], plain.size, tensor=True)
+    width = basis(SAMPLES.q).shape[1]
+    assert width == ROBOT.n_joints * basis.splines_per_input + basis.splines_per_input ** 2
+    rng = np.random.default_rng(0)
+    written = Compensator(tuple(f"q{j + 1}" for j in range(ROBOT.n_joints)), ("theta1",), np.array([True]), basis,
+                          rng.normal(0, 1e-4, (1, width)), 0.1, tuple(ROBOT.param_names), np.zeros(ROBOT.n_params))
+    written.save(tmp_path / "t.json")
+    loaded = load_compensator(tmp_path / "t.json")
+    model = EffectModel(SpotModel(ROBOT, SAMPLES), ())
+    assert loaded.basis.tensor
+    assert np.allclose(loaded.predict(model), written.predict(model), atol=1e-12)
 
 
 def _estimate(folder: Path, data: object, robot=ROBOT, samples=SAMPLES) -> list[str]:
@@ -193,8 +215,8 @@ def test_offsets_for_a_robot_or_samples_without_what_it_follows_is_an_input_erro
         compensator.offsets(ROBOT, SAMPLES.q, SAMPLES.stamp, SAMPLES.extra)
 
 
-KEYS = ["version", "inputs", "targets", "used", "mean", "std", "knots", "pairs", "size", "coef", "heldout_gain",
-        "model"]
+KEYS = ["version", "inputs", "targets", "used", "mean", "std", "knots", "pairs", "size", "tensor", "coef",
+        "heldout_gain", "model"]
 JSON = st.recursive(st.none() | st.booleans() | st.integers(-10, 10) | st.integers() |
                     st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=8),
                     lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=5), inner,

@@ -14,11 +14,14 @@ through the kinematics, so it applies to any pose and any measurement model:
 
 with robot the nominal robot of the diagnosis and effects those of its
 robot_calibrated.yaml (effects_from_robot): the file holds the geometric
-errors and effect values refitted together with the compensation (backfit).
+errors and effect values refitted together with the compensation
+(compensation.backfit, which also chose its basis).
 
-File (JSON, compensator.json of a diagnosis, version 2): inputs, targets
+File (JSON, compensator.json of a diagnosis, version 3): inputs, targets
 (theta_j are joint offsets, alpha_j, d_j and a_j offsets of the link's
-parameters), the basis (standardisation, knots, pairs, size), the coefficients
+parameters), the basis (standardisation, knots, pairs, size, and ``tensor``: a
+pair as the products of its splines; versions 1 and 2, from before it, hold
+the product of the readings), the coefficients
 ``coef`` (m', b) of the directions used, in SI units (rad for theta_j and
 alpha_j, m for d_j and a_j; version 1 files, from before the length
 directions, hold only angles under ``coef_rad`` and still load); load it with
@@ -36,25 +39,19 @@ import json
 import math
 import re
 import reprlib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 
-from sklearn.base import clone
-
-from laser_calib.diagnosis.detector import (LINK_DIRECTIONS, MIN_SPREAD, Basis, Detection, OffsetRegression, design,
-                                            input_table)
-from laser_calib.estimation.estimate import EstimateOptions, estimate_model
-from laser_calib.measurement.base import NoiseModel
+from laser_calib.diagnosis.detector import LINK_DIRECTIONS, MIN_SPREAD, Basis, Detection, OffsetRegression, input_table
 from laser_calib.effects.effect_model import EffectModel, Fixed
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot import Robot
 
-VERSION = 2
-READABLE = (1, 2)  # version 1: angle targets only, coefficients under "coef_rad"
-BACKFIT = 3  # rounds of model refit / regression refit
+VERSION = 3
+READABLE = (1, 2, 3)  # version 1: angle targets only, coefficients under "coef_rad"; 3: the key tensor
 TARGET = re.compile(rf"(theta|{'|'.join(LINK_DIRECTIONS)})[1-9][0-9]*")  # detector.directions' names
 JOINT_READING = re.compile(r"q[1-9][0-9]*")  # input_table's name of a joint reading
 
@@ -156,30 +153,12 @@ class Compensator:
         return {"version": VERSION, "inputs": list(self.inputs), "targets": list(self.targets),
                 "used": self.used.tolist(), "mean": self.basis.mean.tolist(), "std": self.basis.std.tolist(),
                 "knots": self.basis.knots.tolist(), "pairs": self.basis.pairs.tolist(), "size": self.basis.size,
+                "tensor": self.basis.tensor,
                 "coef": self.coef.tolist(), "heldout_gain": self.heldout_gain,
                 "model": {"names": list(self.names), "values": self.values.tolist()}}
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_json(), indent=1))
-
-
-def backfit(detection: Detection, model: EffectModel, x: np.ndarray, options: EstimateOptions,
-            noise: NoiseModel) -> Compensator:
-    """The compensator and the model's values fitted together by backfitting:
-    the model refitted with the compensation's offsets fixed, the regression
-    refitted to the residual the model alone leaves, BACKFIT times (the
-    geometric errors had absorbed part of what the compensation now carries)."""
-    regression = detection.regression
-    names, z = input_table(model.samples.q, model.samples.stamp, dict(model.samples.extra))
-    z = z[:, [names.index(n) for n in detection.inputs]]
-    compensator = Compensator.of(regression, detection, model.names, x)
-    for _ in range(BACKFIT):
-        x = estimate_model(compensator.apply(model), replace(options, restarts=0), None, x).values
-        X, y, _, _ = design(model.names, model.residuals(x, True), noise, z)
-        regression = clone(regression).fit(X, y.ravel())
-        compensator = Compensator.of(regression, detection, model.names, x)
-    return replace(compensator, values=estimate_model(compensator.apply(model), replace(options, restarts=0), None,
-                                                      x).values)
 
 
 def load_compensator(path: str | Path) -> Compensator:
@@ -199,7 +178,7 @@ def load_compensator(path: str | Path) -> Compensator:
         raise file.error("version", f"{reprlib.repr(version)}, expected one of {', '.join(map(str, READABLE))}")
     inputs = _inputs(file)
     targets = _targets(file)
-    basis = _basis(file, inputs)
+    basis = _basis(file, inputs, version)
     used = _flags(file["used"], file.where("used"), len(targets))
     key = "coef_rad" if version == 1 else "coef"
     width = _width(basis)
@@ -248,9 +227,9 @@ def _targets(file: _Fields) -> tuple[str, ...]:
     return targets
 
 
-def _basis(file: _Fields, inputs: tuple[str, ...]) -> Basis:
-    """The basis: standardisation and knots per input, pairs of joint readings, size, such that
-    Basis evaluates it (a positive spread, increasing knots, pairs of existing columns)."""
+def _basis(file: _Fields, inputs: tuple[str, ...], version: int) -> Basis:
+    """The basis: standardisation and knots per input, pairs of joint readings, size and (version 3)
+    tensor, such that Basis evaluates it (a positive spread, increasing knots, pairs of existing columns)."""
     per_input = ((len(inputs), "one per input"),)
     mean = _array(file["mean"], file.where("mean"), per_input)
     std = _array(file["std"], file.where("std"), per_input)
@@ -270,7 +249,10 @@ def _basis(file: _Fields, inputs: tuple[str, ...]) -> Basis:
     size = _number(file["size"], file.where("size"))
     if size <= 0:
         raise file.error("size", f"{size:g}, expected above 0 (it divides the features)")
-    return Basis(mean, std, knots, _pairs(file["pairs"], file.where("pairs"), inputs), size)
+    tensor = file["tensor"] if version >= 3 else False
+    if not isinstance(tensor, bool):
+        raise file.error("tensor", f"expected true or false, not {reprlib.repr(tensor)}")
+    return Basis(mean, std, knots, _pairs(file["pairs"], file.where("pairs"), inputs), size, tensor)
 
 
 def _width(basis: Basis) -> int:

@@ -97,13 +97,18 @@ class Basis:
     """The basis of the inputs: standardisation (mean, std (d,)), spline knots
     (K,d) in standardised units, pairs (i, j) of joint-reading columns, and
     size: the RMS of the whitened directions (1/rad), which divides the
-    features so that one penalty grid fits every arm and noise level."""
+    features so that one penalty grid fits every arm and noise level. A pair
+    enters as the product of its two readings, or with ``tensor`` as the
+    products of their splines (K + DEGREE - 1 squared functions: any smooth
+    function of the two, such as sin q1 sin q7, which the product and the
+    additive splines cannot hold; the compensator's refinement, compensation.py)."""
 
     mean: np.ndarray
     std: np.ndarray
     knots: np.ndarray
     pairs: np.ndarray  # (np, 2) int
     size: float = 1.0
+    tensor: bool = False
 
     @classmethod
     def of(cls, z: np.ndarray, n_joints: int, size: float = 1.0) -> "Basis":
@@ -118,9 +123,19 @@ class Basis:
     def __call__(self, z: np.ndarray) -> np.ndarray:
         """(P,b) basis values at inputs z (P,d)."""
         zs = (z - self.mean) / self.std
-        spline = SplineTransformer(knots=self.knots, degree=DEGREE, extrapolation="constant").fit(self.knots)
-        products = zs[:, self.pairs[:, 0]] * zs[:, self.pairs[:, 1]]
-        return np.hstack([spline.transform(zs), products])
+        splines = SplineTransformer(knots=self.knots, degree=DEGREE, extrapolation="constant").fit(
+            self.knots).transform(zs)                                              # (P, d n)
+        if not self.tensor:
+            return np.hstack([splines, zs[:, self.pairs[:, 0]] * zs[:, self.pairs[:, 1]]])
+        n = self.splines_per_input
+        per_input = splines.reshape(len(zs), -1, n)
+        products = [(per_input[:, i, :, None] * per_input[:, j, None, :]).reshape(len(zs), n * n)
+                    for i, j in self.pairs]
+        return np.hstack([splines, *products])
+
+    @property
+    def splines_per_input(self) -> int:
+        return len(self.knots) + DEGREE - 1
 
 
 class OffsetRegression(BaseEstimator, RegressorMixin):

@@ -77,7 +77,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from laser_calib.diagnosis.compensator import backfit
+from laser_calib.diagnosis.compensation import backfit
 from laser_calib.diagnosis.data import Data, SpotData, supports
 from laser_calib.diagnosis.detector import detect
 from laser_calib.diagnosis.fitter import Fitter, distances
@@ -329,7 +329,8 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     verdict, said = predicted(verdict, said, prediction, options.alpha)
     compensator = compensated = None
     if options.compensate and detection.p <= options.alpha and detection.gain > 0:
-        compensator = backfit(detection, seen, final.estimate.values, fitter.fit_options, detector_noise)
+        compensator = backfit(detection, seen, final.estimate.values, fitter.fit_options, detector_noise,
+                              fitter.fold if rows is None else fitter.fold[rows])
         if test is not None:
             compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), compensator.values)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
