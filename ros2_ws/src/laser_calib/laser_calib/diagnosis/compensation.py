@@ -7,9 +7,9 @@ small for the test's power (N_KNOTS cubic splines per input, a pair as the
 product of its readings). Once that is decided, the shape is the
 compensator's to get right: the chosen direction and inputs are refitted on
 richer bases (refined), the one of the best held-out gain over the same folds
-chosen, the detector's own unless another predicts significantly better. A harmonic of a joint's angle needs
-more knots than four over its range (sin(3 q1): three periods), an error of
-two joints' angles (sin q1 sin q7) the products of their splines
+chosen where it beats the detector's own per pose. A harmonic of a joint's
+angle needs more knots than four over its range (sin(3 q1): three periods), an
+error of two joints' angles (sin q1 sin q7) the products of their splines
 (Basis.tensor). Then the model and the regression are fitted together (backfit).
 """
 
@@ -38,13 +38,14 @@ def refined(regression: OffsetRegression, X: np.ndarray, y: np.ndarray, fold: np
     tensor, the products of its splines) and penalty (ALPHAS) of the best held-out gain over
     the folds ``fold`` (P,) of the poses, fitted on all rows, where its held-out squared
     errors per pose are below those of the detector's basis by a one-sided paired t test at
-    EQUIVALENT_P; else the detector's. The best of eight bases on 80 poses is partly the
-    folds' chance: without the test, the effects bench's compensated test RMS moved by up to
-    8 % either way where the detector's basis was right. The test is not corrected for the
-    choice among seven: on a pure-noise residual a richer basis is taken in about a quarter
-    of draws (10 of 40 seeds; 39 of 40 without the test). That is a shape chosen, not a
-    finding: the compensator exists only where the detector found structure. X (P*V, d+m) and y (P,V) as detector.design gives them; a
-    regression of every column (columns None) is returned as it is."""
+    EQUIVALENT_P; else the detector's. The best of up to eight bases on 80 poses is partly
+    the folds' chance: without the test, the effects bench's compensated test RMS moved by
+    up to 8 % either way where the detector's basis was right. The test is not corrected for
+    the choice among them: on a pure-noise residual a richer basis is taken in about a
+    quarter of draws (10 of 40 seeds; 39 of 40 without the test). That is a shape chosen,
+    not a finding: the compensator exists only where the detector found structure.
+    X (P*V, d+m) and y (P,V) as detector.design gives them; a regression of every column
+    (columns None) is returned as it is."""
     if regression.columns is None:
         return regression
     basis, n_inputs = regression.basis, regression.n_inputs
