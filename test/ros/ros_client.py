@@ -23,9 +23,10 @@
                                                'reversed' (the same readings, names in reverse order) or
                                                'gripper' (robot order and one more joint); then up to WAIT s
                                                (10) for the estimator to have taken the N
-    ros_client.py stream-replay ROBOT N RATE [SUBS]  N exact still frames as a live stream has them (5 joint_states
-                                               at 50 Hz per spots frame at 10 Hz), played RATE times faster, once
-                                               each topic has SUBS subscriptions (default 1)
+    ros_client.py stream-replay ROBOT N RATE [SUBS] [DEPTH]  N exact still frames as a live stream has them (5
+                                               joint_states at 50 Hz per spots frame at 10 Hz), played RATE times
+                                               faster, once each topic has SUBS subscriptions (default 1), from
+                                               publishers of history DEPTH (default 100)
 """
 
 from __future__ import annotations
@@ -512,15 +513,15 @@ def stream(robot_path: str, layout: str, count: int, wait: float = 10.0) -> dict
             "largest_error": float(np.nanmax(np.abs(last.errors))) if last else None}
 
 
-def stream_replay(robot_path: str, count: int, rate: float, subscribers: int = 1) -> dict:
-    """As a replay of a recorded stream at --rate RATE (its QoS: reliable, keep last 100): per still
+def stream_replay(robot_path: str, count: int, rate: float, subscribers: int = 1, depth: int = 100) -> dict:
+    """As a replay of a recorded stream at --rate RATE (its QoS: reliable, keep last ``depth``): per still
     frame 5 joint_states 20 ms apart and one spots message with the stamp of the third; then the
     estimator's latest sample_count once it has stopped changing for 3 s."""
     from builtin_interfaces.msg import Time
     from sensor_msgs.msg import JointState
     from laser_calib_interfaces.msg import SpotPair
     robot, q, spots, node, got, states, pairs, deadline = _stream_publishers(robot_path, count, "test_stream_replay",
-                                                                             100, subscribers)
+                                                                             depth, subscribers)
     n = robot.n_joints
     start = time.monotonic()
     for k in range(5 * count):
@@ -577,7 +578,7 @@ def main() -> int:
         elif command == "stream":
             result = stream(sys.argv[2], sys.argv[3], int(sys.argv[4]), *map(float, sys.argv[5:6]))
         elif command == "stream-replay":
-            result = stream_replay(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), *map(int, sys.argv[5:6]))
+            result = stream_replay(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), *map(int, sys.argv[5:7]))
         elif command == "samples-named-twice":
             result = samples_named_twice(sys.argv[2])
         elif command == "samples-by-name":
