@@ -39,6 +39,7 @@ import time
 
 import numpy as np
 import rclpy
+from rclpy.duration import Duration
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -538,6 +539,11 @@ def stream_replay(robot_path: str, count: int, rate: float, subscribers: int = 1
                                    for j in range(2)])
             pair.header.stamp, pair.header.frame_id = stamp, "screen"
             pairs.publish(pair)
+    # as replay does: a publisher that exits with messages unacknowledged loses them (a keep-all
+    # reader's history is bounded by its resource limits; the rest wait in this history while the
+    # subscriber's executor lags behind a segment roll-over's fsync)
+    for publisher in (states, pairs):
+        publisher.wait_for_all_acked(Duration(seconds=max(deadline - time.monotonic(), 0.0)))
     last, quiet_since = None, time.monotonic()
     while time.monotonic() - quiet_since < 3.0 and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
