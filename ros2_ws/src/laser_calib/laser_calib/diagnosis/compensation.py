@@ -40,7 +40,7 @@ def refined(regression: OffsetRegression, X: np.ndarray, y: np.ndarray, fold: np
     errors per pose are below those of the detector's basis by a one-sided paired t test at
     EQUIVALENT_P; else the detector's. The best of up to eight bases on 80 poses is partly
     the folds' chance: without the test, the effects bench's compensated test RMS moved by
-    up to 8 % either way where the detector's basis was right. The test is not corrected for
+    up to 13 % either way where the detector's basis was right. The test is not corrected for
     the choice among them: on a pure-noise residual a richer basis is taken in about a
     quarter of draws (10 of 40 seeds; 39 of 40 without the test). That is a shape chosen,
     not a finding: the compensator exists only where the detector found structure.
