@@ -22,8 +22,8 @@ from scipy import stats
 from sklearn.base import clone
 
 from laser_calib.diagnosis.compensator import Compensator
-from laser_calib.diagnosis.detector import (ALPHAS, N_KNOTS, Basis, Detection, FoldRidge, OffsetRegression,
-                                            design, input_table)
+from laser_calib.diagnosis.detector import (ALPHAS, N_KNOTS, Detection, FoldRidge, OffsetRegression, design,
+                                            input_table)
 from laser_calib.diagnosis.options import EQUIVALENT_P
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.estimation.estimate import EstimateOptions, estimate_model
@@ -54,15 +54,15 @@ def refined(regression: OffsetRegression, X: np.ndarray, y: np.ndarray, fold: np
     inputs = np.unique(local[local < n_inputs * n] // n)
     pairs = basis.pairs[local[local >= n_inputs * n] - n_inputs * n]
     z = X[:, :n_inputs]
-    zs = (z - basis.mean) / basis.std
     pose = np.repeat(np.arange(len(fold)), y.shape[1])   # the pose of each row
     held = [fold[pose] == k for k in np.unique(fold)]
     target = y.ravel()
     candidates = []   # (held-out SSE, regression, its features)
     for n_knots in KNOTS:
         for tensor in (False, True) if len(pairs) else (False,):
-            richer = Basis(basis.mean, basis.std, np.linspace(zs.min(axis=0), zs.max(axis=0), n_knots), pairs,
-                           basis.size, tensor)
+            # the detector's standardisation and knot span (its first and last knots: the inputs' range)
+            richer = replace(basis, knots=np.linspace(basis.knots[0], basis.knots[-1], n_knots), pairs=pairs,
+                             tensor=tensor)
             values = richer(z)
             n_richer = richer.splines_per_input
             own = np.concatenate([np.arange(k * n_richer, (k + 1) * n_richer) for k in inputs]
