@@ -21,6 +21,13 @@ def integer(values: dict, name: str) -> int:
         raise InputError(name, f"expected an integer, got {values[name]!r}") from None
 
 
+def number(values: dict, name: str) -> float:
+    try:
+        return float(values[name])
+    except ValueError:
+        raise InputError(name, f"expected a number, got {values[name]!r}") from None
+
+
 def positive_number(values: dict, name: str) -> float:
     try:
         value = float(values[name])
@@ -46,10 +53,7 @@ def noise_params(values: dict) -> tuple[dict, dict]:
     for name, problem_of in NOISE_ARGUMENTS.items():
         if not values[name]:
             continue
-        try:
-            value = float(values[name])
-        except ValueError:
-            raise InputError(name, f"expected a number, got {values[name]!r}") from None
+        value = number(values, name)
         if problem := problem_of(value):
             raise InputError(name, problem)
         noise[name] = value
