@@ -49,7 +49,7 @@ def refined(regression: OffsetRegression, X: np.ndarray, y: np.ndarray, fold: np
     if regression.columns is None:
         return regression
     basis, n_inputs = regression.basis, regression.n_inputs
-    width, n = basis(basis.mean[None, :]).shape[1], basis.splines_per_input
+    width, n = basis.width, basis.splines_per_input
     directions, local = np.unique(regression.columns // width), np.unique(regression.columns % width)
     inputs = np.unique(local[local < n_inputs * n] // n)
     pairs = basis.pairs[local[local >= n_inputs * n] - n_inputs * n]

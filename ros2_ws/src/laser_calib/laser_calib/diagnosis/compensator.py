@@ -181,9 +181,8 @@ def load_compensator(path: str | Path) -> Compensator:
     basis = _basis(file, inputs, version)
     used = _flags(file["used"], file.where("used"), len(targets))
     key = "coef_rad" if version == 1 else "coef"
-    width = _width(basis)
     coef = _array(file[key], file.where(key), ((int(used.sum()), "one row per used target"),
-                                               (width, "one per basis function")))
+                                               (basis.width, "one per basis function")))
     names, values = _model(file)
     return Compensator(inputs, targets, used, basis, coef, _number(file["heldout_gain"], file.where("heldout_gain")),
                        names, values, source)
@@ -253,13 +252,6 @@ def _basis(file: _Fields, inputs: tuple[str, ...], version: int) -> Basis:
     if not isinstance(tensor, bool):
         raise file.error("tensor", f"expected true or false, not {reprlib.repr(tensor)}")
     return Basis(mean, std, knots, _pairs(file["pairs"], file.where("pairs"), inputs), size, tensor)
-
-
-def _width(basis: Basis) -> int:
-    """The number of basis functions (coef's columns). Quietly: knots far apart overflow where
-    scikit-learn extends them, which values_at refuses (the offsets are not finite)."""
-    with np.errstate(all="ignore"):
-        return basis(basis.mean[None, :]).shape[1]
 
 
 def _model(file: _Fields) -> tuple[tuple[str, ...], np.ndarray]:

@@ -137,6 +137,13 @@ class Basis:
     def splines_per_input(self) -> int:
         return len(self.knots) + DEGREE - 1
 
+    @property
+    def width(self) -> int:
+        """b, the number of basis functions: every input's splines, then per pair its
+        product or, with tensor, the products of its two inputs' splines."""
+        n = self.splines_per_input
+        return len(self.mean) * n + len(self.pairs) * (n * n if self.tensor else 1)
+
 
 class OffsetRegression(BaseEstimator, RegressorMixin):
     """y = sum_j g_j f_j(z), f_j = basis(z) @ c_j, ridge-penalised (sklearn Ridge).
@@ -178,7 +185,7 @@ class OffsetRegression(BaseEstimator, RegressorMixin):
 
     def coefficients(self, n_directions: int) -> np.ndarray:
         """(m, b) coefficients per direction and basis function (rad; 0 where not used)."""
-        width = self.basis(self.basis.mean[None, :]).shape[1]
+        width = self.basis.width
         out = np.zeros(n_directions * width)
         out[slice(None) if self.columns is None else self.columns] = self.ridge_.coef_ / self.basis.size
         return out.reshape(n_directions, width)
