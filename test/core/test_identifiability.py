@@ -7,7 +7,7 @@ import numpy as np
 
 from laser_calib.cli.main import main
 from laser_calib.estimation.estimate import EstimateOptions, estimate
-from laser_calib.estimation.identifiability import STD_FACTOR, analyse
+from laser_calib.estimation.identifiability import AMPLIFY, STD_FACTOR, analyse
 from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.sim.simulation import measure, paper_session
@@ -75,6 +75,22 @@ def test_each_held_parameter_is_named_in_its_own_combination():
     assert ident.free.tolist() == [True, True, False, False]
     texts = dict(zip(("p2", "p3"), ident.null_combinations))
     assert texts == {"p2": "+1.00 p0 -1.00 p1 +0.03 p2", "p3": "+1.00 p0 -1.00 p1 +3.0e-03 p3"}
+
+
+def test_amplify_holds_the_largest_carrier():
+    """The columns of the test above: in order p2 and p3 are held, and p0 and p1 carry them at 33
+    and 333 times their weight, so a tolerance's error of p3 is fitted as 333 tolerances of p0
+    and p1, where the kinematics is not linear. With amplify, each held column is swapped for its
+    largest carrier while that one carries it at more than AMPLIFY: p0 and p2 are held, p1 and
+    p3 carry them at their own weight or less, and the same directions are kept."""
+    u = np.linalg.qr(np.random.default_rng(0).normal(size=(6, 2)))[0].T
+    jac = np.column_stack([u[0], u[0] + 0.03 * u[1], u[1], 10 * u[1]])
+    names = ("p0", "p1", "p2", "p3")
+    in_order, swapped = analyse(jac, np.ones(4), names), analyse(jac, np.ones(4), names, amplify=AMPLIFY)
+    assert in_order.carry.max() > 300
+    assert swapped.free.tolist() == [False, True, False, True] and swapped.rank == in_order.rank == 2
+    assert swapped.carry.max() <= 1.0 + 1e-9
+    assert swapped.null_combinations == ("+1.00 p0 -1.00 p1", "+1.00 p2 -0.10 p3")
 
 
 def test_a_joint_that_never_moves_is_held_and_not_written():

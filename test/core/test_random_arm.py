@@ -149,14 +149,72 @@ ARM_STILL_THIRD_JOINT = {
 }
 
 
-def test_a_value_carrying_held_errors_is_judged_with_them():
-    """The still third joint leaves five errors held (d4, alpha4, theta4, slm_z, slm_rz); a3 and a4
-    carry their combinations, summed coefficients 84 (Identifiability.carry). Both came out at 33
-    tolerance scales and the fit exited 3 (NOT A CALIBRATION), though a4's combination in the truth
-    is at 37: a carried value's bound is FAR_SCALES (1 + carry). The errors that carry no held one
-    agree with the truth (Z_MAX)."""
+def test_the_largest_carrier_is_held_not_amplified():
+    """The still third joint leaves five directions the data cannot see. Held in the robot's order
+    (d4 among them), a3 and a4 carried their combinations with summed coefficients of 84: both came
+    out at 33 tolerance scales, and the fit exited 3 (NOT A CALIBRATION) until their bound grew
+    with that sum. The largest carrier is held instead (identifiability.AMPLIFY): a4, not d4, and no
+    kept value carries more than about one held error per combination; the errors that carry no
+    held one agree with the truth (Z_MAX)."""
     _, session, _, est = _calibrated(ARM_STILL_THIRD_JOINT, 1)
     assert first_failure(est.warnings) is None, est.warnings
-    a4 = est.names.index("a4")
-    assert abs(est.errors[a4]) > 10 * 0.010 and est.identifiability.carry[a4] > 10, "the case this test is about"
+    held = [name for name, kept in zip(est.names, est.identifiable) if not kept]
+    assert held == ["a4", "alpha4", "theta4", "slm_z", "slm_rz"]
+    assert est.identifiability.carry.max() < 1.5
     _assert_own_errors_agree(est, session)
+
+
+# Seed 0, arm 7: the laser module's rz is a first-order combination of theta6 and slm_ry, each
+# at about 5 times its weight (the module's alpha 79 deg, not 90).
+ARM_AMPLIFIED_RZ = {
+    "name": "random_0_7",
+    "joints": [
+        {"a": -0.3675336577, "d": 0.0304517448, "alpha": 0.0, "theta0": 1.5707963268,
+         "min": -1.3038730802, "max": -0.0053460599},
+        {"a": -0.0688322509, "d": -0.0559761335, "alpha": 1.5707963268, "theta0": 2.7501224356,
+         "min": 0.0481333199, "max": 0.6526119258},
+        {"a": -0.0428863657, "d": 0.0, "alpha": -1.5707963268, "theta0": 3.1415926536,
+         "min": -1.2249934428, "max": 0.2181047152},
+        {"a": 0.0849265103, "d": -0.0652435503, "alpha": 0.8716489352, "theta0": 1.5707963268,
+         "min": -1.8163964379, "max": 1.7942972118},
+        {"a": 0.0616467552, "d": -0.0104281413, "alpha": -1.5707963268, "theta0": 3.1415926536,
+         "min": -0.0635962503, "max": 0.52202514},
+        {"a": 0.0861922056, "d": 0.0, "alpha": 1.5707963268, "theta0": -1.3727379007,
+         "min": -0.7982251983, "max": 0.6027616632},
+    ],
+    "slm": {"a": 0.0, "d": 0.0579106783, "alpha": 1.3828753987, "theta": 2.4419100331, "beta": 0.0},
+    "lasers": [{"gamma": -0.5235987756, "beta": 0.0}, {"gamma": 0.5235987756, "beta": 0.0}],
+}
+
+
+def test_effect_free_data_is_explained_when_a_combination_would_amplify():
+    """Effect-free data (geometric errors and noise only, both sigmas given). Held in the robot's
+    order, slm_rz (true -0.68 deg) was carried by theta6 and slm_ry at 5.4 times its size: 3.7 deg
+    each, where the kinematics is not linear, and the fit missed second-order structure a correct
+    model does not leave: chi^2 fell only 4 below its value at the true errors, where fitting 27
+    parameters takes about 27 off. The diagnosis said "structure remains" (d6 varies with q6,
+    varying-coefficient p = 0.0015 after Bonferroni). Holding theta6 instead, the fit takes what a
+    linear model takes (27 +- 2 sqrt(27)) and the verdict is "explained"."""
+    from laser_calib.diagnosis.engine import diagnose
+    from laser_calib.diagnosis.options import DiagnoseOptions
+    from laser_calib.effects.effect_model import EffectModel
+    from laser_calib.measurement.base import whiten
+    from laser_calib.sim.effect_truth import effect_session
+    from laser_calib.sim.simulation import NoiseSpec
+
+    robot = robot_from_dict(ARM_AMPLIFIED_RZ, ARM_AMPLIFIED_RZ["name"])
+    noise = NoiseSpec(spot=0.5e-3, joint=float(np.deg2rad(0.02)))   # the effects bench's
+    session = effect_session(robot, 1, lambda *_: [], 80, 80, noise, 10.0)
+    diagnosis = diagnose(session.nominal, session.cal, session.test, spot_sigma=noise.spot_sigma,
+                         joint_sigma=noise.joint_sigma, options=DiagnoseOptions(nested=False))
+    held = [name for name, kept in zip(diagnosis.final.model.names, diagnosis.final.estimate.identifiable) if not kept]
+    assert "theta6" in held and "slm_rz" not in held, held
+    model = EffectModel(SpotModel(robot, session.cal), [])
+    chi2 = []
+    for x in (session.errors, diagnosis.final.estimate.values):
+        res = model.residuals(np.asarray(x, float), True)
+        r, _ = whiten(res, NoiseModel(noise.spot_sigma, noise.joint_sigma).whitener(res))
+        chi2.append(float(r @ r))
+    n_free = int(np.sum(diagnosis.final.estimate.identifiable))
+    assert abs(chi2[0] - chi2[1] - n_free) < 2 * np.sqrt(n_free), (chi2, n_free)
+    assert diagnosis.verdict == "explained", diagnosis.evidence

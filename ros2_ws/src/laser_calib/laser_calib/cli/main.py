@@ -24,7 +24,7 @@ from laser_calib.estimation.ekf import EkfOptions
 from laser_calib.estimation.lm import LmOptions
 from laser_calib.estimation.problem import whitened_factor
 from laser_calib.report.progress import Progress
-from laser_calib.estimation.identifiability import STD_FACTOR, TooFewValues, UnknownFixed, analyse
+from laser_calib.estimation.identifiability import AMPLIFY, STD_FACTOR, TooFewValues, UnknownFixed, analyse
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.calibration import shown_mm
@@ -157,7 +157,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     factor, n_values = whitened_factor(model, NoiseModel(args.spot_sigma, args.joint_sigma), np.zeros(robot.n_params))
     print(f"{robot.name}: {len(samples)} poses, {n_values // 2} spots")
     # the given noise sets the threshold: what the poses would determine worse than 10 tolerances is listed
-    print(analyse(factor, model.scales, model.names, std_factor=STD_FACTOR).table())
+    print(analyse(factor, model.scales, model.names, std_factor=STD_FACTOR, amplify=AMPLIFY).table())
     return 0
 
 

@@ -53,7 +53,7 @@ from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.failures import (NOT_CONVERGED, NoSpotToFit, beyond_data, first_failure, fit_failures,
                                              implausible)
 from laser_calib.estimation.folds import still_joint_warnings
-from laser_calib.estimation.identifiability import STD_FACTOR, Identifiability, TooFewValues, analyse, check_fixed
+from laser_calib.estimation.identifiability import AMPLIFY, STD_FACTOR, Identifiability, TooFewValues, analyse, check_fixed
 from laser_calib.estimation.impossible import impossible_spots, judged_again
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt, restarted, suspect
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses, rescaled,
@@ -89,7 +89,8 @@ class EstimateOptions:
     prior_angle (rad) per error; robust outlier rejection (robust.py); fixed:
     parameter names held at nominal; restarts of LM when the minimum is suspect;
     std_factor: the identifiability threshold (identifiability.py), None for
-    the numerical rank only."""
+    the numerical rank only; amplify: a combination's carrier moved by more than
+    this is held instead (identifiability.AMPLIFY), None to hold in the model's order."""
 
     method: str = "lm"
     spot_sigma: float | None = None
@@ -103,6 +104,7 @@ class EstimateOptions:
     restarts: int = 6
     seed: int = 0
     std_factor: float | None = STD_FACTOR
+    amplify: float | None = AMPLIFY
     lm: LmOptions = LmOptions()
     ekf: EkfOptions = EkfOptions()
 
@@ -258,7 +260,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         raise NoSpotToFit()
     start_factor = _factor_without(model, start_factor, noise, noise, x0, excluded, excluded)
     start_noise = noise
-    ident = analyse(start_factor, model.scales, names, user_fixed, std_factor=given_factor)
+    ident = analyse(start_factor, model.scales, names, user_fixed, std_factor=given_factor, amplify=options.amplify)
     free = ident.free
     # as many values as parameters fit exactly: nothing tests the fit or estimates the noise
     if n_values <= free.sum() and prior_sigma is None:
@@ -315,7 +317,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         start_x = trial.x
     if sigma_estimated or rejected:
         ident = analyse(_factor_without(model, start_factor, start_noise, noise, x0, excluded, removed),
-                        model.scales, names, user_fixed, std_factor=factor)
+                        model.scales, names, user_fixed, std_factor=factor, amplify=options.amplify)
         start_x = start_x if np.array_equal(ident.free, free) else x0   # holding more: no start (step 4)
         free = ident.free
     held = [name for name, keep, user in zip(names, free, user_fixed) if not keep and not user]

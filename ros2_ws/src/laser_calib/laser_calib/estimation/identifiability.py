@@ -32,6 +32,21 @@ joint's z) and y absorbs the rounding like any geometric error. A deferred
 column that no later one replaces is tested by the same thresholds after the
 others, so deferring chooses among near-duplicates and nothing else.
 
+In order, the held parameter of a combination may be the one its carriers
+weigh least: a random arm's laser module at 79 deg, not 90, made slm_rz a
+first-order combination of theta6 and slm_ry at 5.4 times its weight, so its
+true -0.68 deg was fitted as 3.7 deg of each, where the kinematics is not
+linear: the fit missed second-order structure a correct model does not leave
+(chi^2 4 below its value at the true errors, where 27 free parameters take
+about 27 off), and the diagnosis said "structure remains" on effect-free data.
+The estimators (estimate_model, the online filter, `identify`) therefore swap
+a held parameter for its largest carrier while that carrier's coefficient
+exceeds AMPLIFY (maxvol's exchange: each swap multiplies the kept columns'
+volume by that coefficient, so the swaps end), and no carrier then moves by
+much more than the error it carries. Sums (coefficient 1) are left in order;
+the paper's arms and the UR5e file hold what they held. The sensor fit
+(calibrate-poses) decides what the frames carry by its own order, and keeps it.
+
 The estimators then hold one parameter per such direction at nominal and say
 which parameters carry the combination. The combinations are canonical: for
 each held parameter f, the direction e_f - c with c the least-squares
@@ -68,6 +83,8 @@ STD_FACTOR = 10.0
 # last column, so deferring it changes nothing), and a deferred column that no later
 # one replaces is kept all the same.
 NEAR_DUPLICATE = 0.01
+# A held parameter whose carrier moves by more than AMPLIFY times its error (module docstring).
+AMPLIFY = 2.0
 TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed, except the held parameter's own (describe)
 
 
@@ -189,16 +206,43 @@ def _outside(basis: np.ndarray, column: np.ndarray) -> np.ndarray:
     return column
 
 
+def _least_amplified(r_factor: np.ndarray, kept: list[int], held: list[int], threshold: float,
+                     amplify: float) -> list[int]:
+    """The kept columns with each held one swapped for its largest carrier while that carrier's
+    coefficient exceeds ``amplify`` (tolerance scales per tolerance scale; module docstring). Each
+    swap multiplies the kept columns' volume by that coefficient, so the swaps end; one that
+    would take the kept set's weakest direction below ``threshold`` is not made."""
+    refused: set[tuple[int, int]] = set()
+    while kept:
+        worst = (amplify, -1, -1)
+        for j in held:
+            coefficients = np.abs(np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0])
+            k = int(np.argmax(coefficients))
+            if coefficients[k] > worst[0] and (j, kept[k]) not in refused:
+                worst = (float(coefficients[k]), j, kept[k])
+        _, j, carrier = worst
+        if j < 0:
+            return kept
+        swapped = sorted([i for i in kept if i != carrier] + [j])
+        if np.linalg.svd(r_factor[:, swapped], compute_uv=False)[-1] > threshold:
+            kept, held = swapped, [i for i in held if i != j] + [carrier]
+        else:
+            refused.add((j, carrier))
+    return kept
+
+
 def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
             fixed: np.ndarray | None = None, rel_tol: float = REL_TOL,
-            std_factor: float | None = None) -> Identifiability:
+            std_factor: float | None = None, amplify: float | None = None) -> Identifiability:
     """Identifiability of the parameters from a whitened Jacobian (M,n).
 
     Parameters are kept greedily in their natural order (base to tip), so of a
     pair that only acts as a sum the one nearer the base is kept and carries it.
     ``fixed`` (n,) marks parameters the user holds; they are never kept.
     std_factor: apply the noise threshold (module docstring); only meaningful
-    when the Jacobian was whitened with the real measurement noise.
+    when the Jacobian was whitened with the real measurement noise. amplify
+    (AMPLIFY, None for the order alone): hold a combination's largest carrier
+    where in order it would carry the held one at more than this (module docstring).
     """
     n = jacobian.shape[1]
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
@@ -232,6 +276,8 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
         if np.linalg.svd(r_factor[:, kept + [j]], compute_uv=False)[-1] > threshold:
             kept.append(j)
     kept.sort()
+    if amplify is not None:
+        kept = _least_amplified(r_factor, kept, [j for j in candidates if j not in kept], threshold, amplify)
     free = np.zeros(n, bool)
     free[kept] = True
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from laser_calib.estimation.ekf import information_update
 from laser_calib.estimation.estimate import EstimateOptions, prior_sigmas
-from laser_calib.estimation.identifiability import analyse
+from laser_calib.estimation.identifiability import AMPLIFY, analyse
 from laser_calib.estimation.problem import whitened_factor
 from laser_calib.measurement.base import NoiseModel, whiten
 from laser_calib.measurement.spot import SpotModel
@@ -80,7 +80,7 @@ class OnlineEkf:
             return np.zeros(n, bool)
         model = SpotModel(self.robot, self.samples())
         factor, _ = whitened_factor(model, self.noise, self.errors)
-        return analyse(factor, model.scales, model.names).free
+        return analyse(factor, model.scales, model.names, amplify=AMPLIFY).free
 
     def take(self, stamp: float, q: np.ndarray, spots: np.ndarray) -> None:
         """update() with the pose measured at ``stamp`` (s), in stamp order: the filter's

@@ -265,7 +265,8 @@ def calibrate(robot: Robot, samples: SensorSamples, options: SensorFitOptions = 
     not_frames = tuple(n for n in model.names if not is_frame_param(n))
 
     def fit(m: MeasurementModel, names: tuple[str, ...], x0: np.ndarray | None) -> Estimate:
-        est_options = replace(options.estimate, fixed=tuple(dict.fromkeys(names)))
+        # what the frames carry is decided by frames_first's order, not re-chosen by amplification
+        est_options = replace(options.estimate, fixed=tuple(dict.fromkeys(names)), amplify=None)
         return estimate_model(m, est_options, _prior(m, options), x0)
 
     nominal = fit(model, tuple(user) + tuple(frames_first(model, noise, held)) + not_frames, None)
