@@ -85,6 +85,7 @@ STD_FACTOR = 10.0
 NEAR_DUPLICATE = 0.01
 # A held parameter whose carrier moves by more than AMPLIFY times its error (module docstring).
 AMPLIFY = 2.0
+TIE = 1e-6  # carriers' coefficients this close (relative) are equal
 TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed, except the held parameter's own (describe)
 
 
@@ -217,7 +218,8 @@ def _least_amplified(r_factor: np.ndarray, kept: list[int], held: list[int], thr
         worst = (amplify, -1, -1)
         for j in held:
             coefficients = np.abs(np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0])
-            k = int(np.argmax(coefficients))
+            # of carriers equal to rounding (a symmetric arm), the first in order: the same on every machine
+            k = int(np.flatnonzero(coefficients >= (1.0 - TIE) * coefficients.max())[0])
             if coefficients[k] > worst[0] and (j, kept[k]) not in refused:
                 worst = (float(coefficients[k]), j, kept[k])
         _, j, carrier = worst
