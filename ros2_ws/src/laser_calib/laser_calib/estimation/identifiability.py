@@ -42,7 +42,7 @@ about 27 off), and the diagnosis said "structure remains" on effect-free data.
 The estimators (estimate_model, the online filter, `identify`) therefore swap
 a held parameter for its largest carrier while that carrier's coefficient
 exceeds AMPLIFY (maxvol's exchange: each swap multiplies the kept columns'
-volume by that coefficient, so the swaps end), and no carrier then moves by
+volume by at least that coefficient, so the swaps end), and no carrier then moves by
 much more than the error it carries. Sums (coefficient 1) are left in order;
 the paper's arms and the UR5e file hold what they held. The sensor fit
 (calibrate-poses) decides what the frames carry by its own order, and keeps it.
@@ -211,7 +211,7 @@ def _least_amplified(r_factor: np.ndarray, kept: list[int], held: list[int], thr
                      amplify: float) -> list[int]:
     """The kept columns with each held one swapped for its largest carrier while that carrier's
     coefficient exceeds ``amplify`` (tolerance scales per tolerance scale; module docstring). Each
-    swap multiplies the kept columns' volume by that coefficient, so the swaps end; one that
+    swap multiplies the kept columns' volume by at least that coefficient, so the swaps end; one that
     would take the kept set's weakest direction below ``threshold`` is not made."""
     refused: set[tuple[int, int]] = set()
     while kept:
