@@ -96,13 +96,16 @@ def heldout_sse(features: np.ndarray, target: np.ndarray, held: list[np.ndarray]
 
 
 def pose_errors(candidate: tuple, target: np.ndarray, held: list[np.ndarray]) -> np.ndarray:
-    """Each row's held-out squared error of a candidate of refined (its ridge at its penalty)."""
+    """Each row's held-out squared error of a candidate of refined (its ridge at its penalty), each
+    fold's training sums as all rows' less its held rows', as heldout_sse forms them."""
     _, regression, features = candidate
+    gram, cross = features.T @ features, features.T @ target
+    penalty = regression.alpha * np.eye(features.shape[1])
     out = np.zeros(len(target))
     for part in held:
-        train = features[~part]
-        w = np.linalg.solve(train.T @ train + regression.alpha * np.eye(features.shape[1]), train.T @ target[~part])
-        out[part] = (target[part] - features[part] @ w) ** 2
+        rows = features[part]
+        w = np.linalg.solve(gram - rows.T @ rows + penalty, cross - rows.T @ target[part])
+        out[part] = (target[part] - rows @ w) ** 2
     return out
 
 
