@@ -53,7 +53,7 @@ def refined(regression: OffsetRegression, X: np.ndarray, y: np.ndarray, fold: np
     directions, local = np.unique(regression.columns // width), np.unique(regression.columns % width)
     inputs = np.unique(local[local < n_inputs * n] // n)
     pairs = basis.pairs[local[local >= n_inputs * n] - n_inputs * n]
-    z = X[:, :n_inputs]
+    z = X[::y.shape[1], :n_inputs]                       # each pose's inputs (X repeats them per value)
     pose = np.repeat(np.arange(len(fold)), y.shape[1])   # the pose of each row
     held = [fold[pose] == k for k in np.unique(fold)]
     target = y.ravel()
@@ -63,7 +63,7 @@ def refined(regression: OffsetRegression, X: np.ndarray, y: np.ndarray, fold: np
             # the detector's standardisation and knot span (its first and last knots: the inputs' range)
             richer = replace(basis, knots=np.linspace(basis.knots[0], basis.knots[-1], n_knots), pairs=pairs,
                              tensor=tensor)
-            values = richer(z)
+            values = np.repeat(richer(z), y.shape[1], axis=0)
             n_richer = richer.splines_per_input
             own = np.concatenate([np.arange(k * n_richer, (k + 1) * n_richer) for k in inputs]
                                  + [np.arange(n_inputs * n_richer, values.shape[1])])

@@ -133,6 +133,31 @@ class Basis:
                     for i, j in self.pairs]
         return np.hstack([splines, *products])
 
+    def part(self, z: np.ndarray, local: np.ndarray) -> np.ndarray:
+        """(P, len(local)) the basis functions ``local`` (indices into __call__'s b columns) at
+        inputs z (P,d), evaluating only the inputs and pairs they belong to: a sub-model holds one
+        input or one pair, and permutation importance predicts with it many times."""
+        n, d = self.splines_per_input, len(self.mean)
+        per_pair = n * n if self.tensor else 1
+        pair = np.where(local >= d * n, (local - d * n) // per_pair, -1)
+        inputs = np.unique(np.concatenate([local[pair < 0] // n, self.pairs[pair[pair >= 0]].ravel()])).astype(int)
+        zs = (z[:, inputs] - self.mean[inputs]) / self.std[inputs]
+        knots = self.knots[:, inputs]
+        splines = SplineTransformer(knots=knots, degree=DEGREE, extrapolation="constant").fit(knots).transform(zs)
+        of = {k: splines[:, a * n:(a + 1) * n] for a, k in enumerate(inputs)}      # input -> its (P,n) splines
+        out = np.empty((len(z), len(local)))
+        for c, (column, p) in enumerate(zip(local, pair)):
+            if p < 0:
+                out[:, c] = of[column // n][:, column % n]
+                continue
+            i, j = self.pairs[p]
+            if not self.tensor:
+                out[:, c] = zs[:, np.searchsorted(inputs, i)] * zs[:, np.searchsorted(inputs, j)]
+            else:
+                k = column - d * n - p * per_pair
+                out[:, c] = of[i][:, k // n] * of[j][:, k % n]
+        return out
+
     @property
     def splines_per_input(self) -> int:
         return len(self.knots) + DEGREE - 1
@@ -165,11 +190,15 @@ class OffsetRegression(BaseEstimator, RegressorMixin):
         return (g[:, :, None] * self.basis(z)[:, None, :]).reshape(len(X), -1) / self.basis.size
 
     def features(self, X: np.ndarray) -> np.ndarray:
-        """The ``columns`` of all_features (all when None), only those formed (permutation
-        importance predicts 146 times; all of them are ~20x the chosen sub-model's)."""
+        """The ``columns`` of all_features (all when None), only those formed, from only the basis
+        functions they use (permutation importance predicts 146 times; all of them are ~20x the
+        chosen sub-model's)."""
         if self.columns is None:
             return self.all_features(X)
-        return self.formed(X, self.basis(X[:, :self.n_inputs]), self.columns)
+        local = np.unique(self.columns % self.basis.width)
+        values = np.zeros((len(X), self.basis.width))
+        values[:, local] = self.basis.part(X[:, :self.n_inputs], local)
+        return self.formed(X, values, self.columns)
 
     def formed(self, X: np.ndarray, basis_values: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """(rows, len(columns)) the ``columns`` of all_features from the basis at the rows' inputs (rows, b)."""
@@ -309,7 +338,7 @@ def detect(names: tuple[str, ...], res: Residuals, noise: NoiseModel, q: np.ndar
     subsets = submodels(basis, z.shape[1], g.shape[-1], own)
     held = [np.repeat(fold, n_values) == k for k in np.unique(fold)]
     former = OffsetRegression(basis, z.shape[1])
-    basis_values = basis(X[:, :z.shape[1]])
+    basis_values = np.repeat(basis(z), n_values, axis=0)   # X's rows: each pose's inputs once per value
 
     ridges: list[list[FoldRidge]] = []   # per sub-model and fold, from the first batch on
 
