@@ -231,6 +231,11 @@ CASES = {
     "a covariate named like the diagnosis's own input": (lambda d: _estimate(d, samples=_appended(",step2", ",0.1")),
                                                           "column step2: the diagnosis's name"),
     "joint readings in degrees": (lambda d: _estimate(d, samples=_cell(1, "q2", "45")), "degrees"),
+    # a prismatic joint's reading is a length: its line says m, and millimetres where it looks so
+    "prismatic readings in millimetres": (lambda d: _estimate(d, _robot_yaml(
+        lambda r: r["joints"][1].update(type="prismatic", min=-3.0, max=3.0)), _cell(1, "q2", "250")),
+        "samples.csv: pose 0, field q2: 250 m outside the joint range [-3, 3] by more than 1 % of its travel (a "
+        "prismatic joint's readings are in metres; this looks like millimetres or centimetres)"),
     "pose CSV without qz": (lambda d: _poses(d, "pose,stamp,q1,q2,q3,q4,x,y,z,qw,qx,qy"), "qz"),
     "positions in millimetres": (lambda d: _poses(d, "pose,stamp,q1,q2,q3,q4,x,y,z", "0,0.0,0.1,0.2,0.3,0.4,1000,500,200"),
                                  "millimetres"),

@@ -95,3 +95,21 @@ def test_dh_prismatic_joint_moves_d_and_round_trips():
     assert np.allclose(joint_jacobian(robot, state.twists)[0, :3, 1], state.joint_axis[0, 1])
     again = robot_from_dict(yaml.safe_load(dump_robot(robot)))
     assert [j.prismatic for j in again.joints] == [False, True, False, False]
+
+
+@pytest.mark.parametrize("kind", ["urdf", "dh"])
+def test_a_prismatic_reading_in_millimetres_is_one_line_in_metres(kind):
+    """The column's lift read in mm (a URDF's or a robot file's prismatic joint): the line gives
+    the reading in m and says it looks like millimetres, not the degrees of a revolute joint."""
+    from laser_calib.io.errors import InputError
+    from laser_calib.io.samples import check_joint_range
+
+    robot = _robot(kind)
+    lift = {"urdf": 0, "dh": 1}[kind]   # the column: the URDF's first joint, the D-H file's second
+    assert robot.prismatic.tolist() == [i == lift for i in range(4)]
+    q = np.tile((robot.q_min + robot.q_max) / 2, (3, 1))
+    q[2, lift] = 450.0   # 0.45 m
+    with pytest.raises(InputError, match=rf"s\.csv: pose 2, field q{lift + 1}.*: 450 m outside the joint range "
+                                         r"\[0, 0\.[68]\] .*\(a prismatic joint's readings are in metres; this looks "
+                                         "like millimetres"):
+        check_joint_range(q, robot, "s.csv", np.arange(3))

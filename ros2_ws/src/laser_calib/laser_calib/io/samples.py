@@ -21,7 +21,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.io.read import (csv_rows, integer_column, length_units, looks_numeric, number_column, parse_int,
                               parse_number, plain_table, read_text)
 from laser_calib.io.spot_columns import check_spot_columns
-from laser_calib.model.robot import Robot
+from laser_calib.model.robot import LIMIT_TRAVEL, Robot
 
 SPOT_COLUMNS = ("l1_y", "l1_z", "l2_y", "l2_z")
 HEADER = "pose,stamp,q1..qN,l1_y,l1_z,l2_y,l2_z"
@@ -347,11 +347,17 @@ def check_joint_range(q: np.ndarray, robot: Robot, source: str, pose: np.ndarray
     if outside.any():
         r, i = np.argwhere(outside)[0]
         label = f"pose {pose[r]}" if pose is not None else f"row {r}"
-        hint = " (readings are in radians; this looks like degrees)" if abs(q[r, i]) > 2 * math.pi + 0.5 else ""
+        if robot.prismatic[i]:
+            unit = "m"
+            hint = (f" (a prismatic joint's readings are in metres; this looks like "
+                    f"{length_units(q[r, i], LIMIT_TRAVEL)})" if abs(q[r, i]) > LIMIT_TRAVEL else "")
+        else:
+            unit = "rad"
+            hint = " (readings are in radians; this looks like degrees)" if abs(q[r, i]) > 2 * math.pi + 0.5 else ""
         joint = f" ({robot.joint_names[i]})" if robot.chain is not None else ""
         beyond = f" by more than {READING_SLACK * 100:g} % of its travel" if measured else ""
         raise InputError(f"{source}: {label}, field q{i + 1}{joint}",
-                         f"{q[r, i]:.6g} rad outside the joint range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]"
+                         f"{q[r, i]:.6g} {unit} outside the joint range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]"
                          + beyond + hint)
 
 

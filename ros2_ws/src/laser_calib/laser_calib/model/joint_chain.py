@@ -101,6 +101,11 @@ class JointChain:
             out += [offset] + ["length"] * 3 + ["angle"] * 3
         return np.array(out)
 
+    def prismatic(self) -> np.ndarray:
+        """(N,) whether each read joint is prismatic (its reading in m)."""
+        by_name = {j.name: j for j in self.joints + self.sources}
+        return np.array([by_name[n].kind == PRISMATIC for n in self.readings], bool)
+
     def limits(self) -> tuple[np.ndarray, np.ndarray]:
         """(N,) lower and upper limits of the read joints."""
         by_name = {j.name: j for j in self.joints + self.sources}

@@ -157,6 +157,11 @@ class Robot:
         return np.concatenate([links, slm])
 
     @property
+    def prismatic(self) -> np.ndarray:
+        """(N,) whether each read joint is prismatic: its reading in m, not rad."""
+        return np.array([j.prismatic for j in self.joints], bool) if self.chain is None else self.chain.prismatic()
+
+    @property
     def q_min(self) -> np.ndarray:
         return np.array([j.min for j in self.joints]) if self.chain is None else self.chain.limits()[0]
 
