@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,13 @@ def _cell(row: int, column: str, value: str) -> str:
     cells[header.index(column)] = value
     lines[row] = ",".join(cells)
     return "\n".join(lines) + "\n"
+
+
+def _turned(kept: int) -> str:
+    """SAMPLES with joint 1 read half a turn off after the first ``kept`` poses."""
+    q = SESSION.samples.q.copy()
+    q[kept:, 0] += np.pi
+    return format_samples(replace(SESSION.samples, q=q))
 
 
 def _robot_yaml(edit) -> str:
@@ -231,6 +239,13 @@ CASES = {
     "a covariate named like the diagnosis's own input": (lambda d: _estimate(d, samples=_appended(",step2", ",0.1")),
                                                           "column step2: the diagnosis's name"),
     "joint readings in degrees": (lambda d: _estimate(d, samples=_cell(1, "q2", "45")), "degrees"),
+    # readings within the joint's range (a continuous joint's have none) that are not this model's: most
+    # spots refused as impossible, the rest too few; the line names the refusals, not the pose count
+    "joint readings half a turn off": (lambda d: _estimate(d, _robot_yaml(
+        lambda r: r["joints"][0].update(min=-4.0, max=4.0)), _turned(3)),
+        "samples.csv: 12 measured values left after 18 refused as physically impossible (the nominal model's beam "
+        "misses the screen or lands far from the spot) cannot determine and check 12 parameters; check the joint "
+        "readings' units"),
     # a prismatic joint's reading is a length: its line says m, and millimetres where it looks so
     "prismatic readings in millimetres": (lambda d: _estimate(d, _robot_yaml(
         lambda r: r["joints"][1].update(type="prismatic", min=-3.0, max=3.0)), _cell(1, "q2", "250")),

@@ -200,7 +200,8 @@ def no_spot_to_fit(robot: str, samples: str, compensator: str | None = None) -> 
     return InputError(robot, f"no measured spot of {samples} to fit: at every one the nominal model's beam"
                              + (f" (compensated by {compensator})" if compensator else "")
                              + " misses the screen or lands far from the spot, and each was refused as impossible; "
-                               "check the robot file (lengths in metres, joint zeros, the laser module, the screen)"
+                               "check the joint readings' units (radians; metres for a prismatic joint) and the "
+                               "robot file (lengths in metres, joint zeros, the laser module, the screen)"
                                + (" and the compensator" if compensator else ""))
 
 

@@ -264,7 +264,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     free = ident.free
     # as many values as parameters fit exactly: nothing tests the fit or estimates the noise
     if n_values <= free.sum() and prior_sigma is None:
-        raise TooFewValues(n_values, int(free.sum()))
+        refused = len(impossible) if impossible else 0   # beams that miss the start's screen among them
+        raise TooFewValues(n_values, int(free.sum()), refused=(refused, refused * dims))
 
     def fit(problem: Problem, start_x: np.ndarray) -> Fit:
         if options.method == "lm":

@@ -92,12 +92,22 @@ TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed, except 
 class TooFewValues(ValueError):
     """As many measured values as free parameters, or fewer: they fit exactly, and nothing
     tests the fit or estimates the noise. The estimator knows the counts, a command the file.
-    rejected: the measurements the robust rule left out, when they made the values too few."""
+    rejected: the measurements the robust rule left out, when they made the values too few;
+    refused: (measurements, their values) refused before the fit as physically impossible
+    (estimation.impossible: the nominal beam misses the screen by far). When those values are
+    at least as many as the values left, the refusals, not the poses, made them too few, and
+    the data are not the nominal model's: readings in other units (a continuous joint's in
+    degrees, which no joint range catches) or another arm's file, so the line says that."""
 
-    def __init__(self, n_values: int, n_free: int, rejected: int = 0):
+    def __init__(self, n_values: int, n_free: int, rejected: int = 0, refused: tuple[int, int] = (0, 0)):
         left = f" left after {rejected} rejected as outliers" if rejected else ""
-        super().__init__(f"{n_values} measured values{left} cannot determine and check {n_free} parameters; "
-                         "measure more poses or use the prior")
+        if refused[0]:
+            left += (f"{' and' if rejected else ' left after'} {refused[0]} refused as physically impossible (the "
+                     "nominal model's beam misses the screen or lands far from the spot)")
+        advice = ("check the joint readings' units (radians; metres for a prismatic joint) and the robot file "
+                  "(lengths in metres, joint zeros, the laser module, the screen)" if refused[1] >= n_values
+                  else "measure more poses or use the prior")
+        super().__init__(f"{n_values} measured values{left} cannot determine and check {n_free} parameters; {advice}")
         self.n_values, self.n_free, self.rejected = n_values, n_free, rejected
 
 
