@@ -40,7 +40,7 @@ from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, cali
 from laser_calib.io.errors import InputError
 from laser_calib.measurement.base import MeasurementModel
 from laser_calib.report.pose_table import NOT_FITTED, fit_status, save_pose_table
-from laser_calib.report.statistics import STATISTICS, iso9283, summary
+from laser_calib.report.statistics import STATISTICS, iso9283, summary, worse_on_test_warning
 from laser_calib.io.samples import Samples
 from laser_calib.io.sensor_samples import load_sensor_samples, save_sensor_samples
 
@@ -114,6 +114,18 @@ def _evaluate(model: MeasurementModel, fit: SensorFit, prefix: str = "",
         if samples.kind == "pose":
             out[f"{prefix}{name}rotation_rad"] = rotation
     return out
+
+
+def _worse(label: str, columns: dict[str, np.ndarray], prefix: str, poses: np.ndarray, design: str) -> list[str]:
+    """The warning when the calibration misses poses it never saw (``label``: the held-out or test
+    set) by more in position than the frames-only fit of the robot as designed (report.statistics)."""
+    return worse_on_test_warning(
+        columns[f"{prefix}nominal_position_m"], columns[f"{prefix}position_m"], poses,
+        f"{label}: the calibrated model misses these poses by more than the {design} with its frames fitted "
+        "(RMS position {before:.3g} mm -> {after:.3g} mm over the {count} poses both predict)",
+        "the calibration does not carry over to them (errors too small for these poses to determine: keep the robot "
+        "as designed; a wrong minimum; joint readings out of step with the measurements; orientations in another "
+        "convention; or sets measured under other conditions)")
 
 
 def _summaries(columns: dict[str, np.ndarray], prefix: str = "", rows: np.ndarray | None = None) -> dict:
@@ -194,7 +206,8 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
         outside = outside_range(samples.q, held.fold, range(args.folds))
         result["heldout"] = {"folds": args.folds, "seed": args.seed, **_summaries(table, "kfold_"),
                              "outside_joint_range": outside.tolist()}
-        result["warnings"] += range_warnings(outside, f"{args.folds}-fold held-out", robot.joint_names)
+        result["warnings"] += range_warnings(outside, f"{args.folds}-fold held-out", robot.joint_names) + _worse(
+            f"{args.folds}-fold held-out", table, "kfold_", samples.pose, _design(robot))
         lines.append(_line(f"{args.folds}-fold held-out", result["heldout"], _design(robot)))
     if args.chronological:
         train = chronological_labels(len(samples), args.chronological) == 0
@@ -209,7 +222,8 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
         result["chronological"] = {"calibration_fraction": args.chronological,
                                    "calibration_poses": int(train.sum()), "test_poses": int((~train).sum()),
                                    **_summaries(table, "chronological_"), "outside_joint_range": outside.tolist()}
-        result["warnings"] += range_warnings(outside, "chronological test", robot.joint_names)
+        result["warnings"] += range_warnings(outside, "chronological test", robot.joint_names) + _worse(
+            "chronological test", table, "chronological_", samples.pose, _design(robot))
         lines.append(_line(f"chronological held-out (first {train.sum()} poses -> last {(~train).sum()})",
                            result["chronological"], _design(robot)))
 
@@ -225,7 +239,8 @@ def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Sample
     accuracy = _accuracy(test, model, fit, test.seen)
     if accuracy:
         result["test"]["iso9283"] = accuracy
-    result["warnings"] += list(test.warnings) + range_warnings(outside, f"test {args.test}", robot.joint_names)
+    result["warnings"] += (list(test.warnings) + range_warnings(outside, f"test {args.test}", robot.joint_names)
+                           + _worse(f"test {args.test}", columns, "", test.pose, _design(robot)))
     lines.append(_line(f"test ({len(test)} poses of {args.test})", result["test"], _design(robot)))
     return test.pose, test.stamp, columns
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.figaroh import is_figaroh, parse_figaroh
+from laser_calib.io.quaternion_order import check_quaternion_order
 from laser_calib.io.read import read_text
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import (Samples, check_all_or_none, check_distance_units, check_extra_columns,
@@ -79,6 +80,7 @@ def load_sensor_samples(path: str | Path, robot: Robot | None = None) -> Samples
     samples = parse_figaroh(text, source, robot) if is_figaroh(text) else parse_sensor_samples(text, source, robot)
     if robot is not None:
         check_tips(samples, robot, source)
+        check_quaternion_order(samples, robot, source)
     return samples
 
 
