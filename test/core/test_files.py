@@ -75,6 +75,9 @@ BAD_SAMPLES = {
     "inf": (GOOD_HEADER + "\n0,0.0,0.0,0.0,inf,0.0,0.1,0.2,0.3,0.4\n", "line 2, field q3: not finite"),
     "stamps": (GOOD_HEADER + "\n" + GOOD_ROW + "\n1,0.0,0.0,0.0,0.0,0.0,0.1,0.2,0.3,0.4\n",
                "line 3, field stamp: not increasing"),
+    # a logger's line written twice, stamp and all: which line to delete is named, not a stamp
+    "copied_line": (GOOD_HEADER + "\n" + GOOD_ROW + "\n" + GOOD_ROW + " \n",
+                    "line 3: a copy of line 2, every field equal (stamps increase): delete one of them"),
     "range": (GOOD_HEADER + "\n7,0.0,0.9,0.0,0.0,0.0,0.1,0.2,0.3,0.4\n", "pose 7, field q1: 0.9 rad outside"),
     "half_spot": (GOOD_HEADER + "\n0,0.0,0.0,0.0,0.0,0.0,0.1,,0.3,0.4\n", "line 2, laser 1: only one"),
     "short_row": (GOOD_HEADER + "\n0,0.0,0.0\n", "line 2: 3 fields, header has 10"),
