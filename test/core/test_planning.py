@@ -185,3 +185,13 @@ def test_progress_of_many_short_runs_still_prints_every_interval():
                 progress._last_line -= 0.5
     lines = stream.getvalue().splitlines()
     assert 4 <= len(lines) <= 6  # the first after 2 s, then one every 10 s of the 45
+
+
+def test_too_few_candidates_on_the_screen_say_how_rare_a_hit_is_and_what_to_change():
+    """Beams 0.9 m inside a screen of half size 1 m: few draws hit; the line gives the share
+    that did and every way out (fewer candidates, a lower margin), not the margin alone."""
+    robot = bundled_robot("paper-4dof")
+    with pytest.raises(ValueError, match=r"found only \d+ of 500 poses with both beams 0.9 m inside the screen, in "
+                                         r"\d+ drawn within the joint limits \([0-9.e-]+ % hit\): ask for fewer "
+                                         "candidates, lower the margin"):
+        candidate_poses(robot, 500, np.random.default_rng(0), 0.9, max_tries=3)

@@ -92,9 +92,10 @@ def candidate_poses(robot: Robot, count: int, rng: np.random.Generator, margin: 
     """(count,N) readings uniform in the joint limits with both beams on the screen,
     drawn at most DRAW_BLOCK at a time (bounded memory for large pools)."""
     chosen: list[np.ndarray] = []
-    found = 0
+    found = drawn = 0
     for _ in range(max_tries):
         q = rng.uniform(*robot.pose_range(), (min(max(2 * count, 256), DRAW_BLOCK), robot.n_joints))
+        drawn += len(q)
         p = predict(robot, q)
         inside = ((np.abs(p.spots[..., 0]) <= robot.screen.half_y - margin)
                   & (np.abs(p.spots[..., 1]) <= robot.screen.half_z - margin))
@@ -102,8 +103,9 @@ def candidate_poses(robot: Robot, count: int, rng: np.random.Generator, margin: 
         found += len(chosen[-1])
         if found >= count:
             return np.concatenate(chosen)[:count]
-    raise ValueError(f"found only {found} of {count} poses with both beams {margin} m inside the screen; "
-                     "lower the margin or check the joint limits")
+    raise ValueError(f"found only {found} of {count} poses with both beams {margin} m inside the screen, in "
+                     f"{drawn} drawn within the joint limits ({100 * found / drawn:.2g} % hit): ask for fewer "
+                     "candidates, lower the margin, or check the joint limits and the screen")
 
 
 def whitened_jacobians(robot: Robot, q: np.ndarray, spot_sigma: float, joint_sigma: float) -> np.ndarray:
