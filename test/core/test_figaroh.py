@@ -52,6 +52,8 @@ def test_two_markers_are_two_tips_and_joints_are_found_by_name():
 
 BAD = {  # change of the two-marker file -> the one line
     "no joint column": (lambda t: t.replace("l_elbow_flex_joint", "elbow"), "no column for joint 'l_elbow_flex_joint'"),
+    "a misspelt joint column": (lambda t: t.replace("l_elbow_flex_joint", "l_elbow_flex_jnt"),
+                                "; columns that name none of them: l_elbow_flex_jnt, head_pan_joint)"),
     "millimetres": (lambda t: "\n".join([t.split("\n")[0]] + [",".join(str(float(v) * 1000) if i < 6 else v
                     for i, v in enumerate(line.split(","))) for line in t.split("\n")[1:] if line]),
                     "positions are in metres (these look like millimetres or centimetres)"),

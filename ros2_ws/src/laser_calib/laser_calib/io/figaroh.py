@@ -73,8 +73,12 @@ def parse_figaroh(text: str, source: str, robot: Robot | None) -> Samples:
                                               f"({', '.join(robot.chain.tip_links)}): give one --tip per marker")
     missing = [name for name in robot.joint_names if name not in header]
     if missing:
+        # the columns that name no joint of the robot: a misspelt name is among them
+        unknown = [c for c in header if not _MARKER.fullmatch(c) and c not in robot.joint_names]
         raise InputError(f"{source}: header", f"no column for joint '{missing[0]}' (the robot's joints: "
-                                              f"{', '.join(robot.joint_names)})")
+                                              f"{', '.join(robot.joint_names)}"
+                                              + (f"; columns that name none of them: {', '.join(unknown)}" if unknown
+                                                 else "") + ")")
     measured = tuple(c for c in header if _MARKER.fullmatch(c))
     # pose and stamp by row, so that the shared parser names a bad field by its line
     pose, values = parse_table(["pose", "stamp"] + header, [[str(r), str(r)] + row for r, row in
