@@ -177,7 +177,8 @@ CASES = {
     "diagnose on 3 poses": (lambda d: ["diagnose"] + _estimate(d, samples="\n".join(SAMPLES.splitlines()[:4]))[1:],
                             "samples.csv: 3 poses"),
     "estimate on 3 poses": (lambda d: _estimate(d, samples="\n".join(SAMPLES.splitlines()[:4])),
-                            "samples.csv: 12 measured values cannot determine"),
+                            "samples.csv: 12 measured values reach only 12 of the model's 21 parameters and "
+                            "cannot determine and check even those; measure more poses"),
     "calibrate-poses on 4 poses": (lambda d: _ur10e(d, 4, "--folds", "0"), "poses.csv: 24 measured values"),
     "calibrate-poses, no pose seen": (lambda d: _ur10e(d, 23, "--folds", "0", unseen=True),
                                       "poses.csv: no measured pose (every x, y, z, qw, qx, qy, qz field empty)"),
@@ -244,8 +245,8 @@ CASES = {
     "joint readings half a turn off": (lambda d: _estimate(d, _robot_yaml(
         lambda r: r["joints"][0].update(min=-4.0, max=4.0)), _turned(3)),
         "samples.csv: 12 measured values left after 18 refused as physically impossible (the nominal model's beam "
-        "misses the screen or lands far from the spot) cannot determine and check 12 parameters; check the joint "
-        "readings' units"),
+        "misses the screen or lands far from the spot) reach only 12 of the model's 21 parameters and cannot determine "
+        "and check even those; check the joint readings' units"),
     # a prismatic joint's reading is a length: its line says m, and millimetres where it looks so
     "prismatic readings in millimetres": (lambda d: _estimate(d, _robot_yaml(
         lambda r: r["joints"][1].update(type="prismatic", min=-3.0, max=3.0)), _cell(1, "q2", "250")),
@@ -325,7 +326,7 @@ REFUSED_BEFORE_THE_WORK = {
                                        "laser-calib estimate: argument --compensator: "),
     "diagnose --folds 1": (lambda d: _diagnose(d, "--folds", "1"),
                            "laser-calib diagnose: argument --folds: expected an integer of at least 2, got 1"),
-    "estimate of one pose": (lambda d: _estimate(d, None, _one_pose()), "samples.csv: 4 measured values cannot"),
+    "estimate of one pose": (lambda d: _estimate(d, None, _one_pose()), "samples.csv: 4 measured values reach only"),
     "diagnose of one pose": (lambda d: ["diagnose"] + _estimate(d, None, _one_pose())[1:],
                              "samples.csv: 1 poses, at least "),
 }

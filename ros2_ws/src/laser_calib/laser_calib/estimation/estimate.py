@@ -265,7 +265,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     # as many values as parameters fit exactly: nothing tests the fit or estimates the noise
     if n_values <= free.sum() and prior_sigma is None:
         refused = len(impossible) if impossible else 0   # beams that miss the start's screen among them
-        raise TooFewValues(n_values, int(free.sum()), refused=(refused, refused * dims))
+        raise TooFewValues(n_values, int(free.sum()), refused=(refused, refused * dims), n_params=n)
 
     def fit(problem: Problem, start_x: np.ndarray) -> Fit:
         if options.method == "lm":

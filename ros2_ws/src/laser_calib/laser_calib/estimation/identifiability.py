@@ -92,6 +92,7 @@ TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed, except 
 class TooFewValues(ValueError):
     """As many measured values as free parameters, or fewer: they fit exactly, and nothing
     tests the fit or estimates the noise. The estimator knows the counts, a command the file.
+    n_params: the model's parameter count, said when the values reach fewer;
     rejected: the measurements the robust rule left out, when they made the values too few;
     refused: (measurements, their values) refused before the fit as physically impossible
     (estimation.impossible: the nominal beam misses the screen by far). When those values are
@@ -99,7 +100,8 @@ class TooFewValues(ValueError):
     the data are not the nominal model's: readings in other units (a continuous joint's in
     degrees, which no joint range catches) or another arm's file, so the line says that."""
 
-    def __init__(self, n_values: int, n_free: int, rejected: int = 0, refused: tuple[int, int] = (0, 0)):
+    def __init__(self, n_values: int, n_free: int, rejected: int = 0, refused: tuple[int, int] = (0, 0),
+                 n_params: int | None = None):
         left = f" left after {rejected} rejected as outliers" if rejected else ""
         if refused[0]:
             left += (f"{' and' if rejected else ' left after'} {refused[0]} refused as physically impossible (the "
@@ -107,7 +109,10 @@ class TooFewValues(ValueError):
         advice = ("check the joint readings' units (radians; metres for a prismatic joint) and the robot file "
                   "(lengths in metres, joint zeros, the laser module, the screen)" if refused[1] >= n_values
                   else "measure more poses or use the prior")
-        super().__init__(f"{n_values} measured values{left} cannot determine and check {n_free} parameters; {advice}")
+        # n_free counts what these values reach: one pose of a 33-parameter arm reaches 4
+        what = (f"reach only {n_free} of the model's {n_params} parameters and cannot determine and check even those"
+                if n_params and n_params > n_free else f"cannot determine and check {n_free} parameters")
+        super().__init__(f"{n_values} measured values{left} {what}; {advice}")
         self.n_values, self.n_free, self.rejected = n_values, n_free, rejected
 
 
