@@ -35,6 +35,7 @@ from laser_calib.io.bag import bag_topics
 from laser_calib.io.samples import load_samples, save_samples
 from laser_calib.sim.simulation import CASE_POSES, CASES, NoiseSpec, paper_session, robot_session
 from laser_calib.cli import diagnose as diagnose_cli
+from laser_calib.cli import plan as plan_cli
 from laser_calib.cli import sensors as real_cli
 from laser_calib import slm as slm_calibration
 from laser_calib.cli import vision as vision_cli
@@ -274,6 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     diagnose_cli.register(sub)
     vision_cli.register(sub)
     real_cli.register(sub)
+    plan_cli.register(sub)
     return parser
 
 

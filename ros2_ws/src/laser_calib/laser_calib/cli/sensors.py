@@ -1,9 +1,8 @@
-"""Command line for data from other sensors and for pose planning:
+"""Command line for data from other sensors:
 
     laser-calib import-positioner --data DIR --out DIR
     laser-calib calibrate-poses --robot R.yaml --samples S.csv --out DIR [--folds K] [--chronological F]
                                 [--test T.csv] [--scale] [--diagnose]
-    laser-calib plan --robot R.yaml --n N --out poses.csv
 
 cli.py calls register(); bad input raises InputError / ValueError, which cli.main
 turns into one line on stderr and exit status 2.
@@ -15,24 +14,19 @@ import argparse
 import json
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
-from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fraction, non_negative, non_negative_int,
-                                      out_file, out_folder, positive, positive_int, print_notes, print_warnings,
-                                      require_measured, sigma_angle, sigma_length, spot_sigma, staged_folder,
-                                      tolerance_length)
+from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fraction, non_negative_int, out_folder,
+                                      positive, print_notes, print_warnings, require_measured, sigma_length,
+                                      staged_folder, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
 from laser_calib.estimation.identifiability import FIXED_NOTE, TooFewValues, carried_note
 from laser_calib.model.robot import Robot
 from laser_calib.io.positioner import read_positioner
 from laser_calib.io.revisits import repeat_warnings
-from laser_calib.planning import PlanOptions, plan
-from laser_calib.report.progress import Progress
-from laser_calib.session.poses import format_poses
-from laser_calib.model.robot_file import held, held_warnings, load_robot, load_robot_description, save_robot, with_held
+from laser_calib.model.robot_file import held, held_warnings, load_robot_description, save_robot, with_held
 from laser_calib.report.urdf_export import save_calibrated_urdf
 from laser_calib.estimation.folds import chronological_labels, outside_range, range_warnings, test_outside_range
 from laser_calib.estimation.sensor_fit import (SensorFit, SensorFitOptions, calibrate, is_frame_param, kfold,
@@ -336,37 +330,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
     return status
 
 
-def _same_file(a: str, b: str) -> bool:
-    try:
-        return Path(a).samefile(b)
-    except OSError:  # either does not exist (yet)
-        return False
-
-
-def cmd_plan(args: argparse.Namespace) -> int:
-    robot = load_robot(args.robot)
-    if _same_file(args.out, args.robot):  # the pose list would replace the robot file it was planned for
-        raise InputError(args.out, "is the --robot file: the pose list would replace it; give --out another name")
-    options = PlanOptions(n=args.n, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
-                          candidates=args.candidates, margin=args.margin, seed=args.seed)
-    with Progress("plan", unit="pose") as progress:
-        result = plan(robot, options, progress)
-    try:
-        Path(args.out).write_text(format_poses(result.q))
-    except OSError as exc:  # --out was checked at the start: the disk filled or the folder went meanwhile
-        raise InputError(args.out, f"cannot write ({exc.strerror or exc})") from None
-    identifiable = int(result.free.sum())
-    print(f"wrote {args.out}: {args.n} poses of {robot.name} (D-optimal, log det {result.log_det:.2f} over "
-          f"{identifiable} identifiable errors; these poses determine {result.determined} of them)")
-    if result.determined < identifiable:
-        print_warnings([f"{args.n} poses give {4 * args.n} values and determine {result.determined} of the "
-                        f"{identifiable} errors: a calibration from them would hold the others at nominal; plan "
-                        f"more poses (beyond {-(-identifiable // 4)}, which would fit them exactly, untested)"])
-    return 0
-
-
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add import-positioner, calibrate-poses and plan to cli.py's subcommands."""
+    """Add import-positioner and calibrate-poses to cli.py's subcommands."""
     p = sub.add_parser("import-positioner", help="import the real two-axis positioner data set")
     p.add_argument("--data", required=True, help="folder with measurements.yaml and pose_initial_guesses.yaml")
     p.add_argument("--out", required=True, type=out_folder, help="folder for robot.yaml and samples.csv")
@@ -398,18 +363,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--diagnose", action="store_true",
                    help="select effects and test the residual (the diagnosis engine)")
     p.set_defaults(func=cmd_calibrate_poses)
-
-    p = sub.add_parser("plan", help="D-optimal calibration poses (spot and joint noise)")
-    p.add_argument("--robot", required=True)
-    p.add_argument("--n", type=int, required=True, help="number of poses (the planner checks it)")
-    p.add_argument("--out", required=True, type=out_file, help="CSV pose,q1..qN (rad)")
-    p.add_argument("--spot-sigma", type=spot_sigma, default=PlanOptions(1).spot_sigma,
-                   help="spot noise std per coordinate, m (default: the paper's +-2 mm uniform)")
-    p.add_argument("--joint-sigma", type=sigma_angle, default=PlanOptions(1).joint_sigma,
-                   help="joint disturbance std, rad (default: the paper's +-0.1 deg uniform)")
-    p.add_argument("--candidates", type=positive_int, default=PlanOptions(1).candidates,
-                   help="random poses to choose from (at least --n)")
-    p.add_argument("--margin", type=non_negative, default=PlanOptions(1).margin,
-                   help="keep both nominal spots this far inside the screen edge, m")
-    p.add_argument("--seed", type=non_negative_int, default=0)
-    p.set_defaults(func=cmd_plan)

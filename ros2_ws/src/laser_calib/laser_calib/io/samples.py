@@ -209,9 +209,7 @@ def parse_table(header: list[str], rows: list[list[str]], source: str,
                 raise InputError(f"{source}: line {line}, field {name}", "empty")
             values[r, c - 1] = parse_number(cell, f"{source}: line {line}, field {name}")
         if r and values[r, 0] <= values[r - 1, 0]:
-            if [cell.strip() for cell in row] == [cell.strip() for cell in rows[r - 1]]:
-                # a logger's line written twice, stamp and all: the copy warning (io/revisits.py) needs a stamp of
-                # its own, and which line to delete is the user's to see
+            if [cell.strip() for cell in row] == [cell.strip() for cell in rows[r - 1]]:  # a logger's line twice
                 raise InputError(f"{source}: line {line}", f"a copy of line {line - 1}, every field equal (stamps "
                                                            "increase): delete one of them")
             raise InputError(f"{source}: line {line}, field stamp",
