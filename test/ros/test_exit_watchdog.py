@@ -283,3 +283,49 @@ def test_a_stop_while_the_node_is_built_exits_0_without_a_traceback(program):
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
     assert "Exception ignored" not in result.stderr, result.stderr
     assert time.monotonic() - started < 10, "the stop waited for the exit watchdog or the description's timeout"
+
+
+def test_stop_signals_that_come_while_the_stop_handler_runs_end_the_node():
+    """Signals microseconds apart (GNU timeout's SIGTERM to the group, launch's, the parent's
+    death) run the handler inside itself. It held a threading.Event's lock there, which the nested
+    call then waited on for ever: camera_sim stayed on the graph after its launch, deaf to SIGINT,
+    its watchdog never armed (gdb: three nested on_signal frames in Event.set). Here each line the
+    handler (and what it calls) runs sends another signal, as a burst would at its worst."""
+    from ros_harness import workspace_env
+    program = textwrap.dedent("""
+        import os, signal, sys, time
+        import rclpy
+        from rclpy.executors import ExternalShutdownException
+        from laser_calib_nodes import common
+        sent = []
+        def inside_handler(frame):
+            while frame is not None:
+                if frame.f_code.co_name == "on_signal":
+                    return True
+                frame = frame.f_back
+            return False
+        def tracer(frame, event, arg):
+            if event == "line" and len(sent) < 50 and inside_handler(frame):
+                sent.append(1)
+                os.kill(os.getpid(), signal.SIGTERM)   # handled at the handler's next call
+            return tracer
+        def make_node():  # a node that spins until the stop shuts the context, as executor.spin() does
+            sys.settrace(tracer)
+            os.kill(os.getpid(), signal.SIGINT)
+            deadline = time.monotonic() + 10
+            while rclpy.ok() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            sys.settrace(None)
+            raise ExternalShutdownException()
+        code = common.run(make_node)
+        sys.settrace(None)
+        print(len(sent))
+        sys.exit(code)
+    """)
+    try:
+        result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=15,
+                                env=workspace_env())
+    except subprocess.TimeoutExpired as stuck:
+        raise AssertionError(f"the node hung in its stop handler: {stuck.stderr}") from None
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result
+    assert int(result.stdout.split()[-1]) > 1, result.stdout   # signals did come inside the handler

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 import signal
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +30,7 @@ from laser_calib.model.robot_file import load_robot
 from laser_calib.io import bag
 from laser_calib_nodes import graph
 from laser_calib_nodes.parameters import NodeError, declare
-from laser_calib_nodes.shutdown import ExitWatchdog, interruptible
+from laser_calib_nodes.shutdown import ExitWatchdog, StopFlag, interruptible
 
 # Topic and service names (relative: a namespace or a remap moves them).
 JOINT_STATES = "joint_states"
@@ -275,15 +274,14 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     # rclpy's signal handlers call the one installed before them: this one notes the
     # signal, so that an error it causes inside rclpy (a KeyboardInterrupt while a large
     # message is converted surfaces as RuntimeError) is taken for the stop it is.
-    stopped = threading.Event()
+    stop = StopFlag()
     # A stop during rclpy.init is taken once it returns: raised inside it, the KeyboardInterrupt
     # would leave a context made but not kept, with no clean way down (seen as a traceback when a
     # session was stopped while its nodes started).
     initialising = True
 
     def on_signal(signum, frame):
-        first = not stopped.is_set()
-        stopped.set()
+        first = stop.note()
         watchdog.arm()
         # a second Ctrl-C must not break the cleanup; one inside rclpy's code is left to the context it shut
         if first and signum == signal.SIGINT and not initialising and interruptible(frame):
@@ -303,7 +301,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     code = 0
     try:
         try:
-            if stopped.is_set():
+            if stop.stopped:
                 raise KeyboardInterrupt
             node = make_node()
             warn_undeclared(node)
@@ -329,7 +327,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
             print(f"error: {exc}", file=sys.stderr, flush=True)
             code = 2
         except Exception:
-            if rclpy.ok() and not stopped.is_set():
+            if rclpy.ok() and not stop.stopped:
                 code = 1
                 raise
             code = 0  # Ctrl-C/SIGTERM under a running callback (a publish, a message being taken)

@@ -38,7 +38,7 @@ from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import check_plan
 from laser_calib_nodes.arguments import (arm_section, existing_files, integer, loadable_robot, noise_params,
                                          positive_number)
-from laser_calib_nodes.shutdown import GRACE
+from laser_calib_nodes.shutdown import GRACE, StopFlag
 
 PACKAGE = "laser_calib_nodes"
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -326,9 +326,9 @@ def run_session(values: dict, extra: list[str]) -> int:
     take_folder(values["output_dir"], values)
     logs = Path(values["output_dir"]) / "logs"
     logs.mkdir(exist_ok=True)
-    stopping = threading.Event()
+    signalled = StopFlag()   # not an Event: a handler run inside itself would wait on its lock for ever
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stopping.set())
+        signal.signal(sig, signalled.note)
     procs: dict[str, subprocess.Popen] = {}
     env = {**os.environ, **middleware_env()}
     for spec in specs[:-1]:
@@ -343,7 +343,7 @@ def run_session(values: dict, extra: list[str]) -> int:
     for tee in tees:
         tee.start()
     failed = None
-    while sequencer.poll() is None and not stopping.is_set() and failed is None:
+    while sequencer.poll() is None and not signalled.stopped and failed is None:
         failed = next((name for name, proc in procs.items() if proc.poll() is not None), None)
         time.sleep(0.1)
     stop([*procs.values(), sequencer])
@@ -355,7 +355,7 @@ def run_session(values: dict, extra: list[str]) -> int:
         print(f"run-session: {failed} exited with code {procs[failed].returncode}: "
               f"{last_line(logs / f'{failed}.log')}", file=sys.stderr)
         return 1
-    if stopping.is_set():
+    if signalled.stopped:
         return 130
     if sequencer.returncode == 2 and created is not None and SessionDir(values["output_dir"]).state() == "new":
         shutil.rmtree(created, ignore_errors=True)  # refused at its start: nothing measured, nothing to resume

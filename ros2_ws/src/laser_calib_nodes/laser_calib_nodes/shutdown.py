@@ -93,19 +93,41 @@ def exit_later(seconds: float, code: int) -> None:
         pass  # no POSIX timers here
 
 
+class StopFlag:
+    """Whether a stop signal (SIGINT, SIGTERM) came: what a signal handler notes. Not a
+    threading.Event: a Python handler runs in the main thread between two bytecodes, inside
+    itself too when signals come microseconds apart (GNU timeout's SIGTERM to the process
+    group, launch's own, the parent's death: three at once), and Event.set holds a lock the
+    nested call then waits on for ever (a camera_sim left on the graph after its launch had
+    exited, deaf to SIGINT, its watchdog never armed). An attribute is read and set without a
+    lock, and CPython runs no handler between the two (it looks for them at calls and jumps)."""
+
+    def __init__(self):
+        self.stopped = False
+
+    def note(self, *_signal) -> bool:
+        """Note a stop (also as a handler itself: signal.signal(SIGINT, flag.note)); whether it
+        was the first."""
+        first = not self.stopped
+        self.stopped = True
+        return first
+
+
 class ExitWatchdog:
     def __init__(self, name: str, grace: float = GRACE):
         self.name, self.grace = name, grace
         self.code = 0
         self.closing = threading.Event()
         self.closed = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._armed = False
 
     def arm(self) -> None:
-        """Start the countdown (once; later calls keep the first deadline)."""
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._watch, name="exit watchdog", daemon=True)
-            self._thread.start()
+        """Start the countdown (once; later calls keep the first deadline). Called from a
+        signal handler, also inside itself (StopFlag): the flag is claimed before any call."""
+        if self._armed:
+            return
+        self._armed = True
+        threading.Thread(target=self._watch, name="exit watchdog", daemon=True).start()
 
     def cleanup_started(self) -> None:
         self.closing.set()
