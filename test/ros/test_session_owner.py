@@ -40,3 +40,26 @@ def test_second_session_refused_then_resumed_after_a_kill(ros, tmp_path):
     ros.start("resumed", *args, node="sequencer")
     assert ros.wait_exit("resumed", 120) == 0, ros.log("resumed")[-3000:]
     assert "resuming" in ros.log("resumed") and rows(out / "samples.csv") == 3
+
+
+def test_a_second_session_on_the_domain_is_refused_before_it_moves_the_arm(ros, tmp_path):
+    """Two sessions on one ROS domain (another folder, so no lock between them): both arm drivers
+    obeyed both sequencers, and the first session stopped with 'arm not settled' while the
+    second measured on without a word. The second now sees the first one's commands on the arm's
+    topic and refuses, one line naming it; the first finishes."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir()
+    start_sim(ros, first)
+    common = ("-p", f"robot:={ROBOT}", "-p", "span:=small", "-p", "estimate.mode:=none")
+    owner = ros.start("sequencer", "-p", f"output_dir:={first}", "-p", "poses:=25", *common)  # ~1 s a pose
+    deadline = time.monotonic() + 120
+    while not rows(first / "samples.csv"):   # measuring: its commands are on the topic
+        assert owner.poll() is None and time.monotonic() < deadline, ros.log("sequencer")
+        time.sleep(0.05)
+    ros.start("second", "-p", f"output_dir:={second}", "-p", "poses:=3", *common, node="sequencer")
+    assert ros.wait_exit("second", 90) == 3, ros.log("second")[-2000:]
+    lines = [line for line in ros.log("second").splitlines() if line.strip()]
+    assert "[sequencer]: /sequencer also commands the arm on /joint_trajectory: two nodes would drive it" in lines[-1]
+    assert "Traceback" not in ros.log("second") and not rows(second / "samples.csv")
+    assert ros.wait_exit("sequencer", 120) == 0, ros.log("sequencer")[-2000:]
+    assert rows(first / "samples.csv") == 25

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import threading
 import time
 from pathlib import Path
@@ -182,6 +183,22 @@ def measured(node, line: str, spots: np.ndarray) -> None:
                                "screen in the camera's view, the spot_detector's min_peak_dn reachable? Those poses "
                                f"are kept in {node.session.path}; run again to resume from the next one "
                                "(unseen_limit:=0 measures on regardless)", 2)
+
+
+def sole_commander(node) -> None:
+    """NodeError (exit 3) when another node publishes on the arm's trajectory topic: a second
+    sequencer (another session on this ROS domain) or a teleoperation drives the arm too. Each
+    session then blamed the arm for not settling where it sent it, or measured on without a word."""
+    topic = node.resolve_topic_name(common.JOINT_TRAJECTORY)
+    publishers = [f"{info.node_namespace.rstrip('/')}/{info.node_name}" for info in
+                  node.get_publishers_info_by_topic(topic)]
+    if node.get_fully_qualified_name() in publishers:   # this node's one; a second session's may share its name
+        publishers.remove(node.get_fully_qualified_name())
+    if publishers:
+        others = sorted(set(publishers))
+        raise parameters.NodeError(f"{', '.join(others)} also commands the arm on {topic}: two nodes would drive it "
+                                   f"(a second session on ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}?); "
+                                   "give each session its own domain or namespace", 3)
 
 
 def client(node):
