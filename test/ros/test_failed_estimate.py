@@ -42,6 +42,8 @@ def test_a_fit_that_is_no_calibration_ends_the_session_with_status_4(ros, tmp_pa
             "test": None, "compensator": None}
 
 
+# The small plans of two failure paths (3 and 4 poses of the 4-DOF arm) give no more values than errors:
+# the sequencer refuses such a plan at its start unless the estimate has the prior (enough_poses).
 def test_poses_whose_spots_are_not_seen_are_warned_of_and_kept(ros, tmp_path):
     """A detector threshold no spot reaches: each pose's line is a WARN naming the lasers not
     seen (it was INFO, '0/2 spots seen', easy to miss while the arm moves on), so is the session's
@@ -53,7 +55,7 @@ def test_poses_whose_spots_are_not_seen_are_warned_of_and_kept(ros, tmp_path):
     ros.start("spot_detector", "-p", "min_peak_dn:=1000000.0")
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=3",
               "-p", "test_poses:=0", "-p", "seed:=5", "-p", "estimate.mode:=local",
-              "-p", "estimate.diagnose:=false")
+              "-p", "estimate.diagnose:=false", "-p", "estimate.prior:=true")
     code = ros.wait_exit("sequencer", 240)
     log = ros.log("sequencer")
     assert code == 2 and "Traceback" not in log, log[-3000:]
@@ -116,7 +118,7 @@ def test_an_estimator_that_dies_before_answering_ends_the_session_with_status_3(
     ros.start("spot_detector")
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=4",
               "-p", "test_poses:=0", "-p", "seed:=5", "-p", "estimate.mode:=service",
-              "-p", "estimate.diagnose:=false")
+              "-p", "estimate.diagnose:=false", "-p", "estimate.prior:=true")
     ros.wait_log("sequencer", " measured in ", 240, count=3)
     os.killpg(ros.procs["estimator"].pid, signal.SIGKILL)
     killed = time.monotonic()
@@ -126,3 +128,21 @@ def test_an_estimator_that_dies_before_answering_ends_the_session_with_status_3(
     assert "went away before answering" in log and f"the data are in {out}" in log, log[-3000:]
     assert time.monotonic() - killed < 90, log[-3000:]  # the lease, not the 600 s timeout
     assert len((out / "samples.csv").read_text().strip().splitlines()) == 1 + 4
+
+
+def test_a_plan_too_small_for_its_estimate_is_refused_before_the_first_pose(ros, tmp_path):
+    """4 poses of the 4-DOF arm: 16 spot values for the 16 errors they determine. The session was
+    measured in full, then the estimate refused it, and a resume could not add poses (the plan of a
+    partial session is fixed by what was measured). Now the sequencer refuses the plan at its
+    start, one line, exit 2, before any pose (no arm needed); estimate.prior:=true or
+    estimate.mode:=none take such a plan (the small plans above)."""
+    out = tmp_path / "out"
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=4",
+              "-p", "test_poses:=2")
+    assert ros.wait_exit("sequencer", 60) == 2, ros.log("sequencer")[-2000:]
+    lines = [line for line in ros.log("sequencer").splitlines() if line.strip()]
+    assert lines[-1] == ("error: the plan's 4 poses give 16 spot values for the 16 errors they determine: as many "
+                         "fit exactly, and the estimate after the last pose would refuse them; plan more poses "
+                         "(poses:=6 or more), or estimate.prior:=true, or estimate.mode:=none"), lines[-3:]
+    assert not (out / "samples.csv").exists()
+

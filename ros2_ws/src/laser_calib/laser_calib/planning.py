@@ -119,6 +119,17 @@ def whitened_jacobians(robot: Robot, q: np.ndarray, spot_sigma: float, joint_sig
     return g * robot_scales(robot)
 
 
+def values_and_determined(robot: Robot, q: np.ndarray) -> tuple[int, int]:
+    """(values, errors) of the poses q (P,N) at the nominal model: the spot values whose beams
+    meet the screen, and how many errors those values determine (identifiability.analyse, by
+    rank as estimate_model's start). An estimate needs more values than errors: as many fit
+    exactly, and nothing checks the fit (identifiability.TooFewValues)."""
+    g = whitened_jacobians(robot, q, 1e-3, 0.0)
+    values = int(np.any(g != 0, axis=-1).sum())
+    factor = np.linalg.qr(g.reshape(-1, robot.n_params), mode="r")
+    return values, int(analyse(factor, np.ones(robot.n_params), robot.param_names).free.sum())
+
+
 def _log_det_plus_identity(q: np.ndarray) -> np.ndarray:
     """log det(I + Q) for symmetric positive semi-definite Q (M,4,4), by Cholesky."""
     factor = np.linalg.cholesky(np.eye(q.shape[-1]) + q)

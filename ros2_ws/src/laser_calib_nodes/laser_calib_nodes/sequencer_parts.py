@@ -22,6 +22,7 @@ from laser_calib.io.joint_names import default_joint_names
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.noise_bounds import JOINT_SIGMA_NOT_GIVEN
 from laser_calib.model.robot_file import load_robot
+from laser_calib.planning import values_and_determined
 from laser_calib.report import truth
 from laser_calib.session.folder import (PLAN_DEFAULTS, ROBOT_FILE, SAMPLES_FILE, TEST_SAMPLES_FILE, SessionDir,
                                        plan_value, refuse_finished)
@@ -84,12 +85,27 @@ def open_session(node):
     poses = (load_poses(plan["poses_file"], robot) if plan["poses_file"] else
              generate_poses(robot, plan["poses"], plan["span"], plan["seed"], plan["repeats"], plan["margin"]))
     poses = with_test_poses(poses, robot, plan["test_poses"], plan["seed"], plan["margin"])
+    if node.end.mode != "none" and not node.end.prior:
+        enough_poses(robot, poses.q[~poses.test])
     source = plan["poses_file"] or (f"generated: {plan['poses']} poses, span {plan['span']}, seed {plan['seed']}, "
                                    f"repeats {plan['repeats']}")
     session.start(robot, poses, {"robot": robot_label, "poses": source, "test_poses": plan["test_poses"],
                                  "plan": {name: plan_value(name, value) for name, value in plan.items()},
                                  "settings": settings(node)})
     return session, lock, robot, poses, state
+
+
+def enough_poses(robot, q: np.ndarray) -> None:
+    """NodeError (exit 2) when the calibration poses q (P,N) give no more spot values than the
+    errors they determine at the nominal model: the estimate after the last pose would refuse
+    them (a session measured in full, then failed, and its plan, fixed by what was measured,
+    could not grow on a resume)."""
+    values, determined = values_and_determined(robot, q)
+    if values <= determined:
+        raise parameters.NodeError(f"the plan's {len(q)} poses give {values} spot values for the {determined} errors "
+                                   "they determine: as many fit exactly, and the estimate after the last pose would "
+                                   f"refuse them; plan more poses (poses:={robot.n_params // 4 + 1} or more), or "
+                                   "estimate.prior:=true, or estimate.mode:=none", 2)
 
 
 def settings(node) -> dict:
