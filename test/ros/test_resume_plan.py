@@ -138,6 +138,24 @@ def test_launch_refuses_a_plan_argument_it_does_not_take(ros, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_launch_refuses_a_sequencer_parameter_given_as_its_argument(ros, tmp_path):
+    """record_images:=true, unseen_limit:=0, resume:=auto: the sequencer's parameters, which the
+    nodes README writes as name:=value; `ros2 launch` dropped them silently (a bag without images).
+    Refused now, one line saying where such a parameter goes; the real command line."""
+    if ros2_missing():
+        pytest.skip(ros2_missing())
+    ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "session.launch.py",
+                                 f"output_dir:={tmp_path / 'out'}", "record_images:=true"])
+    assert ros.wait_exit("launch", 60) != 0
+    log = ros.log("launch")
+    assert "process started" not in log and "Traceback" not in log, log
+    errors = [line for line in log.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and ("record_images: a parameter of the sequencer, not an argument of this launch file: "
+                                 "it would be ignored; set it in the sequencer's section of a parameter file given "
+                                 "as params:=FILE") in errors[0], log
+    assert not (tmp_path / "out").exists()
+
+
 HARDWARE_GRAPH = """import json, sys
 from laser_calib.io.errors import InputError
 from laser_calib_nodes.graph import HARDWARE_ARGS, hardware_nodes

@@ -12,6 +12,7 @@ from laser_calib.io.read import load_yaml
 from laser_calib.io.samples import check_lasers
 from laser_calib.measurement.noise_bounds import joint_sigma_or_unset_problem, spot_sigma_or_zero_problem
 from laser_calib.model.robot_file import load_robot
+from laser_calib.session.folder import PLAN_DEFAULTS
 
 
 def integer(values: dict, name: str) -> int:
@@ -90,3 +91,35 @@ def arm_section(path: str) -> None:
         keys = ", ".join(map(str, data)) if isinstance(data, dict) and data else "none"
         raise InputError("arm_params", f"{path} has no 'arm_driver: ros__parameters:' section (its top-level keys: "
                                        f"{keys}): the arm_driver would take none of it")
+
+
+# The sequencer's parameters besides the pose plan (PLAN_DEFAULTS) and the robot: a launch file
+# passes some as its arguments (method, spot_sigma, ...); the others go in its parameter file.
+# test_param_dump.py holds this list to the running sequencer's.
+SEQUENCER_PARAMETERS = (
+    "output_dir", "resume", "joint_names", "move.joint_speed", "settle.position_tolerance",
+    "settle.velocity_tolerance", "settle.hold_time", "settle.timeout", "frames", "frame_timeout", "sync_tolerance",
+    "wait_timeout", "unseen_limit", "record_images", "bag.max_segment_seconds", "truth", "estimate.method",
+    "estimate.spot_sigma", "estimate.joint_sigma", "estimate.prior", "estimate.robust", "estimate.diagnose",
+    "estimate.mode", "estimate.shared_filesystem", "estimate.timeout")
+
+
+def refuse_ignored_arguments(argv: list[str], spec: dict) -> None:
+    """Refuse a name:=value on the command line that names a pose plan argument or a sequencer
+    parameter the launch file (its arguments: spec) does not take: `ros2 launch` drops an
+    undeclared argument silently, so hardware.launch.py test_poses:=5 (before it took
+    test_poses) measured a session without the held-out poses asked for, and record_images:=true
+    recorded no image. Only those names: argv also holds the arguments of a launch file that
+    includes this one."""
+    for item in argv:
+        name = item.partition(":=")[0]
+        if name in spec:
+            continue
+        if name in PLAN_DEFAULTS:
+            raise InputError(name, f"not an argument of this launch file, it would be ignored (its arguments: "
+                                   f"{', '.join(spec)})")
+        if name in SEQUENCER_PARAMETERS:
+            raise InputError(name, "a parameter of the sequencer, not an argument of this launch file: it would be "
+                                   "ignored; set it in the sequencer's section of a parameter file given as "
+                                   "params:=FILE (as config/session.yaml)")
+

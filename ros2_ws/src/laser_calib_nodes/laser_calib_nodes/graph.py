@@ -37,7 +37,7 @@ from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, refuse_finishe
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import check_plan
 from laser_calib_nodes.arguments import (arm_section, existing_files, integer, loadable_robot, noise_params,
-                                         positive_number)
+                                         positive_number, refuse_ignored_arguments)
 from laser_calib_nodes.shutdown import GRACE, StopFlag
 
 PACKAGE = "laser_calib_nodes"
@@ -250,18 +250,6 @@ def launch_actions(specs: list[NodeSpec]) -> list:
     return actions
 
 
-def refuse_ignored_plan_arguments(argv: list[str], spec: dict) -> None:
-    """Refuse a pose plan argument (name:=value on the command line) that spec does not take:
-    `ros2 launch` drops an undeclared argument silently, so hardware.launch.py test_poses:=5
-    (before it took test_poses) measured a session without the held-out poses asked for. Only plan arguments: argv also
-    holds those of a launch file that includes this one."""
-    for item in argv:
-        name = item.partition(":=")[0]
-        if name in PLAN_DEFAULTS and name not in spec:
-            raise InputError(name, f"not an argument of this launch file, it would be ignored (its arguments: "
-                                   f"{', '.join(spec)})")
-
-
 def launch_description(spec: dict, make_nodes) -> "LaunchDescription":
     """A launch description with spec's arguments whose nodes are make_nodes(values), after
     the session folder has been taken (take_folder)."""
@@ -270,7 +258,7 @@ def launch_description(spec: dict, make_nodes) -> "LaunchDescription":
     from launch.substitutions import LaunchConfiguration
 
     def start(context):
-        refuse_ignored_plan_arguments(context.argv, spec)
+        refuse_ignored_arguments(context.argv, spec)
         values = {name: LaunchConfiguration(name).perform(context) for name in spec}
         values["output_dir"] = os.path.abspath(values["output_dir"])
         specs = make_nodes(values)  # bad arguments first: refused before the folder is made
