@@ -47,6 +47,24 @@ def test_bad_parameters_and_files_give_one_line(ros, tmp_path):
     assert last_line(ros, "est_compensator").startswith(f"error: {tmp_path / 'none.json'}: not a compensator file")
 
 
+def test_ros_arguments_rcl_cannot_read_give_one_line(ros, tmp_path):
+    """--ros-args that rcl itself refuses (a params file missing or not YAML, '-p name' without a
+    value) failed in rclpy.init: a traceback ending in RCLError and exit 1, under `ros2 run` too."""
+    (tmp_path / "bad.yaml").write_text("a: [1,\n")
+    ros.start("missing", "--params-file", str(tmp_path / "none.yaml"), node="arm_driver", params=False)
+    ros.start("not_yaml", "--params-file", str(tmp_path / "bad.yaml"), node="camera_sim", params=False)
+    ros.start("no_value", "-p", "robot", node="estimator", params=False)
+    for name in ros.procs:
+        assert ros.wait_exit(name, 60) == 2, (name, ros.log(name))
+    assert last_line(ros, "missing") == (f"error: failed to initialize rcl: Couldn't parse params file: '--params-file "
+                                         f"{tmp_path / 'none.yaml'}'. Error: Error opening YAML file")
+    assert last_line(ros, "not_yaml").startswith(f"error: failed to initialize rcl: Couldn't parse params file: "
+                                                 f"'--params-file {tmp_path / 'bad.yaml'}'. Error: ")
+    assert last_line(ros, "no_value").startswith("error: failed to initialize rcl: Couldn't parse parameter override "
+                                                 "rule: '-p robot'")
+    assert all(", at /" not in last_line(ros, name) for name in ros.procs)
+
+
 def test_synchronizer_pairs_nearest_within_tolerance():
     from laser_calib.session.sync import StampSynchronizer
     sync = StampSynchronizer(0.005)

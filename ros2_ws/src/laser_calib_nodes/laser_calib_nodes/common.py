@@ -4,6 +4,7 @@ message conversions and the main() wrapper (exit 0 on Ctrl-C, one line on bad in
 from __future__ import annotations
 
 import math
+import re
 import signal
 import sys
 import time
@@ -255,6 +256,12 @@ def spots_from_msg(spots) -> np.ndarray:
     return out
 
 
+def rcl_error_line(exc: Exception) -> str:
+    """rcl's message of an RCLError in one line, without its C source locations (', at /project/src/...:N'):
+    --ros-args it cannot parse (a params file missing or not YAML, '-p name' without ':=')."""
+    return re.sub(r"\s*(, at /\S+:\d+)+", "", " ".join(str(exc).split())).strip()
+
+
 _executor: Executor | None = None  # run()'s
 
 
@@ -293,7 +300,11 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     # made: rclpy's Executor.__init__ on a context a stop had shut fails halfway, and the half-made
     # executor's __del__ printed a traceback ("AttributeError: ... no attribute '_sigint_gc'", camera_sim
     # stopped right after its start).
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except rclpy_implementation.RCLError as exc:  # --ros-args rcl cannot read: one line, as every bad input
+        print(f"error: {rcl_error_line(exc)}", file=sys.stderr, flush=True)
+        return 2
     executor = _executor = make_executor() if make_executor else SingleThreadedExecutor()
     install_signal_handlers(SignalHandlerOptions.ALL)
     initialising = False

@@ -25,12 +25,14 @@ import time
 import rclpy
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from laser_calib.cli.arguments import add_replay_arguments
 from laser_calib.io.errors import InputError
 
 from laser_calib.io import bag
+from laser_calib_nodes.common import rcl_error_line
 from laser_calib_nodes.graph import die_with_parent
 
 
@@ -106,7 +108,10 @@ def main(argv: list[str] | None = None) -> int:
     initialised = False
     try:
         try:
-            rclpy.init(args=["replay"] + ros_args)
+            try:
+                rclpy.init(args=["replay"] + ros_args)
+            except rclpy_implementation.RCLError as exc:
+                raise InputError("--ros-args", rcl_error_line(exc)) from None
             initialised = True
             node = rclpy.create_node("replay")
             publishers = {t: node.create_publisher(classes[t], t, qos_of(profiles))
