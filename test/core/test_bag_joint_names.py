@@ -76,7 +76,10 @@ def test_a_bag_in_another_joint_order_gives_the_same_calibration(simulated, tmp_
     # the robot's default names mixed with others: a mix-up, not the arm's own naming
     (["joint1", "joint2", "elbow", "wrist"], "joint 'joint3' (robot 'manipulator_4dof') is not in the sample's "
                                              "joint_names (joint1, joint2, elbow, wrist)"),
-], ids=["joint missing", "names and positions differ in length", "default names mixed with others"])
+    # names not the robot's (taken in its order) with one twice: two readings under one name
+    (["q1", "q1", "q3", "q4"], "joint 'q1' is named twice in the sample's joint_names"),
+], ids=["joint missing", "names and positions differ in length", "default names mixed with others",
+        "the arm's own names, one twice"])
 def test_a_sample_the_rule_refuses_is_one_line_naming_the_bag_and_the_message(simulated, tmp_path, capsys,
                                                                               names, problem):
     """Message 6 alone is wrong, in its own segment: refused, not skipped as a damaged segment."""

@@ -69,6 +69,11 @@ class RobotJoints:
             return positions
         if len(names) != len(positions):
             raise InputError(where, f"{len(names)} joint_names but {len(positions)} joint_positions")
+        # two readings under one name, whatever the names: taken in order (a D-H robot's under names not
+        # its own), the sample's own naming was wrong without a word
+        twice = [name for k, name in enumerate(names) if name in names[:k]]
+        if twice:
+            raise InputError(where, f"joint '{twice[0]}' is named twice in the sample's joint_names")
         if not self.strict:  # joint1..jointN: a jointK beyond them is a longer arm's, not a gripper
             beyond = [name for name in names if name not in self.names and re.fullmatch(r"joint\d+", name)]
             if beyond:
