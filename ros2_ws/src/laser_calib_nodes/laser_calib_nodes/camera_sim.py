@@ -13,6 +13,7 @@ from __future__ import annotations
 import sys
 
 import numpy as np
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
@@ -54,7 +55,10 @@ class CameraSim(Node):
         from laser_calib_interfaces.msg import SpotPair
         self.create_subscription(SpotPair, common.TRUE_SPOTS, self.on_spots, common.STREAM_QOS)
         self.image_pub = self.create_publisher(Image, common.IMAGE, common.IMAGE_QOS)
-        self.info_pub = self.create_publisher(CameraInfo, common.CAMERA_INFO, common.IMAGE_QOS)
+        # volatile, as most drivers publish it: the subscribers' latched profile for drivers that latch it
+        # (common.subscribe_camera) does not match, which is no fault here (it was a WARN each session)
+        self.info_pub = self.create_publisher(CameraInfo, common.CAMERA_INFO, common.IMAGE_QOS, event_callbacks=
+                                              PublisherEventCallbacks(incompatible_qos=lambda _: None))
         # Warm the renderer's caches (pixel maps, ~0.5 s) before the first frame is due.
         render.render_frame(self.camera, np.zeros((2, 2)), np.zeros(2, bool), self.rng, self.options)
         self.create_timer(1.0 / rate, self.on_timer)
