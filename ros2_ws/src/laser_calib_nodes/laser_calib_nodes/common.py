@@ -106,7 +106,8 @@ def bag_qos(profile: QoSProfile):
 
 
 ROBOT_HELP = ("Nominal robot model file (YAML, conventions.md; a URDF arm with its lasers: docs/urdf.md), e.g. "
-              "config/robots/humanoid_arm_7dof.yaml.")
+              "the package's share/laser_calib_nodes/config/robots/humanoid_arm_7dof.yaml (a relative path is "
+              "taken from the node's working directory).")
 # robot_state_publisher's /robot_description: std_msgs/String, reliable, transient local, depth 1.
 DESCRIPTION_QOS = LATCHED_QOS
 
