@@ -20,6 +20,7 @@ def test_bad_requests_and_concurrent_clients(ros):
         "nan_joint": "joint_positions[2] is not finite",
         "nan_spot": "non-finite",
         "bad_method": "gauss",
+        "bad_method_nothing_accumulated": "method: expected one of lm, ekf, got 'gauss'",  # the request's fault first
         "negative_sigma": "spot_sigma",
         "too_few": "",
         "nan_test_joint": "request: test sample 2 (pose 101): joint_positions[0] is not finite",

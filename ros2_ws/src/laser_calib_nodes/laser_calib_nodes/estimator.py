@@ -217,14 +217,15 @@ class Estimator(Node):
 
     def on_estimate(self, request, response):
         try:
+            # the request's own fields first (an unknown method is said as such, not as no samples)
+            options, output_dir = request_options(self, request), common.request_output_dir(request.output_dir)
             samples, test, sources = request_sets(self, request)
             # the request may run for minutes (the diagnosis): say it started
             self.get_logger().info(f"estimating from {sources['samples']}"
                                    + (f", tested on {sources['test']}" if test is not None else "")
                                    + (", then the diagnosis" if request.diagnose else ""))
-            outcome = run_calibration(self.robot, samples, request_options(self, request),
-                                      common.request_output_dir(request.output_dir),
-                                      request.diagnose, sources, self.compensator, test)
+            outcome = run_calibration(self.robot, samples, options, output_dir, request.diagnose, sources,
+                                      self.compensator, test)
         except InputError as exc:
             response.success = False
             response.message = str(exc)
