@@ -163,6 +163,7 @@ class Sequencer(Node):
         todo = np.flatnonzero(~self.done_steps)
         self.progress = Progress(len(self.poses), int(self.done_steps.sum()))
         joints, spots = (self.resolve_topic_name(t) for t in (common.JOINT_STATES, common.SPOTS))
+        self.get_logger().info(f"waiting up to {self.wait_timeout:g} s for the arm on {joints} and spots on {spots}")
         self.wait(lambda: self.state_count > 0, self.wait_timeout,
                   lambda: self.arm_joints.none_read(joints, self.wait_timeout))  # raises: exit 2 or 3
         self.wait(lambda: self.spot_count > 0, self.wait_timeout, f"no spot frames on {spots} after "
