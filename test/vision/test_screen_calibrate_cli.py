@@ -32,3 +32,37 @@ def test_screen_calibrate_without_images_is_one_line(tmp_path, capsys):
                  "--screen-images", str(tmp_path / "empty"), "--out", str(tmp_path / "c.yaml")])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "no images" in err
+
+
+def _altered(images, folder, name, change):
+    """A copy of images/folder as images/name, each image through change(index, image)."""
+    import cv2
+    (images / name).mkdir()
+    for index, path in enumerate(sorted((images / folder).glob("*.png"))):
+        cv2.imwrite(str(images / name / path.name), change(index, cv2.imread(str(path))))
+    return images / name
+
+
+def test_screen_views_the_board_views_or_each_other_do_not_match_are_one_line(tmp_path, capsys):
+    """A new user's screen views at another resolution than the board's, and half of them from a
+    camera bumped by 20 px: each calibration was written with exit 0 (fiducials through the map
+    20 and 26 mm off). Now one line naming the image, exit 2, nothing written."""
+    import cv2
+    images = tmp_path / "images"
+    assert main(["render-calibration-images", "--out", str(images), "--seed", "3"]) == 0
+    half = _altered(images, "screen", "half", lambda k, image: cv2.resize(image, None, fx=0.5, fy=0.5))
+    bumped = _altered(images, "screen", "bumped", lambda k, image: image if k < 4 else
+                      cv2.warpAffine(image, np.float32([[1, 0, 20], [0, 1, 0]]), image.shape[1::-1]))
+    capsys.readouterr()
+    for screens, said in ((half, f"{half / 'screen_000.png'}: size 640x512 differs from 1280x1024 of the board images"),
+                          (bumped, "px (median) from the other screen views': the camera moved between them")):
+        out = tmp_path / f"{screens.name}.yaml"
+        code = main(["screen-calibrate", "--board-images", str(images / "board"), "--screen-images", str(screens),
+                     "--out", str(out)])
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1 and said in err, err
+        assert not out.exists()
+    # the views that agree and a board that is not the one expected: which board, said
+    code = main(["screen-calibrate", "--board-images", str(images / "screen"), "--screen-images",
+                 str(images / "screen"), "--out", str(tmp_path / "c.yaml")])
+    assert code == 2 and "(the board: 10 x 7 squares, markers of DICT_5X5_100" in capsys.readouterr().err

@@ -20,7 +20,7 @@ import numpy as np
 
 from laser_calib.cli.arguments import non_negative_int, out_file, out_folder, positive_int, staged_folder
 from laser_calib.io.errors import InputError
-from laser_calib.vision.screen_calibration import TooFewBoardViews, TooFewFiducials
+from laser_calib.vision.screen_calibration import ScreenViewMoved, TooFewBoardViews, TooFewFiducials
 from laser_calib.vision import (RenderOptions, board_poses, calibrate_screen, default_camera, detect_fiducials,
                      render_board_frame, render_fiducial_frame, save_calibration)
 
@@ -31,6 +31,11 @@ CALIBRATION_LIGHT = RenderOptions(ambient_dn=150.0)
 
 def load_images(folder: str) -> list[np.ndarray]:
     """Every image in folder, in name order, as bgr8 arrays."""
+    return [image for _, image in load_image_files(folder)]
+
+
+def load_image_files(folder: str) -> list[tuple[Path, np.ndarray]]:
+    """Every image in folder, in name order, with its file, as bgr8 arrays of one size."""
     path = Path(folder)
     if not path.is_dir():
         raise InputError(folder, "no such folder")
@@ -42,17 +47,24 @@ def load_images(folder: str) -> list[np.ndarray]:
         image = cv2.imread(str(file), cv2.IMREAD_COLOR)
         if image is None:
             raise InputError(str(file), "not a readable image")
-        if images and image.shape != images[0].shape:
+        if images and image.shape != images[0][1].shape:
             raise InputError(str(file), f"size {image.shape[1]}x{image.shape[0]} differs from "
-                                        f"{images[0].shape[1]}x{images[0].shape[0]} of the first image")
-        images.append(image)
+                                        f"{images[0][1].shape[1]}x{images[0][1].shape[0]} of the first image")
+        images.append((file, image))
     return images
 
 
 def cmd_screen_calibrate(args: argparse.Namespace) -> int:
-    boards, screens = load_images(args.board_images), load_images(args.screen_images)
+    boards, screen_files = load_images(args.board_images), load_image_files(args.screen_images)
+    screens = [image for _, image in screen_files]
+    if screens[0].shape != boards[0].shape:  # one camera at one resolution: each folder's own size is checked
+        raise InputError(str(screen_files[0][0]), f"size {screens[0].shape[1]}x{screens[0].shape[0]} differs from "
+                                                  f"{boards[0].shape[1]}x{boards[0].shape[0]} of the board images "
+                                                  "(one camera, one resolution, for both)")
     try:
         calibration = calibrate_screen(boards, screens)
+    except ScreenViewMoved as exc:
+        raise InputError(str(screen_files[exc.index][0]), str(exc)) from None
     except TooFewBoardViews as exc:  # the calibration counts them, the command knows the folder
         raise InputError(args.board_images, f"{exc} (ChArUco board views: are these the board images?)") from None
     except TooFewFiducials as exc:

@@ -167,6 +167,23 @@ class TooFewFiducials(ValueError):
     """The screen images show fewer than 4 fiducials (the command names their folder)."""
 
 
+class ScreenViewMoved(ValueError):
+    """Screen view ``index`` puts the fiducials ``offset`` px away from where the other views put
+    them: the camera moved between the screen views (the command names the image)."""
+
+    def __init__(self, index: int, offset: float):
+        super().__init__(f"its fiducial corners lie {offset:.2g} px (median) from the other screen views': the camera "
+                         "moved between them (it must stay fixed; take the screen views again)")
+        self.index = index
+
+
+# A screen view's fiducial corners lie this far (median, px) from the other views' at most: a fixed
+# camera's detections agree to a tenth of a pixel (rendered views with noise, JPEG or blur: 0.02-0.11),
+# and one pixel is 2-3 mm on the screen, ten times a spot's noise. The views' corners are averaged
+# into the map, so a camera bumped between them was written silently (26 mm RMS at 20 px).
+VIEW_AGREEMENT = 1.0
+
+
 def _board_points(images: Sequence[np.ndarray], spec: CharucoSpec) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Object (N,3) and image (N,2) points of the ChArUco corners in each usable view."""
     board = spec.board()
@@ -186,13 +203,24 @@ def _board_points(images: Sequence[np.ndarray], spec: CharucoSpec) -> tuple[list
 def _mean_fiducials(images: Sequence[np.ndarray], K: np.ndarray, dist: np.ndarray, layout: ScreenLayout
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Fiducial corners averaged over images: (undistorted pixels (M,2), screen (y, z) (M,2))."""
-    found: dict[tuple[float, float], list[np.ndarray]] = {}
-    for image in images:
+    found: dict[tuple[float, float], list[tuple[int, np.ndarray]]] = {}
+    for index, image in enumerate(images):
         for pixel, point in zip(*detect_fiducials(image, K, dist, layout)):
-            found.setdefault(tuple(point), []).append(pixel)
+            found.setdefault(tuple(point), []).append((index, pixel))
     if len(found) < 16:
-        raise TooFewFiducials(f"found {len(found) // 4} screen fiducials, need at least 4")
-    return np.array([np.mean(p, axis=0) for p in found.values()]), np.array(list(found))
+        raise TooFewFiducials(f"found {len(found) // 4} screen fiducials, need at least 4 (8 ArUco markers of "
+                              "DICT_4X4_50, ids 0-7, 120 mm, centred at (+-1.09, +-1.09), (0, +-1.09) and "
+                              "(+-1.09, 0) m on the screen: vision.screen_calibration.ScreenLayout)")
+    centre = {point: np.median([pixel for _, pixel in seen], axis=0) for point, seen in found.items()}
+    offsets: dict[int, list[float]] = {}
+    for point, seen in found.items():
+        for index, pixel in seen:
+            offsets.setdefault(index, []).append(float(np.linalg.norm(pixel - centre[point])))
+    index, offset = max(((i, float(np.median(o))) for i, o in offsets.items()), key=lambda item: item[1])
+    if offset > VIEW_AGREEMENT:
+        raise ScreenViewMoved(index, offset)
+    return (np.array([np.mean([pixel for _, pixel in seen], axis=0) for seen in found.values()]),
+            np.array(list(found)))
 
 
 def _distort(undistorted: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -227,7 +255,10 @@ def calibrate_screen(board_images: Sequence[np.ndarray], screen_images: Sequence
     height, width = board_images[0].shape[:2]
     object_points, image_points = _board_points(board_images, board)
     if len(object_points) < 4:
-        raise TooFewBoardViews(f"only {len(object_points)} usable ChArUco views, need at least 4")
+        raise TooFewBoardViews(f"only {len(object_points)} usable ChArUco views, need at least 4 (the board: "
+                               f"{board.squares_x} x {board.squares_y} squares, markers of "
+                               f"{'DICT_5X5_100' if board.dictionary == cv2.aruco.DICT_5X5_100 else board.dictionary};"
+                               " vision.screen_calibration.CharucoSpec)")
     _, K, dist, _, _ = cv2.calibrateCamera(object_points, image_points, (width, height), None, None)
     undistorted, known = _mean_fiducials(screen_images, K, dist.ravel()[:5], layout)
     object_points.append(np.column_stack([known, np.zeros(len(known))]).astype(np.float32))
