@@ -4,6 +4,7 @@ any node starts. ROS-free, as graph, which calls them."""
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 
@@ -104,13 +105,16 @@ SEQUENCER_PARAMETERS = (
     "estimate.mode", "estimate.shared_filesystem", "estimate.timeout")
 
 
+MISSPELT = 0.85  # difflib's similarity from which a name not taken is taken for a misspelt argument
+
+
 def refuse_ignored_arguments(argv: list[str], spec: dict) -> None:
     """Refuse a name:=value on the command line that names a pose plan argument or a sequencer
     parameter the launch file (its arguments: spec) does not take: `ros2 launch` drops an
     undeclared argument silently, so hardware.launch.py test_poses:=5 (before it took
     test_poses) measured a session without the held-out poses asked for, and record_images:=true
-    recorded no image. Only those names: argv also holds the arguments of a launch file that
-    includes this one."""
+    recorded no image; and a name within MISSPELT of an argument (arm_param). Only those names:
+    argv also holds the arguments of a launch file that includes this one."""
     for item in argv:
         name = item.partition(":=")[0]
         if name in spec:
@@ -122,4 +126,11 @@ def refuse_ignored_arguments(argv: list[str], spec: dict) -> None:
             raise InputError(name, "a parameter of the sequencer, not an argument of this launch file: it would be "
                                    "ignored; set it in the sequencer's section of a parameter file given as "
                                    "params:=FILE (as config/session.yaml)")
+        # a misspelt argument: hardware.launch.py arm_param:=arm.yaml ran the example Dynamixel file (its
+        # port, ids, zero ticks) on whatever adapter was there; an including file's own arguments are
+        # rarely this close to one of ours
+        close = difflib.get_close_matches(name, list(spec), n=1, cutoff=MISSPELT)
+        if close:
+            raise InputError(name, f"not an argument of this launch file (did you mean {close[0]}?): it would be "
+                                   "ignored")
 
