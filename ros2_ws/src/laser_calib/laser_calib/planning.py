@@ -125,9 +125,14 @@ def values_and_determined(robot: Robot, q: np.ndarray) -> tuple[int, int]:
     rank as estimate_model's start). An estimate needs more values than errors: as many fit
     exactly, and nothing checks the fit (identifiability.TooFewValues)."""
     g = whitened_jacobians(robot, q, 1e-3, 0.0)
-    values = int(np.any(g != 0, axis=-1).sum())
-    factor = np.linalg.qr(g.reshape(-1, robot.n_params), mode="r")
-    return values, int(analyse(factor, np.ones(robot.n_params), robot.param_names).free.sum())
+    return int(np.any(g != 0, axis=-1).sum()), int(_identifiable(robot, g).free.sum())
+
+
+def _identifiable(robot: Robot, g: np.ndarray):
+    """identifiability.analyse of the poses' whitened Jacobians g (P,4,n), by rank, from the R factor
+    of their stack (its singular values, without the (4P,n) SVD)."""
+    return analyse(np.linalg.qr(g.reshape(-1, robot.n_params), mode="r"), np.ones(robot.n_params),
+                   robot.param_names)
 
 
 def _log_det_plus_identity(q: np.ndarray) -> np.ndarray:
@@ -261,9 +266,7 @@ def plan(robot: Robot, options: PlanOptions, progress: ProgressCallback | None =
     rng = np.random.default_rng(options.seed)
     q = candidate_poses(robot, options.candidates, rng, options.margin)
     g = whitened_jacobians(robot, q, options.spot_sigma, options.joint_sigma)
-    # the R factor of the stacked candidates: their singular values, without an (4M,n) SVD
-    factor = np.linalg.qr(g.reshape(-1, robot.n_params), mode="r")
-    ident = analyse(factor, np.ones(robot.n_params), robot.param_names)
+    ident = _identifiable(robot, g)
     index, log_det = d_optimal(np.ascontiguousarray(g[:, :, ident.free]), options.n, options.passes, progress)
     chosen = analyse(g[index].reshape(-1, robot.n_params), np.ones(robot.n_params), robot.param_names, ~ident.free)
     return Plan(q[index], log_det, ident.free, chosen.rank)

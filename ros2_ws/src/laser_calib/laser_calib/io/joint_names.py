@@ -24,6 +24,11 @@ def default_joint_names(robot: Robot) -> list[str]:
     return [f"joint{i + 1}" for i in range(robot.n_joints)]
 
 
+def named_twice(names: Sequence[str]) -> str | None:
+    """The first name the list holds a second time, or None."""
+    return next((name for k, name in enumerate(names) if name in names[:k]), None)
+
+
 class RobotJoints:
     def __init__(self, robot: Robot, names: Sequence[str] = (), named_by: str | None = None):
         """names: the robot's joints, base to tip, as messages name them (empty: its default
@@ -35,9 +40,9 @@ class RobotJoints:
         self.strict = bool(names) or robot.chain is not None
         if len(self.names) != self.n:
             raise InputError(self.named_by, f"{len(self.names)} names, robot '{robot.name}' has {self.n} joints")
-        twice = [name for k, name in enumerate(self.names) if name in self.names[:k]]
+        twice = named_twice(self.names)
         if twice:  # two robot joints read from one entry: another joint's readings left out
-            raise InputError(self.named_by, f"names '{twice[0]}' twice")
+            raise InputError(self.named_by, f"names '{twice}' twice")
 
     def naming_warnings(self, name_lists: Sequence[Sequence[str]], where: str) -> list[str]:
         """What a set of samples' joint_names (``name_lists``, each sample's) says that is no error but
@@ -71,9 +76,9 @@ class RobotJoints:
             raise InputError(where, f"{len(names)} joint_names but {len(positions)} joint_positions")
         # two readings under one name, whatever the names: taken in order (a D-H robot's under names not
         # its own), the sample's own naming was wrong without a word
-        twice = [name for k, name in enumerate(names) if name in names[:k]]
+        twice = named_twice(names)
         if twice:
-            raise InputError(where, f"joint '{twice[0]}' is named twice in the sample's joint_names")
+            raise InputError(where, f"joint '{twice}' is named twice in the sample's joint_names")
         if not self.strict:  # joint1..jointN: a jointK beyond them is a longer arm's, not a gripper
             beyond = [name for name in names if name not in self.names and re.fullmatch(r"joint\d+", name)]
             if beyond:
