@@ -131,3 +131,21 @@ def test_a_disk_that_refuses_the_bag_ends_the_session_in_one_line_and_keeps_the_
     ros.start("resumed", *args, node="sequencer")
     assert ros.wait_exit("resumed", 120) == 0, ros.log("resumed")
     assert csv_rows(out / "samples.csv") == 6 and len(bag.read_samples(out / "bag")) == 6
+
+
+def test_a_bag_that_cannot_be_closed_at_the_stop_is_said_with_exit_1(ros, tmp_path):
+    """The recording can also fail at the stop, when the open segment is closed: the node said
+    nothing and exited 0, and the segment's messages were gone. Now the same one line as during the
+    session, exit 1. The open segment's folder is made a file, as in the test above, while the
+    sequencer waits for an arm with the streamed joint states in its open segment."""
+    out = tmp_path / "out"
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=1",
+              "-p", "wait_timeout:=60.0", "-p", "estimate.mode:=none")
+    ros.client("stream-replay", str(ROBOT), "10", "1", "2")
+    work = out / ".recording"
+    shutil.rmtree(work)
+    work.write_text("")
+    assert ros.stop("sequencer") == 1, ros.log("sequencer")
+    log = ros.log("sequencer")
+    errors = [line for line in log.splitlines() if "ERROR" in line]
+    assert "Traceback" not in log and len(errors) == 1 and f"recording into {out / 'bag'} failed" in errors[0], log

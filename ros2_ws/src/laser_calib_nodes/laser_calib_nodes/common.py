@@ -80,7 +80,7 @@ SAMPLES_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-def subscribe_camera(node: Node, msg_type, name: str, callback: Callable, depth: int, raw: bool = False) -> None:
+def subscribe_camera(node: Node, msg_type, name: str, callback: Callable, depth: int, raw: bool = False) -> list:
     """Subscribe to a camera topic (image or CameraInfo) with every profile a driver may publish it
     with; a message two of them deliver reaches ``callback`` twice (the caller keeps one by its stamp):
     - best effort: the sensor-data QoS camera drivers publish with, which a reliable subscription
@@ -89,14 +89,15 @@ def subscribe_camera(node: Node, msg_type, name: str, callback: Callable, depth:
     - reliable: camera_sim and drivers that publish reliable;
     - CameraInfo also transient local: a driver that latches it sends it once, maybe before this
       node started, and a volatile subscription never gets that one.
-    ``depth`` frames kept per profile; the profiles a publisher does not match stay quiet."""
+    ``depth`` frames kept per profile; the profiles a publisher does not match stay quiet. Returns the
+    subscriptions."""
     quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _: None)
     profiles = [QoSProfile(depth=depth, reliability=reliability)
                 for reliability in (ReliabilityPolicy.BEST_EFFORT, ReliabilityPolicy.RELIABLE)]
     if msg_type is CameraInfo:
         profiles.append(LATCHED_QOS)
-    for profile in profiles:
-        node.create_subscription(msg_type, name, callback, profile, raw=raw, event_callbacks=quiet)
+    return [node.create_subscription(msg_type, name, callback, profile, raw=raw, event_callbacks=quiet)
+            for profile in profiles]
 
 
 def bag_qos(profile: QoSProfile):

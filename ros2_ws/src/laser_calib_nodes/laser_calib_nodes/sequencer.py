@@ -231,15 +231,15 @@ class Sequencer(Node):
         msg.seconds_left = progress.seconds_left() if progress else float("nan")
         self.recorder.publish(self.progress_pub, common.PROGRESS, msg)
 
-    def close(self) -> None:
+    def close(self) -> int:
         self.stopping.set()
         worker = getattr(self, "worker", None)
         if worker is not None and worker.is_alive() and worker is not threading.current_thread():
             worker.join(timeout=5.0)
-        if getattr(self, "recorder", None) is not None:
-            self.recorder.close()
+        failed = self.recorder.close() if getattr(self, "recorder", None) is not None else 0
         if getattr(self, "lock", None) is not None:
             self.lock.release()
+        return failed
 
 
 def main(args=None) -> int:

@@ -35,6 +35,11 @@ BACKSTOP = 1.0  # s after GRACE: the native backstops, when the watchdog thread 
 
 
 OWN_PACKAGES = ("laser_calib", "laser_calib_nodes")
+# The writers of what was measured: stopped between two of their steps they lose it. A bag segment
+# interrupted half-rotated kept its name, every later write was refused ("bag_13 exists already")
+# and the messages taken at the stop were lost, with exit 0; a message the executor had taken was
+# lost when the recorder's callback was interrupted before the bag had it.
+WRITERS = ("laser_calib_nodes.recorder", "laser_calib.io.bag_writer", "laser_calib.session.durable")
 
 
 def interruptible(frame) -> bool:
@@ -44,13 +49,15 @@ def interruptible(frame) -> bool:
     Future.__init__ lacks the attributes its __del__ reads ("Exception ignored in: <function
     Future.__del__> ... AttributeError: 'Task' object has no attribute '_exception'", seen in
     camera_sim's log when a launch shut down on two loaded cores). Nor inside any __del__: an
-    exception there is printed and dropped. In both the stop is left to rclpy's signal handler,
-    which has shut the context, and so ends the spin (ExternalShutdownException)."""
+    exception there is printed and dropped. Nor inside the WRITERS. In these the stop is left to
+    rclpy's signal handler, which has shut the context, and so ends the spin
+    (ExternalShutdownException)."""
     while frame is not None:
         if frame.f_code.co_name == "__del__":
             return False
-        package = str(frame.f_globals.get("__name__", "")).partition(".")[0]
-        if package == "rclpy":
+        module = str(frame.f_globals.get("__name__", ""))
+        package = module.partition(".")[0]
+        if package == "rclpy" or module in WRITERS:
             return False
         if package in OWN_PACKAGES:
             return True
