@@ -1,5 +1,5 @@
-"""The parameter files hardware.launch.py starts a real arm and camera with (its defaults:
-params config/session.yaml, arm_params config/dynamixel_arm.yaml) pair every camera frame with a
+"""The parameter files hardware.launch.py starts a real arm and camera with (its default params
+config/session.yaml, and the example arm_params config/dynamixel_arm.yaml) pair every camera frame with a
 joint state, whatever the camera's rate and phase. session.yaml gave the sequencer the simulated
 camera's sync_tolerance, 0.005 s (that camera stamps each frame with a joint state's stamp): a
 camera of its own clock, at 3 Hz beside the Dynamixel arm's 30 Hz joint states, had no frame

@@ -27,6 +27,7 @@ INSTALL = ROOT / "ros2_ws" / "install"
 BIN = INSTALL / "laser_calib_nodes" / "lib" / "laser_calib_nodes"
 ROBOT = ROOT / "config" / "robots" / "humanoid_arm_7dof.yaml"
 PARAMS = ROOT / "config" / "session.yaml"
+EXAMPLE_ARM = ROOT / "config" / "dynamixel_arm.yaml"  # hardware.launch.py's arm_params, required
 CLIENT = Path(__file__).resolve().parent / "ros_client.py"
 NODES = ("arm_driver", "camera_sim", "spot_detector", "sequencer", "estimator", "replay")
 

@@ -120,9 +120,10 @@ def test_sequencer_records_a_best_effort_camera(ros, tmp_path):
 
 
 HARDWARE_REMAPS = """import json, sys
-from laser_calib_nodes.graph import HARDWARE_ARGS, hardware_nodes
+from laser_calib_nodes.graph import HARDWARE_ARGS, hardware_nodes, share
 values = {name: default for name, (default, _) in HARDWARE_ARGS.items()}
-values.update(output_dir=sys.argv[1], robot=sys.argv[2], calibration=sys.argv[3], image="/my_camera/image_raw")
+values.update(output_dir=sys.argv[1], robot=sys.argv[2], calibration=sys.argv[3], image="/my_camera/image_raw",
+              arm_params=share("config", "dynamixel_arm.yaml"))
 print(json.dumps([spec.remaps for spec in hardware_nodes(values) if spec.executable == "spot_detector"][0]))"""
 
 

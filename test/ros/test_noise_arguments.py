@@ -14,7 +14,7 @@ import time
 import pytest
 import yaml
 
-from ros_harness import ROBOT, ROOT, ros2_missing
+from ros_harness import EXAMPLE_ARM, ROBOT, ROOT, ros2_missing
 
 NOISE = ("spot_sigma:=0.0005", "joint_sigma:=0.001")
 SPOT_REFUSED = ("0.5 m is not a plausible spot noise for a camera on a screen (expected 1e-09 .. 0.05 m; lengths "
@@ -46,7 +46,7 @@ def node_params(ros, tmp_path, launch: str, *args: str) -> dict:
     """The parameters each node of the launch file's graph is given with these arguments (no node started)."""
     given = [f"output_dir:={tmp_path / 'out'}", f"robot:={ROBOT}"]
     if launch == "hardware":
-        given.append(f"calibration:={screen_calibration(tmp_path)}")
+        given += [f"calibration:={screen_calibration(tmp_path)}", f"arm_params:={EXAMPLE_ARM}"]
     done = ros.run([sys.executable, "-c", GRAPH, launch, *given, *args])
     assert done.returncode == 0, done
     return json.loads(done.stdout)
@@ -92,12 +92,12 @@ def test_bad_noise_arguments_are_refused_before_any_node_starts(ros, tmp_path):
     if ros2_missing():
         pytest.skip(ros2_missing())
     calibration = screen_calibration(tmp_path)
-    launches = {"session_spot": ("session.launch.py", ("spot_sigma", "0.5")),
-                "hardware_joint": ("hardware.launch.py", ("joint_sigma", "5"))}
-    for name, (launch, (arg, value)) in launches.items():
+    launches = {"session_spot": ("session.launch.py", ("spot_sigma", "0.5"), []),
+                "hardware_joint": ("hardware.launch.py", ("joint_sigma", "5"), [f"arm_params:={EXAMPLE_ARM}"])}
+    for name, (launch, (arg, value), more) in launches.items():
         ros.start_command(name, ["ros2", "launch", "laser_calib_nodes", launch, f"output_dir:={tmp_path / name}",
-                                 f"robot:={ROBOT}", f"calibration:={calibration}", f"{arg}:={value}"])
-    for name, (_, given) in launches.items():
+                                 f"robot:={ROBOT}", f"calibration:={calibration}", f"{arg}:={value}", *more])
+    for name, (_, given, _) in launches.items():
         assert ros.wait_exit(name, 60) != 0, ros.log(name)
         log = ros.log(name)
         errors = [line for line in log.splitlines() if "ERROR" in line]

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from ros_harness import ROBOT, ros2_missing
+from ros_harness import EXAMPLE_ARM, ROBOT, ros2_missing
 
 FIRST = ("poses:=15", "test_poses:=5", "span:=small")
 CHANGED = ("poses:=25", "test_poses:=3", "seed:=5", "span:=small")
@@ -128,7 +128,7 @@ def test_launch_refuses_a_plan_argument_it_does_not_take(ros, tmp_path):
         pytest.skip(ros2_missing())
     ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py",
                                  f"output_dir:={tmp_path / 'out'}", f"robot:={ROBOT}", f"calibration:={ROBOT}",
-                                 "repeats:=2"])  # refused before the files are read
+                                 f"arm_params:={EXAMPLE_ARM}", "repeats:=2"])  # refused before the files are read
     assert ros.wait_exit("launch", 60) != 0
     log = ros.log("launch")
     assert "process started" not in log and "Traceback" not in log, log
@@ -189,8 +189,9 @@ def test_a_misspelt_launch_argument_is_refused_an_including_files_own_is_not():
 
 HARDWARE_GRAPH = """import json, sys
 from laser_calib.io.errors import InputError
-from laser_calib_nodes.graph import HARDWARE_ARGS, hardware_nodes
+from laser_calib_nodes.graph import HARDWARE_ARGS, hardware_nodes, share
 values = {name: default for name, (default, _) in HARDWARE_ARGS.items()}
+values.update(arm_params=share("config", "dynamixel_arm.yaml"))
 values.update(dict(item.split("=", 1) for item in sys.argv[1:]), test_poses="5", seed="3")
 try:
     print(json.dumps({spec.executable: spec.params for spec in hardware_nodes(values)}))

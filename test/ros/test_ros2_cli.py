@@ -19,7 +19,7 @@ import time
 
 import pytest
 
-from ros_harness import PARAMS, ROBOT, Ros, ros2_missing
+from ros_harness import EXAMPLE_ARM, PARAMS, ROBOT, Ros, ros2_missing
 
 POSES = 10
 LAUNCH = ["ros2", "launch", "laser_calib_nodes", "session.launch.py"]
@@ -288,17 +288,25 @@ def test_calibrate_action_feedback_and_cancel(finished, tmp_path):
     assert codes["estimator"] == 0, ros.log("estimator")
 
 
-def test_hardware_launch_with_a_mismatched_arm_file_ends_with_its_reason(tmp_path):
-    """The shipped dynamixel_arm.yaml (4 servos) with the 7-DOF robot: one line, the launch ends.
-    The spot detector gets a valid screen calibration, so that no other node's refusal can end
-    the launch first (a missing one did, in one run: the two nodes start together)."""
+def test_hardware_launch_without_an_arm_file_or_with_a_mismatched_one_ends_with_its_reason(tmp_path):
+    """Without arm_params the launch is refused before any node starts: its default was the
+    shipped example, whose port, servo ids and zero ticks then drove whatever adapter was there.
+    The shipped example (4 servos) with the 7-DOF robot: one line, the launch ends. The spot
+    detector gets a valid screen calibration, so that no other node's refusal can end the launch
+    first (a missing one did, in one run: the two nodes start together)."""
     from laser_calib.vision.camera import default_camera, save_calibration
     save_calibration(default_camera().ideal_calibration(), tmp_path / "screen.yaml")
     ros = Ros(tmp_path)
     shown = ros.run(["ros2", "launch", "laser_calib_nodes", "hardware.launch.py", "--show-args"], timeout=60)
     assert shown.returncode == 0 and "'arm_params'" in shown.stdout, shown
-    ros.start_command("launch", ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py", f"robot:={ROBOT}",
-                                 f"calibration:={tmp_path / 'screen.yaml'}", f"output_dir:={tmp_path / 'session'}"])
+    given = ["ros2", "launch", "laser_calib_nodes", "hardware.launch.py", f"robot:={ROBOT}",
+             f"calibration:={tmp_path / 'screen.yaml'}", f"output_dir:={tmp_path / 'session'}"]
+    refused = ros.run(given, timeout=60)
+    errors = [line for line in (refused.stdout + refused.stderr).splitlines() if "ERROR" in line]
+    assert refused.returncode != 0 and "process started" not in refused.stdout + refused.stderr, refused
+    assert len(errors) == 1 and "missing required argument 'arm_params'" in errors[0], refused
+    assert not (tmp_path / "session").exists()
+    ros.start_command("launch", given + [f"arm_params:={EXAMPLE_ARM}"])
     try:
         code = ros.wait_exit("launch", 120)
     finally:

@@ -86,7 +86,10 @@ HARDWARE_ARGS = {
     "output_dir": (None, "Session directory (created; a partial session is resumed)."),
     "robot": (None, "Nominal robot model file (YAML)."),
     "robot_description_topic": ("", DESCRIPTION_TOPIC_HELP),
-    "arm_params": (share("config", "dynamixel_arm.yaml"), "arm_driver parameters (Dynamixel port, ids, ticks)."),
+    # Required: a default drove the example file's port, servo ids and zero ticks on whatever adapter
+    # was there when the argument was left out (or misspelt, before arguments.refuse_ignored_arguments).
+    "arm_params": (None, "arm_driver parameters of your arm (Dynamixel port, ids, ticks); the package's "
+                         "config/dynamixel_arm.yaml is an example to copy and edit."),
     "calibration": (None, "Screen calibration file of the camera."),
     "image": ("/camera/image_raw", "Camera image topic (its CameraInfo: camera_info beside it, as image_transport "
                                    "has it)."),
