@@ -2,7 +2,8 @@
 emulator on a pseudo-terminal (test/dynamixel_emulator.py): joint states,
 a goal reached, and a servo fault giving one log line, torque off, exit 1;
 a servo that never confirms torque off on shutdown: one ERROR line, exit 5; a Ctrl-C
-while the driver starts, after the servos' torque is on: torque off."""
+while the driver starts, after the servos' torque is on: torque off; a port or baud rate that
+cannot be used: one line, exit 2."""
 
 from __future__ import annotations
 
@@ -89,3 +90,19 @@ def test_a_ctrl_c_while_the_driver_starts_leaves_no_servo_on(ros):
                        "-p", "dynamixel.ids:=[1, 2, 3, 4]"], timeout=60)
         assert out.stdout.strip() == "interrupted", out
         assert [emulator.torque_enabled(i) for i in (1, 2, 3, 4)] == [False] * 4
+
+
+def test_a_port_or_baud_rate_that_cannot_be_used_is_a_setting_exit_2(ros, tmp_path):
+    """A port that names no device, or a baud rate the adapter cannot take, is a setting to
+    correct: one line and exit 2, as the other bad parameters (it was exit 1, a bus fault's)."""
+    from dynamixel_emulator import DynamixelEmulator
+    with DynamixelEmulator(ids=(1, 2, 3, 4)) as emulator:
+        for name, port, baud, said in (("no_port", tmp_path / "ttyUSB9", 57600, "cannot open"),
+                                       ("bad_baud", emulator.port, 12345, "unsupported baud rate 12345")):
+            ros.start(name, "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel", "-p", f"dynamixel.port:={port}",
+                      "-p", f"dynamixel.baudrate:={baud}", "-p", "dynamixel.ids:=[1, 2, 3, 4]", node="arm_driver",
+                      params=False)
+            assert ros.wait_exit(name, 60) == 2, ros.log(name)
+            lines = ros.log(name).strip().splitlines()
+            assert len(lines) == 1 and said in lines[0] and str(port) in lines[0], lines
+        assert not any(emulator.torque_enabled(i) for i in (1, 2, 3, 4))

@@ -85,6 +85,11 @@ class DynamixelError(RuntimeError):
         self.servo_id = servo_id
 
 
+class DynamixelPortError(DynamixelError, ValueError):
+    """The configured port cannot be opened at the configured baud rate: a setting to correct (a
+    ValueError, as the other bad settings), not a fault of the bus."""
+
+
 @dataclass(frozen=True)
 class DynamixelJointConfig:
     """One joint: servo ``id``, q = (ticks - zero_ticks) / ticks_per_rad, limits min <= q <= max [rad]."""
@@ -167,11 +172,11 @@ class DynamixelArm:
             try:
                 # setBaudRate opens (or reopens) the port at that rate; False means an unsupported rate.
                 if not self._port.setBaudRate(self.config.baudrate):
-                    raise DynamixelError(
+                    raise DynamixelPortError(
                         f"Dynamixel port {self.config.port}: unsupported baud rate {self.config.baudrate}"
                     )
             except OSError as exc:
-                raise DynamixelError(f"Dynamixel port {self.config.port}: cannot open ({exc})") from exc
+                raise DynamixelPortError(f"Dynamixel port {self.config.port}: cannot open ({exc})") from exc
             self._claim_port()
         try:
             self._enable()
