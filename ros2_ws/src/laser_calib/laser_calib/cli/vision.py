@@ -13,6 +13,7 @@ camera, to try the step or test it. cli.py calls register().
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
@@ -25,6 +26,10 @@ from laser_calib.vision import (RenderOptions, board_poses, calibrate_screen, de
                      render_board_frame, render_fiducial_frame, save_calibration)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+# cv2.calibrateCamera's RMS above which the intrinsics are suspect (OpenCV's rule of thumb): sharp, still
+# views of a flat board give 0.12 px here; a third of the views sheared by 8 % (a board bent, or moved
+# during a rolling-shutter exposure) gave 1.6 px, and the fiducials through the map 6 mm RMS (0.3 honest).
+SUSPECT_RMS_PX = 1.0
 # Calibration images are taken in good light (vision.screen_calibration).
 CALIBRATION_LIGHT = RenderOptions(ambient_dn=150.0)
 
@@ -80,9 +85,14 @@ def cmd_screen_calibrate(args: argparse.Namespace) -> int:
         raise InputError(args.out, f"cannot write ({exc.strerror or exc})") from None
     print(f"camera {calibration.width}x{calibration.height}: fx {calibration.K[0, 0]:.1f} px, "
           f"fy {calibration.K[1, 1]:.1f} px, k1 {calibration.dist[0]:+.4f}; {len(boards)} board views, "
-          f"{len(screens)} screen views")
+          f"{len(screens)} screen views; reprojection RMS {calibration.reprojection_rms_px:.3f} px")
     print(f"fiducial corners through the map: RMS {np.sqrt(np.mean(error_mm ** 2)):.3f} mm, "
           f"max {error_mm.max():.3f} mm ({len(known)} corners)")
+    if calibration.reprojection_rms_px > SUSPECT_RMS_PX:
+        print(f"warning: the intrinsics fit their views with a reprojection RMS of "
+              f"{calibration.reprojection_rms_px:.2f} px (sharp, still views of a flat board give well under "
+              f"{SUSPECT_RMS_PX:g} px): look for blurred or bent board views in {args.board_images}",
+              file=sys.stderr)
     centre = ", ".join(f"{v:.3f}" for v in calibration.centre)
     print(f"camera centre in frame {{0}}: [{centre}] m (the robot file's screen: camera:, which a screen that is "
           "not flat needs)")

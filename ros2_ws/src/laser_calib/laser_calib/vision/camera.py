@@ -133,6 +133,8 @@ class ScreenCalibration:
     K (3,3), dist (5,): intrinsics and distortion (k1, k2, p1, p2, k3).
     homography (3,3): undistorted pixel (u, v, 1) to screen (y, z, 1) in metres,
     normalised so that homography[2,2] = 1.
+    reprojection_rms_px: how well K and dist fit the views they were fitted to (cv2.calibrateCamera's
+    RMS), px; nan when not known (not kept in the file).
     """
 
     width: int
@@ -140,6 +142,7 @@ class ScreenCalibration:
     K: np.ndarray
     dist: np.ndarray
     homography: np.ndarray
+    reprojection_rms_px: float = float("nan")
 
     def __post_init__(self) -> None:
         for name, shape in (("K", (3, 3)), ("dist", (5,)), ("homography", (3, 3))):

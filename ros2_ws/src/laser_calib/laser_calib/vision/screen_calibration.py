@@ -263,8 +263,8 @@ def calibrate_screen(board_images: Sequence[np.ndarray], screen_images: Sequence
     undistorted, known = _mean_fiducials(screen_images, K, dist.ravel()[:5], layout)
     object_points.append(np.column_stack([known, np.zeros(len(known))]).astype(np.float32))
     image_points.append(_distort(undistorted, K, dist).astype(np.float32))
-    _, K, dist, _, _ = cv2.calibrateCamera(object_points, image_points, (width, height), None, None)
+    rms_px, K, dist, _, _ = cv2.calibrateCamera(object_points, image_points, (width, height), None, None)
     dist = dist.ravel()[:5]
     undistorted, known = _mean_fiducials(screen_images, K, dist, layout)
     homography, _ = cv2.findHomography(undistorted, known, 0)
-    return ScreenCalibration(width, height, K, dist, homography / homography[2, 2])
+    return ScreenCalibration(width, height, K, dist, homography / homography[2, 2], rms_px)
