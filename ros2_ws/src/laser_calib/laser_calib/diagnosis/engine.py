@@ -87,8 +87,8 @@ from laser_calib.diagnosis.result import Diagnosis, Stage
 from laser_calib.diagnosis.screening import Refused, misfits, screened, screened_again, taken_back_by_either
 from laser_calib.diagnosis.selection import ambiguous_verdict, parameter_report, select
 from laser_calib.diagnosis.specification import covariate_table, drift_covariates, load_table, specification_tests
-from laser_calib.diagnosis.verdict import (analysis, evidence, predicted, prediction_warning, rated_noise,
-                                           verdict_noise, with_left_out, worse_on_test)
+from laser_calib.diagnosis.verdict import (analysis, evidence, predicted, prediction_warning, verdict_noise,
+                                           with_left_out, worse_on_test)
 from laser_calib.diagnosis.writer import write_outputs
 from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
@@ -101,7 +101,7 @@ from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples, reading_warnings
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.model.robot import Robot
-from laser_calib.model.robot_file import held
+from laser_calib.model.robot_file import held, rated_noise
 
 __all__ = ["DiagnoseOptions", "Diagnosis", "diagnose", "run", "supports", "write_outputs"]
 

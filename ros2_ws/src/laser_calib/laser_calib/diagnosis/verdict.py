@@ -16,12 +16,10 @@ from laser_calib.diagnosis.options import (EXPLAINED, MIN_DETECTOR_POSES, MIN_RE
 from laser_calib.diagnosis.result import Analysis, Fitted, NoiseInfo, Prediction, Stage
 from laser_calib.diagnosis.specification import Varying
 from laser_calib.diagnosis.structure import Readings, joined, pose_covariates, pose_responses, structure_tests
-from laser_calib.effects.base import positive_number
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.estimation.redundancy import NOISE_RATIO
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 from laser_calib.measurement.noise_components import boundary_p, deviance, noise_components
-from laser_calib.model.robot import Robot
 from laser_calib.report.statistics import worse_on_test_warning
 
 # The start of the warning worse_on_test gives (the benches count the diagnoses that gave it).
@@ -124,13 +122,6 @@ def analysis(data: Data, fitted: Fitted, noise: NoiseModel) -> Analysis:
     cov = pose_covariates(model.robot, data.samples) + joined(level_cov)
     resp = joined(resp)
     return Analysis(structure_tests(resp, cov), resp, cov)
-
-
-def rated_noise(robot: Robot) -> tuple[float | None, float | None]:
-    """What the robot file says its camera and encoders can do: the optional
-    keys spot_sigma (m) and joint_reading_sigma (rad), None where absent."""
-    return tuple(positive_number("robot", robot.extra, key) if key in robot.extra else None
-                 for key in ("spot_sigma", "joint_reading_sigma"))
 
 
 def excess_noise(noise: NoiseInfo, alpha: float) -> str | None:

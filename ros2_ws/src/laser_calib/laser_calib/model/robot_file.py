@@ -95,8 +95,17 @@ def with_held(robot: Robot, names) -> Robot:
     return replace(robot, extra={**extra, "held": list(names)} if names else extra)
 
 
-# What the robot file says its camera and encoders can do (diagnosis/verdict.py rated_noise), m and rad.
+# What the robot file says its camera and encoders can do (rated_noise), m and rad.
 RATED_NOISE_KEYS = ("spot_sigma", "joint_reading_sigma")
+
+
+def rated_noise(robot: Robot) -> tuple[float | None, float | None]:
+    """What the robot file says its camera and encoders can do: the optional keys spot_sigma (m)
+    and joint_reading_sigma (rad), None where absent (the diagnosis's verdict, estimate's warnings)."""
+    from laser_calib.effects.base import positive_number  # effects/ reads robots: imported when used
+
+    return tuple(positive_number("robot", robot.extra, key) if key in robot.extra else None
+                 for key in RATED_NOISE_KEYS)
 
 
 def _check_sensor(robot: Robot, source: str) -> None:

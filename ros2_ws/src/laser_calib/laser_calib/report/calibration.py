@@ -39,6 +39,7 @@ from laser_calib.measurement.base import RobotModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import held, held_warnings, with_held
+from laser_calib.report.noise import noise_warnings
 from laser_calib.report.plots import display_units
 from laser_calib.report.pose_table import NOT_FITTED, fit_status
 from laser_calib.report.statistics import iso9283, laser_stats, worse_on_test_warning
@@ -289,7 +290,7 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
         said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)
         beyond = extrapolation_note([e.label for e in effects if isinstance(e, Surface)], samples.spots, test.spots)
         said += [f"test: {beyond}"] if beyond else []
-    said += held_warnings(robot, sources.get("robot", "the robot file"))
+    said += held_warnings(robot, sources.get("robot", "the robot file")) + noise_warnings(robot, est)
     sets = evaluate(robot, samples, est, test, effects, compensator, start)
     said += worse_on_test(sets)
     est = replace(est, warnings=est.warnings + tuple(said))
