@@ -147,9 +147,9 @@ def _ur10e(folder: Path, rows: int, *extra: str, unseen: bool = False) -> list[s
 
 BOMB = "a: &a [x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b, *b]\n"
 
-def _joint_columns_swapped() -> str:
+def _joint_columns_swapped(first: str = "q1", second: str = "q2") -> str:
     lines = SAMPLES.splitlines()
-    lines[0] = lines[0].replace("q1,q2", "q2,q1", 1)
+    lines[0] = lines[0].replace(f"{first},{second}", f"{second},{first}", 1)
     return "\n".join(lines) + "\n"
 
 
@@ -159,6 +159,10 @@ CASES = {
     "joint columns out of order": (lambda d: _estimate(d, samples=_joint_columns_swapped()),
                                    "missing joint columns q1..qN in order after 'stamp' (found q2, q1, q3, q4 in that "
                                    "order)"),
+    # the last two: it said "expected l1_y,l1_z,l2_y,l2_z after q2" (a new user's probe)
+    "last joint columns out of order": (lambda d: _estimate(d, samples=_joint_columns_swapped("q3", "q4")),
+                                        "missing joint columns q1..qN in order after 'stamp' (found q1, q2, q4, q3 "
+                                        "in that order)"),
     "pose id 10^30": (lambda d: _estimate(d, samples=_cell(1, "pose", "1" + "0" * 30)), "field pose"),
     "field over 131072 characters": (lambda d: _estimate(d, samples=_cell(1, "q1", "1" * 140000)), "samples.csv"),
     "0_1 with Python underscores": (lambda d: _estimate(d, samples=_cell(1, "q1", "0_1")), "field q1"),

@@ -173,8 +173,8 @@ def read_table(text: str, source: str, expected_header: str) -> tuple[list[str],
     n_q = 0
     while 2 + n_q < len(header) and header[2 + n_q] == f"q{n_q + 1}":
         n_q += 1
-    if n_q == 0:
-        joints = [name for name in header[2:] if re.fullmatch(r"q\d+", name)]
+    joints = [name for name in header[2:] if re.fullmatch(r"q\d+", name)]
+    if n_q == 0 or len(joints) > n_q:  # q6, q7 swapped was "expected l1_y,... after q5"
         found = f" (found {', '.join(joints)} in that order)" if joints else ""
         raise _header_error(source, f"missing joint columns q1..qN in order after 'stamp'{found}")
     if len(set(header)) != len(header):
