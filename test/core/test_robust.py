@@ -308,3 +308,27 @@ def test_the_final_fit_starts_from_the_newton_rounds_own_sums():
     assert start.cost == pytest.approx(fresh.cost, rel=1e-12)
     assert start.n_values == fresh.n_values
     assert np.array_equal(start.whitener, fresh.whitener)
+
+
+def test_wrong_test_spots_are_listed_and_not_counted_in_the_test_figures():
+    """One test spot 300 mm off and one test pose with its lasers swapped: exit 0 and a test figure
+    18 times the honest one, unsaid (a new user's probe). They are named, their figures apart, and
+    the test figures are the honest ones over the other spots; a clean test set has none."""
+    from laser_calib.report.calibration import calibrate as calibrate_spots
+    session = paper_session("paper-7dof", 2)
+    cal, test = (session.samples.subset(index) for index in session.cases["case2"])
+    options = EstimateOptions(spot_sigma=None, joint_sigma=None)
+    clean = calibrate_spots(session.nominal, cal, options, test)
+    assert not (clean.sets["test"].status == "outlier").any() and clean.spot_error_test_outliers is None
+    spots = test.spots.copy()
+    spots[5, 0, 0] += 0.3
+    spots[9] = spots[9, ::-1]
+    wrong = calibrate_spots(session.nominal, cal, options, replace(test, spots=spots))
+    status = wrong.sets["test"].status
+    assert {(int(p), int(c)) for p, c in zip(*np.nonzero(status == "outlier"))} == {(5, 0), (9, 0), (9, 1)}
+    said = [w for w in wrong.estimate.warnings if w.startswith("test: 3 of")]
+    assert len(said) == 1 and f"pose {test.pose[5]} laser 1, pose {test.pose[9]} laser 1" in said[0], said
+    kept = status == "tested"
+    assert np.array_equal(wrong.sets["test"].distances("calibrated", "tested")[kept],
+                          clean.sets["test"].distances("calibrated")[kept])
+    assert wrong.spot_error_test_outliers["after"]["all"]["n"] == 3

@@ -142,6 +142,8 @@ def _summary(calibration) -> int:
     lines += [("calibration", f" {status}, not fitted:", by_model)
               for status, by_model in calibration.spot_error_not_fitted.items()]
     lines += [(name, "", by_model) for name, by_model in errors.items() if name != "calibration"]
+    if calibration.spot_error_test_outliers:
+        lines.append(("test", " outliers, not counted:", calibration.spot_error_test_outliers))
     for set_name, what, by_model in lines:
         b, a = by_model["before"]["all"], by_model["after"]["all"]
         counted = " fitted" if set_name == "calibration" and not what else ""

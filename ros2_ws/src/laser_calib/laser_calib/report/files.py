@@ -153,6 +153,11 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
         lines += ["", f"The calibration set's figures are over the spots fitted; those not fitted "
                   f"({calibration.not_fitted_count().removeprefix(', ')}; residuals.csv l1_fit, l2_fit):", ""]
         lines += stats_table({f"calibration, {status}": by_model for status, by_model in not_fitted.items()})
+    outliers = calibration.spot_error_test_outliers
+    if outliers:  # measured, so reported; apart, as one wrong test spot outweighs every other
+        lines += ["", "The test set's figures are over its spots within the outlier limit of the calibrated model; "
+                  "those beyond it (residuals.csv l1_fit, l2_fit: outlier):", ""]
+        lines += stats_table({"test, outlier": outliers})
     repeated = calibration.repeatability
     if repeated:
         lines += ["", "ISO 9283 on the spots of poses visited more than once (mm; AP: barycentre to the calibrated "
