@@ -174,7 +174,7 @@ def read_table(text: str, source: str, expected_header: str) -> tuple[list[str],
     while 2 + n_q < len(header) and header[2 + n_q] == f"q{n_q + 1}":
         n_q += 1
     joints = [name for name in header[2:] if re.fullmatch(r"q\d+", name)]
-    if n_q == 0 or len(joints) > n_q:  # q6, q7 swapped was "expected l1_y,... after q5"
+    if n_q == 0 or joints != [f"q{i + 1}" for i in range(len(joints))]:  # q7,q6 said "expected l1_y,... after q5"
         found = f" (found {', '.join(joints)} in that order)" if joints else ""
         raise _header_error(source, f"missing joint columns q1..qN in order after 'stamp'{found}")
     if len(set(header)) != len(header):
