@@ -6,7 +6,7 @@ from __future__ import annotations
 import signal
 import time
 
-from ros_harness import ROBOT, start_sim
+from ros_harness import ROBOT, ROOT, start_sim
 from test_crash_resume import csv_rows as rows
 
 
@@ -63,3 +63,21 @@ def test_a_second_session_on_the_domain_is_refused_before_it_moves_the_arm(ros, 
     assert "Traceback" not in ros.log("second") and not rows(second / "samples.csv")
     assert ros.wait_exit("sequencer", 120) == 0, ros.log("sequencer")[-2000:]
     assert rows(first / "samples.csv") == 25
+
+
+def test_a_second_estimator_on_the_domain_is_refused_before_the_arm_moves(ros, tmp_path):
+    """Another session's estimator on the domain (a 4-DOF robot): it answered this session's
+    Estimate request and the session ended with its refusal (exit 4), while the session's own
+    estimator wrote a report into the folder; with other sigmas, exit 0 and the console and the
+    files disagreed (a new user's probe). Now one line naming the service, exit 3, nothing moved."""
+    out = tmp_path / "out"
+    out.mkdir()
+    start_sim(ros, out)
+    ros.start("stray", "-p", f"robot:={ROOT / 'config' / 'robots' / 'manipulator_4dof.yaml'}", node="estimator")
+    ros.wait_log("stray", "parameters), input", 60)
+    ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=15",
+              "-p", "span:=small")
+    assert ros.wait_exit("sequencer", 90) == 3, ros.log("sequencer")[-2000:]
+    lines = [line for line in ros.log("sequencer").splitlines() if line.strip()]
+    assert "[sequencer]: 2 nodes offer the Estimate service on /estimator/estimate: either could answer" in lines[-1]
+    assert "Traceback" not in ros.log("sequencer") and not rows(out / "samples.csv")

@@ -170,7 +170,7 @@ class Sequencer(Node):
                   f"{self.wait_timeout:g} s (are the camera and spot_detector running?)")
         self.wait(lambda: self.traj_pub.get_subscription_count() > 0, self.wait_timeout,
                   f"nobody subscribes to {self.resolve_topic_name(common.JOINT_TRAJECTORY)}")
-        sequencer_parts.sole_commander(self)
+        sequencer_parts.sole_commander(self), sequencer_parts.sole_estimator(self)
         found = self.resumed
         for r in range(len(found.to_bag)):   # restored from the CSV: back into the bag (the journal)
             test = bool(self.poses.test[self.poses.pose == found.to_bag.pose[r]][0])

@@ -217,6 +217,23 @@ def sole_commander(node) -> None:
                                    "give each session its own domain or namespace", 3)
 
 
+def sole_estimator(node) -> None:
+    """NodeError (exit 3) when more than one node offers the Estimate service the sequencer calls:
+    another session's estimator on this ROS domain answered a session's request (the fastest
+    server wins) with its own robot and sigmas, while the session's own wrote its report into the
+    folder: the console and the files disagreed, without a word. Checked at the start (before the
+    arm moves) and before the call."""
+    if node.end.mode != "service":
+        return
+    name = node.resolve_service_name(common.ESTIMATE_SERVICE)
+    servers = node.count_services(name)
+    if servers > 1:
+        raise parameters.NodeError(f"{servers} nodes offer the Estimate service on {name}: either could answer this "
+                                   f"session (another session's estimator on ROS_DOMAIN_ID "
+                                   f"{os.environ.get('ROS_DOMAIN_ID', '0')}?); give each session its own domain or "
+                                   "namespace", 3)
+
+
 def client(node):
     from laser_calib_interfaces.srv import Estimate
     return node.create_client(Estimate, common.ESTIMATE_SERVICE)
@@ -308,6 +325,10 @@ def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, boo
             raise Stop()
         if time.monotonic() > deadline:
             raise parameters.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; {offline}", 3)
+    try:
+        sole_estimator(node)
+    except parameters.NodeError as exc:
+        raise parameters.NodeError(f"{exc}; {offline}", 3) from None
     request = node.estimate_client.srv_type.Request(
         samples=[sample_msg(node, samples, r) for r in range(len(samples))],
         test_samples=[sample_msg(node, test, r) for r in range(len(test))] if test is not None else [],
