@@ -54,6 +54,7 @@ def test_ros_arguments_rcl_cannot_read_give_one_line(ros, tmp_path):
     ros.start("missing", "--params-file", str(tmp_path / "none.yaml"), node="arm_driver", params=False)
     ros.start("not_yaml", "--params-file", str(tmp_path / "bad.yaml"), node="camera_sim", params=False)
     ros.start("no_value", "-p", "robot", node="estimator", params=False)
+    ros.start("help", "--help", node="sequencer", params=False)   # after --ros-args: rcl knows no --help
     for name in ros.procs:
         assert ros.wait_exit(name, 60) == 2, (name, ros.log(name))
     assert last_line(ros, "missing") == (f"error: failed to initialize rcl: Couldn't parse params file: '--params-file "
@@ -62,6 +63,8 @@ def test_ros_arguments_rcl_cannot_read_give_one_line(ros, tmp_path):
                                                  f"'--params-file {tmp_path / 'bad.yaml'}'. Error: ")
     assert last_line(ros, "no_value").startswith("error: failed to initialize rcl: Couldn't parse parameter override "
                                                  "rule: '-p robot'")
+    assert last_line(ros, "help") == ("error: --ros-args: not ROS arguments: ['--help'] (a node's parameters: -p "
+                                       "NAME:=VALUE or --params-file FILE; ros2 param describe lists them)")
     assert all(", at /" not in last_line(ros, name) for name in ros.procs)
 
 

@@ -261,7 +261,15 @@ def spots_from_msg(spots) -> np.ndarray:
 def rcl_error_line(exc: Exception) -> str:
     """rcl's message of an RCLError in one line, without its C source locations (', at /project/src/...:N'):
     --ros-args it cannot parse (a params file missing or not YAML, '-p name' without ':=')."""
+    if isinstance(exc, rclpy_implementation.UnknownROSArgsError):  # its message is the list alone
+        return (f"--ros-args: not ROS arguments: {exc} (a node's parameters: -p NAME:=VALUE or --params-file FILE; "
+                "ros2 param describe lists them)")
     return re.sub(r"\s*(, at /\S+:\d+)+", "", " ".join(str(exc).split())).strip()
+
+
+# What rclpy.init raises for --ros-args it cannot take: rcl's parse errors, and an argument rcl does not
+# know ('--ros-args --help' was a traceback, exit 1).
+ROS_ARGUMENT_ERRORS = (rclpy_implementation.RCLError, rclpy_implementation.UnknownROSArgsError)
 
 
 _executor: Executor | None = None  # run()'s
@@ -304,7 +312,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     # stopped right after its start).
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except rclpy_implementation.RCLError as exc:  # --ros-args rcl cannot read: one line, as every bad input
+    except ROS_ARGUMENT_ERRORS as exc:  # --ros-args rcl cannot read: one line, as every bad input
         print(f"error: {rcl_error_line(exc)}", file=sys.stderr, flush=True)
         return 2
     executor = _executor = make_executor() if make_executor else SingleThreadedExecutor()

@@ -32,7 +32,7 @@ from laser_calib.cli.arguments import add_replay_arguments
 from laser_calib.io.errors import InputError
 
 from laser_calib.io import bag
-from laser_calib_nodes.common import rcl_error_line
+from laser_calib_nodes.common import ROS_ARGUMENT_ERRORS, rcl_error_line
 from laser_calib_nodes.graph import die_with_parent
 
 
@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             try:
                 rclpy.init(args=["replay"] + ros_args)
-            except rclpy_implementation.RCLError as exc:
+            except ROS_ARGUMENT_ERRORS as exc:
                 raise InputError("--ros-args", rcl_error_line(exc)) from None
             initialised = True
             node = rclpy.create_node("replay")
