@@ -119,6 +119,30 @@ def test_csv_ahead_of_the_bag_gives_the_sample_back_to_the_bag(tmp_path):
     assert list(again.done) == list(found.done) and again.repairs == [] and len(again.to_bag) == 0
 
 
+def test_a_listed_segment_deleted_is_struck_from_the_bags_list_on_resume(tmp_path):
+    """bag_2.mcap deleted after a stop: the resume restored its pose from samples.csv, but
+    metadata.yaml still listed the file, and the finished bag could not be replayed ('Some database
+    files are missing', a new user's probe). The resumed writer strikes it from the list and counts
+    what is there: rosbags reads the bag, every sample once."""
+    from rosbags.rosbag2 import Reader
+    robot, poses, session = started(tmp_path)
+    journal = Journal(session)
+    measured(session, poses, journal, range(4))
+    journal.writer.close()
+    (session.bag_dir / "bag_2.mcap").unlink()
+    resumed = Journal(session)
+    assert resumed.writer.missing == ["bag_2.mcap"]
+    found = session.reconcile(robot, poses)
+    assert list(found.to_bag.pose) == [poses.pose[2]]
+    resumed.write(found.to_bag.subset([0]))
+    resumed.writer.close()
+    with Reader(session.bag_dir) as reader:   # it refused the bag with a listed file missing
+        assert reader.message_count == 4
+    assert sorted(p.name for p in session.bag_dir.glob("*.mcap")) == ["bag_0.mcap", "bag_1.mcap", "bag_3.mcap",
+                                                                      "bag_4.mcap"]
+    assert sorted(bag.read_samples(session.bag_dir).pose) == sorted(poses.pose[:4])
+
+
 def test_torn_row_and_unfinished_segment(tmp_path):
     robot, poses, session = started(tmp_path, test=2)
     journal = Journal(session)

@@ -51,6 +51,9 @@ class Recorder:
             bag_dir, work_dir, topics, custom_data={"robot": robot_name}, max_segment_seconds=segment_seconds)
         for name in self.bag.recovered:
             node.get_logger().warning(f"bag: adopted segment {name} closed just before a crash")
+        for name in self.bag.missing:
+            node.get_logger().warning(f"bag: segment {name} is listed in metadata.yaml but gone: struck from the list "
+                                      "(rosbag2 refuses a bag with a listed file missing)")
         for name in self.bag.discarded:
             node.get_logger().warning(f"bag: discarded unfinished segment {name} (the pose in progress at the crash)")
         self.recent_frames: deque = deque(maxlen=40)

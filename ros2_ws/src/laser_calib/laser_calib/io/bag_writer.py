@@ -79,6 +79,7 @@ class SegmentedBagWriter:
         self.topic_entries: dict[str, dict] = {}
         self.recovered: list[str] = []
         self.discarded: list[str] = []
+        self.missing: list[str] = []  # listed in metadata.yaml, gone from the folder: struck from the list
         self._writer: Writer | None = None
         self._connections: dict[str, object] = {}
         self._segment = 0
@@ -102,6 +103,20 @@ class SegmentedBagWriter:
                 name = entry["topic_metadata"]["name"]
                 self.topic_entries[name] = entry["topic_metadata"]
                 self.topic_counts[name] = int(entry["message_count"])
+        # A listed segment gone from the folder (deleted by hand, lost with a disk): rosbag2 and rosbags
+        # refuse the whole bag for it ("Some database files are missing"), so the list and the counts
+        # are made those of the segments there; the poses it held come back from samples.csv on resume.
+        self.missing = [f["path"] for f in self.files if not (self.bag_dir / f["path"]).exists()]
+        if self.missing:
+            self.files = [f for f in self.files if f["path"] not in self.missing]
+            self.topic_counts = dict.fromkeys(self.topic_counts, 0)
+            for entry in self.files:
+                try:
+                    counts = self._counts(self.bag_dir / entry["path"])[0]
+                except Exception:  # damaged as well: its messages are not counted (readers skip or refuse it)
+                    counts = {}
+                for topic, count in counts.items():
+                    self.topic_counts[topic] = self.topic_counts.get(topic, 0) + count
         listed = {f["path"] for f in self.files}
         # A segment moved into the bag just before a crash, not yet listed: adopt it.
         for path in sorted(self.bag_dir.glob("*.mcap"), key=segment_index):
@@ -116,18 +131,16 @@ class SegmentedBagWriter:
             shutil.rmtree(stale, ignore_errors=True)
         indices = [segment_index(Path(f["path"])) for f in self.files] + [-1]
         self._segment = max(indices) + 1
-        if self.recovered:
+        if self.recovered or self.missing:
             self._write_metadata()
 
-    def _adopt(self, path: Path) -> bool:
+    @staticmethod
+    def _counts(path: Path) -> tuple[dict[str, int], int, int]:
+        """Messages per topic of one segment file, its first and last stamp (ns); what McapReader
+        raises for a file it cannot read."""
         from rosbags.rosbag2.storage_mcap import McapReader
-        try:
-            reader = McapReader(path)
-            reader.open()
-        except Exception:  # unreadable remains of a crash: keep aside, never delete data
-            aside = self.bag_dir.parent / (".unreadable-" + path.name)
-            os.replace(path, aside)
-            return False
+        reader = McapReader(path)
+        reader.open()
         try:
             counts: dict[str, int] = {}
             start, end = 2**63 - 1, 0
@@ -136,6 +149,15 @@ class SegmentedBagWriter:
                 start, end = min(start, stamp), max(end, stamp)
         finally:
             reader.close()
+        return counts, start, end
+
+    def _adopt(self, path: Path) -> bool:
+        try:
+            counts, start, end = self._counts(path)
+        except Exception:  # unreadable remains of a crash: keep aside, never delete data
+            aside = self.bag_dir.parent / (".unreadable-" + path.name)
+            os.replace(path, aside)
+            return False
         total = sum(counts.values())
         self.files.append({"path": path.name, "starting_time": {"nanoseconds_since_epoch": start if total else 0},
                            "duration": {"nanoseconds": max(0, end - start) if total else 0},
