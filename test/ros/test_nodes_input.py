@@ -225,14 +225,15 @@ def test_launch_refuses_a_missing_file_before_any_node_starts(ros, tmp_path):
     folder and its lock; now one line naming the file, before the folder is made. So is one
     without lasers (allowed for other sensors), with which the estimator answered every request
     with an internal error."""
-    from ros_harness import ros2_missing
+    from ros_harness import EXAMPLE_ARM, ros2_missing
     if ros2_missing():
         pytest.skip(ros2_missing())
     missing = tmp_path / "missing.yaml"
     for launch, arg in (("session", "params"), ("session", "robot"), ("hardware", "calibration")):
         ros.start_command(f"{launch}_{arg}", ["ros2", "launch", "laser_calib_nodes", f"{launch}.launch.py",
                                               f"output_dir:={tmp_path / arg}", f"robot:={ROBOT}",
-                                              f"calibration:={tmp_path}", f"{arg}:={missing}"])
+                                              f"calibration:={tmp_path}", f"{arg}:={missing}",
+                                              *([f"arm_params:={EXAMPLE_ARM}"] if launch == "hardware" else [])])
     malformed = tmp_path / "malformed.yaml"
     malformed.write_text("name: arm\njoints: [\n")
     ros.start_command("session_malformed", ["ros2", "launch", "laser_calib_nodes", "session.launch.py",

@@ -74,7 +74,8 @@ def test_a_second_estimator_on_the_domain_is_refused_before_the_arm_moves(ros, t
     out.mkdir()
     start_sim(ros, out)
     ros.start("stray", "-p", f"robot:={ROOT / 'config' / 'robots' / 'manipulator_4dof.yaml'}", node="estimator")
-    ros.wait_log("stray", "parameters), input", 60)
+    for name in ("estimator", "stray"):   # both offer the service before the sequencer looks
+        ros.wait_log(name, "parameters), input", 60)
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=15",
               "-p", "span:=small")
     assert ros.wait_exit("sequencer", 90) == 3, ros.log("sequencer")[-2000:]

@@ -217,16 +217,24 @@ def sole_commander(node) -> None:
                                    "give each session its own domain or namespace", 3)
 
 
-def sole_estimator(node) -> None:
+# s a sequencer waits at its start to see an Estimate service already running (graph discovery)
+DISCOVERY = 2.0
+
+
+def sole_estimator(node, discovery: float = DISCOVERY) -> None:
     """NodeError (exit 3) when more than one node offers the Estimate service the sequencer calls:
     another session's estimator on this ROS domain answered a session's request (the fastest
     server wins) with its own robot and sigmas, while the session's own wrote its report into the
-    folder: the console and the files disagreed, without a word. Checked at the start (before the
-    arm moves) and before the call."""
+    folder: the console and the files disagreed, without a word. Checked at the start, before the
+    arm moves, for ``discovery`` s (a node just made had seen none of two running, and then one
+    before the other), and again before the call."""
     if node.end.mode != "service":
         return
     name = node.resolve_service_name(common.ESTIMATE_SERVICE)
-    servers = node.count_services(name)
+    deadline = time.monotonic() + discovery
+    # servers running before this node are discovered one by one (one seen, a session measured on)
+    while (servers := node.count_services(name)) < 2 and time.monotonic() < deadline:
+        time.sleep(0.1)
     if servers > 1:
         raise parameters.NodeError(f"{servers} nodes offer the Estimate service on {name}: either could answer this "
                                    f"session (another session's estimator on ROS_DOMAIN_ID "
@@ -326,7 +334,7 @@ def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, boo
         if time.monotonic() > deadline:
             raise parameters.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; {offline}", 3)
     try:
-        sole_estimator(node)
+        sole_estimator(node, 0.0)
     except parameters.NodeError as exc:
         raise parameters.NodeError(f"{exc}; {offline}", 3) from None
     request = node.estimate_client.srv_type.Request(
