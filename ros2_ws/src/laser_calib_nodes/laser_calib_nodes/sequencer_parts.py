@@ -226,13 +226,11 @@ def sole_estimator(node, discovery: float = DISCOVERY) -> None:
     another session's estimator on this ROS domain answered a session's request (the fastest
     server wins) with its own robot and sigmas, while the session's own wrote its report into the
     folder: the console and the files disagreed, without a word. Checked at the start, before the
-    arm moves, for ``discovery`` s (a node just made had seen none of two running, and then one
-    before the other), and again before the call."""
+    arm moves, watching the graph for ``discovery`` s (a node just made had seen none of two running
+    servers, then one before the other: a session measured on), and again before the call."""
     if node.end.mode != "service":
         return
-    name = node.resolve_service_name(common.ESTIMATE_SERVICE)
-    deadline = time.monotonic() + discovery
-    # servers running before this node are discovered one by one (one seen, a session measured on)
+    name, deadline = node.resolve_service_name(common.ESTIMATE_SERVICE), time.monotonic() + discovery
     while (servers := node.count_services(name)) < 2 and time.monotonic() < deadline:
         time.sleep(0.1)
     if servers > 1:
