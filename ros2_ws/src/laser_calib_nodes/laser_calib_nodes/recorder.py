@@ -57,7 +57,7 @@ class Recorder:
         for name in self.bag.discarded:
             node.get_logger().warning(f"bag: discarded unfinished segment {name} (the pose in progress at the crash)")
         self.recent_frames: deque = deque(maxlen=40)
-        self.subscriptions: list = []  # (subscription, its callback): drained at close
+        self.subscriptions: list = []  # drained at close
         for name, msg_type, _, qos in recorded:
             topic = node.resolve_topic_name(name)
             if msg_type not in (Image, CameraInfo):
@@ -66,15 +66,14 @@ class Recorder:
                 # 200 queue behind one (test_bag_backlog).
                 every = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=qos.reliability,
                                    durability=qos.durability)
-                callback = (lambda data, t=topic: self.write(t, data))
-                self.subscriptions.append((node.create_subscription(msg_type, name, callback, every, raw=True),
-                                           callback))
+                self.subscriptions.append(node.create_subscription(
+                    msg_type, name, lambda data, t=topic: self.write(t, data), every, raw=True))
                 continue
             # Frames of 4 MB: a bounded queue, 20 s of a 10 Hz camera (a roll-over stalled it 0.4 s at most);
             # subscribed as spot_detector is, each frame written once (write_frame).
-            callback = (lambda data, t=topic: self.write_frame(t, data))
-            self.subscriptions += [(subscription, callback) for subscription in common.subscribe_camera(
-                node, msg_type, name, callback, depth=max(qos.depth, 200), raw=True)]
+            self.subscriptions += common.subscribe_camera(node, msg_type, name,
+                                                          lambda data, t=topic: self.write_frame(t, data),
+                                                          depth=max(qos.depth, 200), raw=True)
 
     def write(self, topic: str, data: bytes) -> None:
         self._do(lambda bag: bag.write(topic, common.now_ns(self.node), data))
@@ -131,13 +130,13 @@ class Recorder:
         of a burst's 2000 joint states (CI), and the rest were lost with the node. Called once the
         executor has stopped; rclpy's own take, as its executor does it."""
         deadline = time.monotonic() + DRAIN_SECONDS
-        for subscription, callback in self.subscriptions:
+        for subscription in self.subscriptions:
             with subscription.handle:
                 while time.monotonic() < deadline:
                     taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
                     if taken is None:
                         break
-                    callback(taken[0])
+                    subscription.callback(taken[0])
 
     def close(self) -> int:
         """Drain, close the bag; 1 with an ERROR line when the recording failed and no check() said it

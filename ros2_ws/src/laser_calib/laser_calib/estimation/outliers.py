@@ -28,9 +28,13 @@ def model_samples(model: MeasurementModel) -> Samples:
 
 
 def listing(model: MeasurementModel, units: list[tuple[int, int]]) -> str:
+    """The units (pose index, channel) of the model's samples by pose id (named)."""
+    return named(model_samples(model), units)
+
+
+def named(samples: Samples, units: list[tuple[int, int]]) -> str:
     """The units (pose index, channel) by pose id: a spot's laser always, since a pose has two;
-    a point's or pose's unit is its pose."""
-    samples = model_samples(model)
+    a point's or pose's unit is its pose; at most LISTED, then how many more."""
     lasers = samples.kind == "spot"
     names = [f"pose {samples.pose[p]}" + (f" laser {c + 1}" if lasers else "") for p, c in units[:LISTED]]
     return ", ".join(names) + (f" and {len(units) - LISTED} more" if len(units) > LISTED else "")

@@ -33,7 +33,7 @@ from laser_calib.estimation.estimate import (MIN_SIGMA, Estimate, EstimateOption
 from laser_calib.estimation.failures import UNDETERMINED, first_failure
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.identifiability import FIXED_NOTE, carried_note
-from laser_calib.estimation.outliers import LISTED
+from laser_calib.estimation.outliers import named
 from laser_calib.estimation.problem import Problem, residuals_at
 from laser_calib.estimation.redundancy import deletion_distances, outlier_limit
 from laser_calib.io.revisits import repeat_warnings
@@ -283,8 +283,9 @@ def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None
                                         fit_status(samples.seen, est.rejected, est.impossible))}
     if test is not None:
         model = spot_model(robot, test, effects, compensator)
-        out["test"] = SetEvaluation(test, predicted(test, None, start), residuals_at(model, est.values).predicted,
-                                    test_status(model, test, est), ("tested", "beyond"))
+        out["test"] = SetEvaluation(test, residuals_at(model, start).predicted,
+                                    residuals_at(model, est.values).predicted, test_status(model, test, est),
+                                    ("tested", "beyond"))
     return out
 
 
@@ -310,7 +311,8 @@ def test_status(model: RobotModel, test: Samples, est: Estimate) -> np.ndarray:
         return status
     noise = NoiseModel(max(est.sigma, MIN_SIGMA), est.joint_sigma)
     t2, dof = deletion_distances(Problem(model, noise, est.fit.free), est.fit, seen)
-    beyond = seen & (t2 > outlier_limit(test.spots.shape[2], dof, int(seen.sum()))) if dof >= 1 else seen & False
+    beyond = seen & (t2 > outlier_limit(test.spots.shape[2], dof, int(seen.sum()))) if dof >= 1 else \
+        np.zeros_like(seen)
     if beyond.sum() <= MAX_TEST_OUTLIERS * seen.sum():
         status[beyond] = "outlier"
     else:  # the model misses the test poses: counted, and said (test_outliers)
@@ -354,11 +356,9 @@ def test_outliers(sets: dict[str, SetEvaluation]) -> list[str]:
     pairs = list(zip(*np.nonzero(outlier)))
     if not pairs:
         return []
-    names = ", ".join(f"pose {s.samples.pose[p]} laser {c + 1}" for p, c in pairs[:LISTED])
-    more = f" and {len(pairs) - LISTED} more" if len(pairs) > LISTED else ""
     return [f"test: {len(pairs)} of {seen} held-out spots lie beyond the outlier limit of the calibrated model and "
-            f"are not counted in the test figures: {names}{more} (their figures apart; residuals.csv l1_fit, "
-            "l2_fit): wrong spots, or structure the calibration poses do not show (diagnose tests which)"]
+            f"are not counted in the test figures: {named(s.samples, pairs)} (their figures apart; residuals.csv "
+            "l1_fit, l2_fit): wrong spots, or structure the calibration poses do not show (diagnose tests which)"]
 
 
 def worse_on_test(sets: dict[str, SetEvaluation]) -> list[str]:
