@@ -35,7 +35,7 @@ from laser_calib.session.average import FrameCollector
 from laser_calib.session.folder import POSES_FILE, Progress
 from laser_calib.session.settle import SettleDetector, SettleRule
 
-from laser_calib_nodes import common, parameters, sequencer_parts
+from laser_calib_nodes import common, parameters, sequencer_parts, sole_owner
 from laser_calib_nodes.joint_states import ArmJointStates
 from laser_calib_nodes.recorder import Recorder
 
@@ -70,7 +70,7 @@ class Sequencer(Node):
         record_images = d("record_images", False, "Also record camera images (large) in the bag.")
         segment_seconds = d("bag.max_segment_seconds", 10.0, "Close a bag segment after this long even "
                                                              "within a pose, s.")
-        self.exit_code, self.done = 0, False
+        self.exit_code, self.done, self.created = 0, False, time.monotonic()
         for name, value, check in (
                 ("frames", self.frames, lambda n: None if n >= 1 else f"expected >= 1, got {n}"),
                 ("unseen_limit", self.unseen_limit, parameters.non_negative),
@@ -170,7 +170,7 @@ class Sequencer(Node):
                   f"{self.wait_timeout:g} s (are the camera and spot_detector running?)")
         self.wait(lambda: self.traj_pub.get_subscription_count() > 0, self.wait_timeout,
                   f"nobody subscribes to {self.resolve_topic_name(common.JOINT_TRAJECTORY)}")
-        sequencer_parts.sole_commander(self), sequencer_parts.sole_estimator(self)
+        sole_owner.watch(self, self.created + sole_owner.DISCOVERY)
         found = self.resumed
         for r in range(len(found.to_bag)):   # restored from the CSV: back into the bag (the journal)
             test = bool(self.poses.test[self.poses.pose == found.to_bag.pose[r]][0])

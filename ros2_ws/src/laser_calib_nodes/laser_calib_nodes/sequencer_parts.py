@@ -29,7 +29,7 @@ from laser_calib.session.folder import (PLAN_DEFAULTS, ROBOT_FILE, SAMPLES_FILE,
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import generate_poses, load_poses, with_test_poses
 
-from laser_calib_nodes import common, parameters
+from laser_calib_nodes import common, parameters, sole_owner
 
 TRUE_ROBOT_FILE = "robot_true.yaml"   # where launch and run-session let the sim arm_driver write the truth
 
@@ -201,45 +201,6 @@ def measured(node, line: str, spots: np.ndarray) -> None:
                                "(unseen_limit:=0 measures on regardless)", 2)
 
 
-def sole_commander(node) -> None:
-    """NodeError (exit 3) when another node publishes on the arm's trajectory topic: a second
-    sequencer (another session on this ROS domain) or a teleoperation drives the arm too. Each
-    session then blamed the arm for not settling where it sent it, or measured on without a word."""
-    topic = node.resolve_topic_name(common.JOINT_TRAJECTORY)
-    publishers = [f"{info.node_namespace.rstrip('/')}/{info.node_name}" for info in
-                  node.get_publishers_info_by_topic(topic)]
-    if node.get_fully_qualified_name() in publishers:   # this node's one; a second session's may share its name
-        publishers.remove(node.get_fully_qualified_name())
-    if publishers:
-        others = sorted(set(publishers))
-        raise parameters.NodeError(f"{', '.join(others)} also commands the arm on {topic}: two nodes would drive it "
-                                   f"(a second session on ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}?); "
-                                   "give each session its own domain or namespace", 3)
-
-
-# s a sequencer waits at its start to see an Estimate service already running (graph discovery)
-DISCOVERY = 2.0
-
-
-def sole_estimator(node, discovery: float = DISCOVERY) -> None:
-    """NodeError (exit 3) when more than one node offers the Estimate service the sequencer calls:
-    another session's estimator on this ROS domain answered a session's request (the fastest
-    server wins) with its own robot and sigmas, while the session's own wrote its report into the
-    folder: the console and the files disagreed, without a word. Checked at the start, before the
-    arm moves, watching the graph for ``discovery`` s (a node just made had seen none of two running
-    servers, then one before the other: a session measured on), and again before the call."""
-    if node.end.mode != "service":
-        return
-    name, deadline = node.resolve_service_name(common.ESTIMATE_SERVICE), time.monotonic() + discovery
-    while (servers := node.count_services(name)) < 2 and time.monotonic() < deadline:
-        time.sleep(0.1)
-    if servers > 1:
-        raise parameters.NodeError(f"{servers} nodes offer the Estimate service on {name}: either could answer this "
-                                   f"session (another session's estimator on ROS_DOMAIN_ID "
-                                   f"{os.environ.get('ROS_DOMAIN_ID', '0')}?); give each session its own domain or "
-                                   "namespace", 3)
-
-
 def client(node):
     from laser_calib_interfaces.srv import Estimate
     return node.create_client(Estimate, common.ESTIMATE_SERVICE)
@@ -332,7 +293,7 @@ def call_service(node, samples: Samples, test: Samples | None) -> tuple[str, boo
         if time.monotonic() > deadline:
             raise parameters.NodeError(f"no Estimate service on {name} after {end.timeout:g} s; {offline}", 3)
     try:
-        sole_estimator(node, 0.0)
+        sole_owner.estimator(node)
     except parameters.NodeError as exc:
         raise parameters.NodeError(f"{exc}; {offline}", 3) from None
     request = node.estimate_client.srv_type.Request(
