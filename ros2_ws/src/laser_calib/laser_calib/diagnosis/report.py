@@ -5,15 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from laser_calib.report.plots import save_figure  # noqa: E402
-from laser_calib.diagnosis.result import Analysis, Diagnosis  # noqa: E402
-from laser_calib.diagnosis.structure import Series, Test, binned_test  # noqa: E402
+from laser_calib.report.plots import pyplot, save_figure
+from laser_calib.diagnosis.result import Analysis, Diagnosis
+from laser_calib.diagnosis.structure import Series, Test, binned_test
 
 
 
@@ -33,7 +29,7 @@ def deciding_test(diagnosis: Diagnosis) -> Test | None:
 def plot_residual(diagnosis: Diagnosis, test: Test, path: Path) -> None:
     """The response against the covariate, geometric fit and final model side by
     side: every pose (or spot) and the binned means with their standard errors."""
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    fig, axes = pyplot().subplots(1, 2, figsize=(10, 3.8), sharey=True)
     for ax, (title, analysis) in zip(axes, (("geometric", diagnosis.before), (diagnosis.final.label, diagnosis.after))):
         found = _find(analysis, test.response, test.covariate)
         if found is None:
@@ -61,7 +57,7 @@ def plot_residual(diagnosis: Diagnosis, test: Test, path: Path) -> None:
 
 def plot_stages(stages: list[dict], path: Path) -> None:
     """RMS spot error per stage on the calibration, held-out (cross-validated) and test poses."""
-    fig, ax = plt.subplots(figsize=(7, 3.2))
+    fig, ax = pyplot().subplots(figsize=(7, 3.2))
     labels = [f"{k}" for k in range(len(stages))]
     width = 0.27
     for offset, key, colour in ((-width, "cal", "tab:blue"), (0.0, "cv", "tab:orange"), (width, "test", "tab:green")):
