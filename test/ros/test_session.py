@@ -204,7 +204,11 @@ def test_replay_bad_bag_is_one_line(session, tmp_path):
     for args, reason in (([str(tmp_path / "nothing")], "no such bag"),
                          ([str(out / "bag"), "--wait-for", "/nothing"], "no topic /nothing in the bag"),
                          ([str(out / "bag"), "--exclude", "/samples", "--wait-for", "/samples"],
-                          "/samples: --wait-for names a topic that is not replayed")):
+                          "/samples: --wait-for names a topic that is not replayed"),
+                         # a misspelt exclusion replayed the topic meant to be kept off the domain
+                         ([str(out / "bag"), "--exclude", "/joint_state"], "no topic /joint_state in the bag"),
+                         ([str(out / "bag"), "--topics", "/samples", "--exclude", "/samples"],
+                          "no topic left to replay")):   # was 0 messages replayed, exit 0
         result = ros.run([str(ros_bin("replay"))] + args, timeout=60)
         assert result.returncode == 2, args
         assert result.stderr.strip().count("\n") == 0 and reason in result.stderr, args

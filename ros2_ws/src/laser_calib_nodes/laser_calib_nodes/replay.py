@@ -86,9 +86,12 @@ def main(argv: list[str] | None = None) -> int:
         # said when left out by default; topics named (--topics) or excluded were the user's choice
         commands = [t for t, v in topics.items() if v[0] in COMMANDS and t not in chosen and t not in args.exclude
                     and args.topics is None]
-        missing = [t for t in (args.topics or []) + args.wait_for if t not in topics]
+        # an --exclude misspelt would replay what the user meant to keep off the domain (a live arm's states)
+        missing = [t for t in (args.topics or []) + args.exclude + args.wait_for if t not in topics]
         if missing:
             raise InputError(args.bag, f"no topic {missing[0]} in the bag (it has {', '.join(sorted(topics))})")
+        if not chosen:
+            raise InputError(args.bag, "no topic left to replay (--topics, --exclude)")
         unplayed = [t for t in args.wait_for if t not in chosen]
         if unplayed:
             raise InputError(unplayed[0], "--wait-for names a topic that is not replayed (--topics, --exclude)")

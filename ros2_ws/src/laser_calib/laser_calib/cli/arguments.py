@@ -149,7 +149,7 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", help="session bag directory (rosbag2, MCAP)")
     parser.add_argument("--rate", type=positive, default=1.0, help="playback speed factor (default 1)")
     parser.add_argument("--topics", nargs="+", help="only these topics (default: all but motion commands)")
-    parser.add_argument("--exclude", nargs="+", default=[], help="not these topics")
+    parser.add_argument("--exclude", nargs="+", default=[], help="not these topics (each must be in the bag)")
     parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
                         help="start once each of these topics has a subscriber")
     parser.add_argument("--wait-timeout", type=positive, default=30.0, help="for --wait-for, s (default 30)")
