@@ -479,7 +479,8 @@ def test_any_pose_field_parses_or_is_one_input_error(value):
         assert "\n" not in str(exc)
 
 
-def test_a_bag_with_one_damaged_segment_keeps_the_intact_ones(tmp_path):
+def _five_pose_bag(tmp_path: Path) -> Path:
+    """A bag of five samples, one segment each (bag_0.mcap ... bag_4.mcap)."""
     from laser_calib.io import bag
     from laser_calib.io.bag_writer import SegmentedBagWriter
     store = bag.typestore()
@@ -493,9 +494,22 @@ def test_a_bag_with_one_damaged_segment_keeps_the_intact_ones(tmp_path):
         writer.write("/samples", 10 ** 9 * (1000 + k), store.serialize_cdr(msg, "laser_calib_interfaces/msg/Sample"))
         writer.rotate()
     writer.close()
-    damaged = tmp_path / "bag" / "bag_2.mcap"
+    return tmp_path / "bag"
+
+
+def test_a_bag_with_one_damaged_segment_keeps_the_intact_ones(tmp_path):
+    from laser_calib.io import bag
+    damaged = _five_pose_bag(tmp_path) / "bag_2.mcap"
     damaged.write_bytes(damaged.read_bytes()[:-40])
     with pytest.raises(InputError):
         bag._sample_msgs(tmp_path / "bag", bag.SAMPLES_TOPIC)    # the bag as a whole cannot be read
     samples, lost = bag.read_samples_checked(tmp_path / "bag")
     assert list(samples.pose) == [0, 1, 3, 4] and len(lost) == 1 and lost[0].startswith("bag_2.mcap")
+
+
+def test_one_file_of_a_bag_is_refused_for_the_bag(tmp_path):
+    """--bag naming one segment of a session's bag was read as a bag of that segment's poses."""
+    from laser_calib.io import bag
+    segment = _five_pose_bag(tmp_path) / "bag_1.mcap"
+    with pytest.raises(InputError, match=f"bag_1.mcap: one file of the bag {segment.parent}: give the bag's folder"):
+        bag.read_samples_checked(segment)

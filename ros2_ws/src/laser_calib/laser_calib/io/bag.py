@@ -88,6 +88,8 @@ def _reader(path: Path):
         raise InputError(str(path), "no such bag")
     if path.is_dir() and not (path / METADATA).exists():
         raise InputError(str(path), f"not a rosbag2 bag (no {METADATA})")
+    if path.is_file() and (path.parent / METADATA).exists():   # read alone, it was a bag of its few poses
+        raise InputError(str(path), f"one file of the bag {path.parent}: give the bag's folder")
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
         reader.open()
