@@ -302,6 +302,7 @@ def bad_and_concurrent(robot_path: str) -> dict:
         "nan_spot": request(nan_spot),
         "bad_method": request(good, method="gauss"),
         "bad_method_nothing_accumulated": request([], method="gauss", use_accumulated=True),
+        "samples_and_accumulated": request(good, use_accumulated=True),
         "negative_sigma": request(good, spot_sigma=-1.0),
         "too_few": request(good[:2]),
         "nan_test_joint": request(good, test_samples=nan_test),

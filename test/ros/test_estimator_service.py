@@ -11,7 +11,7 @@ from ros_harness import CLIENT, ROBOT
 
 def test_bad_requests_and_concurrent_clients(ros):
     ros.start("estimator", "-p", f"robot:={ROBOT}")
-    # 14 requests in flight at once, every one answered, none sent twice (the client fails when one
+    # 15 requests in flight at once, every one answered, none sent twice (the client fails when one
     # is not): the services profile's depth of 10 dropped the oldest waiting one
     out = ros.client("bad-and-concurrent", str(ROBOT))
     expected_refusals = {
@@ -21,6 +21,8 @@ def test_bad_requests_and_concurrent_clients(ros):
         "nan_spot": "non-finite",
         "bad_method": "gauss",
         "bad_method_nothing_accumulated": "method: expected one of lm, ekf, got 'gauss'",  # the request's fault first
+        # the request's samples were dropped without a word, the accumulated ones estimated
+        "samples_and_accumulated": "use_accumulated is true and the request holds 30 samples and 0 test samples",
         "negative_sigma": "spot_sigma",
         "too_few": "",
         "nan_test_joint": "request: test sample 2 (pose 101): joint_positions[0] is not finite",

@@ -36,6 +36,9 @@ def row_from_msg(msg, where: str, joints, robot: Robot) -> Row:
 def request_sets(node, request) -> tuple[Samples, Samples | None, dict]:
     """An Estimate request's (or a Calibrate goal's) samples, its test samples (None: none)
     and the sources run_calibration names: the robot, both sets and the compensator."""
+    if request.use_accumulated and (request.samples or request.test_samples):   # the request's were dropped unsaid
+        raise InputError("request", f"use_accumulated is true and the request holds {len(request.samples)} samples "
+                         f"and {len(request.test_samples)} test samples: send samples or use_accumulated, not both")
     if request.use_accumulated:
         with node.lock:
             rows, test_rows = list(node.rows), list(node.test_rows)
