@@ -5,6 +5,7 @@ estimator (x_hat - x)^T Sigma^-1 (x_hat - x) follows chi^2 with as many degrees
 of freedom as free parameters; the bounds are its 99.9 % quantiles.
 """
 
+import re
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -158,6 +159,44 @@ def test_no_joint_noise_is_found_where_there_is_none():
             found += est.joint_sigma_estimated
             assert est.joint_sigma == 0.0 or est.joint_sigma_estimated
     assert found <= 3
+
+def test_joint_noise_the_fit_takes_up_is_still_found():
+    """A joint read wrong at one pose moves its spots as that joint's own errors do, so the fit
+    takes up part of that noise and its residual shows less. The plain likelihood of the residual
+    (scaled evenly for the values the fit took) missed 0.05 deg beside 1 mm spots in 8 of 16
+    sessions (the UR10e's 0.058 deg in 6 of 7), and the standard deviations were too small; the
+    restricted likelihood allows for what the fit took up (noise_components)."""
+    noise = NoiseSpec(spot=0.001, joint=np.deg2rad(0.05))
+    ratios = []
+    for case in ("paper-7dof", "paper-4dof"):
+        for seed in range(8):
+            session = paper_session(case, seed, noise=noise)
+            est = estimate(session.nominal, session.samples, EstimateOptions(joint_sigma=None))
+            if est.joint_sigma_estimated:
+                ratios.append(est.joint_sigma / noise.joint_sigma)
+    # at p < 0.05 a set is missed by chance too; more than 2 of 16 is the test's weakness
+    assert len(ratios) >= 14, ratios
+    # each ratio's relative std is about 13 % (~50 values carrying the joint noise): 3 stds of the mean
+    assert abs(np.mean(ratios) - 1) < 3 * 0.13 / np.sqrt(len(ratios)), ratios
+
+
+def test_joint_noise_the_residual_cannot_rule_out_is_said():
+    """Where the residual shows no joint-reading noise, the standard deviations assume none; the
+    largest joint sigma it allows (95 %) is said, with how much larger the stds would be under it
+    (hidden_joint_noise). On this 4-DOF session with the paper's 0.058 deg the test found none,
+    and the stds with the true sigmas given are 1.4 times the reported ones: the bound holds the
+    truth and the factor said covers it."""
+    session = paper_session("paper-4dof", 3)
+    est = estimate(session.nominal, session.samples, EstimateOptions(joint_sigma=None))
+    assert not est.joint_sigma_estimated
+    [line] = [w for w in est.warnings if "no joint-reading noise shows in the residual" in w]
+    bound, factor = (float(v) for v in re.search(r"up to (\S+) deg .* up to (\S+) times larger", line).groups())
+    assert np.deg2rad(bound) >= session.noise.joint_sigma
+    given = estimate(session.nominal, session.samples, EstimateOptions(spot_sigma=session.noise.spot_sigma,
+                                                                      joint_sigma=session.noise.joint_sigma))
+    kept = est.identifiable
+    assert factor >= np.max(given.fit.std[kept] / est.fit.std[kept]) > 1.2
+
 
 def test_robust_rejects_a_wrong_detection():
     session = paper_session("paper-7dof", 6)

@@ -49,6 +49,7 @@ from typing import Callable
 
 import numpy as np
 
+from laser_calib.estimation import hidden_joint_noise
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.failures import (NOT_CONVERGED, NoSpotToFit, beyond_data, first_failure, fit_failures,
                                              implausible)
@@ -293,7 +294,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         robust_said = len(outcome.warnings)
 
     sigma_estimated = options.spot_sigma is None
-    joint_sigma, joint_estimated = noise.joint_sigma, False
+    joint_sigma, joint_estimated, unseen_joint = noise.joint_sigma, False, None   # unseen: its ML sigma, not shown
     if sigma_estimated:
         trial = least_squares or levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x,
                                                      options.lm)
@@ -314,6 +315,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                     sigma_dof = trial.n_values - int(trial.free.sum())
                     spot, joint, _ = joint_noise(model, trial, excluded)   # of the units it kept
                 sigma, joint_sigma, joint_estimated = spot, joint, True
+            else:
+                unseen_joint = joint
         noise = NoiseModel(max(sigma, 1e-9), joint_sigma)
         start_x = trial.x
     if sigma_estimated or rejected:
@@ -362,6 +365,9 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")
     warnings.extend(noise_doubts)
+    if unseen_joint is not None and prior_sigma is None and not exact and not noise_doubts:
+        warnings.extend(hidden_joint_noise.warnings(hidden_joint_noise.hidden_joint_noise(
+            model, result, excluded, unseen_joint), names))
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
     own = free & np.array([not is_frame_param(name) for name in names])
     # std and carried held errors excuse a value beyond FAR_SCALES only on a sound sigma (not from 1-7 dof)

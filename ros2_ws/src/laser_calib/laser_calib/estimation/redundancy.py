@@ -16,7 +16,8 @@ residual degrees of freedom nu, are all that judges an outlier or estimates the 
   no standard deviation means anything (Student's t with nu <= 2 has no finite variance):
   NOT A CALIBRATION; up to 7 the noise may be more than NOISE_RATIO times larger (95 %).
 - joint_noise: the residual's two noise components (spot, joint reading) and whether it
-  shows any joint-reading noise at all.
+  shows any joint-reading noise at all, by the restricted likelihood (the part of the
+  noise the fit took up allowed for: noise_components).
 """
 
 from __future__ import annotations
@@ -117,11 +118,17 @@ def sigma_warnings(sigma: float, dof: int, remedy: str = "measure more poses or 
 
 def joint_noise(model: MeasurementModel, trial: Fit, excluded: np.ndarray | None) -> tuple[float, float, float]:
     """(spot sigma, joint sigma, p of no joint noise) of the trial fit's residual over the units it
-    fitted; p 1 for a model whose measurements do not depend on joint readings."""
-    res = residuals_at(model, trial.x, jacobian=True, parameters=False)
+    fitted, by the restricted likelihood of the parameters it determined; p 1 for a model whose
+    measurements do not depend on joint readings."""
+    res = residuals_at(model, trial.x, jacobian=True)
     if res.jac_q is None:
         return 0.0, 0.0, 1.0
     if excluded is not None:
         res = replace(res, valid=res.valid & ~excluded)
-    m = int(res.valid.sum()) * res.r.shape[2]
-    return joint_noise_evidence(res, float(np.sqrt(m / trial.dof)))
+    return joint_noise_evidence(res, 1.0, determined_jacobian(model, trial, res))
+
+
+def determined_jacobian(model: MeasurementModel, fit: Fit, res: Residuals) -> np.ndarray:
+    """(P,C,D,k) the Jacobian of the k parameters ``fit`` determined, each in its scale (the
+    restricted likelihood's log|X^T C^-1 X| then stays well conditioned)."""
+    return res.jac[..., fit.free] * model.scales[fit.free]
