@@ -94,6 +94,9 @@ CASES = {
     "simulate --seed -1": (lambda d: _simulate(d, "--seed", "-1"), "--seed"),
     "simulate --spot-noise 2 (m)": (lambda d: _simulate(d, "--spot-noise", "2"), "--spot-noise"),
     "simulate --joint-noise-deg 1000": (lambda d: _simulate(d, "--joint-noise-deg", "1000"), "--joint-noise-deg"),
+    # 0.1 deg typed as radians: 5.7 deg weighed every pose by a noise its spots did not show (exit 0)
+    "estimate --joint-sigma 0.1 (deg)": (lambda d: _estimate(d, "--joint-sigma", "0.1"),
+                                         "--joint-sigma: 0.1 rad is not a plausible joint noise (at most 0.035 rad"),
     "estimate --prior-length 10 (m)": (lambda d: _estimate(d, "--prior-length", "10"), "--prior-length"),
     # 0.5 mm typed as metres: accepted as a camera's noise of half a metre (under the 1 m of every noise level)
     "estimate --spot-sigma 0.5 (m)": (lambda d: _estimate(d, "--spot-sigma", "0.5"), "--spot-sigma: 0.5 m is not a "
@@ -148,8 +151,8 @@ def test_plausible_sizes_and_seeds_are_accepted():
                                       "--spot-noise", "0", "--joint-noise-deg", "0"])
     assert (args.seed, args.spot_noise, args.joint_noise_deg) == (0, 0.0, 0.0)
     args = build_parser().parse_args(["simulate", "--case", "paper-4dof", "--out", "o", "--spot-noise", "0.5",
-                                      "--joint-noise-deg", "20"])
-    assert (args.spot_noise, args.joint_noise_deg) == (0.5, 20.0)
+                                      "--joint-noise-deg", "2"])
+    assert (args.spot_noise, args.joint_noise_deg) == (0.5, 2.0)
     args = build_parser().parse_args(["estimate", "--robot", "r", "--samples", "s", "--out", "o",
                                       "--prior-length", "0.01"])
     assert args.prior_length == 0.01

@@ -183,7 +183,7 @@ def test_joint_noise_the_fit_takes_up_is_still_found():
 def test_joint_noise_the_residual_cannot_rule_out_is_said():
     """Where the residual shows no joint-reading noise, the standard deviations assume none; the
     largest joint sigma it allows (95 %) is said, with how much larger the stds would be under it
-    (hidden_joint_noise). On this 4-DOF session with the paper's 0.058 deg the test found none,
+    (joint_noise_bound.hidden). On this 4-DOF session with the paper's 0.058 deg the test found none,
     and the stds with the true sigmas given are 1.4 times the reported ones: the bound holds the
     truth and the factor said covers it."""
     session = paper_session("paper-4dof", 3)
@@ -196,6 +196,18 @@ def test_joint_noise_the_residual_cannot_rule_out_is_said():
                                                                       joint_sigma=session.noise.joint_sigma))
     kept = est.identifiable
     assert factor >= np.max(given.fit.std[kept] / est.fit.std[kept]) > 1.2
+
+
+def test_a_joint_sigma_far_above_what_the_residual_allows_is_said():
+    """0.02 typed for 0.02 deg is 1.1 deg of joint-reading noise: the fit weighs each pose by a noise
+    its spots do not show (a probe's 0.5 rad left the calibration 53 mm off, exit 0). Said when
+    over twice the largest the residual allows (95 %); the true sigma given is not."""
+    session = paper_session("paper-7dof", 0)
+    said = [w for w in estimate(session.nominal, session.samples, EstimateOptions(joint_sigma=0.02)).warnings
+            if "the residual allows at most" in w]
+    assert len(said) == 1 and "far below the joint sigma given, 0.02 rad (1.15 deg" in said[0], said
+    true = estimate(session.nominal, session.samples, EstimateOptions(joint_sigma=session.noise.joint_sigma))
+    assert not [w for w in true.warnings if "the residual allows at most" in w], true.warnings
 
 
 def test_robust_rejects_a_wrong_detection():

@@ -19,7 +19,7 @@ from ros_harness import EXAMPLE_ARM, ROBOT, ROOT, ros2_missing
 NOISE = ("spot_sigma:=0.0005", "joint_sigma:=0.001")
 SPOT_REFUSED = ("0.5 m is not a plausible spot noise for a camera on a screen (expected 1e-09 .. 0.05 m; lengths "
                 "are in metres), or 0 to estimate it")
-JOINT_REFUSED = ("5 rad is not a plausible joint-reading noise (expected more than 0, at most 0.5 rad; angles are "
+JOINT_REFUSED = ("5 rad is not a plausible joint-reading noise (expected more than 0, at most 0.035 rad; angles are "
                  "in radians), or 0 for none, or -1 for not given (estimated with the spot sigma when that is "
                  "estimated, else 0)")
 REFUSALS = {("spot_sigma", "0.5"): f"spot_sigma: {SPOT_REFUSED}",     # millimetres typed as metres

@@ -79,7 +79,7 @@ SESSION_ARGS = {
     "speed": ("", "Simulated joint speed, rad/s (empty: the parameter file's)."),
     "spot_sigma": ("", "Spot noise, m, of the final estimate and the online EKF; 0: estimated (empty: the "
                        "parameter file's)."),
-    "joint_sigma": ("", "Joint-reading noise, rad (at most 0.5), of the final estimate and the online EKF; -1: not "
+    "joint_sigma": ("", "Joint-reading noise, rad (at most 0.035), of the final estimate and the online EKF; -1: not "
                         "given, 0: none (empty: the parameter file's)."),
 }
 HARDWARE_ARGS = {

@@ -132,7 +132,7 @@ def noise(node: Node) -> tuple[float, float]:
                                             "(from its next reset); 0: estimate it (batch) / 1 mm (online).",
                    read_only=False)
     joint = declare(node, "joint_sigma", JOINT_SIGMA_NOT_GIVEN,
-                    "Joint-reading sigma, rad (at most 0.5), for requests with joint_sigma 0 and the online EKF "
+                    "Joint-reading sigma, rad (at most 0.035), for requests with joint_sigma 0 and the online EKF "
                     "(from its next reset); 0: no joint-reading noise; -1: not given, as laser-calib estimate "
                     "without --joint-sigma: estimated with the spot sigma when that is estimated, else 0 (batch) "
                     "/ 0 (online).", read_only=False)

@@ -49,7 +49,7 @@ from typing import Callable
 
 import numpy as np
 
-from laser_calib.estimation import hidden_joint_noise
+from laser_calib.estimation import joint_noise_bound
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.failures import (NOT_CONVERGED, NoSpotToFit, beyond_data, first_failure, fit_failures,
                                              implausible)
@@ -366,8 +366,10 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")
     warnings.extend(noise_doubts)
     if unseen_joint is not None and prior_sigma is None and not exact and not noise_doubts:
-        warnings.extend(hidden_joint_noise.warnings(hidden_joint_noise.hidden_joint_noise(
-            model, result, excluded, unseen_joint), names))
+        warnings.extend(joint_noise_bound.hidden_warnings(joint_noise_bound.hidden(model, result, excluded, unseen_joint),
+                                                          names))
+    if options.joint_sigma:   # given
+        warnings.extend(joint_noise_bound.given_warnings(model, result, excluded, options.joint_sigma))
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
     own = free & np.array([not is_frame_param(name) for name in names])
     # std and carried held errors excuse a value beyond FAR_SCALES only on a sound sigma (not from 1-7 dof)

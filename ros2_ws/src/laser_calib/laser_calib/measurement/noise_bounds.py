@@ -14,8 +14,10 @@ SIGMA_LENGTH = (1e-9, 1.0)
 # uniform is 1.15 mm; a 640-pixel camera framing a 4 m wall sees 6 mm a pixel). Over 50 mm (a spot
 # scattered over a hand's width) it is no camera but millimetres typed as metres (0.5 for 0.5 mm).
 MAX_SPOT_SIGMA = 0.05
-# A joint-reading noise over 0.5 rad (29 deg) is degrees typed as radians.
-MAX_SIGMA_ANGLE = 0.5
+# A joint-reading noise is an encoder's: a 12-bit one steps 0.09 deg, a hobby servo's potentiometer
+# reads within about 1 deg. Over 0.035 rad (2 deg) it is no encoder but degrees typed as radians (0.1
+# for 0.1 deg: 5.7 deg, which weighed every pose by a noise its spots did not show).
+MAX_SIGMA_ANGLE = 0.035
 # The ROS parameters' and requests' joint sigma that is not given (a ROS parameter cannot be None): as the
 # command line without --joint-sigma, estimated with the spot sigma when that is estimated, else 0.
 JOINT_SIGMA_NOT_GIVEN = -1.0

@@ -47,7 +47,8 @@ def deviance(res: Residuals, scale: float, jac: np.ndarray | None = None) -> Cal
     lam, basis = np.linalg.eigh(np.einsum("pin,pjn->pij", g, g))
     lam = np.clip(lam, 0.0, None)
     r = np.einsum("pmi,pm->pi", basis, res.r.reshape(n_poses, m) * scale * mask)           # U^T r
-    x = None if jac is None else np.einsum("pmi,pmk->pik", basis, jac.reshape(n_poses, m, -1) * mask[..., None])
+    x = (None if jac is None or not jac.shape[-1] else   # no parameter determined: nothing taken up
+         np.einsum("pmi,pmk->pik", basis, jac.reshape(n_poses, m, jac.shape[-1]) * mask[..., None]))
     # an entry without a measurement has covariance 1, not spot^2: its row of G G^T is 0 (lam 0)
     unmeasured = int(mask.size - mask.sum())
 

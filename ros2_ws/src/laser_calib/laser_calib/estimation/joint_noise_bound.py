@@ -1,4 +1,4 @@
-"""The standard deviations under the joint-reading noise a residual cannot rule out.
+"""The joint-reading noise a residual allows, against the noise the fit assumed.
 
 Without a joint sigma, `estimate` weighs the fit with the joint-reading noise only where
 the residual shows it (estimate.JOINT_NOISE_ALPHA); elsewhere its covariance assumes none.
@@ -8,12 +8,16 @@ grows: on a UR10e with 0.058 deg joint noise and 1.15 mm spots, 6 of 7 sessions 
 none, and the standard deviations were 1.3 times too small (mean z^2 1.76 against the
 truth; 1.0 with both sigmas given).
 
-hidden_joint_noise bounds the joint sigma from above by the profile of the residual's
+hidden bounds the joint sigma from above by the profile of the residual's
 restricted likelihood (redundancy.joint_noise's; one-sided 95 %: a deviance rise of
 chi^2_1's 90 % quantile, the boundary's halved tail) and gives the covariance of the same estimate under that noise,
 the sandwich N^-1 (J^T C J) N^-1 with N = J^T J and C each pose's covariance
 spot^2 I + joint^2 G G^T (G = jac_q). What it finds is said, not used: the data cannot
-decide between the two, and the file's encoder rating (--joint-sigma) can.
+decide between the two, and the encoders' rating (--joint-sigma) can.
+
+given_warnings says a given joint sigma far above that bound: 0.02 typed for 0.02 deg is
+1.1 deg, and the fit weighs each pose by a noise its spots do not show (a probe's 0.5 rad
+left the calibration 53 mm off, with exit 0).
 """
 
 from __future__ import annotations
@@ -24,9 +28,9 @@ import numpy as np
 from scipy.special import chdtri
 
 from laser_calib.estimation.problem import Fit, residuals_at
-from laser_calib.estimation.redundancy import determined_jacobian
+from laser_calib.estimation.redundancy import NOISE_RATIO, determined_jacobian
 from laser_calib.measurement.base import MeasurementModel, Residuals
-from laser_calib.measurement.noise_components import deviance, noise_components
+from laser_calib.measurement.noise_components import deviance, joint_noise_evidence, noise_components
 
 RISE = float(chdtri(1, 0.10))   # 2.71: one-sided 95 % bound of a sigma whose null lies on its boundary
 MAX_JOINT_SIGMA = 0.05          # rad: noise_components' own bound (2.9 deg)
@@ -71,18 +75,26 @@ def upper_joint_sigma(res: Residuals, jac: np.ndarray, joint: float) -> tuple[fl
     return high[0], high[1]
 
 
-def hidden_joint_noise(model: MeasurementModel, fit: Fit, excluded: np.ndarray | None,
-                       joint: float) -> HiddenJointNoise | None:
-    """The bound and the stds under it for a fit weighted without joint noise (``joint``: the
-    residual's ML joint sigma, which did not pass the test); None when the measurements do not
-    depend on the joint readings."""
+def fitted(model: MeasurementModel, fit: Fit, excluded: np.ndarray | None) -> tuple[Residuals, np.ndarray] | None:
+    """The fit's residuals over the units it kept and its determined Jacobian (redundancy's);
+    None when the measurements do not depend on the joint readings or the fit determined nothing."""
+    if not fit.free.any():
+        return None
     res = residuals_at(model, fit.x, jacobian=True)
     if res.jac_q is None:
         return None
-    valid = res.valid if excluded is None else res.valid & ~excluded
-    res = replace(res, valid=valid)
-    n_poses, dims = res.r.shape[0], res.r.shape[2]
-    determined = determined_jacobian(model, fit, res)
+    res = replace(res, valid=res.valid if excluded is None else res.valid & ~excluded)
+    return res, determined_jacobian(model, fit, res)
+
+
+def hidden(model: MeasurementModel, fit: Fit, excluded: np.ndarray | None, joint: float) -> HiddenJointNoise | None:
+    """The bound and the stds under it for a fit weighted without joint noise (``joint``: the
+    residual's ML joint sigma, which did not pass the test); None when the measurements do not
+    depend on the joint readings."""
+    if (found := fitted(model, fit, excluded)) is None:
+        return None
+    res, determined = found
+    valid, (n_poses, dims) = res.valid, (res.r.shape[0], res.r.shape[2])
     joint_up, spot_up = upper_joint_sigma(res, determined, joint)
     rows = np.repeat(valid, dims, axis=1)                                          # (P, C*D)
     jac = determined.reshape(n_poses, -1, int(fit.free.sum())) * rows[..., None]
@@ -99,7 +111,7 @@ def hidden_joint_noise(model: MeasurementModel, fit: Fit, excluded: np.ndarray |
     return HiddenJointNoise(joint_up, spot_up, ratio)
 
 
-def warnings(found: HiddenJointNoise | None, names: tuple[str, ...]) -> list[str]:
+def hidden_warnings(found: HiddenJointNoise | None, names: tuple[str, ...]) -> list[str]:
     """One line when a standard deviation could be STD_RATIO times larger or more."""
     if found is None or not np.nanmax(found.std_ratio, initial=0.0) >= STD_RATIO:
         return []
@@ -108,3 +120,18 @@ def warnings(found: HiddenJointNoise | None, names: tuple[str, ...]) -> list[str
             f"fits it as well (95 %), and the fit would take most of it up: the standard deviations assume none and "
             f"could be up to {found.std_ratio[worst]:.2g} times larger ({names[worst]}); give the joint-reading "
             "noise the encoders are rated for (--joint-sigma; the nodes' joint_sigma)"]
+
+
+def given_warnings(model: MeasurementModel, fit: Fit, excluded: np.ndarray | None, given: float) -> list[str]:
+    """One line when the joint sigma ``given`` (rad) exceeds NOISE_RATIO times the largest the
+    fit's residual allows (95 %)."""
+    if (found := fitted(model, fit, excluded)) is None:
+        return []
+    res, determined = found
+    joint = joint_noise_evidence(res, 1.0, determined)[1]
+    bound = upper_joint_sigma(res, determined, joint)[0]
+    if given <= NOISE_RATIO * bound:
+        return []
+    return [f"noise: the residual allows at most {np.degrees(bound):.3g} deg of joint-reading noise (95 %), far below "
+            f"the joint sigma given, {given:g} rad ({np.degrees(given):.3g} deg; degrees typed as radians?): the fit "
+            "weighs each pose by a noise its spots do not show"]
