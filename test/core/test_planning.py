@@ -1,17 +1,21 @@
 """Pose planning: constraints, the D-criterion with the full noise, the poses file."""
 
 import io
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from laser_calib.cli import main as cli
 from laser_calib.model.kinematics import predict
+from laser_calib.model.robot_file import load_robot
 from laser_calib.planning import PRIOR, PlanOptions, candidate_poses, d_optimal, plan, whitened_jacobians
 from laser_calib.session.poses import format_poses
 from laser_calib.model.robot_file import save_robot
 from laser_calib.report.progress import Progress
 from laser_calib.sim.simulation import bundled_robot
+
+ROOT = Path(__file__).resolve().parents[2]
 
 SPOT, JOINT = 2e-3 / np.sqrt(3), np.deg2rad(0.1) / np.sqrt(3)
 
@@ -191,7 +195,25 @@ def test_too_few_candidates_on_the_screen_say_how_rare_a_hit_is_and_what_to_chan
     """Beams 0.9 m inside a screen of half size 1 m: few draws hit; the line gives the share
     that did and every way out (fewer candidates, a lower margin), not the margin alone."""
     robot = bundled_robot("paper-4dof")
-    with pytest.raises(ValueError, match=r"found only \d+ of 500 poses with both beams 0.9 m inside the screen, in "
+    with pytest.raises(ValueError, match=r"found only \d+ of 500 poses with both beams 0.9 m inside the screen \(the arm on its side of it\), in "
                                          r"\d+ drawn within the joint limits \([0-9.e-]+ % hit\): ask for fewer "
                                          "candidates, lower the margin"):
         candidate_poses(robot, 500, np.random.default_rng(0), 0.9, max_tries=3)
+
+
+def test_a_plan_keeps_the_arm_on_its_side_of_the_screen(tmp_path):
+    """A beam meets the screen forward (k > 0) from either side, but an arm cannot reach through
+    it: a UR10e standing 1 m in front of the screen (the real one's URDF, data/real/) was planned
+    with its laser module 0.16 m behind the screen at 5 of 30 poses, spots counted."""
+    urdf = (ROOT / "data" / "real" / "ur10e_mocap" / "ur10_robot.urdf").read_text()
+    screen = ('<link name="screen"/><joint name="screen_to_world" type="fixed"><parent link="screen"/>'
+              '<child link="world"/><origin xyz="1.0 -1.1 -0.9" rpy="0 0 3.141592653589793"/></joint>')
+    (tmp_path / "ur10e.urdf").write_text(urdf.replace("</robot>", screen + "</robot>"))
+    (tmp_path / "ur10e.yaml").write_text("urdf: ur10e.urdf\nbase: screen\ntip: tool0\n"
+                                         "slm: {a: 0.05, d: 0.0, alpha: 0.0, theta: 3.1416}\n"
+                                         "lasers: [{gamma: -0.5236}, {gamma: 0.5236}]\n")
+    robot = load_robot(tmp_path / "ur10e.yaml")
+    drawn = predict(robot, np.random.default_rng(0).uniform(*robot.pose_range(), (2000, robot.n_joints)))
+    assert (drawn.hit.all(axis=1) & (drawn.state.origin[:, 0] < 0)).any()   # beams on the screen from behind
+    state = predict(robot, candidate_poses(robot, 300, np.random.default_rng(1), 0.02)).state
+    assert (state.origin[:, 0] > 0).all() and (state.joint_origin[..., 0] > 0).all()

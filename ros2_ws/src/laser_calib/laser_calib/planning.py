@@ -37,7 +37,7 @@ import numpy as np
 from laser_calib.estimation.identifiability import analyse
 from laser_calib.estimation.lm import ProgressCallback
 from laser_calib.estimation.problem import pose_blocks
-from laser_calib.model.kinematics import predict
+from laser_calib.model.kinematics import predict, usable
 from laser_calib.measurement.base import NoiseModel, robot_scales, whiten
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
@@ -89,21 +89,20 @@ class Plan:
 
 def candidate_poses(robot: Robot, count: int, rng: np.random.Generator, margin: float,
                     max_tries: int = 200) -> np.ndarray:
-    """(count,N) readings uniform in the joint limits with both beams on the screen,
-    drawn at most DRAW_BLOCK at a time (bounded memory for large pools)."""
+    """(count,N) readings uniform in the joint limits that the arm can take with both beams on
+    the screen (kinematics.usable), drawn at most DRAW_BLOCK at a time (bounded memory for
+    large pools)."""
     chosen: list[np.ndarray] = []
     found = drawn = 0
     for _ in range(max_tries):
         q = rng.uniform(*robot.pose_range(), (min(max(2 * count, 256), DRAW_BLOCK), robot.n_joints))
         drawn += len(q)
-        p = predict(robot, q)
-        inside = ((np.abs(p.spots[..., 0]) <= robot.screen.half_y - margin)
-                  & (np.abs(p.spots[..., 1]) <= robot.screen.half_z - margin))
-        chosen.append(q[(p.hit & inside).all(axis=1)])
+        chosen.append(q[usable(robot, predict(robot, q), margin)])
         found += len(chosen[-1])
         if found >= count:
             return np.concatenate(chosen)[:count]
-    raise ValueError(f"found only {found} of {count} poses with both beams {margin} m inside the screen, in "
+    raise ValueError(f"found only {found} of {count} poses with both beams {margin} m inside the screen (the arm "
+                     f"on its side of it), in "
                      f"{drawn} drawn within the joint limits ({100 * found / drawn:.2g} % hit): ask for fewer "
                      "candidates, lower the margin, or check the joint limits and the screen")
 

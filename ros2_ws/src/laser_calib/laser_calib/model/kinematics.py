@@ -296,6 +296,22 @@ class Prediction:
     state: ChainState
 
 
+def usable(robot: Robot, prediction: Prediction, margin: float) -> np.ndarray:
+    """(P,) poses a plan can ask for: every beam on the screen at least ``margin`` m inside its
+    edge, and the arm on its own side of the screen. A beam meets the screen forward (k > 0)
+    from either side, but an arm cannot reach through it: a UR10e standing 1 m in front of the
+    screen was planned with its laser module 0.16 m behind it. The arm's side is that of its
+    first joint (an arm whose first joint lies in the screen's plane has none)."""
+    spots = prediction.spots
+    inside = (prediction.hit & (np.abs(spots[..., 0]) <= robot.screen.half_y - margin)
+              & (np.abs(spots[..., 1]) <= robot.screen.half_z - margin)).all(axis=1)
+    state = prediction.state
+    points = np.concatenate([state.joint_origin[..., 0], state.origin[:, None, 0]], axis=1)   # (P,N+1) x
+    first = np.argmax(np.isfinite(points), axis=1)            # NaN: a joint of another arm of a tree
+    side = np.nan_to_num(np.sign(points[np.arange(len(points)), first]))
+    return inside & ((side[:, None] * points > 0) | np.isnan(points) | (side[:, None] == 0)).all(axis=1)
+
+
 def predict(robot: Robot, q: np.ndarray, errors: np.ndarray | None = None, jacobian: bool = False) -> Prediction:
     q = np.atleast_2d(np.asarray(q, dtype=float))
     walk = _walk(robot, q, errors, 0, jacobian)

@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from laser_calib.model.kinematics import predict
+from laser_calib.model.kinematics import predict, usable
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import load_robot
 from laser_calib.io.samples import Samples
@@ -72,8 +72,8 @@ def sample_poses(robots: list[Robot], n: int, rng: np.random.Generator, span: st
                  margin: float = 0.02, max_tries: int = 200) -> np.ndarray:
     """n joint readings (n,N) uniform in the joint ranges (span 'whole') or within
     +-10 deg of zero (span 'small'; of its range's end nearest zero for a joint whose
-    range excludes zero), keeping only poses where both beams of every given robot
-    hit the screen at least ``margin`` m inside its edge."""
+    range excludes zero), keeping only poses every given robot can take (kinematics.usable:
+    both beams at least ``margin`` m inside the screen's edge, the arm on its side)."""
     robot = robots[0]
     low, high = robot.pose_range()
     if span == "small":
@@ -86,10 +86,7 @@ def sample_poses(robots: list[Robot], n: int, rng: np.random.Generator, span: st
         q = rng.uniform(low, high, (max(4 * n, 64), robot.n_joints))
         ok = np.ones(len(q), bool)
         for r in robots:
-            p = predict(r, q)
-            inside = ((np.abs(p.spots[..., 0]) <= r.screen.half_y - margin)
-                      & (np.abs(p.spots[..., 1]) <= r.screen.half_z - margin))
-            ok &= (p.hit & inside).all(axis=1)
+            ok &= usable(r, predict(r, q), margin)
         chosen.extend(q[ok])
         if len(chosen) >= n:
             return np.array(chosen[:n])
