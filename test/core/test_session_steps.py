@@ -82,6 +82,11 @@ def test_one_pose_list_writer_round_trips_with_test_poses(tmp_path):
     from laser_calib.io.errors import InputError
     with pytest.raises(InputError, match="line 2, field test: expected 0 or 1"):
         load_poses(tmp_path / "bad.csv", robot)
+    # a pose id given to another pose (ids renumbered by hand): measured, and said only by the estimate
+    renumbered = format_poses(fit.q[:5]).replace("\n4,", "\n2,")
+    (tmp_path / "renumbered.csv").write_text(renumbered)
+    with pytest.raises(InputError, match=r"renumbered.csv: pose 2: given 2 times with other joint positions \(q"):
+        load_poses(tmp_path / "renumbered.csv", robot)
 
 
 JOINTS = ["a", "b", "c"]

@@ -54,7 +54,22 @@ def load_poses(path: str | Path, robot: Robot) -> PoseSequence:
         raise InputError(str(path), "no poses")
     q = np.array(rows, dtype=float)
     check_joint_range(q, robot, str(path), np.array(ids), measured=False)
+    _check_repeats(np.array(ids, dtype=int), q, str(path))
     return PoseSequence(np.array(ids, dtype=int), q, np.array(test, dtype=bool) if test else None)
+
+
+def _check_repeats(ids: np.ndarray, q: np.ndarray, source: str) -> None:
+    """A pose id given twice is a repeat of that pose (its spread measures the noise), so its rows
+    must ask for the same joint positions: others were measured, and only the estimate's check of
+    repeated readings said so afterwards (a pose list's ids renumbered by hand)."""
+    values, counts = np.unique(ids, return_counts=True)
+    for pose in values[counts > 1]:
+        rows = q[ids == pose]
+        spread = np.ptp(rows, axis=0)
+        if spread.max() > 1e-9:
+            joint = int(np.argmax(spread))
+            raise InputError(f"{source}: pose {pose}", f"given {len(rows)} times with other joint positions (q{joint + 1} "
+                             f"{spread[joint]:.3g} apart): a pose id names one pose, its rows are repeats of it")
 
 
 def _check_row(values: Sequence, where: str, robot: Robot) -> list[float]:
