@@ -86,7 +86,7 @@ class SpotData:
         errors, dq = model.offsets(x)
         q = self.samples.q if dq is None else self.samples.q + dq
         beams = forward(self.robot, q, errors).beams
-        return spot_responses(res, noise, beams), spot_covariates(self.samples, beams)
+        return spot_responses(res, noise, beams), spot_covariates(self.samples, res.predicted, beams)
 
 
 def supports(base: RobotModel, effect: Effect) -> bool:

@@ -205,11 +205,15 @@ class Fitter:
                         # rcond as lstsq's default on the stacked training rows
                         rcond = np.finfo(float).eps * max(train_rows, len(columns))
                         system = np.vstack([factor[:, columns + [-1]], rows])
+                        if not np.isfinite(system).all():   # a shape over spots all in one place: no fit
+                            break
                         step = np.linalg.lstsq(system[:, :-1], system[:, -1], rcond=rcond)[0]
                         chi2 += held_sum(white[k], columns, step)
                         squared += held_sum(raw[k], columns, step)
-                    scores.append((variant, chi2 / max(n_values, 1), squared / max(n_units, 1)))
-                out.append(min(scores, key=lambda item: item[1]))
+                    else:
+                        scores.append((variant, chi2 / max(n_values, 1), squared / max(n_units, 1)))
+                if scores:   # else the data give this effect nothing to be fitted on
+                    out.append(min(scores, key=lambda item: item[1]))
         return sorted(out, key=lambda item: item[1])
 
     def _factors(self, model: EffectModel, x: np.ndarray) -> tuple[list, list, int, int, int]:

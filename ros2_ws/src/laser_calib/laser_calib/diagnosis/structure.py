@@ -7,8 +7,10 @@ robot model derives from it):
                 order, base.move_directions), torque_i (gravity torque,
                 joint.gravity_torques), stamp, every extra column, every
                 text column (labels: an operator, a fixture) as categories
-    spot level: spot_y, spot_z (measured), incidence (angle between beam and
-                screen normal, deg), laser
+    spot level: spot_y, spot_z (where the model puts the spot: the measured
+                position holds the residual's own noise, and one pose measured
+                40 times "followed spot_z" at p = 1e-26), incidence (angle
+                between beam and screen normal, deg), laser
 
 The pose level serves every measurement model (it needs only the readings and
 the Jacobians); the spot level is the laser data's measurement level, other
@@ -141,9 +143,9 @@ def pose_covariates(robot: Robot, samples: Readings) -> list[Series]:
     return out
 
 
-def spot_covariates(samples: Samples, beams: np.ndarray) -> list[Series]:
-    """The spot-level covariates; beams (P,L,3) of the model (incidence angle)."""
-    spots = samples.spots
+def spot_covariates(samples: Samples, predicted: np.ndarray, beams: np.ndarray) -> list[Series]:
+    """The spot-level covariates; predicted (P,L,2) spots and beams (P,L,3) of the model."""
+    spots = np.where(samples.seen[..., None], predicted, np.nan)
     out = [Series("spot_y", spots[..., 0], SPOT_LEVEL, "mm", 1e3),
            Series("spot_z", spots[..., 1], SPOT_LEVEL, "mm", 1e3)]
     with np.errstate(invalid="ignore"):
