@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from laser_calib.cli import main as cli
 from laser_calib.model.kinematics import predict
@@ -217,3 +218,23 @@ def test_a_plan_keeps_the_arm_on_its_side_of_the_screen(tmp_path):
     assert (drawn.hit.all(axis=1) & (drawn.state.origin[:, 0] < 0)).any()   # beams on the screen from behind
     state = predict(robot, candidate_poses(robot, 300, np.random.default_rng(1), 0.02)).state
     assert (state.origin[:, 0] > 0).all() and (state.joint_origin[..., 0] > 0).all()
+
+
+def test_a_plan_says_what_its_poses_determine_at_its_noise(tmp_path, capsys):
+    """By rank alone, a joint that barely moves (+-0.002 rad) 'determined' all 33 errors; estimate
+    and identify, at the same noise, held 4 of them (std beyond STD_FACTOR tolerance scales): the
+    plan now counts by their rule."""
+    robot = bundled_robot("paper-7dof")
+    limits = [dict(min=float(low), max=float(high)) for low, high in zip(*robot.pose_range())]
+    limits[3] = dict(min=-1.002, max=-0.998)
+    save_robot(robot, tmp_path / "robot.yaml")
+    text = (tmp_path / "robot.yaml").read_text()
+    data = yaml.safe_load(text)
+    for joint, bounds in zip(data["joints"], limits):
+        joint.update(bounds)
+    (tmp_path / "narrow.yaml").write_text(yaml.safe_dump(data))
+    assert cli.main(["plan", "--robot", str(tmp_path / "narrow.yaml"), "--n", "30", "--seed", "2",
+                     "--out", str(tmp_path / "poses.csv")]) == 0
+    printed = capsys.readouterr()
+    determined = int(printed.out.split("these poses determine ")[1].split()[0])
+    assert determined < 33 and "or wider joint ranges if a joint barely moves" in printed.err, printed

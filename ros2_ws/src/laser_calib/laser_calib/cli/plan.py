@@ -37,9 +37,11 @@ def cmd_plan(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {args.n} poses of {robot.name} (D-optimal, log det {result.log_det:.2f} over "
           f"{identifiable} identifiable errors; these poses determine {result.determined} of them)")
     if result.determined < identifiable:
+        remedy = (f"plan more poses (more than {identifiable // 4}: fewer give no more values than errors)"
+                  if 4 * args.n <= identifiable else "plan more poses, or wider joint ranges if a joint barely moves")
         print_warnings([f"{args.n} poses give {4 * args.n} values and determine {result.determined} of the "
-                        f"{identifiable} errors: a calibration from them would hold the others at nominal; plan "
-                        f"more poses (beyond {-(-identifiable // 4)}, which would fit them exactly, untested)"])
+                        f"{identifiable} errors at the noise given (estimate's rule): a calibration from them would "
+                        f"hold the others at nominal; {remedy}"])
     return 0
 
 
