@@ -21,7 +21,7 @@ from laser_calib.estimation.lm import LmOptions, levenberg_marquardt
 from laser_calib.estimation.problem import Problem, whitened_factor
 from laser_calib.measurement.base import NoiseModel, Residuals, whiten
 from laser_calib.measurement.spot import SpotModel
-from laser_calib.sim.simulation import NoiseSpec, paper_session
+from laser_calib.sim.simulation import NoiseSpec, measure, paper_session
 
 
 def _options(session, **kw):
@@ -208,6 +208,25 @@ def test_a_joint_sigma_far_above_what_the_residual_allows_is_said():
     assert len(said) == 1 and "far below the joint sigma given, 0.02 rad (1.15 deg" in said[0], said
     true = estimate(session.nominal, session.samples, EstimateOptions(joint_sigma=session.noise.joint_sigma))
     assert not [w for w in true.warnings if "the residual allows at most" in w], true.warnings
+
+
+def test_values_that_are_mostly_noise_are_said():
+    """Kept by the identifiability rule (std under STD_FACTOR tolerance scales) but beyond WEAK_FACTOR:
+    a joint moving +-0.01 rad wrote its neighbours' lengths with stds of 33-66 mm and no word (a new
+    user's probe). The paper's arm at its noise has none."""
+    session = paper_session("paper-7dof", 0)
+    given = EstimateOptions(spot_sigma=session.noise.spot_sigma, joint_sigma=session.noise.joint_sigma)
+    assert not [w for w in estimate(session.nominal, session.samples, given).warnings if "weakly" in w]
+    narrow = session.samples.q.copy()
+    narrow[:, 3] = -1.0 + 0.01 * np.sin(np.arange(len(narrow)))     # joint 4 barely moves
+    samples, _ = measure(session.true, narrow, np.random.default_rng(1),
+                         NoiseSpec(spot=session.noise.spot_sigma, joint=session.noise.joint_sigma))
+    est = estimate(session.nominal, samples, given)
+    [line] = [w for w in est.warnings if w.startswith("weakly determined: ")]
+    named = re.findall(r"(\w+) \(std (\S+) tolerance scales\)", line)
+    scales = dict(zip(est.names, est.fit.std / SpotModel(session.nominal, samples).scales))
+    assert named and all(3 < float(ratio) <= 10 and abs(scales[name] - float(ratio)) < 0.05 * float(ratio)
+                         for name, ratio in named), line
 
 
 def test_robust_rejects_a_wrong_detection():

@@ -54,7 +54,8 @@ from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.failures import (NOT_CONVERGED, NoSpotToFit, beyond_data, first_failure, fit_failures,
                                              implausible)
 from laser_calib.estimation.folds import still_joint_warnings
-from laser_calib.estimation.identifiability import AMPLIFY, STD_FACTOR, Identifiability, TooFewValues, analyse, check_fixed
+from laser_calib.estimation.identifiability import (AMPLIFY, STD_FACTOR, Identifiability, TooFewValues, analyse,
+                                                   check_fixed, weak_warnings)
 from laser_calib.estimation.impossible import impossible_spots, judged_again
 from laser_calib.estimation.lm import LmOptions, levenberg_marquardt, restarted, suspect
 from laser_calib.estimation.problem import (Fit, Problem, downdated, factor_and_residuals, n_poses, rescaled,
@@ -376,6 +377,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     sound = not sigma_estimated or (not exact and not noise_doubts)
     warnings.extend(implausible(names, result.x, model.scales, own, getattr(getattr(model, "robot", None),
                                 "param_names", ()), *((result.std, ident.carry) if sound else (None, None))))
+    warnings.extend(weak_warnings(names, result.std, model.scales, own) if sound and prior_sigma is None else [])
     if getattr(model, "robot", None) is not None and getattr(model, "samples", None) is not None:
         warnings.extend(still_joint_warnings(model.samples.q, model.robot.joint_names))
     if not result.converged:

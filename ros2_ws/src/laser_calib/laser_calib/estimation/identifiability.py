@@ -77,6 +77,10 @@ SLIVER = 1e-3
 # 7-DOF theta7 - slm_rz, has 2-4 tolerances) and holds what a joint that never
 # moves leaves (hundreds of tolerances).
 STD_FACTOR = 10.0
+# Kept, but with a standard deviation beyond WEAK_FACTOR tolerance scales, a value is said to be
+# mostly noise (two axes 0.05 rad from parallel wrote d3 and d4 93 and 96 mm off, std 52 mm, without
+# a word); the paper's arms' largest stds are 1.2-1.8 scales at their noise.
+WEAK_FACTOR = 3.0
 # A column within 0.01 rad (0.6 deg) of the kept columns' span is a near-duplicate
 # (module docstring). A description's rounding leaves 1.6e-3 (3.14 for pi) and less;
 # the smallest a real direction of the paper's arms shows is 0.006 (slm_rz, their
@@ -317,3 +321,16 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     return Identifiability(tuple(names), singular, len(kept), condition, free, tuple(combinations), merged,
                            float(threshold), carriers,
                            int(np.count_nonzero((singular > numerical) & (singular <= threshold))), carry)
+
+
+def weak_warnings(names: tuple[str, ...], std: np.ndarray, scales: np.ndarray, own: np.ndarray) -> list[str]:
+    """One line naming the kept values among ``own`` (n,) whose std (n,) exceeds WEAK_FACTOR times
+    their tolerance scale (n,), largest first."""
+    ratio = np.where(own & np.isfinite(std), std / scales, 0.0)
+    weak = [int(i) for i in np.argsort(-ratio) if ratio[i] > WEAK_FACTOR]
+    if not weak:
+        return []
+    listed = ", ".join(f"{names[i]} (std {ratio[i]:.2g} tolerance scales)" for i in weak[:5])
+    more = f" and {len(weak) - 5} more" if len(weak) > 5 else ""
+    return [f"weakly determined: {listed}{more}: each value is mostly noise (a tolerance scale is 10 mm or 1 deg); "
+            "more poses, wider joint motion or less noise determine them better"]
