@@ -270,6 +270,17 @@ def test_fixed_parameters_stay_nominal_and_are_reported_without_value():
         assert est.values[names.index(name)] == 0.0
 
 
+def test_a_parameter_held_by_fix_is_carried_by_those_it_cannot_be_told_from():
+    """The 4-DOF arm sees only d1 + d2: with d1 held by --fix, d2 is kept and its value is the sum.
+    It was written with no note (a UR10e's wrist_3_joint.rz after --fix wrist_3_joint.offset, a new
+    user's probe); it now carries d1's combination, as a kept value carries a merged one's."""
+    session = paper_session("paper-4dof", 0)
+    est = estimate(session.nominal, session.samples, _options(session, fixed=("d1",)))
+    assert est.identifiable[list(est.names).index("d2")]
+    assert est.identifiability.carried["d2"] == ("d1",)
+    assert est.identifiability.carry[list(est.names).index("d2")] > 0
+
+
 def test_normal_equations_by_blocks_equal_the_stacked_jacobian():
     """Blocks of 7 poses sum to the normal equations of the whole stack, and the
     QR factor has the stacked Jacobian's singular values."""

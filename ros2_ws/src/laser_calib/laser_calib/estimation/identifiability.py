@@ -316,6 +316,15 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
         merged[names[j]] = ("not separable from " + ", ".join(partners) + "; fixed at nominal, "
                             "those parameters carry the combination") if partners else \
             "not determined by the data; fixed at nominal"
+    # A parameter the user holds that the kept ones could not be told from is carried by them too: with
+    # wrist_3_joint.offset held by --fix, wrist_3_joint.rz was written with no note, and its value was the sum.
+    for j in np.flatnonzero(fixed):
+        if kept and np.linalg.svd(r_factor[:, kept + [j]], compute_uv=False)[-1] <= threshold:
+            direction = np.zeros(n)
+            direction[kept] = -np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0]
+            carry[kept] += np.abs(direction[kept])
+            weight = np.abs(direction) / max(np.abs(direction).max(), 1.0)
+            carriers[names[j]] = tuple(names[i] for i in kept if weight[i] > TERM_THRESHOLD)
     kept_singular = np.linalg.svd(r_factor[:, kept], compute_uv=False) if kept else np.zeros(0)
     condition = float(kept_singular[0] / kept_singular[-1]) if kept else float("inf")
     return Identifiability(tuple(names), singular, len(kept), condition, free, tuple(combinations), merged,
