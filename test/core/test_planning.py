@@ -238,3 +238,18 @@ def test_a_plan_says_what_its_poses_determine_at_its_noise(tmp_path, capsys):
     printed = capsys.readouterr()
     determined = int(printed.out.split("these poses determine ")[1].split()[0])
     assert determined < 33 and "or wider joint ranges if a joint barely moves" in printed.err, printed
+
+
+def test_a_plan_too_small_to_estimate_the_noise_says_so(tmp_path, capsys):
+    """5 poses of the 4-DOF arm give 20 values for 19 errors: the plan said nothing, and estimate
+    then refused the data (NOT A CALIBRATION: the sigma from 1 residual degree of freedom)."""
+    robot_file = tmp_path / "robot.yaml"
+    save_robot(bundled_robot("paper-4dof"), robot_file)
+    said = {}
+    for n in (5, 7):
+        assert cli.main(["plan", "--robot", str(robot_file), "--n", str(n), "--seed", "1",
+                         "--out", str(tmp_path / f"poses{n}.csv")]) == 0
+        said[n] = capsys.readouterr().err
+    assert ("rests on 1 spare values" in said[5] and "from 1 or 2 spare values it is no calibration; plan at "
+            "least 7 poses, or give the noise" in said[5]), said[5]
+    assert "spare values" not in said[7], said[7]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from laser_calib.cli.arguments import (non_negative, non_negative_int, out_file, positive_int, print_warnings,
                                       sigma_angle, spot_sigma)
+from laser_calib.estimation.redundancy import NO_VARIANCE_DOF, NOISE_RATIO, sigma_upper
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
 from laser_calib.planning import PlanOptions, plan
@@ -36,6 +37,13 @@ def cmd_plan(args: argparse.Namespace) -> int:
     identifiable = int(result.free.sum())
     print(f"wrote {args.out}: {args.n} poses of {robot.name} (D-optimal, log det {result.log_det:.2f} over "
           f"{identifiable} identifiable errors; these poses determine {result.determined} of them)")
+    spare = 4 * args.n - result.determined   # the residual values an estimate with the noise unknown rests on
+    if result.determined == identifiable and sigma_upper(max(spare, 1)) > NOISE_RATIO:
+        print_warnings([f"{args.n} poses give {4 * args.n} values for {identifiable} errors: an estimate that "
+                        f"takes the noise from the residual rests on {spare} spare values, and its noise (so every "
+                        f"standard deviation) may be {sigma_upper(max(spare, 1)):.2g} times larger (95 %)"
+                        + ("; from 1 or 2 spare values it is no calibration" if spare <= NO_VARIANCE_DOF else "")
+                        + f"; plan at least {-(-(identifiable + 8) // 4)} poses, or give the noise"])
     if result.determined < identifiable:
         remedy = (f"plan more poses (more than {identifiable // 4}: fewer give no more values than errors)"
                   if 4 * args.n <= identifiable else "plan more poses, or wider joint ranges if a joint barely moves")
