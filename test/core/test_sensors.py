@@ -349,9 +349,15 @@ def test_quaternions_written_in_xyzw_order_are_one_line_naming_the_columns(tmp_p
         assert np.allclose(load_sensor_samples(tmp_path / "good.csv", robot).quaternion, samples.quaternion)
         swapped = replace(samples, quaternion=samples.quaternion[:, [1, 2, 3, 0]])
         save_sensor_samples(swapped, tmp_path / "xyzw.csv")
-        with pytest.raises(InputError, match=r"xyzw\.csv: fields qw,qx,qy,qz: the orientations fit the arm only read in "
-                                             r"x,y,z,w order \(median rotation error [0-9.]+ deg as written"):
+        with pytest.raises(InputError, match=r"xyzw\.csv: fields qw,qx,qy,qz: the orientations fit the arm only read "
+                                             r"otherwise \(median rotation error [0-9.]+ deg as written, .* read in "
+                                             r"x,y,z,w order .* or as the inverse rotations \(JPL's convention; negate "
+                                             r"qx, qy, qz\).*: the orientations alone cannot tell these apart"):
             load_sensor_samples(tmp_path / "xyzw.csv", robot)
+        # JPL's quaternions (Hamilton's conjugate) were advised to be reordered, and then failed
+        save_sensor_samples(replace(samples, quaternion=samples.quaternion * [1, -1, -1, -1]), tmp_path / "jpl.csv")
+        with pytest.raises(InputError, match=r"jpl\.csv: .* as the inverse rotations \(JPL's convention"):
+            load_sensor_samples(tmp_path / "jpl.csv", robot)
 
 
 def test_a_calibration_worse_than_the_robot_as_designed_on_held_out_poses_is_warned(tmp_path, capsys):
