@@ -63,14 +63,14 @@ def upper_joint_sigma(res: Residuals, jac: np.ndarray, joint: float) -> tuple[fl
     if high[2] - lowest < RISE:
         return high[0], high[1]
     low = max(joint, 1e-7)
-    for _ in range(40):  # the bound to 1e-5 of itself
+    for _ in range(40):  # the bound to 1 % of itself: it is said, not used
         middle = float(np.sqrt(low * high[0]))
         rise, spot = profile(middle)
         if rise - lowest < RISE:
             low = middle
         else:
             high = (middle, spot, rise)
-        if high[0] / low < 1 + 1e-5:
+        if high[0] / low < 1.01:
             break
     return high[0], high[1]
 
