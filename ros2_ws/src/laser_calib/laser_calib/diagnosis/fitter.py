@@ -62,7 +62,7 @@ class Fitter:
         # measured so); gross outliers are the estimate's to reject first.
         self.fit_options = EstimateOptions(method=options.method, spot_sigma=options.spot_sigma,
                                            joint_sigma=options.joint_sigma or 0.0, restarts=options.restarts,
-                                           seed=options.seed, fixed=data.fixed, robust=False)
+                                           seed=options.seed, fixed=data.fixed, robust=False, noise_checks=False)
         self.fold = kfold_labels(len(data.samples.q), options.folds, options.seed)
         self.reference = NoiseModel(options.spot_sigma or 1.0, options.joint_sigma or 0.0)
         self.merged: dict[str, str] = {}
@@ -105,7 +105,7 @@ class Fitter:
         of the reference noise model, as every other stage's."""
         source = self.fit_options.spot_sigma_source if self.options.spot_sigma is not None else FINAL_SIGMA
         options = replace(self.fit_options, spot_sigma=spot_sigma, joint_sigma=joint_sigma, spot_sigma_source=source,
-                          restarts=0)
+                          restarts=0, noise_checks=self.options.joint_sigma is not None)   # the final fit: a given sigma judged
         return replace(fitted, estimate=warm_estimate(fitted.model, options, fitted.estimate.values))
 
     def on(self, data: Data, stage: str) -> "Fitter":

@@ -178,14 +178,14 @@ class Diagnosis:
         return (*self.final.estimate.undetermined, *held)
 
     def held_warnings(self) -> list[str]:
-        """estimate's line for the robot's errors held as merged: the console and report.md said
-        nothing of them (only diagnosis.json and the robot file's header did)."""
+        """One line for the robot's errors held as merged: the console and report.md said nothing of
+        them (only diagnosis.json and the robot file's header did)."""
         held = [name for name in self.robot.param_names if name in self.merged]
         if not held:
             return []
         total = len(self.robot.param_names)
-        return [f"rank deficient: the data determine {total - len(held)} of {total} parameters; held at nominal, "
-                f"reported as combinations: {', '.join(held)}"]
+        return [f"not separable: the data determine {total - len(held)} of the {total} geometric errors; held at "
+                f"nominal before every fit, reported as combinations: {', '.join(held)}"]
 
     def calibrated_robot(self) -> Robot:
         """The robot with the geometric corrections and the ``effects:`` key
@@ -217,10 +217,10 @@ class Diagnosis:
             "verdict": self.verdict,
             "evidence": self.evidence,
             "failure": self.failure,
-            # the robot's errors the data cannot separate (held before every fit, so no fit says so), the
-            # final fit's own warnings (implausible values, ...), as `estimate` gives them, then the
-            # diagnosis's (a test set the effects make worse)
-            "warnings": self.held_warnings() + list(self.final.estimate.warnings) + list(self.warnings),
+            # the final fit's own warnings (held parameters, implausible values, ...), as `estimate` gives
+            # them, the robot's errors the data cannot separate (held before every fit, so no fit says so),
+            # then the diagnosis's (a test set the effects make worse)
+            "warnings": list(self.final.estimate.warnings) + self.held_warnings() + list(self.warnings),
             "noise": {"spot_sigma_m": self.noise.spot_sigma, "spot_sigma_source": self.noise.spot_source,
                       "joint_sigma_rad": self.noise.joint_sigma, "joint_sigma_source": self.noise.joint_source,
                       "repeated_pose_dof": self.noise.repeat_dof,

@@ -92,7 +92,9 @@ class EstimateOptions:
     parameter names held at nominal; restarts of LM when the minimum is suspect;
     std_factor: the identifiability threshold (identifiability.py), None for
     the numerical rank only; amplify: a combination's carrier moved by more than
-    this is held instead (identifiability.AMPLIFY), None to hold in the model's order."""
+    this is held instead (identifiability.AMPLIFY), None to hold in the model's order;
+    noise_checks: the residual's judgement of the joint-reading noise (joint_noise_bound),
+    warnings only, which the diagnosis's hundreds of fold and candidate fits skip."""
 
     method: str = "lm"
     spot_sigma: float | None = None
@@ -107,6 +109,7 @@ class EstimateOptions:
     seed: int = 0
     std_factor: float | None = STD_FACTOR
     amplify: float | None = AMPLIFY
+    noise_checks: bool = True
     lm: LmOptions = LmOptions()
     ekf: EkfOptions = EkfOptions()
 
@@ -366,10 +369,10 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         warnings.append(f"noise: the residual is {sigma * 1e3:.3g} mm per value: the data are fitted exactly "
                         "(repeated poses?), so they test nothing and the standard deviations mean nothing")
     warnings.extend(noise_doubts)
-    if unseen_joint is not None and prior_sigma is None and not exact and not noise_doubts:
+    if unseen_joint is not None and options.noise_checks and prior_sigma is None and not exact and not noise_doubts:
         warnings.extend(joint_noise_bound.hidden_warnings(joint_noise_bound.hidden(model, result, excluded, unseen_joint),
                                                           names))
-    if options.joint_sigma:   # given
+    if options.joint_sigma and options.noise_checks:   # given
         warnings.extend(joint_noise_bound.given_warnings(model, result, excluded, options.joint_sigma))
     # frames are guesses, not drawings: only the robot's own errors have a tolerance
     own = free & np.array([not is_frame_param(name) for name in names])
