@@ -327,11 +327,11 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
             node = make_node()
             warn_undeclared(node)
             executor.add_node(node)
-            # Spun in steps that look at the stop flag: a stop that landed inside rclpy is left to its
-            # handler, which shuts the context and wakes the wait; once on CI it did not, and the
-            # spot_detector waited in the executor until its watchdog's 15 s (exit 1, a launch failed).
-            while rclpy.ok() and not stop.stopped and not (until is not None and until(node)):
-                executor.spin_once(timeout_sec=0.1)
+            if until is None:
+                executor.spin()
+            else:
+                while rclpy.ok() and not until(node):
+                    executor.spin_once(timeout_sec=0.1)
             code = getattr(node, "exit_code", 0)
         except (KeyboardInterrupt, ExternalShutdownException):
             code = 0
