@@ -4,7 +4,8 @@ middleware teardown that hangs after the cleanup ends with the node's code, even
 call that holds the GIL; a slow cleanup (saving what was measured) is never cut; a stop
 signal whose handler runs while the error it caused is handled still exits 0; a Ctrl-C
 while a node is still importing, or while rclpy initialises, exits 0, and one at any moment of
-a node executable's start prints nothing."""
+a node executable's start prints nothing; one that wakes the executor before rclpy has shut the
+context still ends the spin."""
 
 from __future__ import annotations
 
@@ -214,6 +215,65 @@ def test_a_ctrl_c_inside_rclpys_task_handling_exits_0_without_a_traceback(method
     assert "Exception ignored" not in result.stderr and not result.stdout, result
     assert time.monotonic() - started < 10, "the stop waited for the exit watchdog"
 
+
+
+# rcl_shutdown delayed 0.3 s (an LD_PRELOAD shim): rclpy's signal thread triggers the executors' guard
+# conditions first and shuts the contexts after, and this widens the instant between the two.
+SLOW_SHUTDOWN = r"""
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <unistd.h>
+typedef int (*shutdown_fn)(void *);
+int rcl_shutdown(void *context) {
+  static shutdown_fn real;
+  if (!real) {
+    void *rcl = dlopen("librcl.so", RTLD_NOW | RTLD_NOLOAD);
+    real = (shutdown_fn)dlsym(rcl ? rcl : RTLD_NEXT, "rcl_shutdown");
+  }
+  usleep(300000);
+  return real(context);
+}
+"""
+
+# A node with nothing periodic: its executor sleeps until something wakes it, as an idle detector's
+# or estimator's does at the end of a session.
+IDLE = """
+import sys
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from laser_calib_nodes import common
+
+class Idle(Node):
+    def __init__(self):
+        super().__init__("idle")
+        print("spinning", flush=True)
+
+sys.exit(common.run(Idle, make_executor=MultiThreadedExecutor if sys.argv[1] == "multi" else None))
+"""
+
+
+@pytest.mark.parametrize("executor", ["single", "multi"])
+def test_a_ctrl_c_that_wakes_the_executor_before_the_context_is_shut_still_ends_the_spin(tmp_path, executor):
+    """The executor woke on rclpy's guard condition, found its context still valid and waited again;
+    the shutdown that came next woke nothing: an idle spot_detector, then an estimator, waited until
+    the watchdog's 15 s (exit 1, their stacks in rclpy's wait), and CI's launch of a session failed."""
+    from ros_harness import workspace_env
+    shim = tmp_path / "slow_shutdown.so"
+    (tmp_path / "slow_shutdown.c").write_text(SLOW_SHUTDOWN)
+    subprocess.run(["gcc", "-shared", "-fPIC", "-o", str(shim), str(tmp_path / "slow_shutdown.c"), "-ldl"],
+                   check=True, capture_output=True)
+    env = workspace_env()
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env["LD_PRELOAD"] = str(shim)
+    node = subprocess.Popen([sys.executable, "-c", IDLE, executor], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    assert node.stdout.readline() == "spinning\n", node.communicate(timeout=60)
+    time.sleep(0.5)  # in the executor's wait
+    started = time.monotonic()
+    node.send_signal(signal.SIGINT)
+    out, err = node.communicate(timeout=60)
+    assert node.returncode == 0 and "did not exit" not in err and "Traceback" not in err, err
+    assert time.monotonic() - started < 10, "the stop waited for the exit watchdog"
 
 
 # SIGTERM (launch's escalation: rclpy's handler shuts the context, ours raises nothing) while the node

@@ -316,6 +316,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         print(f"error: {rcl_error_line(exc)}", file=sys.stderr, flush=True)
         return 2
     executor = _executor = make_executor() if make_executor else SingleThreadedExecutor()
+    watchdog.watch_executor(executor)
     install_signal_handlers(SignalHandlerOptions.ALL)
     initialising = False
     node = None
@@ -379,6 +380,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
         watchdog.cleanup_done(code)
         if node is not None:
             node.destroy_node()
+        watchdog.watch_executor(None)
         executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
     return code

@@ -18,7 +18,10 @@ expiry runs _exit(code) on a thread of its own (timer_create with SIGEV_THREAD) 
 process with the node's code; neither needs the GIL.
 
 A Ctrl-C's KeyboardInterrupt is raised where the main thread happens to be when its Python
-handler runs; interruptible() tells whether that place can take it (see there).
+handler runs; interruptible() tells whether that place can take it (see there). Where it cannot,
+the spin ends because rclpy's signal thread shuts the context; that thread wakes the executors
+first and shuts the contexts after, and the shutdown wakes nobody, so the watchdog's first step is
+to wake the executor once the context is shut (see _wake_once_shut).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import time
 
 GRACE = 15.0  # s: ten times what the nodes need to exit on two loaded cores
 BACKSTOP = 1.0  # s after GRACE: the native backstops, when the watchdog thread could not run
+WAKE_POLL = 0.005  # s between two looks at the context after a stop: rclpy shuts it microseconds after the wake
 
 
 OWN_PACKAGES = ("laser_calib", "laser_calib_nodes")
@@ -127,6 +131,13 @@ class ExitWatchdog:
         self.closing = threading.Event()
         self.closed = threading.Event()
         self._armed = False
+        self._executor = None  # the spinning one, woken once the stop has shut its context
+        self._executor_lock = threading.Lock()  # held while it is woken, so that it is not shut down then
+
+    def watch_executor(self, executor) -> None:
+        """The executor the node spins in (None once its cleanup shuts it down)."""
+        with self._executor_lock:
+            self._executor = executor
 
     def arm(self) -> None:
         """Start the countdown (once; later calls keep the first deadline). Called from a
@@ -146,8 +157,26 @@ class ExitWatchdog:
         faulthandler.dump_traceback_later(self.grace + BACKSTOP, file=sys.stderr)
         exit_later(self.grace + BACKSTOP + 0.1, code)  # after the stacks are written
 
+    def _wake_once_shut(self, deadline: float) -> None:
+        """Wake the executor once the stop has shut its context. rclpy's signal thread triggers the
+        executors' guard conditions and only then shuts the contexts (rcl_shutdown, which wakes no
+        wait set): an executor that woke between the two found its context still valid and waited
+        again, with nothing left to wake it (an idle spot_detector, then an estimator, at the end of
+        CI's launched sessions, ended by this watchdog after 15 s; every time with rcl_shutdown
+        delayed 0.3 s). rclpy's own Context.shutdown wakes them; the signal's path does not."""
+        executor = self._executor
+        if executor is None:
+            return
+        while executor.context.ok() and not self.closing.is_set() and time.monotonic() < deadline:
+            time.sleep(WAKE_POLL)
+        with self._executor_lock:
+            if self._executor is not None and not self.closing.is_set():
+                self._executor.wake()
+
     def _watch(self) -> None:
-        if not self.closed.wait(self.grace):
+        deadline = time.monotonic() + self.grace
+        self._wake_once_shut(deadline)
+        if not self.closed.wait(max(0.0, deadline - time.monotonic())):
             if not self.closing.is_set():
                 print(f"error: {self.name} did not exit within {self.grace:g} s of the stop signal; its threads:",
                       file=sys.stderr, flush=True)
