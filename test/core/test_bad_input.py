@@ -269,6 +269,9 @@ CASES = {
                                                          str(d / "p.csv"), "--joint-sigma", "inf"], "--joint-sigma"),
     "simulate --poses-per-span 0": (lambda d: ["simulate", "--case", "paper-4dof", "--out", str(d / "s"),
                                                "--poses-per-span", "0"], "--poses-per-span"),
+    # case 2's calibration set, half of each span, was empty: a header-only case2_cal.csv, exit 0
+    "simulate --poses-per-span 1": (lambda d: ["simulate", "--case", "paper-4dof", "--out", str(d / "s"),
+                                               "--poses-per-span", "1"], "at least 2"),
     # said before replay's need of ROS (not sourced here), which a user would otherwise fix first
     "replay a missing bag": (lambda d: ["replay", str(d / "nobag")], "nobag: no such bag"),
     "replay at rate 0": (lambda d: ["replay", str(d / "nobag"), "--rate", "0"], "--rate: expected a positive number"),

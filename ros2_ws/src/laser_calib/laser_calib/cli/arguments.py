@@ -128,6 +128,12 @@ def positive_int(text: str) -> int:
     return _integer(text, 1)
 
 
+def span_poses(text: str) -> int:
+    """Poses in each span of a simulated session: at least 2 (case 2 calibrates on half of each span and
+    tests on the other half; with 1 its calibration set was empty, written as a header alone)."""
+    return _integer(text, 2)
+
+
 def fold_count(text: str) -> int:
     """Cross-validation folds: at least 2 (one fold leaves nothing to train on)."""
     return _integer(text, 2)

@@ -42,8 +42,9 @@ from laser_calib.cli import vision as vision_cli
 from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, OneLineParser, add_replay_arguments,
                                       noise_angle_deg, noise_length, non_negative_int, no_spot_to_fit, out_file,
-                                      out_folder, positive, positive_int, print_warnings, readable_file, replay_argv,
-                                      require_measured, sigma_angle, spot_sigma, staged_folder, tolerance_length)
+                                      out_folder, positive, print_warnings, readable_file, replay_argv,
+                                      require_measured, sigma_angle, span_poses, spot_sigma, staged_folder,
+                                      tolerance_length)
 
 EXIT_BAD_INPUT = 2
 # The reader of the output went away (| head): the status a shell gives a program SIGPIPE ends (128 + 13).
@@ -219,8 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "--poses-per-span)")
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--out", required=True, type=out_folder)
-    p.add_argument("--poses-per-span", type=positive_int, default=None,
-                   help="poses in each of the small-range and whole-workspace sets (paper: 30 / 25)")
+    p.add_argument("--poses-per-span", type=span_poses, default=None,
+                   help="poses in each of the small-range and whole-workspace sets, at least 2 (paper: 30 / 25)")
     p.add_argument("--spot-noise", type=noise_length, default=0.002,
                    help=f"half-width of uniform spot noise, m (0 .. {SIGMA_LENGTH[1]:g})")
     p.add_argument("--joint-noise-deg", type=noise_angle_deg, default=0.1,
