@@ -65,6 +65,7 @@ MATERN_ORDER = 2    # the Matern surface's null space: the plane (its constant r
 SURFACES = tuple((order, None) for order in ORDERS) + tuple((MATERN_ORDER, length) for length in LENGTHS)
 MAX_KNOTS = 60     # knots spread over the spots (farthest-point subsample)
 MODES = 30         # smoothest eigenfunctions kept; rougher ones carry nothing a prior would let through
+MODE_FLOOR = 1e-10  # eigenvalues below this fraction of the largest are the eigensolver's rounding
 # rho (m) the screening tries (Effect.variants): from a surface barely off its polynomial to bends of
 # millimetres, a factor of about 2 apart (the held-out error changes little within that).
 SMOOTHINGS = tuple(float(v) * 1e-3 for v in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0))
@@ -155,8 +156,11 @@ class ScreenSpline(BoxSurface):
         gram, _ = kernel(((self.knots[:, None] - self.knots[None]) ** 2).sum(axis=-1), order, length)
         eigenvalues, vectors = np.linalg.eigh(z.T @ gram @ z)
         # The largest eigenvalues are the smoothest modes: their values (E Z U = Z U D plus a
-        # polynomial) are large for their energy (Wood 2003).
+        # polynomial) are large for their energy (Wood 2003). Those at the eigensolver's rounding of the
+        # largest are no modes: with knots nearly coincident (one pose measured again and again) one
+        # came out -4e-16 of 1e-6, and its prior sqrt(min / bending) was NaN.
         keep = np.argsort(-eigenvalues)[:MODES]
+        keep = keep[eigenvalues[keep] > MODE_FLOOR * eigenvalues[keep[0]]]
         modes = z @ vectors[:, keep]
         values = gram @ modes
         tails = -np.linalg.lstsq(null, values, rcond=None)[0]
