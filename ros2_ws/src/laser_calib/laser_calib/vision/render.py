@@ -248,7 +248,7 @@ def _expose(scene: np.ndarray, rng: np.random.Generator, options: RenderOptions)
     sigma = np.maximum(scene, 0.0)
     sigma /= gain
     sigma += (options.read_noise_e / gain) ** 2
-    raw = rng.standard_normal(scene.shape, dtype=np.float32).astype(scene.dtype)  # exact: in the scene's precision
+    raw = rng.standard_normal(scene.shape, dtype=np.float32).astype(scene.dtype, copy=False)  # in its precision
     raw *= np.sqrt(sigma, out=sigma)
     raw += scene
     raw = np.clip(np.rint(raw, out=raw), 0, 255, out=raw).astype(np.uint8)
