@@ -228,6 +228,12 @@ def test_ros2_run_service_param_and_topics(tmp_path):
         refused = ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "0.0", *spin)
         assert "expected > 0" in refused.stdout + refused.stderr, refused
         assert "30" in ros2(ros, "param", "get", "/spot_detector", "min_peak_dn", *spin).stdout
+        # what a value must be, as `param describe` says it (it said the description alone)
+        described = ros2(ros, "param", "describe", "/spot_detector", "min_peak_dn", "false_refusal_rate", *spin)
+        assert "Additional constraints: > 0\n" in described.stdout, described
+        assert "Additional constraints: 0 < value < 1\n" in described.stdout, described
+        described = ros2(ros, "param", "describe", "/estimator", "spot_sigma", *spin)
+        assert "Additional constraints: 0 (estimated) or 1e-09 .. 0.05 m" in described.stdout, described
         spots = ["topic", "echo", "--once", "/spots", "laser_calib_interfaces/msg/SpotPair"]
         seen = ros2(ros, *spots, timeout=60)
         assert seen.returncode == 0 and seen.stdout.count("seen: true") == 2, seen

@@ -51,20 +51,23 @@ class ArmDriver(Node):
                         "Joint names, base to tip (default joint1..jointN; a URDF arm's: its joints').",
                         type_=Parameter.Type.STRING_ARRAY)
         self.joint_names = RobotJoints(self.robot, names, "parameter joint_names").names  # checked: one per joint
-        rate = parameters.checked("rate", declare("rate", 50.0, "Joint state publishing rate, Hz."), parameters.positive)
+        rate = declare("rate", 50.0, "Joint state publishing rate, Hz.", rule=parameters.positive)
 
         # simulation
         true_path = declare("sim.true_robot", "", "Sim: true robot model file; empty: nominal + sim.errors.")
         errors_kind = declare("sim.errors", "paper",
                               "Sim: true errors when sim.true_robot is empty: 'paper' (+10 mm, +1 deg on every "
                               "parameter) or 'random' (uniform within those sizes, seeded).")
-        seed = declare("sim.seed", 0, "Sim: random seed (errors, joint disturbance, reading noise).")
-        speed = declare("sim.joint_speed", 1.0, "Sim: maximum joint speed, rad/s.")
-        tau = declare("sim.time_constant", 0.05, "Sim: settling time constant near the goal, s.")
+        seed = declare("sim.seed", 0, "Sim: random seed (errors, joint disturbance, reading noise).",
+                       rule=parameters.non_negative)  # numpy's seeds are >= 0
+        speed = declare("sim.joint_speed", 1.0, "Sim: maximum joint speed, rad/s.", rule=parameters.positive)
+        tau = declare("sim.time_constant", 0.05, "Sim: settling time constant near the goal, s.",
+                      rule=parameters.positive)
         disturbance = declare("sim.joint_disturbance", float(NoiseSpec().joint),
                               "Sim: half-width of the uniform joint disturbance drawn per goal, rad "
-                              "(the paper's 0.1 deg).")
-        read_noise = declare("sim.read_noise", 0.0, "Sim: joint reading noise, rad (one sigma).")
+                              "(the paper's 0.1 deg).", rule=parameters.non_negative)
+        read_noise = declare("sim.read_noise", 0.0, "Sim: joint reading noise, rad (one sigma).",
+                             rule=parameters.non_negative)
         true_out = declare("sim.true_robot_out", "", "Sim: write the true robot model to this file (for evaluation).")
 
         # dynamixel
@@ -88,12 +91,6 @@ class ArmDriver(Node):
 
         self.sim: SimArm | None = None
         if backend == "sim":
-            for name, value, check in (("sim.seed", seed, parameters.non_negative),  # numpy's seeds are >= 0
-                                       ("sim.joint_speed", speed, parameters.positive),
-                                       ("sim.time_constant", tau, parameters.positive),
-                                       ("sim.joint_disturbance", disturbance, parameters.non_negative),
-                                       ("sim.read_noise", read_noise, parameters.non_negative)):
-                parameters.checked(name, value, check)
             rng = np.random.default_rng(seed)
             if true_path:
                 true_robot = load_robot(true_path)

@@ -41,12 +41,12 @@ def camera_info(camera: CameraModel, stamp, frame_id: str = CAMERA_FRAME) -> Cam
 class CameraSim(Node):
     def __init__(self):
         super().__init__("camera_sim")
-        rate = parameters.declare(self, "rate", 10.0, "Frame rate, Hz.")
-        seed = parameters.declare(self, "seed", 1, "Random seed of the image noise (speckle, shot and read noise).")
-        spot_sigma = parameters.declare(self, "spot_sigma", 0.002, "Gaussian sigma of a laser spot on the screen, m.")
-        for name, value, check in (("rate", rate, parameters.positive), ("seed", seed, parameters.non_negative),
-                                   ("spot_sigma", spot_sigma, parameters.positive)):
-            parameters.checked(name, value, check)  # a 0 sigma renders no spot, a negative seed is numpy's traceback
+        rate = parameters.declare(self, "rate", 10.0, "Frame rate, Hz.", rule=parameters.positive)
+        # a negative seed was numpy's traceback, a 0 sigma rendered no spot
+        seed = parameters.declare(self, "seed", 1, "Random seed of the image noise (speckle, shot and read noise).",
+                                  rule=parameters.non_negative)
+        spot_sigma = parameters.declare(self, "spot_sigma", 0.002, "Gaussian sigma of a laser spot on the screen, m.",
+                                        rule=parameters.positive)
         self.camera = default_camera()
         self.options = render.RenderOptions(spot_sigma_m=spot_sigma)
         self.rng = np.random.default_rng(seed)

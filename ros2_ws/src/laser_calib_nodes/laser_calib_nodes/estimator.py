@@ -59,11 +59,11 @@ class Estimator(Node):
         self.compensator, self.compensator_path = common.compensator_param(self)
         self.input = d("input", "samples", "'samples' (synchronized Sample messages) or 'stream' (joint_states "
                                            "and spots paired by stamp).")
-        self.sync_tol = parameters.checked("sync_tolerance", d("sync_tolerance", 0.02, "'stream': max stamp difference "
-                                       "of a pair, s (at least half the joint_states period)."), parameters.non_negative)
+        self.sync_tol = d("sync_tolerance", 0.02, "'stream': max stamp difference of a pair, s (at least half the "
+                                                  "joint_states period).", rule=parameters.non_negative)
         self.max_speed = d("stream.max_joint_speed", 0.002, "'stream': a pair counts only when every |joint "
                                                             "velocity| is below this, rad/s.",
-                           read_only=False)
+                           read_only=False, rule=parameters.positive)
         self.spot_sigma, self.joint_sigma = parameters.noise(self)
         self.markers_on = d("markers", True, "Publish calibration_markers.", read_only=False)
         names = d("joint_names", Parameter.Type.STRING_ARRAY, "The robot's joints, base to tip, found by name in "

@@ -1,16 +1,19 @@
 """Parameter declaration: every parameter with its description, checked when declared
-(one line, exit 2), the run-time ones validated when set."""
+(one line, exit 2), the run-time ones validated when set; a checked one's rule is in its
+descriptor (`ros2 param describe`: "Additional constraints")."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Callable
 
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from laser_calib.measurement.noise_bounds import (JOINT_SIGMA_NOT_GIVEN, joint_sigma_or_unset_problem,
+from laser_calib.measurement.noise_bounds import (JOINT_SIGMA_NOT_GIVEN, MAX_SIGMA_ANGLE, MAX_SPOT_SIGMA,
+                                                  SIGMA_LENGTH, joint_sigma_or_unset_problem,
                                                   spot_sigma_or_zero_problem)
 
 
@@ -22,23 +25,38 @@ class NodeError(RuntimeError):
         self.code = code
 
 
-def declare(node: Node, name: str, default: Any, description: str, read_only: bool = True, type_=None) -> Any:
-    """Declare a parameter with its description; return its value.
+@dataclass(frozen=True)
+class Rule:
+    """What a parameter's values must be: ``constraint`` in words (its descriptor's), and
+    rule(value) -> the problem in one line, or None."""
+
+    constraint: str
+    problem: Callable[[Any], str | None]
+
+    def __call__(self, value: Any) -> str | None:
+        return self.problem(value)
+
+
+def declare(node: Node, name: str, default: Any, description: str, read_only: bool = True, type_=None,
+            rule: Rule | None = None) -> Any:
+    """Declare a parameter with its description (and ``rule``'s constraint); return its value,
+    checked against ``rule`` when given (NodeError, exit 2).
 
     An integer given for a floating-point parameter is taken as that number
     (``rate:=10`` works); any other type mismatch is a NodeError in one line.
     """
-    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    descriptor = ParameterDescriptor(description=description, read_only=read_only,
+                                     additional_constraints=rule.constraint if rule else "")
     if type_ is not None:
         return declare_list(node, name, type_, descriptor)
     descriptor.dynamic_typing = True
     value = node.declare_parameter(name, default, descriptor).value
     if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if type(value) is not type(default):
+        value = float(value)
+    elif type(value) is not type(default):
         raise NodeError(f"parameter {name}: expected {type(default).__name__}, got {type(value).__name__} "
                         f"{value!r}", 2)
-    return value
+    return value if rule is None else checked(name, value, rule)
 
 
 LIST_ELEMENTS = {Parameter.Type.STRING_ARRAY: str, Parameter.Type.INTEGER_ARRAY: int,
@@ -115,12 +133,24 @@ def checked(name: str, value: Any, check: Callable[[Any], str | None]) -> Any:
     return value
 
 
-def non_negative(value: float) -> str | None:
-    return None if math.isfinite(value) and value >= 0 else f"expected >= 0, got {value}"
+non_negative = Rule(">= 0", lambda value: None if math.isfinite(value) and value >= 0
+                    else f"expected >= 0, got {value}")
+positive = Rule("> 0", lambda value: None if math.isfinite(value) and value > 0 else f"expected > 0, got {value}")
 
 
-def positive(value: float) -> str | None:
-    return None if math.isfinite(value) and value > 0 else f"expected > 0, got {value}"
+def at_least(minimum: int) -> Rule:
+    return Rule(f">= {minimum}", lambda value: None if value >= minimum else f"expected >= {minimum}, got {value}")
+
+
+def inside(low: float, high: float) -> Rule:
+    """Between low and high, both excluded."""
+    return Rule(f"{low:g} < value < {high:g}",
+                lambda value: None if low < value < high else f"expected {low:g}..{high:g}, got {value}")
+
+
+SPOT_SIGMA = Rule(f"0 (estimated) or {SIGMA_LENGTH[0]:g} .. {MAX_SPOT_SIGMA:g} m", spot_sigma_or_zero_problem)
+JOINT_SIGMA = Rule(f"{JOINT_SIGMA_NOT_GIVEN:g} (not given), 0 (none) or up to {MAX_SIGMA_ANGLE:g} rad",
+                   joint_sigma_or_unset_problem)
 
 
 def noise(node: Node) -> tuple[float, float]:
@@ -130,15 +160,14 @@ def noise(node: Node) -> tuple[float, float]:
     leave theirs 0 (sample_rows.request_options) and the online EKF (session.estimate.online_options)."""
     spot = declare(node, "spot_sigma", 0.0, "Spot sigma, m, for requests with spot_sigma 0 and the online EKF "
                                             "(from its next reset); 0: estimate it (batch) / 1 mm (online).",
-                   read_only=False)
+                   read_only=False, rule=SPOT_SIGMA)
     joint = declare(node, "joint_sigma", JOINT_SIGMA_NOT_GIVEN,
                     "Joint-reading sigma, rad (at most 0.035), for requests with joint_sigma 0 and the online EKF "
                     "(from its next reset); 0: no joint-reading noise; -1: not given, as laser-calib estimate "
                     "without --joint-sigma: estimated with the spot sigma when that is estimated, else 0 (batch) "
-                    "/ 0 (online).", read_only=False)
+                    "/ 0 (online).", read_only=False, rule=JOINT_SIGMA)
     return spot, joint
 
 
 # the noise() parameters' rules for dynamic(), their values held in the node's attributes of the same names
-NOISE_RULES = {"spot_sigma": ("spot_sigma", spot_sigma_or_zero_problem),
-               "joint_sigma": ("joint_sigma", joint_sigma_or_unset_problem)}
+NOISE_RULES = {"spot_sigma": ("spot_sigma", SPOT_SIGMA), "joint_sigma": ("joint_sigma", JOINT_SIGMA)}

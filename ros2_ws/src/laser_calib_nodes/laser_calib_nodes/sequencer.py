@@ -47,7 +47,8 @@ class Sequencer(Node):
         names = d("joint_names", Parameter.Type.STRING_ARRAY, "The robot's joints, base to tip, as the arm's "
                   "joint_states and controller name them (default: joint_states' names when it has exactly the "
                   "robot's joints).", type_=Parameter.Type.STRING_ARRAY)
-        self.joint_speed = d("move.joint_speed", 0.5, "Commanded: time_from_start = largest joint move / this, rad/s.")
+        self.joint_speed = d("move.joint_speed", 0.5, "Commanded: time_from_start = largest joint move / this, rad/s.",
+                             rule=parameters.positive)
         try:
             self.settle_rule = SettleRule(d("settle.position_tolerance", 0.003, "Settled: every |reading - goal| "
                                             "below this, rad."),
@@ -56,31 +57,26 @@ class Sequencer(Node):
                                           d("settle.hold_time", 0.2, "Settled: both tolerances held this long, s."))
         except ValueError as exc:
             raise parameters.NodeError(f"parameter {exc}", 2) from None
-        self.settle_timeout = d("settle.timeout", 30.0, "Give up on a pose not settled after this long, s.")
-        self.frames = d("frames", 3, "Spot frames averaged per pose.")
-        self.frame_timeout = d("frame_timeout", 10.0, "Give up when the frames of a pose take longer, s.")
+        # each checked at the start, not when the first pose is reached
+        self.settle_timeout = d("settle.timeout", 30.0, "Give up on a pose not settled after this long, s.",
+                                rule=parameters.positive)
+        self.frames = d("frames", 3, "Spot frames averaged per pose.", rule=parameters.at_least(1))
+        self.frame_timeout = d("frame_timeout", 10.0, "Give up when the frames of a pose take longer, s.",
+                               rule=parameters.positive)
         self.sync_tol = d("sync_tolerance", 0.02, "Max stamp difference pairing a frame with a joint state, s "
-                                                   "(at least half the joint_states period).")
-        self.wait_timeout = d("wait_timeout", 60.0, "Wait this long for the arm's joint states and the spots, s.")
+                                                   "(at least half the joint_states period).",
+                          rule=parameters.non_negative)
+        self.wait_timeout = d("wait_timeout", 60.0, "Wait this long for the arm's joint states and the spots, s.",
+                              rule=parameters.positive)
         self.unseen_limit = d("unseen_limit", 5, "End the session (exit 2, what was measured kept) when this run's "
                               "first N poses saw no spot at all: lasers off, camera covered, screen out of view, or "
-                              "a min_peak_dn no spot reaches. 0: never.")
+                              "a min_peak_dn no spot reaches. 0: never.", rule=parameters.non_negative)
         self.unseen_poses: int | None = 0  # this run's poses so far without a spot; None once one was seen
         self.end = sequencer_parts.declare(self)
         record_images = d("record_images", False, "Also record camera images (large) in the bag.")
         segment_seconds = d("bag.max_segment_seconds", 10.0, "Close a bag segment after this long even "
-                                                             "within a pose, s.")
+                                                             "within a pose, s.", rule=parameters.positive)
         self.exit_code, self.done, self.created = 0, False, time.monotonic()
-        for name, value, check in (
-                ("frames", self.frames, lambda n: None if n >= 1 else f"expected >= 1, got {n}"),
-                ("unseen_limit", self.unseen_limit, parameters.non_negative),
-                ("move.joint_speed", self.joint_speed, parameters.positive),
-                ("sync_tolerance", self.sync_tol, parameters.non_negative),
-                ("settle.timeout", self.settle_timeout, parameters.positive),
-                ("frame_timeout", self.frame_timeout, parameters.positive),
-                ("wait_timeout", self.wait_timeout, parameters.positive),
-                ("bag.max_segment_seconds", segment_seconds, parameters.positive)):
-            parameters.checked(name, value, check)  # at the start, not when the first pose is reached
 
         self.session, self.lock, self.robot, self.poses, state = sequencer_parts.open_session(self)
         # a URDF arm's joints are named: found by name among joint_states' (which may hold more)

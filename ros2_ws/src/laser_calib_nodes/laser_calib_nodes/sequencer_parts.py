@@ -147,10 +147,10 @@ def declare(node) -> SimpleNamespace:
                                            "'local' (in this process) or 'none'."),
         shared_fs=d("estimate.shared_filesystem", True, "The estimator sees output_dir: it writes the report "
                                                         "there itself (plots included)."),
-        timeout=d("estimate.timeout", 600.0, "Final estimate: wait this long for the service, s."),
+        timeout=d("estimate.timeout", 600.0, "Final estimate: wait this long for the service, s.",
+                  rule=parameters.positive),
         truth=d("truth", "", f"True robot model (simulation) for the report's truth comparison; empty: "
                              f"output_dir/{TRUE_ROBOT_FILE} when it exists."))
-    parameters.checked("estimate.timeout", end.timeout, parameters.positive)
     if end.mode not in ("service", "local", "none"):
         raise parameters.NodeError(f"parameter estimate.mode: expected 'service', 'local' or 'none', got {end.mode!r}", 2)
     try:  # at the start, not after every pose is measured

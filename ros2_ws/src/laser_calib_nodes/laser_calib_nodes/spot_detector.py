@@ -62,31 +62,31 @@ class SpotDetectorNode(Node):
         d = lambda *a, **k: parameters.declare(self, *a, **k)  # noqa: E731
         path = d("calibration", "", "Screen calibration file (laser_calib.vision, YAML); "
                                     "empty: the exact calibration of the simulated camera.")
-        half_y = d("screen.half_y", 1.0, "Measuring area half width, m (robot file 'screen').")
-        half_z = d("screen.half_z", 1.0, "Measuring area half height, m (robot file 'screen').")
+        # a measuring area of no size: no spot is ever inside, every frame 'not seen'
+        half_y = d("screen.half_y", 1.0, "Measuring area half width, m (robot file 'screen').",
+                   rule=parameters.positive)
+        half_z = d("screen.half_z", 1.0, "Measuring area half height, m (robot file 'screen').",
+                   rule=parameters.positive)
         min_peak = d("min_peak_dn", DetectorOptions().min_peak_dn, "Least smoothed colour contrast of a spot, DN "
                                                                   "(settable at run time, from the next frame).",
-                     read_only=False)
+                     read_only=False, rule=parameters.positive)
         pattern = d("bayer_pattern", "RGGB", "Photosite mosaic behind demosaiced (rgb8/bgr8) images; 'none' for a "
                                              "camera measuring every colour per pixel. Raw bayer_* images give it.")
         self.mono_pattern = d("mono_pattern", "", "mono8 images are this raw Bayer mosaic (e.g. RGGB); empty: "
                                                   "mono8 is refused (it cannot tell the lasers apart).") or None
         defaults = DetectorOptions()
-        noise = {name: d(name, getattr(defaults, name), text) for name, text in (
-            ("gain_e_per_dn", "Camera gain, electrons per DN (data sheet): the spot fit's shot noise."),
-            ("read_noise_dn", "Read noise with the 8-bit quantisation, DN (data sheet)."),
+        noise = {name: d(name, getattr(defaults, name), text, rule=rule) for name, text, rule in (
+            ("gain_e_per_dn", "Camera gain, electrons per DN (data sheet): the spot fit's shot noise.",
+             parameters.positive),
+            ("read_noise_dn", "Read noise with the 8-bit quantisation, DN (data sheet).", parameters.positive),
             ("speckle_contrast", "Speckle on the screen, std / spot signal (from the scatter of fits to a still "
-                                 "spot). Too low, clean spots are refused as not one clean spot (a WARN says so)."),
-            ("false_refusal_rate", "Chance that the spot fit's chi^2 test refuses a clean spot (0..1)."))}
+                                 "spot). Too low, clean spots are refused as not one clean spot (a WARN says so).",
+             parameters.non_negative),
+            ("false_refusal_rate", "Chance that the spot fit's chi^2 test refuses a clean spot.",
+             parameters.inside(0.0, 1.0)))}
         self.capture_dir = d("capture_dir", "", "Save frames here (PNG) for laser-calib screen-calibrate; empty: off.")
         self.capture_left = d("capture_count", 10, "Frames to save in capture_dir.")
         self.capture_period = d("capture_period", 1.0, "Seconds between saved frames (move the board meanwhile).")
-        for name, value in (("screen.half_y", half_y), ("screen.half_z", half_z)):
-            parameters.checked(name, value, parameters.positive)  # else no spot is ever inside: every frame 'not seen'
-        for name, check in (("gain_e_per_dn", parameters.positive), ("read_noise_dn", parameters.positive),
-                            ("speckle_contrast", parameters.non_negative),
-                            ("false_refusal_rate", lambda rate: None if 0 < rate < 1 else f"expected 0..1, got {rate}")):
-            parameters.checked(name, noise[name], check)
         if path:
             self.calibration = load_calibration(path)
         else:
