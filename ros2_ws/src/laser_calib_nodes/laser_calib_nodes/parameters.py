@@ -87,9 +87,7 @@ def dynamic(node: Node, rules: dict[str, tuple[str, Callable[[Any], str | None]]
     parameter to (the node attribute holding its value, check(value) -> problem or None).
     A set request with a wrong type or a value its check refuses changes nothing and is
     answered with the reason; an integer for a floating-point parameter is that number.
-    The values declared are checked first (NodeError, exit 2)."""
-    for name, (attr, check) in rules.items():
-        checked(name, getattr(node, attr), check)
+    The values declared were checked by declare (its rule, the same check)."""
 
     def on_set(params) -> SetParametersResult:
         updates = {}
