@@ -198,8 +198,10 @@ def _bayer_sites(height: int, width: int) -> np.ndarray:
 
 @lru_cache(maxsize=2)
 def _ambient_response(height: int, width: int) -> np.ndarray:
-    """(H, W) float32: each photosite's response to the room light (AMBIENT_BGR in its colour)."""
-    return AMBIENT_BGR.astype(np.float32)[_bayer_sites(height, width)]
+    """(H, W) float32, read-only (cached): each photosite's response to the room light (AMBIENT_BGR in its colour)."""
+    response = AMBIENT_BGR.astype(np.float32)[_bayer_sites(height, width)]
+    response.setflags(write=False)
+    return response
 
 
 def _ambient(camera: CameraModel, rng: np.random.Generator, options: RenderOptions) -> np.ndarray:
