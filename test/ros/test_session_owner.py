@@ -6,7 +6,9 @@ from __future__ import annotations
 import signal
 import time
 
-from ros_harness import ROBOT, ROOT, start_sim
+from rclpy.topic_endpoint_info import TopicEndpointInfo
+
+from ros_harness import ROBOT, ROOT, start_sim, workspace_env
 from test_crash_resume import csv_rows as rows
 
 
@@ -82,3 +84,31 @@ def test_a_second_estimator_on_the_domain_is_refused_before_the_arm_moves(ros, t
     lines = [line for line in ros.log("sequencer").splitlines() if line.strip()]
     assert "[sequencer]: 2 nodes offer the Estimate service on /estimator/estimate: either could answer" in lines[-1]
     assert "Traceback" not in ros.log("sequencer") and not rows(out / "samples.csv")
+
+
+class Graph:
+    """rclpy's graph query as DDS discovery answers it: the other session's publisher is seen
+    at once, its node's name (the participant's discovery data) only from the ``named``-th query on;
+    before that rmw's graph cache names it _NODE_NAMESPACE_UNKNOWN_/_NODE_NAME_UNKNOWN_."""
+
+    def __init__(self, named: int):
+        self.named, self.queries = named, 0
+
+    def get_publishers_info_by_topic(self, topic):
+        self.queries += 1
+        known = self.queries >= self.named
+        return [TopicEndpointInfo(node_name="sequencer" if known else "_NODE_NAME_UNKNOWN_",
+                                  node_namespace="/" if known else "_NODE_NAMESPACE_UNKNOWN_", topic_type="x")]
+
+
+def test_a_publisher_seen_before_its_name_is_named_once_discovery_names_it(monkeypatch):
+    """CI refused a second session with '_NODE_NAMESPACE_UNKNOWN_/_NODE_NAME_UNKNOWN_ also commands
+    the arm': the first session's publisher had been discovered before its node's name. The name is
+    awaited; one still unknown at the deadline is called so, in words."""
+    monkeypatch.setenv("AMENT_PREFIX_PATH", workspace_env()["AMENT_PREFIX_PATH"])   # the package's files
+    from laser_calib_nodes import sole_owner
+    graph = Graph(named=4)
+    assert sole_owner.named_publishers(graph, "/joint_trajectory", time.monotonic() + 10) == ["/sequencer"]
+    assert graph.queries == 4
+    assert sole_owner.named_publishers(Graph(named=10**6), "/joint_trajectory",
+                                       time.monotonic() + 0.2) == [sole_owner.UNNAMED]

@@ -15,6 +15,11 @@ from laser_calib_nodes import common, parameters
 # just made, it had seen none of two running servers, then one before the other; on CI's loaded
 # machine, 1.6 s after its start, it had not yet seen another session's sequencer measuring
 DISCOVERY = 3.0
+# s a publisher's node name is awaited once the publisher is seen (named_publishers)
+NAMING = 2.0
+# rmw_dds_common's name for a node whose discovery data has not arrived yet
+UNKNOWN_NAME = "_NODE_NAME_UNKNOWN_"
+UNNAMED = "a node not yet named in the ROS graph"
 
 
 def watch(node, until: float) -> None:
@@ -33,8 +38,7 @@ def commander(node) -> None:
     sequencer (another session on this ROS domain) or a teleoperation drives the arm too. Each
     session then blamed the arm for not settling where it sent it, or measured on without a word."""
     topic = node.resolve_topic_name(common.JOINT_TRAJECTORY)
-    publishers = [f"{info.node_namespace.rstrip('/')}/{info.node_name}" for info in
-                  node.get_publishers_info_by_topic(topic)]
+    publishers = named_publishers(node, topic, time.monotonic() + NAMING)
     if node.get_fully_qualified_name() in publishers:   # this node's one; a second session's may share its name
         publishers.remove(node.get_fully_qualified_name())
     if publishers:
@@ -42,6 +46,19 @@ def commander(node) -> None:
         raise parameters.NodeError(f"{', '.join(others)} also commands the arm on {topic}: two nodes would drive it "
                                    f"(a second session on ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}?); "
                                    "give each session its own domain or namespace", 3)
+
+
+def named_publishers(node, topic: str, until: float) -> list[str]:
+    """The fully qualified names of the nodes publishing on ``topic``. DDS may announce a
+    publisher before its node's name (rmw's graph cache then says _NODE_NAME_UNKNOWN_, as CI's
+    refusal printed): the names are awaited until ``until`` (monotonic s), and one still unknown
+    is called what it is."""
+    while True:
+        infos = node.get_publishers_info_by_topic(topic)
+        if all(info.node_name != UNKNOWN_NAME for info in infos) or time.monotonic() >= until:
+            return [UNNAMED if info.node_name == UNKNOWN_NAME else f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+                    for info in infos]
+        time.sleep(0.05)
 
 
 def estimator(node) -> None:
