@@ -7,7 +7,11 @@ refused like the command line's --spot-sigma, and a joint sigma that is no joint
 
 from __future__ import annotations
 
-from ros_harness import ROBOT
+import os
+
+import pytest
+
+from ros_harness import ROBOT, workspace_env
 
 
 def test_an_integer_for_a_double_parameter_is_stored_as_a_double(ros):
@@ -40,3 +44,37 @@ def test_an_integer_for_a_double_parameter_is_stored_as_a_double(ros):
     assert got[9]["value"] == 0.0
     assert got[10] == {"successful": True, "reason": "", "type": "DOUBLE", "value": -1.0}, got[10]
     assert ros.stop("estimator") == 0 and ros.stop("spot_detector") == 0
+
+
+def test_a_run_time_parameter_is_checked_by_its_declared_rule_and_none_is_left_without_an_attribute(monkeypatch):
+    """A run-time parameter's rule is given once, to its declaration: the set check is that rule. A
+    run-time parameter that dynamic() would not store anywhere (a `param set` answered 'successful'
+    and changing nothing) is refused when the node is made."""
+    monkeypatch.setenv("AMENT_PREFIX_PATH", workspace_env()["AMENT_PREFIX_PATH"])   # the package's files
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    import rclpy
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from laser_calib_nodes import parameters
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros_domain())
+    try:
+        node = Node("rules", context=context)
+        node.gain = parameters.declare(node, "gain", 1.0, "a gain", read_only=False, rule=parameters.positive)
+        node.label = parameters.declare(node, "label", "a", "a label", read_only=False)
+        with pytest.raises(ValueError, match=r"run-time parameters \['gain', 'label'\]"):
+            parameters.dynamic(node, {"gain": "gain"})
+        parameters.dynamic(node, {"gain": "gain", "label": "label"})
+        refused = node.set_parameters([Parameter("gain", value=-2.0)])[0]
+        assert not refused.successful and refused.reason == "gain: expected > 0, got -2.0" and node.gain == 1.0
+        assert node.set_parameters([Parameter("gain", value=3)])[0].successful and node.gain == 3.0
+        assert node.set_parameters([Parameter("label", value="b")])[0].successful and node.label == "b"
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+
+
+def ros_domain() -> int:
+    """A DDS domain of this worker no node of the other tests uses (ros_harness's blocks start at 10)."""
+    return 2 + int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)

@@ -41,7 +41,8 @@ def positive_number(values: dict, name: str) -> float:
 
 
 # The noise arguments and the rule of each: the nodes' own for their parameters (the estimator's
-# parameters.NOISE_RULES, the sequencer's estimate options), so that the launch refuses what a node would.
+# parameters.SPOT_SIGMA and JOINT_SIGMA, the sequencer's estimate options), so that the launch refuses
+# what a node would.
 NOISE_ARGUMENTS = {"spot_sigma": spot_sigma_or_zero_problem, "joint_sigma": joint_sigma_or_unset_problem}
 
 

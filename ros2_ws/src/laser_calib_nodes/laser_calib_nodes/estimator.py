@@ -74,9 +74,8 @@ class Estimator(Node):
         self.joints = JointStateReader(self.robot, names, self.get_logger())
         if self.input not in ("samples", "stream"):
             raise parameters.NodeError(f"parameter input: expected 'samples' or 'stream', got {self.input!r}", 2)
-        parameters.dynamic(self, {**parameters.NOISE_RULES,
-                                  "stream.max_joint_speed": ("max_speed", parameters.positive),
-                                  "markers": ("markers_on", lambda value: None)})
+        parameters.dynamic(self, {**parameters.NOISE_ATTRIBUTES, "stream.max_joint_speed": "max_speed",
+                                  "markers": "markers_on"})
 
         from laser_calib_interfaces.msg import DhParameters, Sample, SpotPair
         from laser_calib_interfaces.srv import Estimate

@@ -5,6 +5,7 @@ descriptor (`ros2 param describe`: "Additional constraints")."""
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -37,10 +38,15 @@ class Rule:
         return self.problem(value)
 
 
+# each node's run-time parameters (declared with read_only=False) and their rules, for dynamic()
+_RUNTIME: weakref.WeakKeyDictionary[Node, dict[str, Rule | None]] = weakref.WeakKeyDictionary()
+
+
 def declare(node: Node, name: str, default: Any, description: str, read_only: bool = True, type_=None,
             rule: Rule | None = None) -> Any:
     """Declare a parameter with its description (and ``rule``'s constraint); return its value,
-    checked against ``rule`` when given (NodeError, exit 2).
+    checked against ``rule`` when given (NodeError, exit 2). A run-time one (read_only=False) is
+    checked by the same rule when set (dynamic()).
 
     An integer given for a floating-point parameter is taken as that number
     (``rate:=10`` works); any other type mismatch is a NodeError in one line.
@@ -51,6 +57,8 @@ def declare(node: Node, name: str, default: Any, description: str, read_only: bo
         return declare_list(node, name, type_, descriptor)
     descriptor.dynamic_typing = True
     value = node.declare_parameter(name, default, descriptor).value
+    if not read_only:
+        _RUNTIME.setdefault(node, {})[name] = rule
     if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     elif type(value) is not type(default):
@@ -82,12 +90,15 @@ def declare_list(node: Node, name: str, type_: Parameter.Type, descriptor: Param
     return [float(item) for item in value] if element is float else value
 
 
-def dynamic(node: Node, rules: dict[str, tuple[str, Callable[[Any], str | None]]]) -> None:
-    """Make parameters settable at run time (declared with read_only=False): rules maps a
-    parameter to (the node attribute holding its value, check(value) -> problem or None).
-    A set request with a wrong type or a value its check refuses changes nothing and is
-    answered with the reason; an integer for a floating-point parameter is that number.
-    The values declared were checked by declare (its rule, the same check)."""
+def dynamic(node: Node, attributes: dict[str, str]) -> None:
+    """Make the node's run-time parameters (declared with read_only=False) settable: attributes
+    maps each to the node attribute holding its value. A set request with a wrong type or a
+    value the parameter's rule (its declaration's) refuses changes nothing and is answered with
+    the reason; an integer for a floating-point parameter is that number."""
+    runtime = _RUNTIME.get(node, {})
+    if set(attributes) != set(runtime):   # a run-time parameter whose value no attribute would take
+        raise ValueError(f"run-time parameters {sorted(runtime)}, attributes given for {sorted(attributes)}")
+    rules = {name: (attributes[name], rule or (lambda value: None)) for name, rule in runtime.items()}
 
     def on_set(params) -> SetParametersResult:
         updates = {}
@@ -152,10 +163,11 @@ JOINT_SIGMA = Rule(f"{JOINT_SIGMA_NOT_GIVEN:g} (not given), 0 (none) or up to {M
 
 
 def noise(node: Node) -> tuple[float, float]:
-    """Declare the estimator's noise parameters, spot_sigma (m) and joint_sigma (rad), run-time (their
-    rules for dynamic(): NOISE_RULES), and return their values: the command line's --spot-sigma and
-    --joint-sigma, 'not given' written 0 and -1 (a ROS parameter cannot be None), for the requests that
-    leave theirs 0 (sample_rows.request_options) and the online EKF (session.estimate.online_options)."""
+    """Declare the estimator's noise parameters, spot_sigma (m) and joint_sigma (rad), run-time (held in
+    the node's attributes of the same names: NOISE_ATTRIBUTES for dynamic()), and return their values:
+    the command line's --spot-sigma and --joint-sigma, 'not given' written 0 and -1 (a ROS parameter
+    cannot be None), for the requests that leave theirs 0 (sample_rows.request_options) and the online
+    EKF (session.estimate.online_options)."""
     spot = declare(node, "spot_sigma", 0.0, "Spot sigma, m, for requests with spot_sigma 0 and the online EKF "
                                             "(from its next reset); 0: estimate it (batch) / 1 mm (online).",
                    read_only=False, rule=SPOT_SIGMA)
@@ -167,5 +179,4 @@ def noise(node: Node) -> tuple[float, float]:
     return spot, joint
 
 
-# the noise() parameters' rules for dynamic(), their values held in the node's attributes of the same names
-NOISE_RULES = {"spot_sigma": ("spot_sigma", SPOT_SIGMA), "joint_sigma": ("joint_sigma", JOINT_SIGMA)}
+NOISE_ATTRIBUTES = {"spot_sigma": "spot_sigma", "joint_sigma": "joint_sigma"}

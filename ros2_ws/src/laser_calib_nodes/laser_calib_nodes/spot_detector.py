@@ -98,7 +98,7 @@ class SpotDetectorNode(Node):
             self.detectors = {None: SpotDetector(self.calibration, self.options)}
         except ValueError as exc:
             raise parameters.NodeError(f"parameter bayer_pattern: {exc}", 2) from None
-        parameters.dynamic(self, {"min_peak_dn": ("min_peak_dn", parameters.positive)})
+        parameters.dynamic(self, {"min_peak_dn": "min_peak_dn"})
         if self.capture_dir:
             Path(self.capture_dir).mkdir(parents=True, exist_ok=True)
         self.captured, self.last_capture = 0, -np.inf
