@@ -57,6 +57,16 @@ def simulate(robot, truth: np.ndarray, n: int, seed: int, kind: str, still: int 
     return SensorSamples(np.arange(n), np.arange(n, dtype=float), q, position=position, quaternion=quaternion)
 
 
+def central_jacobian(model, x: np.ndarray) -> np.ndarray:
+    """d residual / d x (P, M, n) by central differences; the residual is measured minus predicted."""
+    numeric = np.zeros((*model.residuals(x, False).r.shape, len(x)))
+    for k in range(len(x)):
+        e = np.zeros(len(x))
+        e[k] = STEP
+        numeric[..., k] = -(model.residuals(x + e, False).r - model.residuals(x - e, False).r) / (2 * STEP)
+    return numeric
+
+
 @pytest.mark.parametrize("kind", ["pose", "point"])
 @pytest.mark.parametrize("scale", [False, True])
 @pytest.mark.parametrize("convention", ["paper", "standard"])
@@ -67,12 +77,7 @@ def test_jacobians_match_central_differences(kind, scale, convention):
     rng = np.random.default_rng(4)
     x = rng.normal(0, 3, len(model.names)) * model.scales   # far from zero: exact at any size
     res = model.residuals(x)
-    numeric = np.zeros_like(res.jac)
-    for k in range(len(x)):
-        e = np.zeros(len(x))
-        e[k] = STEP
-        numeric[..., k] = -(model.residuals(x + e, False).r - model.residuals(x - e, False).r) / (2 * STEP)
-    assert np.abs(numeric - res.jac).max() < 1e-6 * np.abs(res.jac).max()
+    assert np.abs(central_jacobian(model, x) - res.jac).max() < 1e-6 * np.abs(res.jac).max()
     numeric_q = np.zeros_like(res.jac_q)
     for i in range(robot.n_joints):
         dq = np.zeros_like(samples.q)
@@ -263,12 +268,7 @@ def test_joint_effects_compose_with_the_pose_model():
     model = EffectModel(PoseModel(robot, samples, 0.5, True), [Periodic(joint=1), JointScale(joint=0)])
     x = np.random.default_rng(3).normal(0, 2, len(model.names)) * model.scales
     res = model.residuals(x)
-    numeric = np.zeros_like(res.jac)
-    for k in range(len(x)):
-        e = np.zeros(len(x))
-        e[k] = STEP
-        numeric[..., k] = -(model.residuals(x + e, False).r - model.residuals(x - e, False).r) / (2 * STEP)
-    assert np.abs(numeric - res.jac).max() < 1e-6 * np.abs(res.jac).max()
+    assert np.abs(central_jacobian(model, x) - res.jac).max() < 1e-6 * np.abs(res.jac).max()
     assert len(model.subset(np.arange(5)).samples) == 5 and model.subset(np.arange(5)).base.rotation_length == 0.5
 
 
