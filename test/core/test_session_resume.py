@@ -21,7 +21,7 @@ from laser_calib.io.bag_writer import SegmentedBagWriter
 from laser_calib.io.errors import InputError
 from laser_calib.io.samples import Samples, load_samples
 from laser_calib.model.robot_file import load_robot
-from laser_calib.session.folder import SAMPLES_FILE, TEST_SAMPLES_FILE, TEST_SAMPLES_TOPIC, SessionDir
+from laser_calib.session.folder import SAMPLES_FILE, TEST_SAMPLES_FILE, SessionDir
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import generate_poses, with_test_poses
 
@@ -45,13 +45,16 @@ def sample(poses, step: int) -> Samples:
 class Journal:
     """The bag the sequencer writes: one closed segment per pose (io.bag_writer)."""
 
-    def __init__(self, session: SessionDir):
-        self.store = bag.typestore()
-        topics = {t: (SAMPLE, [bag.qos(True, True, 100)]) for t in (bag.SAMPLES_TOPIC, TEST_SAMPLES_TOPIC)}
+    def __init__(self, session: SessionDir, namespace: str = ""):
+        self.store, self.namespace = bag.typestore(), namespace
+        topics = {namespace + t: (SAMPLE, [bag.qos(True, True, 100)])
+                  for t in (bag.SAMPLES_TOPIC, bag.TEST_SAMPLES_TOPIC)}
         self.writer = SegmentedBagWriter(session.bag_dir, session.work_dir, topics, self.store)
 
     def write(self, s: Samples, topic: str = bag.SAMPLES_TOPIC, close: bool = True, reverse: bool = False) -> None:
-        """reverse: joint_names and joint_positions listed tip to base (another tool's order)."""
+        """The sample on ``topic`` in the journal's namespace (a session launched with namespace:=rig2
+        records /rig2/samples); reverse: joint_names and joint_positions listed tip to base (another
+        tool's order)."""
         T = self.store.types
         order = slice(None, None, -1 if reverse else 1)
         names, q = [f"joint{i + 1}" for i in range(s.n_joints)][order], np.ascontiguousarray(s.q[0][order])
@@ -59,7 +62,7 @@ class Journal:
                  for y, z in s.spots[0]]
         stamp = T["builtin_interfaces/msg/Time"](int(s.stamp[0]), int(round((s.stamp[0] % 1) * 1e9)))
         msg = T[SAMPLE](T["std_msgs/msg/Header"](stamp, "screen"), int(s.pose[0]), names, q, spots, 3)
-        self.writer.write(topic, int(s.stamp[0] * 1e9), self.store.serialize_cdr(msg, SAMPLE))
+        self.writer.write(self.namespace + topic, int(s.stamp[0] * 1e9), self.store.serialize_cdr(msg, SAMPLE))
         if close:
             self.writer.rotate()
 
@@ -84,6 +87,39 @@ def test_bag_ahead_of_the_csv_restores_the_row(tmp_path):
     csv = load_samples(session.path / SAMPLES_FILE)
     np.testing.assert_array_equal(csv.pose, poses.pose[:4])
     np.testing.assert_array_equal(csv.stamp, bag.read_samples(session.bag_dir).stamp)
+
+
+def test_a_session_in_a_namespace_restores_its_rows_from_its_own_topics(tmp_path):
+    """A session launched with namespace:=rig2 records /rig2/samples. Its bag read as none
+    ('no topic /samples'): a resume lost sight of the poses only the bag held, and
+    `estimate --bag` refused the bag. Another namespace's resume is refused: the poses to come
+    would go to other topics than the ones measured."""
+    robot, poses, session = started(tmp_path)
+    session.set_info(namespace="/rig2")
+    journal = Journal(session, "/rig2")
+    measured(session, poses, journal, range(2))
+    measured(session, poses, journal, [2], csv=False)        # killed before the row
+    journal.writer.close()
+    found = session.reconcile(robot, poses)
+    assert list(found.done) == [True] * 3 + [False] * 3 and len(found.to_bag) == 0
+    assert found.repairs == [f"{SAMPLES_FILE}: pose {poses.pose[2]} restored from the bag (a crash before its row)"]
+    np.testing.assert_array_equal(bag.read_samples(session.bag_dir).pose, poses.pose[:3])
+    session.check_namespace("/rig2")
+    with pytest.raises(InputError, match=r"recorded in ROS namespace /rig2, resumed in /; resume it in /rig2 "
+                                         r"\(the launch's namespace:=rig2\)"):
+        session.check_namespace("/")
+
+
+def test_a_bag_with_the_samples_of_two_namespaces_is_refused(tmp_path):
+    """`ros2 bag record` of two sessions, each in its namespace: their poses are not one session's."""
+    robot, poses, session = started(tmp_path)
+    for step, namespace in enumerate(("/rig1", "/rig2")):
+        journal = Journal(session, namespace)
+        journal.write(sample(poses, step))
+        journal.writer.close()
+    with pytest.raises(InputError, match=r"holds the samples of 2 sessions \(/rig1/samples, /rig2/samples\): give "
+                                         "one session's bag"):
+        bag.read_samples(session.bag_dir)
 
 
 def test_the_bags_samples_are_read_by_joint_name(tmp_path):
@@ -147,9 +183,9 @@ def test_torn_row_and_unfinished_segment(tmp_path):
     robot, poses, session = started(tmp_path, test=2)
     journal = Journal(session)
     measured(session, poses, journal, range(6))
-    journal.write(sample(poses, 6), TEST_SAMPLES_TOPIC)     # test pose 1: bag and CSV
+    journal.write(sample(poses, 6), bag.TEST_SAMPLES_TOPIC)     # test pose 1: bag and CSV
     session.append_sample(sample(poses, 6), test=True)
-    journal.write(sample(poses, 7), TEST_SAMPLES_TOPIC, close=False)   # test pose 2: killed mid-segment
+    journal.write(sample(poses, 7), bag.TEST_SAMPLES_TOPIC, close=False)   # test pose 2: killed mid-segment
     with open(session.path / TEST_SAMPLES_FILE, "a") as handle:
         handle.write("7,107.0,0.01,0.0")                    # ... and mid-row
     del journal                                              # no close: as SIGKILL leaves it

@@ -11,7 +11,7 @@ import argparse
 from dataclasses import dataclass
 
 from laser_calib.cli.arguments import require_measured
-from laser_calib.io.bag import SAMPLES_TOPIC, TEST_SAMPLES_TOPIC, read_samples_checked
+from laser_calib.io.bag import SAMPLES_TOPIC, TEST_SAMPLES_TOPIC, read_samples_checked, session_topic
 from laser_calib.io.errors import InputError
 from laser_calib.io.joint_names import RobotJoints
 from laser_calib.io.samples import Samples, check_joint_range, check_spot_units, load_samples, without_unmeasured_test
@@ -54,7 +54,7 @@ def read_sample_sets(args: argparse.Namespace, robot: Robot) -> SampleSets:
         test_source, test = args.test, load_samples(args.test, robot)
     elif args.bag:  # the session's held-out poses, as it tested them, if it had any
         test = bag_samples(args.bag, robot, args.joint_names, TEST_SAMPLES_TOPIC, required=False)
-        test_source = None if test is None else f"{args.bag} {TEST_SAMPLES_TOPIC}"
+        test_source = None if test is None else f"{args.bag} {session_topic(args.bag, TEST_SAMPLES_TOPIC)}"
     require_measured(samples, source)
     if args.test:
         require_measured(test, test_source, "no spot is measured in the test set")

@@ -23,6 +23,9 @@ from laser_calib.io.joint_names import RobotJoints
 from laser_calib.io.samples import Samples
 
 INTERFACES = "laser_calib_interfaces"
+SAMPLE_TYPE = f"{INTERFACES}/msg/Sample"
+# A session's topics as its nodes name them in the root namespace; a session launched in one
+# (namespace:=rig2) recorded /rig2/samples: session_topic finds it.
 SAMPLES_TOPIC = "/samples"
 TEST_SAMPLES_TOPIC = "/test_samples"  # the session's held-out poses: measured, never fitted
 METADATA = "metadata.yaml"
@@ -126,10 +129,41 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int, list[Qos]]]:
         reader.close()
 
 
+def session_topic(path: str | Path, topic: str) -> str:
+    """``topic`` (a session's topic as named in the root namespace, /samples) in the namespace of
+    the session the bag holds: the namespace of its Sample topic named .../samples, the root
+    where it has none. A session launched with namespace:=rig2 recorded /rig2/samples, and its
+    bag read as no session at all ('no topic /samples'). A bag with the samples of more than one
+    namespace (`ros2 bag record` of two sessions) is refused: their poses are not one session's."""
+    names = _typed_topics(Path(path), SAMPLE_TYPE)
+    spaces = sorted({name.removesuffix(SAMPLES_TOPIC) for name in names if name.endswith(SAMPLES_TOPIC)})
+    if len(spaces) > 1:
+        raise InputError(str(path), f"holds the samples of {len(spaces)} sessions ("
+                                    f"{', '.join(space + SAMPLES_TOPIC for space in spaces)}): give one session's bag")
+    return (spaces[0] if spaces else "") + topic
+
+
+def _typed_topics(path: Path, msgtype: str) -> list[str]:
+    """The names of the bag's topics of ``msgtype``: from its metadata, which a damaged
+    segment leaves readable (read_samples_checked reads the others), else from the reader,
+    which says what is wrong with the bag."""
+    try:
+        info = yaml.safe_load((path / METADATA).read_text())["rosbag2_bagfile_information"]
+        return [entry["topic_metadata"]["name"] for entry in info["topics_with_message_count"]
+                if entry["topic_metadata"]["type"] == msgtype]
+    except Exception:  # a file, no metadata, or a torn one
+        reader = _reader(path)
+        try:
+            return [connection.topic for connection in reader.connections if connection.msgtype == msgtype]
+        finally:
+            reader.close()
+
+
 def read_samples(path: str | Path, topic: str = SAMPLES_TOPIC, joints: RobotJoints | None = None,
                  required: bool = True) -> Samples | None:
-    """The measured samples of a session bag (its /samples messages, in order), as the core's Samples;
-    not ``required``: None for a bag without the topic or without a message on it."""
+    """The measured samples of a session bag (its /samples messages, in order; ``topic`` in the
+    session's namespace, session_topic), as the core's Samples; not ``required``: None for a bag
+    without the topic or without a message on it."""
     return read_samples_checked(path, topic, joints, required)[0]
 
 
@@ -140,8 +174,9 @@ def read_samples_checked(path: str | Path, topic: str = SAMPLES_TOPIC, joints: R
     ``joints``: the robot's, each sample's joint_positions put in its order by the
     sample's joint_names; None: the positions as recorded. A bag without the topic,
     or without a message on it: InputError, or None when not ``required`` (a session
-    without test poses has no /test_samples)."""
+    without test poses has no /test_samples). ``topic``: in the session's namespace (session_topic)."""
     path = Path(path)
+    topic = session_topic(path, topic)
     try:
         msgs = _sample_msgs(path, topic)
         lost: list[str] = []

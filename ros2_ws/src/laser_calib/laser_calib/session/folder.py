@@ -50,7 +50,6 @@ TEST_SAMPLES_FILE = "test_samples.csv"
 ROBOT_FILE = "robot.yaml"
 BAG_DIR = "bag"
 WORK_DIR = ".recording"
-TEST_SAMPLES_TOPIC = "/test_samples"
 # The arguments that define a session's pose plan and the sequencer's defaults of them
 # (session.yaml's ``plan``; see SessionDir.check_plan).
 PLAN_DEFAULTS = {"poses_file": "", "poses": 60, "test_poses": 0, "span": "whole", "seed": 0, "repeats": 0,
@@ -198,6 +197,17 @@ class SessionDir:
                                              f"measured: {differences}; resume with the recorded values (or "
                                              f"leave them out) or choose another output_dir")
 
+    def check_namespace(self, namespace: str) -> None:
+        """Refuse (InputError naming the folder and both namespaces) to resume in another ROS
+        namespace than the session's (session.yaml's ``namespace``; a session started before it was
+        recorded passes): its nodes would record the poses to come on other topics than those
+        measured (/rig3/samples beside /rig2/samples), and the bag would hold two sessions' samples."""
+        recorded = (self.info() or {}).get("namespace")
+        if recorded is not None and recorded != namespace:
+            raise InputError(str(self.path), f"holds a partial session recorded in ROS namespace {recorded}, "
+                                             f"resumed in {namespace}; resume it in {recorded} (the launch's "
+                                             f"namespace:={recorded.strip('/')}) or choose another output_dir")
+
     def check_robot(self, robot: Robot, label: str) -> None:
         """Refuse (InputError naming the folder and both robots) to resume with a robot
         other than the session's robot.yaml: the models are compared as saved, not their names."""
@@ -224,7 +234,7 @@ class SessionDir:
         joints = joints or RobotJoints(robot)
         done = np.zeros(len(poses), dtype=bool)
         kept, to_bag, repairs = {False: [], True: []}, [], []
-        records = ((False, bag.SAMPLES_TOPIC, SAMPLES_FILE), (True, TEST_SAMPLES_TOPIC, TEST_SAMPLES_FILE))
+        records = ((False, bag.SAMPLES_TOPIC, SAMPLES_FILE), (True, bag.TEST_SAMPLES_TOPIC, TEST_SAMPLES_FILE))
         for test, topic, name in records:
             in_bag = self._bag_samples(topic, robot, joints)
             in_csv, torn = self._csv_samples(self.path / name, robot)
