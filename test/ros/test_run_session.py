@@ -163,3 +163,36 @@ def test_an_output_folder_that_cannot_be_made_is_one_line(ros: Ros, tmp_path):
     assert ros.log("sequencer").strip().splitlines()[-1].startswith(f"error: {out}: cannot create"), \
         ros.log("sequencer")
     assert "Traceback" not in ros.log("sequencer")
+
+
+def test_a_session_in_a_namespace_is_resumed_only_there_and_its_bag_is_read(ros: Ros, tmp_path, capsys):
+    """Two sessions on one ROS domain are refused, and the refusal says to give each its own
+    namespace; a session in one (namespace:=rig2) records /rig2/samples. Its bag read as no session
+    ('no topic /samples') to `estimate --bag` and to its own resume, which lost sight of the poses
+    only the bag held. A resume in another namespace is refused: its poses would go to other topics."""
+    from laser_calib.cli.main import main
+    from laser_calib.io import bag
+    out = tmp_path / "session"
+    # the 4-DOF arm: 12 poses, 48 values for its 21 errors (the 7-DOF's 33 left the robust rule too few)
+    plan = [RUN_SESSION, "--no-setup", "--out", str(out), "--robot", str(ROOT / "config" / "robots" /
+            "manipulator_4dof.yaml"), "--poses", "12", "--test-poses", "2", "--span", "small", "--speed", "4.0"]
+    proc = ros.start_command("run-session", plan + ["--namespace", "rig2"])
+    deadline = time.monotonic() + 300
+    while not csv_rows(out / "samples.csv"):   # measuring (test_ctrl_c_stops_every_node_cleanly)
+        assert proc.poll() is None and time.monotonic() < deadline, ros.log("run-session")
+        time.sleep(0.1)
+    ros.interrupt("run-session")
+    assert ros.wait_exit("run-session", 30) == 130, ros.log("run-session")
+    refused = ros.run(plan, timeout=120)
+    assert refused.returncode == 2, refused
+    assert refused.stderr.strip().splitlines()[-1] == (
+        f"error: {out}: holds a partial session recorded in ROS namespace /rig2, resumed in /; resume it in /rig2 "
+        "(the launch's namespace:=rig2) or choose another output_dir"), refused
+    resumed = ros.run(plan + ["--namespace", "rig2"], timeout=300)
+    assert resumed.returncode == 0 and "resuming" in resumed.stdout + resumed.stderr, resumed
+    assert {"/rig2/samples", "/rig2/test_samples"} <= set(bag.bag_topics(out / "bag"))
+    assert len(bag.read_samples(out / "bag")) == 12 and csv_rows(out / "samples.csv") == 12
+    capsys.readouterr()
+    assert main(["estimate", "--bag", str(out / "bag"), "--robot", str(out / "robot.yaml"),
+                 "--out", str(tmp_path / "estimate")]) == 0
+    assert f"tested on 2 poses of {out / 'bag'} /rig2/test_samples" in capsys.readouterr().err

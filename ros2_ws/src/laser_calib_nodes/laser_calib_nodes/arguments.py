@@ -7,6 +7,7 @@ from __future__ import annotations
 import difflib
 import math
 import os
+import re
 
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import load_yaml
@@ -28,6 +29,21 @@ def number(values: dict, name: str) -> float:
         return float(values[name])
     except ValueError:
         raise InputError(name, f"expected a number, got {values[name]!r}") from None
+
+
+# rcl's namespace rules (rmw_validate_namespace): /-separated tokens of letters, digits and
+# underscores, none starting with a digit, no '__'
+_NAMESPACE = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def namespace(values: dict) -> str:
+    """The namespace argument (relative to an including file's, or absolute), '' for none; one
+    rcl would refuse is refused here, before the folder is taken: each node died of it alone."""
+    given = values.get("namespace", "").rstrip("/") if values.get("namespace") != "/" else ""
+    if given and (not _NAMESPACE.fullmatch(given) or "__" in given):
+        raise InputError("namespace", f"expected a ROS namespace such as rig2 (letters, digits, '_' and '/'), got "
+                                      f"{values['namespace']!r}")
+    return given
 
 
 def positive_number(values: dict, name: str) -> float:

@@ -29,9 +29,8 @@ from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import load_robot
 
 from laser_calib.io import bag
-from laser_calib_nodes import graph
 from laser_calib_nodes.parameters import NodeError, declare
-from laser_calib_nodes.shutdown import ExitWatchdog, StopFlag, interruptible
+from laser_calib_nodes.shutdown import ExitWatchdog, StopFlag, die_with_parent, interruptible
 
 # Topic and service names (relative: a namespace or a remap moves them).
 JOINT_STATES = "joint_states"
@@ -286,7 +285,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     while cleaning up; an earlier fault keeps its own code, the cause).
     """
     global _executor
-    graph.die_with_parent()
+    die_with_parent()
     watchdog = ExitWatchdog(Path(sys.argv[0]).name)
     # rclpy's signal handlers call the one installed before them: this one notes the
     # signal, so that an error it causes inside rclpy (a KeyboardInterrupt while a large

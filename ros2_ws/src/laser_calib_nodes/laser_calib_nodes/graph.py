@@ -17,7 +17,6 @@ ROS-free: nothing here imports rclpy (launch only inside launch_actions).
 
 from __future__ import annotations
 
-import ctypes
 import os
 import shutil
 import signal
@@ -25,7 +24,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
@@ -36,12 +35,11 @@ from laser_calib.model.robot_file import load_robot
 from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, refuse_finished
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import check_plan
-from laser_calib_nodes.arguments import (arm_section, existing_files, integer, loadable_robot, noise_params,
-                                         positive_number, refuse_ignored_arguments)
-from laser_calib_nodes.shutdown import GRACE, StopFlag
+from laser_calib_nodes.arguments import (arm_section, existing_files, integer, loadable_robot, namespace,
+                                         noise_params, positive_number, refuse_ignored_arguments)
+from laser_calib_nodes.shutdown import GRACE, StopFlag, die_with_parent
 
 PACKAGE = "laser_calib_nodes"
-PR_SET_PDEATHSIG = 1  # linux/prctl.h
 # From SIGINT to SIGKILL (run-session), to SIGTERM (launch, then SIGKILL 5 s later) when stopping
 # the nodes: after the nodes' own bound (shutdown.GRACE), so that a node's cleanup (its files) is
 # never cut and a slow middleware teardown ends with the node's code and its warning, not with
@@ -63,6 +61,8 @@ def middleware_env() -> dict:
     return {"FASTRTPS_DEFAULT_PROFILES_FILE": share("config", "fastdds_large_frames.xml")}
 
 
+NAMESPACE_ARG = ("", "ROS namespace of the session's nodes and topics, e.g. rig2: one session per namespace on a "
+                     "ROS domain (a resume in the session's own). Empty: none.")
 DESCRIPTION_TOPIC_HELP = ("Take the arm's URDF from this topic (e.g. /robot_description of robot_state_publisher); "
                           "robot is then the file of base, tip and lasers (docs/urdf.md). Empty: robot alone.")
 # name: (default, description); default None: required. The launch file's arguments.
@@ -81,6 +81,7 @@ SESSION_ARGS = {
                        "parameter file's)."),
     "joint_sigma": ("", "Joint-reading noise, rad (at most 0.035), of the final estimate and the online EKF; -1: not "
                         "given, 0: none (empty: the parameter file's)."),
+    "namespace": NAMESPACE_ARG,
 }
 HARDWARE_ARGS = {
     "output_dir": (None, "Session directory (created; a partial session is resumed)."),
@@ -101,17 +102,20 @@ HARDWARE_ARGS = {
     "spot_sigma": SESSION_ARGS["spot_sigma"],
     "joint_sigma": SESSION_ARGS["joint_sigma"],
     "params": (share("config", "session.yaml"), "ROS parameter file of the other nodes."),
+    "namespace": NAMESPACE_ARG,
 }
 
 
 @dataclass(frozen=True)
 class NodeSpec:
-    """One node process: its executable (= node name), parameter files, then parameter overrides."""
+    """One node process: its executable (= node name), parameter files, then parameter overrides;
+    its namespace ('' for none; relative: inside an including launch file's)."""
 
     executable: str
     param_files: tuple[str, ...]
     params: dict = field(default_factory=dict)
     remaps: tuple[tuple[str, str], ...] = ()
+    namespace: str = ""
 
     def command(self) -> list[str]:
         args = [os.path.join(get_package_prefix(PACKAGE), "lib", PACKAGE, self.executable), "--ros-args"]
@@ -119,7 +123,7 @@ class NodeSpec:
             args += ["--params-file", path]
         for name, value in self.params.items():
             args += ["-p", f"{name}:={value}"]
-        for old, new in self.remaps:
+        for old, new in self.remaps + ((("__ns", "/" + self.namespace.lstrip("/")),) if self.namespace else ()):
             args += ["-r", f"{old}:={new}"]
         return args
 
@@ -147,8 +151,9 @@ def session_nodes(values: dict) -> list[NodeSpec]:
                      test_poses=integer(values, "test_poses"), span=values["span"], seed=integer(values, "seed"),
                      **{"estimate.method": values["method"]}, **estimate_noise)
     check_plan(sequencer["poses"], sequencer["span"], sequencer["seed"], test_poses=sequencer["test_poses"])
-    return [NodeSpec("estimator", files, dict(robot, **estimator_noise)), NodeSpec("arm_driver", files, arm),
-            NodeSpec("camera_sim", files), NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)]
+    return namespaced(values, [NodeSpec("estimator", files, dict(robot, **estimator_noise)),
+                               NodeSpec("arm_driver", files, arm), NodeSpec("camera_sim", files),
+                               NodeSpec("spot_detector", files), NodeSpec("sequencer", files, sequencer)])
 
 
 def hardware_nodes(values: dict) -> list[NodeSpec]:
@@ -169,13 +174,19 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
                      seed=integer(values, "seed"), **estimate_noise)
     check_plan(None if values["poses_file"] else sequencer["poses"], sequencer["span"], sequencer["seed"],
                test_poses=sequencer["test_poses"])
-    return [NodeSpec("estimator", files, dict(robot, **estimator_noise)),
-            NodeSpec("arm_driver", (values["arm_params"],), dict(robot, backend="dynamixel")),
-            NodeSpec("spot_detector", files, {"calibration": values["calibration"]},
-                     # the driver's CameraInfo too: remapped alone, the image's size and intrinsics went unchecked
-                     (("camera/image_raw", values["image"]),
-                      ("camera/camera_info", os.path.join(os.path.dirname(values["image"]), "camera_info")))),
-            NodeSpec("sequencer", files, sequencer)]
+    return namespaced(values, [
+        NodeSpec("estimator", files, dict(robot, **estimator_noise)),
+        NodeSpec("arm_driver", (values["arm_params"],), dict(robot, backend="dynamixel")),
+        NodeSpec("spot_detector", files, {"calibration": values["calibration"]},
+                 # the driver's CameraInfo too: remapped alone, the image's size and intrinsics went unchecked
+                 (("camera/image_raw", values["image"]),
+                  ("camera/camera_info", os.path.join(os.path.dirname(values["image"]), "camera_info")))),
+        NodeSpec("sequencer", files, sequencer)])
+
+
+def namespaced(values: dict, specs: list[NodeSpec]) -> list[NodeSpec]:
+    """specs in the namespace argument's namespace (the sequencer checks a resume's is the session's)."""
+    return [replace(spec, namespace=namespace(values)) for spec in specs]
 
 
 def given_plan(values: dict) -> dict:
@@ -209,19 +220,6 @@ def take_folder(output_dir: str, values: dict | None = None) -> None:
     _held.append(lock)
 
 
-def die_with_parent() -> None:
-    """Ask the kernel to SIGTERM this process when its parent ends (even by SIGKILL), so
-    that no node runs on without the launcher that owns the session. Linux only."""
-    parent = os.getppid()
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except (OSError, AttributeError):
-        return
-    if os.getppid() != parent:  # the parent ended before prctl took effect
-        os.kill(os.getpid(), signal.SIGTERM)
-
-
 def launch_actions(specs: list[NodeSpec]) -> list:
     """launch_ros Node actions of specs, and the end of the launch when any of them exits: a
     shutdown when the sequencer (last) ends with 0, the session done; an error (launch exits 1,
@@ -245,7 +243,8 @@ def launch_actions(specs: list[NodeSpec]) -> list:
     env = middleware_env()
     for spec in specs:
         node = Node(package=PACKAGE, executable=spec.executable, name=spec.executable, output="screen",
-                    parameters=[*spec.param_files, spec.params], remappings=list(spec.remaps),
+                    namespace=spec.namespace or None, parameters=[*spec.param_files, spec.params],
+                    remappings=list(spec.remaps),
                     additional_env=env, sigterm_timeout=str(STOP_SECONDS))
         actions += [node, RegisterEventHandler(OnProcessExit(
             target_action=node, on_exit=lambda event, context, name=spec.executable, last=spec is specs[-1]:

@@ -33,7 +33,7 @@ from laser_calib.io.errors import InputError
 
 from laser_calib.io import bag
 from laser_calib_nodes.common import ROS_ARGUMENT_ERRORS, rcl_error_line
-from laser_calib_nodes.graph import die_with_parent
+from laser_calib_nodes.shutdown import die_with_parent
 
 
 def message_class(msgtype: str):

@@ -52,8 +52,9 @@ class Stop(Exception):
 
 def open_session(node):
     """(session, lock, robot, poses, state) from the session parameters; the lock is held.
-    A partial session is resumed on its own pose plan: other plan arguments are refused
-    (SessionDir.check_plan), other settings are used with a warning (warn_settings)."""
+    A partial session is resumed on its own pose plan and in its own ROS namespace: other plan
+    arguments and another namespace are refused (SessionDir.check_plan, check_namespace), other
+    settings are used with a warning (warn_settings)."""
     d = lambda *a, **k: parameters.declare(node, *a, **k)  # noqa: E731
     robot_source = common.robot_source(node)
     output_dir = d("output_dir", "", "Session directory: samples.csv, bag/, report (created; resumed "
@@ -78,6 +79,7 @@ def open_session(node):
         if robot_source.path:  # a robot given must be the session's (its poses, samples, report are of it)
             session.check_robot(*robot_source.load(node, lasers=True))
         session.check_plan(plan)
+        session.check_namespace(node.get_namespace())
         warn_settings(node, session)
         robot, poses = session.load_for_resume()
         return session, lock, robot, poses, state
@@ -91,7 +93,7 @@ def open_session(node):
                                    f"repeats {plan['repeats']}")
     session.start(robot, poses, {"robot": robot_label, "poses": source, "test_poses": plan["test_poses"],
                                  "plan": {name: plan_value(name, value) for name, value in plan.items()},
-                                 "settings": settings(node)})
+                                 "namespace": node.get_namespace(), "settings": settings(node)})
     return session, lock, robot, poses, state
 
 

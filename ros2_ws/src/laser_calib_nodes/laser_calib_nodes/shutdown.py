@@ -29,6 +29,7 @@ from __future__ import annotations
 import ctypes
 import faulthandler
 import os
+import signal
 import sys
 import threading
 import time
@@ -36,6 +37,7 @@ import time
 GRACE = 15.0  # s: ten times what the nodes need to exit on two loaded cores
 BACKSTOP = 1.0  # s after GRACE: the native backstops, when the watchdog thread could not run
 WAKE_POLL = 0.005  # s between two looks at the context after a stop: rclpy shuts it microseconds after the wake
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 OWN_PACKAGES = ("laser_calib", "laser_calib_nodes")
@@ -189,3 +191,16 @@ class ExitWatchdog:
               "exiting without it (everything was saved)", file=sys.stderr, flush=True)
         sys.stdout.flush()
         os._exit(self.code)
+
+
+def die_with_parent() -> None:
+    """Ask the kernel to SIGTERM this process when its parent ends (even by SIGKILL), so
+    that no node runs on without the launcher that owns the session. Linux only."""
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent ended before prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)
