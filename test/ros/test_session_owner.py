@@ -58,7 +58,10 @@ def test_a_second_session_on_the_domain_is_refused_before_it_moves_the_arm(ros, 
     while not rows(first / "samples.csv"):   # measuring: its commands are on the topic
         assert owner.poll() is None and time.monotonic() < deadline, ros.log("sequencer")
         time.sleep(0.05)
-    ros.start("second", "-p", f"output_dir:={second}", "-p", "poses:=3", *common, node="sequencer")
+    # owner_watch: the graph watched long enough for discovery on a loaded machine (under the full suite
+    # the default 3 s saw one Estimate server of two: the next test)
+    ros.start("second", "-p", f"output_dir:={second}", "-p", "poses:=3", "-p", "owner_watch:=10.0", *common,
+              node="sequencer")
     assert ros.wait_exit("second", 90) == 3, ros.log("second")[-2000:]
     lines = [line for line in ros.log("second").splitlines() if line.strip()]
     assert "[sequencer]: /sequencer also commands the arm on /joint_trajectory: two nodes would drive it" in lines[-1]
@@ -78,8 +81,9 @@ def test_a_second_estimator_on_the_domain_is_refused_before_the_arm_moves(ros, t
     ros.start("stray", "-p", f"robot:={ROOT / 'config' / 'robots' / 'manipulator_4dof.yaml'}", node="estimator")
     for name in ("estimator", "stray"):   # both offer the service before the sequencer looks
         ros.wait_log(name, "parameters), input", 60)
+    # owner_watch: both servers seen before the arm moves on a loaded machine (the default 3 s saw one)
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=15",
-              "-p", "span:=small")
+              "-p", "span:=small", "-p", "owner_watch:=10.0")
     assert ros.wait_exit("sequencer", 90) == 3, ros.log("sequencer")[-2000:]
     lines = [line for line in ros.log("sequencer").splitlines() if line.strip()]
     assert "[sequencer]: 2 nodes offer the Estimate service on /estimator/estimate: either could answer" in lines[-1]

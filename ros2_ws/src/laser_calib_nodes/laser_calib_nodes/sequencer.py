@@ -76,6 +76,7 @@ class Sequencer(Node):
         record_images = d("record_images", False, "Also record camera images (large) in the bag.")
         segment_seconds = d("bag.max_segment_seconds", 10.0, "Close a bag segment after this long even "
                                                              "within a pose, s.", rule=parameters.positive)
+        self.owner_watch = sole_owner.declare(self)
         self.exit_code, self.done, self.created = 0, False, time.monotonic()
 
         self.session, self.lock, self.robot, self.poses, state = sequencer_parts.open_session(self)
@@ -166,7 +167,7 @@ class Sequencer(Node):
                   f"{self.wait_timeout:g} s (are the camera and spot_detector running?)")
         self.wait(lambda: self.traj_pub.get_subscription_count() > 0, self.wait_timeout,
                   f"nobody subscribes to {self.resolve_topic_name(common.JOINT_TRAJECTORY)}")
-        sole_owner.watch(self, self.created + sole_owner.DISCOVERY)
+        sole_owner.watch(self, self.created + self.owner_watch)
         found = self.resumed
         for r in range(len(found.to_bag)):   # restored from the CSV: back into the bag (the journal)
             test = bool(self.poses.test[self.poses.pose == found.to_bag.pose[r]][0])

@@ -11,7 +11,8 @@ import time
 from laser_calib_nodes import common, parameters
 
 
-# s from a sequencer's start in which it watches the graph for a second commander or Estimate server:
+# s from a sequencer's start in which it watches the graph for a second commander or Estimate server (the
+# default of its owner_watch parameter):
 # just made, it had seen none of two running servers, then one before the other; on CI's loaded
 # machine, 1.6 s after its start, it had not yet seen another session's sequencer measuring
 DISCOVERY = 3.0
@@ -20,6 +21,14 @@ NAMING = 2.0
 # rmw_dds_common's name for a node whose discovery data has not arrived yet
 UNKNOWN_NAME = "_NODE_NAME_UNKNOWN_"
 UNNAMED = "a node not yet named in the ROS graph"
+
+
+def declare(node) -> float:
+    """The sequencer's owner_watch parameter (s): how long from its start it watches the graph."""
+    return parameters.declare(node, "owner_watch", DISCOVERY, "Watch the ROS graph this long from the start, s, "
+                              "for another session's sequencer or Estimate server on the domain before the arm moves "
+                              "(discovery takes time: longer on a large or loaded network).",
+                              rule=parameters.non_negative)
 
 
 def watch(node, until: float) -> None:
@@ -45,7 +54,7 @@ def commander(node) -> None:
         others = sorted(set(publishers))
         raise parameters.NodeError(f"{', '.join(others)} also commands the arm on {topic}: two nodes would drive it "
                                    f"(a second session on ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}?); "
-                                   "give each session its own domain or namespace", 3)
+                                   "give each session its own domain or namespace (the launch files' namespace:=)", 3)
 
 
 def named_publishers(node, topic: str, until: float) -> list[str]:
@@ -74,4 +83,4 @@ def estimator(node) -> None:
         raise parameters.NodeError(f"{servers} nodes offer the Estimate service on {name}: either could answer this "
                                    f"session (another session's estimator on ROS_DOMAIN_ID "
                                    f"{os.environ.get('ROS_DOMAIN_ID', '0')}?); give each session its own domain or "
-                                   "namespace", 3)
+                                   "namespace (the launch files' namespace:=)", 3)
