@@ -117,8 +117,8 @@ def arm_section(path: str) -> None:
 SEQUENCER_PARAMETERS = (
     "output_dir", "resume", "joint_names", "move.joint_speed", "settle.position_tolerance",
     "settle.velocity_tolerance", "settle.hold_time", "settle.timeout", "frames", "frame_timeout", "sync_tolerance",
-    "wait_timeout", "unseen_limit", "record_images", "bag.max_segment_seconds", "truth", "estimate.method",
-    "estimate.spot_sigma", "estimate.joint_sigma", "estimate.prior", "estimate.robust", "estimate.diagnose",
+    "wait_timeout", "owner_watch", "unseen_limit", "record_images", "bag.max_segment_seconds", "truth",
+    "estimate.method", "estimate.spot_sigma", "estimate.joint_sigma", "estimate.prior", "estimate.robust", "estimate.diagnose",
     "estimate.mode", "estimate.shared_filesystem", "estimate.timeout")
 
 
