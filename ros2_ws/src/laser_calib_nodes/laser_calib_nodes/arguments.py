@@ -118,8 +118,8 @@ SEQUENCER_PARAMETERS = (
     "output_dir", "resume", "joint_names", "move.joint_speed", "settle.position_tolerance",
     "settle.velocity_tolerance", "settle.hold_time", "settle.timeout", "frames", "frame_timeout", "sync_tolerance",
     "wait_timeout", "owner_watch", "unseen_limit", "record_images", "bag.max_segment_seconds", "truth",
-    "estimate.method", "estimate.spot_sigma", "estimate.joint_sigma", "estimate.prior", "estimate.robust", "estimate.diagnose",
-    "estimate.mode", "estimate.shared_filesystem", "estimate.timeout")
+    "estimate.method", "estimate.spot_sigma", "estimate.joint_sigma", "estimate.prior", "estimate.robust",
+    "estimate.diagnose", "estimate.mode", "estimate.shared_filesystem", "estimate.timeout")
 
 
 MISSPELT = 0.85  # difflib's similarity from which a name not taken is taken for a misspelt argument
