@@ -38,7 +38,7 @@ _NAMESPACE = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 
 def namespace(values: dict) -> str:
     """The namespace argument (relative to an including file's, or absolute), '' for none; one
-    rcl would refuse is refused here, before the folder is taken: each node died of it alone."""
+    that breaks rcl's rules is refused here, in one line, before the folder is taken."""
     given = values.get("namespace", "").rstrip("/") if values.get("namespace") != "/" else ""
     if given and (not _NAMESPACE.fullmatch(given) or "__" in given):
         raise InputError("namespace", f"expected a ROS namespace such as rig2 (letters, digits, '_' and '/'), got "
