@@ -63,6 +63,16 @@ def ros2_missing() -> str | None:
 _ENV: dict | None = None
 
 
+def terminal_signals() -> None:
+    """SIGINT and SIGQUIT at their defaults in a child, as a shell's foreground job has them. A
+    suite started as a background job of a shell without job control (`(scripts/test &)`) ignores
+    both, and its children inherit that: a node sent Ctrl-C before it set its own handler ran on
+    to its end (test_exit_watchdog's Ctrl-C at every moment of a start: 'parameter robot is
+    empty', exit 2, in a clean clone started so)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGQUIT, signal.SIG_DFL)
+
+
 def workspace_env() -> dict:
     """os.environ plus what `source scripts/env.sh` sets."""
     global _ENV
@@ -96,11 +106,13 @@ class Ros:
 
     def start_command(self, name: str, args: list[str]) -> subprocess.Popen:
         """Start any command (`ros2 launch ...`) as a terminal starts a job: its own process
-        group, which stop() signals as a whole, as Ctrl-C does."""
+        group, which stop() signals as a whole, as Ctrl-C does, and Ctrl-C's signals at their
+        defaults (terminal_signals)."""
         self.ros2_used |= args[0] == "ros2"
         log = self.tmp / f"{name}.log"
         handle = open(log, "ab")
-        proc = subprocess.Popen(args, env=self.env, stdout=handle, stderr=subprocess.STDOUT, start_new_session=True)
+        proc = subprocess.Popen(args, env=self.env, stdout=handle, stderr=subprocess.STDOUT, start_new_session=True,
+                                preexec_fn=terminal_signals)
         handle.close()
         self.procs[name], self.logs[name] = proc, log
         return proc

@@ -155,12 +155,12 @@ def test_a_ctrl_c_at_any_moment_of_a_node_start_ends_it_without_a_word():
     Ctrl-C in their imports as a KeyboardInterrupt: a traceback 8-50 ms after the start, here.
     Python's own start, with its handler installed before sys.stdout was open, took one as
     "Fatal Python error: init_sys_streams" (exit 1): 2 of 90 in the first 15 ms, here."""
-    from ros_harness import BIN, workspace_env
+    from ros_harness import BIN, terminal_signals, workspace_env
     env, seen = workspace_env(), []
     delays = [step * 0.005 for step in range(31)] + [step * 0.0001 for step in range(100)] * 2
     for delay in delays:
         node = subprocess.Popen([str(BIN / "estimator")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                text=True, env=env)
+                                text=True, env=env, preexec_fn=terminal_signals)
         time.sleep(delay)
         node.send_signal(signal.SIGINT)
         output = node.communicate(timeout=60)[0]
