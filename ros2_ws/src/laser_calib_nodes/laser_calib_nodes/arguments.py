@@ -39,7 +39,7 @@ _NAMESPACE = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 def namespace(values: dict) -> str:
     """The namespace argument (relative to an including file's, or absolute), '' for none; one
     that breaks rcl's rules is refused here, in one line, before the folder is taken."""
-    given = values.get("namespace", "").rstrip("/") if values.get("namespace") != "/" else ""
+    given = values.get("namespace", "").rstrip("/")   # '/' is the root: none
     if given and (not _NAMESPACE.fullmatch(given) or "__" in given):
         raise InputError("namespace", f"expected a ROS namespace such as rig2 (letters, digits, '_' and '/'), got "
                                       f"{values['namespace']!r}")

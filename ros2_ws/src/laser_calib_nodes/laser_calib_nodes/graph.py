@@ -186,7 +186,8 @@ def hardware_nodes(values: dict) -> list[NodeSpec]:
 
 def namespaced(values: dict, specs: list[NodeSpec]) -> list[NodeSpec]:
     """specs in the namespace argument's namespace (the sequencer checks a resume's is the session's)."""
-    return [replace(spec, namespace=namespace(values)) for spec in specs]
+    space = namespace(values)
+    return [replace(spec, namespace=space) for spec in specs]
 
 
 def given_plan(values: dict) -> dict:
