@@ -389,3 +389,22 @@ def test_a_spot_sigma_at_zero_beside_joint_noise_is_not_an_exact_fit():
     assert not [w for w in est.warnings if "fitted exactly" in w], est.warnings
     assert np.isfinite(est.std[est.identifiable]).all() and (est.std[est.identifiable] > 0).all()
     assert spot_sigma_phrase(est).startswith("Spot sigma below what the data resolve")
+
+
+def test_the_restricted_likelihood_of_dependent_columns_is_that_of_their_span():
+    """A fit gone wrong can leave fewer measured values than determined parameters: X^T C^-1 X is
+    singular, and the likelihood raised 'Singular matrix' from the middle of an estimate. Over the
+    directions X spans (pseudo-determinant, pseudo-inverse) it is the likelihood of a basis of
+    them up to a constant: det(A^T M A) over its range is det(M) det(A A^T) for X = B A."""
+    from laser_calib.measurement.noise_components import deviance
+    rng = np.random.default_rng(4)
+    n_poses, basis_columns = 12, 3
+    res = Residuals(r=rng.normal(0, 1e-3, (n_poses, 2, 2)), valid=np.ones((n_poses, 2), bool), jac=None,
+                    jac_q=rng.normal(0, 0.5, (n_poses, 2, 2, 4)), predicted=np.zeros((n_poses, 2, 2)))
+    basis = rng.normal(0, 1, (n_poses, 2, 2, basis_columns))
+    mixed = basis @ rng.normal(0, 1, (basis_columns, 2))     # two columns in the span of the three
+    dependent = np.concatenate([basis, mixed, np.zeros((n_poses, 2, 2, 1))], axis=-1)   # and one never seen
+    of_basis, of_dependent = deviance(res, 1.0, basis), deviance(res, 1.0, dependent)
+    sigmas = [(1e-3, 1e-4), (3e-4, 2e-3), (2e-3, 1e-6), (47.0, 1e-4)]
+    offsets = [of_dependent(s, j) - of_basis(s, j) for s, j in sigmas]
+    assert np.allclose(offsets, offsets[0], rtol=0, atol=1e-6), offsets

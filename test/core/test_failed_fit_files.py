@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from laser_calib.cli.main import main
 from laser_calib.io.samples import load_samples, save_samples
@@ -101,3 +102,21 @@ def test_a_failed_diagnosis_writes_the_errors_it_held_at_nominal(tmp_path):
                       - robot.vector()))
     assert {name: errors[name] for name in held if abs(errors[name]) > 1e-12} == {}
     assert any(abs(value) > 1e-6 for name, value in errors.items() if name not in held)
+
+
+@pytest.mark.parametrize("samples", ["every_beam_off", "too_few_values"])
+def test_a_fit_whose_beams_leave_the_screen_is_no_calibration_not_a_crash(tmp_path, capsys, samples):
+    """A session of the 4-DOF arm measured by the ROS nodes (the simulated arm the right one, its
+    robot file marking joint 4 prismatic), its joint readings jittered by 7 and 52 nrad: the sets on
+    which the estimate, its noise estimated as the sequencer's is, raised here. With joint noise
+    estimated the final fit moved every beam off the screen and dividing by its chi^2 of 0 was a
+    ZeroDivisionError traceback (exit 1); the restricted likelihood of a trial fit that kept fewer
+    values than parameters was 'Singular matrix' (CI: the session ended with exit 2 as for bad
+    input, its files unwritten). Either is the failure it is: exit 3, NOT A CALIBRATION, the files."""
+    folder = Path(__file__).parent / "data" / "prismatic_session"
+    out = tmp_path / "out"
+    assert main(["estimate", "--robot", str(folder / "robot.yaml"), "--samples", str(folder / f"{samples}.csv"),
+                 "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "error: NOT A CALIBRATION: the fit lost" in err and "Traceback" not in err, err
+    assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()

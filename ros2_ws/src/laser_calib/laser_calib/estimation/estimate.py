@@ -342,8 +342,9 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         result = rescaled(least_squares, noise.sigma / robust_sigma)
     else:
         result = fit(problem, start_x)
-    if joint_estimated and prior_sigma is None:
+    if joint_estimated and prior_sigma is None and result.chi2 > 0:
         # the variance factor a posteriori: the likelihood set the components' ratio, chi^2 / dof their level
+        # (none when the fit moved every beam off the screen: no residual to set it, the loss is said below)
         ratio = float(np.sqrt(result.chi2 / result.dof))
         result, sigma, joint_sigma = rescaled(result, ratio), sigma * ratio, joint_sigma * ratio
     restarts = 0
