@@ -198,6 +198,26 @@ def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsy
     assert outcome.calibration.failure.startswith("NOT A CALIBRATION: the fit lost")
 
 
+def test_a_miss_the_estimated_joint_noise_takes_up_is_no_calibration(tmp_path, capsys):
+    """Joint 3 of the 4-DOF arm marked prismatic, 8 poses, plain least squares, both sigmas
+    estimated: a joint-reading sigma of 5.6 deg takes up the misfit, the spot sigma is 6.5 mm, and
+    the spot sigma was all the residual-level check saw: exit 0 for a model missing its spots by
+    69 mm (mean). The raw residual is what the model misses (estimation.failures.residual_level)."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--poses-per-span", "8", "--out", str(sim)]) == 0
+    robot = load_robot(sim / "robot_nominal.yaml")
+    joints = list(robot.joints)
+    joints[2] = replace(joints[2], prismatic=True)
+    save_robot(replace(robot, joints=tuple(joints)), tmp_path / "wrong.yaml")
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main(["estimate", "--robot", str(tmp_path / "wrong.yaml"), "--samples", str(sim / "case1_cal.csv"),
+                 "--no-robust", "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "error: NOT A CALIBRATION: the calibrated model still misses the measurements by" in err, err
+    assert json.loads((out / "result.json").read_text())["joint_sigma_estimated"]
+
+
 def test_spots_out_of_step_with_the_joint_readings_are_no_calibration(tmp_path, capsys):
     """Each pose's spots paired with the previous pose's joint readings (a sync fault): the
     fit misses the spots by hundreds of mm, which no camera does (estimation.failures.

@@ -52,7 +52,7 @@ import numpy as np
 from laser_calib.estimation import joint_noise_bound
 from laser_calib.estimation.ekf import EkfOptions, extended_kalman
 from laser_calib.estimation.failures import (NOT_CONVERGED, NoSpotToFit, beyond_data, first_failure, fit_failures,
-                                             implausible)
+                                             implausible, residual_level)
 from laser_calib.estimation.folds import still_joint_warnings
 from laser_calib.estimation.identifiability import (AMPLIFY, STD_FACTOR, Identifiability, TooFewValues, analyse,
                                                    check_fixed, weak_warnings)
@@ -362,7 +362,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                         f"value, far below the spot sigma {options.spot_sigma_source}, {sigma * 1e3:.3g} mm (standard "
                         "deviations are overstated)")
     lost = int((seen if excluded is None else seen & ~excluded).sum()) - result.n_values // dims
-    warnings.extend(fit_failures(lost, sigma * float(np.sqrt(result.chi2 / max(result.dof, 1)))))
+    warnings.extend(fit_failures(lost, residual_level(model, result, excluded, sigma, bool(joint_sigma))))
     at_zero = spot_sigma_at_zero(sigma, sigma_estimated)
     exact = at_zero and not joint_sigma
     noise_doubts = sigma_warnings(sigma, sigma_dof) if sigma_estimated and not at_zero else []
