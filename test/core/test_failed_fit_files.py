@@ -120,3 +120,17 @@ def test_a_fit_whose_beams_leave_the_screen_is_no_calibration_not_a_crash(tmp_pa
     err = capsys.readouterr().err
     assert "error: NOT A CALIBRATION: the fit lost" in err and "Traceback" not in err, err
     assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
+
+
+def test_a_restart_whose_damped_step_is_singular_damps_more(tmp_path, capsys):
+    """The paper's 4-DOF arm simulated (seed 2, 8 poses), its robot file's alpha3 a quarter turn off:
+    the first minimum is suspect, and a restart's normal equations were beyond what LM's damping
+    made solvable ('Singular matrix', exit 2 as for bad input). It damps more, as for a rejected
+    step, and the estimate is the failure it is."""
+    folder = Path(__file__).parent / "data" / "wrong_alpha3"
+    out = tmp_path / "out"
+    assert main(["estimate", "--robot", str(folder / "robot.yaml"), "--samples", str(folder / "samples.csv"),
+                 "--method", "ekf", "--spot-sigma", "0.0005", "--no-robust", "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "error: NOT A CALIBRATION: " in err and "Singular matrix" not in err, err
+    assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()

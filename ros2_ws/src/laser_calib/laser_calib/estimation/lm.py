@@ -46,7 +46,13 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
     while iterations < options.max_iter and not converged:
         iterations += 1
         while True:
-            step = np.linalg.solve(normal.information + damping * eye, normal.gradient)
+            try:
+                step = np.linalg.solve(normal.information + damping * eye, normal.gradient)
+            except np.linalg.LinAlgError:
+                # damping * I lost in rounding beside information of dependent rows (a wrong robot
+                # file's restart, 4-DOF arm: 'Singular matrix' from the middle of an estimate)
+                damping *= 10.0
+                continue
             # The step's length in standard deviations of the estimate (the information
             # metric): below step_tol it changes nothing that the data can tell.
             if np.sqrt(max(step @ normal.information @ step, 0.0)) < options.step_tol:
