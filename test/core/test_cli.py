@@ -196,6 +196,13 @@ def test_a_minimum_that_lost_measurements_exits_3_with_its_files(tmp_path, capsy
     outcome = run_calibration(load_robot(wrong), load_samples(sim / "samples.csv"),
                               estimate_options("lm", 0.0, False, True), None)
     assert outcome.calibration.failure.startswith("NOT A CALIBRATION: the fit lost")
+    # With its diagnosis (the nodes' estimate.diagnose), which starts from that fit and refuses the robot file:
+    # said beside the failure, not instead of it (the session ended with exit 2, as for bad input, unsaid)
+    diagnosed = run_calibration(load_robot(wrong), load_samples(sim / "samples.csv"),
+                                estimate_options("lm", 0.0, False, True), None, diagnose=True)
+    assert diagnosed.calibration.failure == outcome.calibration.failure
+    assert diagnosed.message.startswith(outcome.calibration.summary() + "; diagnosis skipped: robot: the nominal model's "
+                                        "beams meet the screen at "), diagnosed.message
 
 
 def test_a_miss_the_estimated_joint_noise_takes_up_is_no_calibration(tmp_path, capsys):

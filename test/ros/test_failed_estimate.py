@@ -1,7 +1,9 @@
 """A session whose fit is no calibration (the robot file the fit uses marks a revolute joint
 prismatic; the simulated arm is the right one): the sequencer writes the files, says so,
 and ends with status 4, whether it estimates in its own process or through the
-estimator's Estimate service (which fits with its own robot file)."""
+estimator's Estimate service (which fits with its own robot file), and with its diagnosis, which
+starts from the failed fit and refuses the robot file: said beside the failure (it was exit 2, as
+for bad input, the failure unsaid)."""
 
 from __future__ import annotations
 
@@ -15,8 +17,8 @@ from ros_harness import ROOT
 ROBOT = ROOT / "config" / "robots" / "manipulator_4dof.yaml"
 
 
-@pytest.mark.parametrize("mode", ["local", "service"])
-def test_a_fit_that_is_no_calibration_ends_the_session_with_status_4(ros, tmp_path, mode):
+@pytest.mark.parametrize("mode, diagnose", [("local", False), ("service", False), ("local", True)])
+def test_a_fit_that_is_no_calibration_ends_the_session_with_status_4(ros, tmp_path, mode, diagnose):
     from laser_calib.model.robot_file import load_robot, save_robot
     robot = load_robot(ROBOT)
     joints = list(robot.joints)
@@ -30,12 +32,15 @@ def test_a_fit_that_is_no_calibration_ends_the_session_with_status_4(ros, tmp_pa
     ros.start("camera_sim")
     ros.start("spot_detector")
     ros.start("sequencer", "-p", f"robot:={wrong}", "-p", f"output_dir:={out}", "-p", "poses:=16",
-              "-p", "span:=whole", "-p", "seed:=5", "-p", f"estimate.mode:={mode}", "-p", "estimate.diagnose:=false")
+              "-p", "span:=whole", "-p", "seed:=5", "-p", f"estimate.mode:={mode}",
+              "-p", f"estimate.diagnose:={str(diagnose).lower()}")
     code = ros.wait_exit("sequencer", 240)
     log = ros.log("sequencer")
     assert code == 4, log[-3000:]
     assert "estimate failed: " in log and f"its files are in {out}" in log and "Traceback" not in log, log[-3000:]
     assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
+    # its refusal here ('diagnosis skipped: robot: the nominal model's beams meet the screen at ...'), or its verdict
+    assert ("; diagnosis" in log) == diagnose, log[-3000:]
     if mode == "local":  # its files name the session's files it fitted, as `laser-calib estimate` names its inputs
         assert json.loads((out / "result.json").read_text())["inputs"] == {
             "robot": str(out / "robot.yaml"), "samples": str(out / "samples.csv"),

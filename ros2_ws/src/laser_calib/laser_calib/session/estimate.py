@@ -95,8 +95,9 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
                     test: Samples | None = None) -> Outcome:
     """calibrate() (what `laser-calib estimate` runs: the robot file's effects, and the
     learned compensator when given), its files into out_dir when given; ValueError
-    from the estimate (too few spots, ...) becomes an InputError. test: held-out
-    samples (never fitted) for the test figures and the diagnosis's predictive test."""
+    from the estimate (too few spots, ...) becomes an InputError; the diagnosis's, after an estimate
+    that is no calibration, its 'skipped' reason. test: held-out samples (never fitted) for the test
+    figures and the diagnosis's predictive test."""
     # Samples from a request or a live session are not read from a file: their units and columns are checked here.
     for name, checked in (("samples", samples), ("test", test)):
         if checked is not None:
@@ -118,8 +119,15 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
             write_outputs(calibration, out_dir)
         diagnosis = ""
         if diagnose:
-            diagnosis = json.dumps(run_diagnosis(robot, samples, options, Path(out_dir) if out_dir else None, test,
-                                                 sources))
+            try:
+                diagnosis = json.dumps(run_diagnosis(robot, samples, options, Path(out_dir) if out_dir else None,
+                                                     test, sources))
+            except InputError as exc:
+                if calibration.failure is None:
+                    raise
+                # it starts from that failed fit: its refusal is said beside the estimate's failure, whose
+                # files are written (a wrong robot file ended a session as bad input, its failure unsaid)
+                diagnosis = json.dumps({"skipped": f"diagnosis skipped: {exc}"})
     return Outcome(calibration, diagnosis)
 
 
