@@ -134,3 +134,17 @@ def test_a_restart_whose_damped_step_is_singular_damps_more(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "error: NOT A CALIBRATION: " in err and "Singular matrix" not in err, err
     assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
+
+
+def test_a_failed_diagnosis_keeps_no_learned_compensator(tmp_path, capsys):
+    """The detector finds what a wrong model misses (p = 0.003 here), and the learned compensator
+    fitted to it won held-out: it was written as compensator.json, a file `estimate --compensator`
+    applies, beside a diagnosis whose final fit is no calibration. Now a note says why there is none."""
+    robot_file, samples = out_of_step(tmp_path)
+    out = tmp_path / "out"
+    assert main(["diagnose", "--robot", str(robot_file), "--samples", str(samples), "--max-effects", "0",
+                 "--out", str(out)]) == 3
+    assert "note: no learned compensator: the final fit is no calibration (NOT A CALIBRATION)" in \
+        capsys.readouterr().err
+    assert not (out / "compensator.json").exists()
+    assert json.loads((out / "diagnosis.json").read_text())["detector"]["p"] <= 0.01

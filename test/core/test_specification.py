@@ -148,3 +148,13 @@ def test_blocks_of_poses_give_the_test_on_all_of_them():
     assert ([(v.parameter, v.covariate, v.shape, v.dof) for v in whole]
             == [(v.parameter, v.covariate, v.shape, v.dof) for v in parts])
     np.testing.assert_allclose([v.f for v in parts], [v.f for v in whole], rtol=1e-9)
+
+
+def test_a_fit_without_a_measured_value_has_nothing_to_test():
+    """A wrong robot file's final fit can lose every measured value (every beam off the screen):
+    no column is then tested, and no test is reported (numpy's 'zero-size array to reduction
+    operation maximum' was `diagnose`'s one line, exit 2, and its files unwritten)."""
+    res, covariates = linear_case(3)
+    lost = Residuals(np.zeros_like(res.r), np.zeros_like(res.valid), np.zeros_like(res.jac), res.jac_q, res.predicted)
+    assert run(lost, covariates) == []
+    assert run(res, covariates)  # the same poses measured are tested

@@ -94,6 +94,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.joint import gravity_torques
 from laser_calib.effects.screen import Surface, extrapolation_note
+from laser_calib.estimation.failures import first_failure
 from laser_calib.estimation.folds import kfold_labels, test_range_warnings
 from laser_calib.estimation.problem import pose_blocks, residuals_at
 from laser_calib.io.errors import InputError
@@ -301,6 +302,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
         if beyond:
             notes.append(beyond)
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
+    failed = first_failure(final.estimate.warnings)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
     samples = data.samples
     # Whitened by the verdict's noise model: every value then has unit variance, which the
@@ -329,10 +331,14 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     verdict, said = predicted(verdict, said, prediction, options.alpha)
     compensator = compensated = None
     if options.compensate and detection.p <= options.alpha and detection.gain > 0:
-        compensator = backfit(detection, seen, final.estimate.values, fitter.fit_options, detector_noise,
-                              fitter.fold if rows is None else fitter.fold[rows])
-        if test is not None:
-            compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)), compensator.values)
+        if failed:  # a regression of what a wrong model misses would be a file `estimate --compensator` applies
+            notes.append(f"no learned compensator: the final fit is no calibration ({failed.split(':')[0]})")
+        else:
+            compensator = backfit(detection, seen, final.estimate.values, fitter.fit_options, detector_noise,
+                                  fitter.fold if rows is None else fitter.fold[rows])
+            if test is not None:
+                compensated = distances(compensator.apply(EffectModel(test.base(), final.effects)),
+                                        compensator.values)
     merged = {**fitter.merged, **final.estimate.identifiability.merged}
     return Diagnosis(data.robot, data.samples, None if test is None else test.samples, tuple(stages), tuple(rounds),
                      noise, before, after, verdict, said, parameters, replace(options, progress=None),

@@ -157,6 +157,8 @@ def specification_tests(names: tuple[str, ...], identifiable: np.ndarray,
         sums.add(index, np.where(rows, y, 0.0), np.where(rows[:, None], jac[:, identifiable], 0.0), int(rows.sum()))
     norms = np.linalg.norm(sums.factor, axis=0)                        # J's column norms (R's)
     used = norms > 0
+    if not used.any():  # no measured value moves with a parameter (a wrong robot file's fit lost them all)
+        return []
     columns = [names[k] for k, u in zip(np.flatnonzero(identifiable), used) if u]
     # J at unit column norms, J' = J D: its span's orthonormal basis B = J' V S^-1 over the
     # singular values kept (R' = R D = U S V^T), so B^T = to_span J^T
