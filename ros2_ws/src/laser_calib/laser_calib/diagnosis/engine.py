@@ -302,7 +302,6 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
         if beyond:
             notes.append(beyond)
     noise_model = NoiseModel(noise.spot_sigma, noise.joint_sigma)
-    failed = first_failure(final.estimate.warnings)
     before, after = analysis(data, fits[0], noise_model), analysis(data, final, noise_model)
     samples = data.samples
     # Whitened by the verdict's noise model: every value then has unit variance, which the
@@ -331,6 +330,7 @@ def finish(data: Data, options: DiagnoseOptions, test: Data | None, fitter: Fitt
     verdict, said = predicted(verdict, said, prediction, options.alpha)
     compensator = compensated = None
     if options.compensate and detection.p <= options.alpha and detection.gain > 0:
+        failed = first_failure(final.estimate.warnings)
         if failed:  # a regression of what a wrong model misses would be a file `estimate --compensator` applies
             notes.append(f"no learned compensator: the final fit is no calibration ({failed.split(':')[0]})")
         else:
