@@ -47,6 +47,8 @@ from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, OneLineParse
                                       tolerance_length)
 
 EXIT_BAD_INPUT = 2
+# A breakdown of our own numerics (numpy's LinAlgError, which Python counts as a ValueError): not the input's fault.
+EXIT_INTERNAL_ERROR = 1
 # The reader of the output went away (| head): the status a shell gives a program SIGPIPE ends (128 + 13).
 EXIT_BROKEN_PIPE = 141
 
@@ -295,6 +297,11 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"laser-calib: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except np.linalg.LinAlgError as exc:
+        # it read as bad input ('laser-calib estimate: Singular matrix', exit 2), each time a fault of ours
+        print(f"laser-calib {args.command}: internal error: the fit's numerics broke down ({exc}); please report it "
+              "with the input files", file=sys.stderr)
+        return EXIT_INTERNAL_ERROR
     except ValueError as exc:
         print(f"laser-calib {args.command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

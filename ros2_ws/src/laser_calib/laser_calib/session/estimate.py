@@ -17,6 +17,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from laser_calib.diagnosis.compensator import Compensator
 from laser_calib.diagnosis.engine import DiagnoseOptions, TooFewPoses, diagnose, write_outputs as write_diagnosis
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
@@ -95,7 +97,8 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
                     test: Samples | None = None) -> Outcome:
     """calibrate() (what `laser-calib estimate` runs: the robot file's effects, and the
     learned compensator when given), its files into out_dir when given; ValueError
-    from the estimate (too few spots, ...) becomes an InputError; the diagnosis's, after an estimate
+    from the estimate (too few spots, ...) becomes an InputError, but numpy's LinAlgError (a fault of
+    ours, raised as it is); the diagnosis's InputError, after an estimate
     that is no calibration, its 'skipped' reason. test: held-out samples (never fitted) for the test
     figures and the diagnosis's predictive test."""
     # Samples from a request or a live session are not read from a file: their units and columns are checked here.
@@ -111,7 +114,7 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
     try:
         calibration = calibrate(robot, samples, options, test, sources=sources, compensator=compensator)
     except ValueError as exc:
-        if isinstance(exc, InputError):
+        if isinstance(exc, (InputError, np.linalg.LinAlgError)):  # LinAlgError: our numerics, not the input
             raise
         raise InputError("estimate", str(exc)) from None
     with writing(out_dir):
