@@ -145,18 +145,14 @@ def session_topic(path: str | Path, topic: str) -> str:
 
 def _typed_topics(path: Path, msgtype: str) -> list[str]:
     """The names of the bag's topics of ``msgtype``: from its metadata, which a damaged
-    segment leaves readable (read_samples_checked reads the others), else from the reader,
-    which says what is wrong with the bag."""
+    segment leaves readable (read_samples_checked reads the others), else from the reader
+    (bag_topics), which says what is wrong with the bag."""
     try:
         info = yaml.safe_load((path / METADATA).read_text())["rosbag2_bagfile_information"]
         return [entry["topic_metadata"]["name"] for entry in info["topics_with_message_count"]
                 if entry["topic_metadata"]["type"] == msgtype]
     except Exception:  # a file, no metadata, or a torn one
-        reader = _reader(path)
-        try:
-            return [connection.topic for connection in reader.connections if connection.msgtype == msgtype]
-        finally:
-            reader.close()
+        return [topic for topic, (kind, _, _) in bag_topics(path).items() if kind == msgtype]
 
 
 def read_samples(path: str | Path, topic: str = SAMPLES_TOPIC, joints: RobotJoints | None = None,
