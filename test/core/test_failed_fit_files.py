@@ -104,6 +104,17 @@ def test_a_failed_diagnosis_writes_the_errors_it_held_at_nominal(tmp_path):
     assert any(abs(value) > 1e-6 for name, value in errors.items() if name not in held)
 
 
+def recorded_failure(folder: str, samples: str, out: Path, capsys, *options: str) -> str:
+    """estimate of data/``folder``'s robot.yaml and ``samples`` (with ``options``) into out, which must
+    exit 3 and write its files as no calibration: what it printed on stderr."""
+    data = Path(__file__).parent / "data" / folder
+    assert main(["estimate", "--robot", str(data / "robot.yaml"), "--samples", str(data / samples), *options,
+                 "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
+    return err
+
+
 @pytest.mark.parametrize("samples", ["every_beam_off", "too_few_values"])
 def test_a_fit_whose_beams_leave_the_screen_is_no_calibration_not_a_crash(tmp_path, capsys, samples):
     """A session of the 4-DOF arm measured by the ROS nodes (the simulated arm the right one, its
@@ -113,13 +124,8 @@ def test_a_fit_whose_beams_leave_the_screen_is_no_calibration_not_a_crash(tmp_pa
     ZeroDivisionError traceback (exit 1); the restricted likelihood of a trial fit that kept fewer
     values than parameters was 'Singular matrix' (CI: the session ended with exit 2 as for bad
     input, its files unwritten). Either is the failure it is: exit 3, NOT A CALIBRATION, the files."""
-    folder = Path(__file__).parent / "data" / "prismatic_session"
-    out = tmp_path / "out"
-    assert main(["estimate", "--robot", str(folder / "robot.yaml"), "--samples", str(folder / f"{samples}.csv"),
-                 "--out", str(out)]) == 3
-    err = capsys.readouterr().err
+    err = recorded_failure("prismatic_session", f"{samples}.csv", tmp_path / "out", capsys)
     assert "error: NOT A CALIBRATION: the fit lost" in err and "Traceback" not in err, err
-    assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
 
 
 def test_a_restart_whose_damped_step_is_singular_damps_more(tmp_path, capsys):
@@ -127,13 +133,9 @@ def test_a_restart_whose_damped_step_is_singular_damps_more(tmp_path, capsys):
     the first minimum is suspect, and a restart's normal equations were beyond what LM's damping
     made solvable ('Singular matrix', exit 2 as for bad input). It damps more, as for a rejected
     step, and the estimate is the failure it is."""
-    folder = Path(__file__).parent / "data" / "wrong_alpha3"
-    out = tmp_path / "out"
-    assert main(["estimate", "--robot", str(folder / "robot.yaml"), "--samples", str(folder / "samples.csv"),
-                 "--method", "ekf", "--spot-sigma", "0.0005", "--no-robust", "--out", str(out)]) == 3
-    err = capsys.readouterr().err
+    err = recorded_failure("wrong_alpha3", "samples.csv", tmp_path / "out", capsys,
+                           "--method", "ekf", "--spot-sigma", "0.0005", "--no-robust")
     assert "error: NOT A CALIBRATION: " in err and "Singular matrix" not in err, err
-    assert "NO CALIBRATION" in (out / "robot_calibrated.yaml").read_text()
 
 
 def test_a_failed_diagnosis_keeps_no_learned_compensator(tmp_path, capsys):
