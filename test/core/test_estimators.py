@@ -327,6 +327,24 @@ def test_an_overflowing_trial_is_a_rejected_step_without_warning():
     assert fit.converged and fit.x[0] == pytest.approx(np.log(1e10), rel=1e-9)
 
 
+class _Undefined:
+    """One parameter, predicted NaN at every x: a model evaluated where it is not defined."""
+
+    names = ("x",)
+    scales = np.ones(1)
+
+    def residuals(self, x, jacobian=True):
+        predicted = np.full((4, 1, 1), np.nan)
+        return Residuals(1.0 - predicted, np.ones((4, 1), bool), predicted[..., None] if jacobian else None,
+                         None, predicted)
+
+
+def test_normal_equations_without_a_finite_step_are_a_breakdown_not_a_loop():
+    problem = Problem(_Undefined(), NoiseModel(1.0), np.ones(1, bool))
+    with pytest.raises(np.linalg.LinAlgError, match="no finite damped step"):
+        levenberg_marquardt(problem, np.zeros(1))
+
+
 def test_information_update_is_the_kalman_update():
     """The shared EKF update against filterpy's Kalman-gain form, R = I."""
     rng = np.random.default_rng(4)

@@ -5,7 +5,9 @@ damping treats 10 mm and 1 deg alike. Iteratively reweighted: a trial is
 compared with the current point under the current point's noise weights (the
 joint-noise covariance depends on x); the weights are renewed at each accepted
 point. A trial whose cost is not finite (a step into a region where the model
-overflows) is a rejected step like any other rise of the cost.
+overflows) is a rejected step like any other rise of the cost. Normal equations
+that are not finite themselves give no finite step at any damping: that is a
+numerical breakdown (LinAlgError), not a loop without end.
 
 Parameters outside ``free`` stay at their start value (the identifiability
 analysis fixes what the data cannot see).
@@ -22,6 +24,10 @@ from laser_calib.estimation.problem import Fit, Normal, Problem, make_fit
 
 # progress(done, total or None when unknown, note): called once per iteration; not part of the math
 ProgressCallback = Callable[[int, int | None, str], None]
+
+# Damping beyond this many times the largest information shortens any finite step below step_tol
+# (cost below 1e30): a step that is still not finite there never will be.
+MAX_DAMPING_RATIO = 1e20
 
 
 @dataclass(frozen=True)
@@ -46,11 +52,15 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
     while iterations < options.max_iter and not converged:
         iterations += 1
         while True:
+            _check_damping(damping, normal)
             try:
                 step = np.linalg.solve(normal.information + damping * eye, normal.gradient)
             except np.linalg.LinAlgError:
                 # damping * I lost in rounding beside information of dependent rows (a wrong robot
                 # file's restart, 4-DOF arm: 'Singular matrix' from the middle of an estimate)
+                damping *= 10.0
+                continue
+            if not np.isfinite(step).all():
                 damping *= 10.0
                 continue
             # The step's length in standard deviations of the estimate (the information
@@ -78,6 +88,14 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
     if options.progress is not None:
         options.progress(iterations, iterations, "converged" if converged else "stopped")
     return make_fit(problem, x, normal, iterations, converged, history, costs)
+
+
+def _check_damping(damping: float, normal: Normal) -> None:
+    """Raise LinAlgError once the damping has passed any that a finite step could need."""
+    largest = np.max(np.abs(np.diag(normal.information)), initial=1.0)
+    if not damping <= MAX_DAMPING_RATIO * largest:
+        raise np.linalg.LinAlgError(f"no finite damped step: the normal equations are not finite "
+                                    f"(cost {normal.cost:g}, damping {damping:.0e})")
 
 
 def _trial(problem: Problem, trial: np.ndarray, current: Normal) -> Normal | None:
