@@ -174,3 +174,22 @@ def test_a_numerical_breakdown_is_our_fault_not_bad_input(tmp_path, capsys, monk
         "with the input files"]
     with pytest.raises(np.linalg.LinAlgError):
         run_calibration(load_robot(robot_file), load_samples(samples), estimate_options("lm", 0.0, False, True), None)
+
+
+def test_too_few_values_for_a_diagnosis_name_the_samples_file(tmp_path, capsys, monkeypatch):
+    """A fit inside the diagnosis that keeps too few values to determine its parameters (TooFewValues)
+    was said as 'laser-calib diagnose: ...', where estimate names the samples file (the fuzz of the
+    last stop: a wrong robot file's fold); the diagnosis now says it as estimate does."""
+    import laser_calib.diagnosis.engine as engine
+    from laser_calib.estimation.identifiability import TooFewValues
+
+    def too_few(*args, **kwargs):
+        raise TooFewValues(16, 21)
+
+    robot_file, samples = out_of_step(tmp_path)
+    monkeypatch.setattr(engine, "diagnose", too_few)
+    capsys.readouterr()
+    assert main(["diagnose", "--robot", str(robot_file), "--samples", str(samples), "--out",
+                 str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"laser-calib: {samples}: {TooFewValues(16, 21)}"]
+    assert not (tmp_path / "out").exists()

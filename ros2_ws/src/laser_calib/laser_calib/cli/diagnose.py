@@ -23,6 +23,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     # The engine pulls in scikit-learn and scipy.stats (0.8 s): only this command pays for them.
     from laser_calib.diagnosis.engine import TooFewPoses, diagnose, write_outputs
     from laser_calib.estimation.failures import FitMovedBeams, NoSpotToFit
+    from laser_calib.estimation.identifiability import TooFewValues
 
     robot = load_robot(args.robot)
     sets = read_sample_sets(args, robot)
@@ -42,6 +43,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
                 diagnosis = diagnose(robot, samples, test, options=options, sources=sources)
             except TooFewPoses as exc:  # the engine knows the count, the command the file
                 raise InputError(sets.source, exc.problem) from None
+            except TooFewValues as exc:  # a fit's counts of the values (estimate says them the same way)
+                raise InputError(sets.source, str(exc)) from None
             except FitMovedBeams as exc:  # a fit knows the beams it moved, the command the robot file
                 raise InputError(str(args.robot), exc.problem) from None
             except NoSpotToFit:  # every measured spot refused at the nominal model: the robot file's doing
