@@ -142,6 +142,20 @@ def test_a_plot_failing_in_the_drawing_child_is_raised_by_the_command(simulated,
               "--samples", str(simulated / "case3_cal.csv"), "--out", str(tmp_path / "est")])
 
 
+def test_the_true_model_on_noise_free_data_is_checked_not_refused(tmp_path, capsys):
+    """A correct robot file on noise-free data (a user's sanity check of the pipeline) leaves spot
+    distances of nanometres; the histogram's bins ran backwards from their 1 um floor and numpy's
+    'zero-size array' or 'bins must increase' was said as bad input, exit 2, no files."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--spot-noise", "0", "--joint-noise-deg", "0",
+                 "--out", str(sim)]) == 0
+    out = tmp_path / "est"
+    assert main(["estimate", "--robot", str(sim / "robot_true.yaml"), "--samples", str(sim / "case2_cal.csv"),
+                 "--test", str(sim / "case2_test.csv"), "--out", str(out)]) == 0
+    assert "fitted exactly" in capsys.readouterr().err
+    assert (out / "histogram.png").stat().st_size > 0
+
+
 def test_repeated_poses_give_iso9283_repeatability(tmp_path):
     """30 poses each measured twice with Gaussian spot noise sigma: per laser, the two
     visits lie |d|/2 from their barycentre, so RP = |d|/2 (S_l = 0) with d ~ N(0, 2 sigma^2 I):
