@@ -156,6 +156,22 @@ def test_the_true_model_on_noise_free_data_is_checked_not_refused(tmp_path, caps
     assert (out / "histogram.png").stat().st_size > 0
 
 
+def test_the_true_model_on_noise_free_data_is_diagnosed_explained(tmp_path, capsys):
+    """The same check through diagnose, the noise estimated: the likelihood of a residual of 0 has no
+    maximum (numpy's 'divide by zero in log' on the console), and the estimated spot sigma of 0 was
+    said as 'laser-calib diagnose: spot sigma must be a positive number of metres', exit 2."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--spot-noise", "0", "--joint-noise-deg", "0",
+                 "--out", str(sim)]) == 0
+    out = tmp_path / "diag"
+    capsys.readouterr()
+    assert main(["diagnose", "--robot", str(sim / "robot_true.yaml"), "--samples", str(sim / "samples.csv"),
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr()
+    assert "verdict: explained" in printed.out and "Warning" not in printed.err, printed
+    assert json.loads((out / "diagnosis.json").read_text())["effects"] == []
+
+
 def test_repeated_poses_give_iso9283_repeatability(tmp_path):
     """30 poses each measured twice with Gaussian spot noise sigma: per laser, the two
     visits lie |d|/2 from their barycentre, so RP = |d|/2 (S_l = 0) with d ~ N(0, 2 sigma^2 I):

@@ -64,6 +64,7 @@ from laser_calib.estimation.redundancy import NOISE_RATIO, joint_noise, sigma_wa
 from laser_calib.estimation.outliers import LISTED, listing, model_samples, rejection
 from laser_calib.measurement.base import ANGLE_SCALE, LENGTH_SCALE, MeasurementModel, NoiseModel, Residuals
 from laser_calib.measurement.frames import is_frame_param
+from laser_calib.measurement.noise_components import MIN_SIGMA
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.io.samples import Samples
@@ -72,7 +73,6 @@ from laser_calib.io.samples import Samples
 Refusal = Callable[[Residuals], list[tuple[int, int, str]]]
 METHODS = ("lm", "ekf")
 TRIAL_SIGMA = 0.001
-MIN_SIGMA = 1e-7   # m: an estimated noise below 0.1 um is an exact fit, not a measurement
 JOINT_NOISE_ALPHA = 0.05   # the joint-reading noise a residual must show before it weighs the fit
 
 

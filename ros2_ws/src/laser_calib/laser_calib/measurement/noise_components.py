@@ -30,6 +30,7 @@ from laser_calib.measurement.base import Residuals
 
 JOINT_STARTS = (1e-4, 3e-3)   # rad: 0.006 and 0.17 deg, the joint-reading sigma's two starts
 NO_JOINT_NOISE = 1e-6         # rad: a joint-reading sigma ending below this tries the second start
+MIN_SIGMA = 1e-7              # m: an estimated noise below 0.1 um is an exact fit, not a measurement
 
 
 def deviance(res: Residuals, scale: float, jac: np.ndarray | None = None) -> Callable[[float, float], float]:
@@ -96,6 +97,10 @@ def noise_components(res: Residuals, scale: float, spot: float | None, joint: fl
     rms = float(np.sqrt(np.mean((res.r.reshape(len(mask), -1) * scale)[mask] ** 2))) if mask.any() else 1e-3
     if free == [False, False]:
         return spot, joint
+    if rms < MIN_SIGMA:
+        # An exact fit (a correct model on noise-free data): the likelihood grows without bound as the
+        # noise goes to 0, and its logarithm was -inf; the noise is the least this project calls one.
+        return (MIN_SIGMA if free[0] else spot), (0.0 if free[1] else joint)
     if sum(free) == 1:
         bounds = (math.log(1e-7), math.log(0.05)) if free[1] else (math.log(rms * 1e-3), math.log(rms * 10))
         found = optimize.minimize_scalar(negative_log_likelihood, bounds=bounds, method="bounded")

@@ -28,8 +28,7 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.screen import Surface, extrapolation_note
-from laser_calib.estimation.estimate import (MIN_SIGMA, Estimate, EstimateOptions, estimate,
-                                             spot_sigma_at_zero)
+from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate, spot_sigma_at_zero
 from laser_calib.estimation.failures import UNDETERMINED, first_failure
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.identifiability import FIXED_NOTE, carried_note
@@ -39,6 +38,7 @@ from laser_calib.estimation.redundancy import deletion_distances, outlier_limit
 from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples, reading_warnings
 from laser_calib.measurement.base import NoiseModel, RobotModel
+from laser_calib.measurement.noise_components import MIN_SIGMA
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import held, held_warnings, with_held
