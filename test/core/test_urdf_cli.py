@@ -137,6 +137,8 @@ BAD = {  # change of the robot YAML -> what the one line says
     "twice": ({"robot_description": "<robot/>"}, "the URDF is given 2 times"),
     "no such tip": ({"tip": "hand"}, "no link 'hand'"),  # (robot file .../arm.yaml)
     "tip not text": ({"tip": 3}, "tip: expected a non-empty string"),
+    # the spots followed the first tip alone, the second's joints held unseen without a word
+    "two tips under lasers": ({"tip": [TIP, "link5"]}, "tip: the laser module is fixed to one link"),
     "laser in mm": ({"slm": {"a": 500.0, "d": 0.0, "alpha": 0.0, "theta": 3.14}}, "slm.a: 500 m is not a plausible"),
 }
 

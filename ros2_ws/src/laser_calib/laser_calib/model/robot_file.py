@@ -268,6 +268,11 @@ def _urdf_robot(data: Mapping[str, Any], source: str, folder: Path | None, descr
     if name is not None and (not isinstance(name, str) or not name.strip()):
         raise InputError(f"{source}: name", f"expected the robot's name, got {name!r}")
     parts = _lasers_and_screen(data, source)
+    if parts["slm"] is not None and len(tips) > 1:
+        # the spots follow one chain: the second tip's joints were held unseen, and nothing said why
+        raise InputError(f"{source}: tip", f"the laser module is fixed to one link: give that link alone, not "
+                                           f"{len(tips)} ({', '.join(tips)}); several tips are for point and pose "
+                                           "samples (calibrate-poses, docs/urdf.md)")
     try:
         robot = robot_from_urdf(text, base, tips, where, slm=parts["slm"], lasers=parts["lasers"],
                                 screen=parts["screen"], name=name)
