@@ -416,6 +416,21 @@ def test_slm_calibrate_recovers_the_laser_angles(tmp_path, capsys):
         assert (laser.gamma, laser.beta) == (fitted.gamma, fitted.beta)
 
 
+def test_slm_calibrate_of_a_robot_with_a_module_but_no_lasers_is_one_line(tmp_path, capsys):
+    """A robot file with 'slm:' and no 'lasers:' (import-positioner writes one) was an IndexError
+    traceback, exit 1, at the nominal angles' check."""
+    robot_path = tmp_path / "robot.yaml"
+    save_robot(replace(bundled_robot("paper-4dof"), lasers=()), robot_path)
+    rows = ["laser,distance,u,v"] + [f"{j},{d},{0.02 * d},{(0.5 if j == 1 else -0.7) * d}"
+                                     for j in (1, 2) for d in (0.5, 1.0, 1.5)]
+    (tmp_path / "slm.csv").write_text("\n".join(rows) + "\n")
+    assert main(["slm-calibrate", "--robot", str(robot_path), "--measurements", str(tmp_path / "slm.csv"),
+                 "--out", str(tmp_path / "out.yaml")]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"laser-calib: {robot_path}: has no laser module ('slm:' and 'lasers:'): slm-calibrate writes the robot "
+        "file with its lasers' angles; give the robot with its SLM"]
+
+
 @pytest.mark.parametrize("argv", [["bag"], ["--rate", "20", "bag", "--topics", "samples", "/test_samples", "--quiet"],
                                   ["bag", "--exclude", "/spots", "--wait-for", "samples", "--wait-timeout", "2.5"]])
 def test_replay_hands_its_options_to_the_node_as_parsed(argv):

@@ -169,7 +169,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 def cmd_slm_calibrate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
-    if robot.slm is None:  # the file written would be refused by every other command
+    if robot.slm is None or not robot.lasers:  # the file written would be refused by every other command
         raise InputError(args.robot, "has no laser module ('slm:' and 'lasers:'): slm-calibrate writes the "
                                      "robot file with its lasers' angles; give the robot with its SLM")
     measurements = slm_calibration.load_measurements(args.measurements)
