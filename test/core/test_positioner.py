@@ -213,10 +213,15 @@ def test_a_guess_in_millimetres_is_refused_at_the_import(run, tmp_path, capsys):
      "pose_initial_guesses.yaml: camera_mount_to_camera_guess: unknown key 'w'"),
     ("measurements.yaml", "  camera_joints: []\n", "  camera_joints: []\n  target_joint_velocities: [0.0, 0.0]\n",
      "measurements.yaml: 1593701755: unknown key 'target_joint_velocities'; did you mean 'target_joints'?"),
+    # not finite: written into samples.csv as nan with exit 0, refused only by the next command
+    ("measurements.yaml", "'1593701755':", "'nan':", "measurements.yaml: nan: key is not a time stamp in seconds "
+                                                     "(not finite: 'nan')"),
+    ("measurements.yaml", "  - -0.5229825973510742\n", "  - .nan\n", ".target_joints[0]: not finite (nan)"),
 ])
 def test_an_unknown_key_is_refused_at_the_import(run, tmp_path, capsys, file, old, new, expected):
     """A misspelt or unexpected key in the source files was dropped without a word (the tester's
-    probe); each is now one line naming the file, the entry and the nearest known key."""
+    probe); each is now one line naming the file, the entry and the nearest known key. So is a
+    value that is no number."""
     for name in ("pose_initial_guesses.yaml", "measurements.yaml"):
         text = (DATA / name).read_text()
         if name == file:

@@ -93,6 +93,8 @@ def read_positioner(directory: str | Path) -> tuple[Robot, SensorSamples]:
             stamp = float(key)
         except (TypeError, ValueError):
             raise InputError(where, "key is not a time stamp in seconds") from None
+        if not math.isfinite(stamp):  # 'nan' and 'inf' are floats to Python, and samples.csv refuses them
+            raise InputError(where, f"key is not a time stamp in seconds (not finite: {key!r})")
         if not isinstance(entry, Mapping) or "target_joints" not in entry or "pose" not in entry:
             raise InputError(where, "expected target_joints and pose")
         known_keys(where, entry, ENTRY_KEYS)
@@ -102,7 +104,8 @@ def read_positioner(directory: str | Path) -> tuple[Robot, SensorSamples]:
             raise InputError(f"{where}.target_joints", f"expected {robot.n_joints} joint readings")
         if entry.get("camera_joints"):
             raise InputError(f"{where}.camera_joints", "a moving sensor is not supported (expected empty)")
-        rows.append((stamp, [float(v) for v in joints], _pose(f"{where}.pose", entry["pose"])))
+        rows.append((stamp, [finite_number(v, f"{where}.target_joints[{i}]") for i, v in enumerate(joints)],
+                     _pose(f"{where}.pose", entry["pose"])))
     rows.sort(key=lambda row: row[0])
     stamp = np.array([row[0] for row in rows])
     if np.any(np.diff(stamp) <= 0):
