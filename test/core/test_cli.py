@@ -172,6 +172,27 @@ def test_the_true_model_on_noise_free_data_is_diagnosed_explained(tmp_path, caps
     assert json.loads((out / "diagnosis.json").read_text())["effects"] == []
 
 
+@pytest.mark.parametrize("command", ["estimate", "diagnose"])
+def test_one_pose_copied_onto_every_row_is_too_few_values(tmp_path, capsys, command):
+    """A logger that wrote one sample 50 times: estimate said '27 mm -> 0.000 mm' and exit 0, diagnose
+    'structure remains' with F = 7.7e+282. Copies neither determine nor check anything: the rows
+    are counted as the one they copy."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--case", "paper-4dof", "--seed", "1", "--out", str(sim)]) == 0
+    samples = load_samples(sim / "samples.csv")
+    copies = replace(samples, q=np.repeat(samples.q[:1], len(samples), 0),
+                     spots=np.repeat(samples.spots[:1], len(samples), 0))
+    save_samples(copies, tmp_path / "copies.csv")
+    capsys.readouterr()
+    assert main([command, "--robot", str(sim / "robot_nominal.yaml"), "--samples", str(tmp_path / "copies.csv"),
+                 "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"laser-calib: {tmp_path / 'copies.csv'}: 4 measured values (not counting {len(samples) - 1} rows that copy "
+        "another row exactly) reach only 4 of the model's 21 parameters and cannot determine and check even those; "
+        "measure more poses or use the prior")
+    assert not (tmp_path / "out").exists()
+
+
 def test_repeated_poses_give_iso9283_repeatability(tmp_path):
     """30 poses each measured twice with Gaussian spot noise sigma: per laser, the two
     visits lie |d|/2 from their barycentre, so RP = |d|/2 (S_l = 0) with d ~ N(0, 2 sigma^2 I):

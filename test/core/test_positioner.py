@@ -127,6 +127,23 @@ def test_calibrate_poses_command_writes_result_and_calibrated_robot(run, tmp_pat
     assert a1["name"] == "a1" and a1["value"] is None and a1["note"] == "held at nominal: --fix"
 
 
+def test_calibrate_poses_of_one_pose_copied_onto_every_row_is_too_few_values(run, tmp_path, capsys):
+    """Every row a copy of the first: 'D-H errors fitted: none', 0.000 mm held out, exit 0. The copies
+    are counted as the row they copy: too few values, one line naming the file."""
+    assert run(["import-positioner", "--data", str(DATA), "--out", str(tmp_path)]) == 0
+    lines = (tmp_path / "samples.csv").read_text().splitlines()
+    first = lines[1].split(",")
+    copies = [lines[0]] + [",".join(line.split(",")[:2] + first[2:]) for line in lines[1:]]
+    (tmp_path / "copies.csv").write_text("\n".join(copies) + "\n")
+    capsys.readouterr()
+    assert run(["calibrate-poses", "--robot", str(tmp_path / "robot.yaml"), "--samples", str(tmp_path / "copies.csv"),
+                "--out", str(tmp_path / "cal")]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'copies.csv'}: 6 measured values (not counting {len(lines) - 2} rows that copy another row " \
+           "exactly) reach only 6 of the model's" in err, err
+    assert not (tmp_path / "cal").exists()
+
+
 def test_calibrate_poses_writes_no_stale_effects(run, tmp_path, capsys):
     """A robot file's effects are not fitted by calibrate-poses: it says so, and the
     calibrated robot does not carry their old values (fitted with another geometry)."""

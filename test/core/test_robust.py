@@ -206,16 +206,17 @@ def test_an_unconverged_fit_is_an_error_line(capsys):
     assert any(line.startswith("error: NOT CONVERGED") for line in capsys.readouterr().err.splitlines())
 
 
-def test_sixty_identical_poses_are_loud():
-    """The issue's case: every pose the same. Rank, the exact fit and the
-    implausible values are each one warning line, not a quiet 0.000 mm."""
+def test_sixty_identical_poses_are_refused():
+    """The issue's case: every pose the same. It was a quiet 0.000 mm, then three warning lines
+    (rank 4 of 33, the exact fit, implausible values) and a written calibration; the copies
+    neither determine nor check anything, so the one pose's values are too few."""
+    from laser_calib.estimation.identifiability import TooFewValues
     session = paper_session("paper-7dof", 0)
     same = replace(session.samples, q=np.repeat(session.samples.q[:1], 60, axis=0),
                    spots=np.repeat(session.samples.spots[:1], 60, axis=0))
-    est = estimate(session.nominal, same, EstimateOptions())
-    assert any(w.startswith("rank deficient: the data determine 4 of 33") for w in est.warnings)
-    assert any(w.startswith(("noise: the residual is", "NOT A CALIBRATION: the fit lost", "implausible"))
-               for w in est.warnings)
+    with pytest.raises(TooFewValues, match=r"^4 measured values \(not counting 59 rows that copy another row "
+                                           r"exactly\) reach only 4 of the model's 33 parameters"):
+        estimate(session.nominal, same, EstimateOptions())
 
 
 def test_a_negated_joint_column_is_no_calibration_and_worse_on_the_test_poses():

@@ -67,6 +67,7 @@ from laser_calib.measurement.frames import is_frame_param
 from laser_calib.measurement.noise_components import MIN_SIGMA
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
+from laser_calib.io.revisits import copied
 from laser_calib.io.samples import Samples
 
 # Finds the units to refuse, (pose index, channel, reason), in a model's residuals at the start.
@@ -267,10 +268,14 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     start_noise = noise
     ident = analyse(start_factor, model.scales, names, user_fixed, std_factor=given_factor, amplify=options.amplify)
     free = ident.free
-    # as many values as parameters fit exactly: nothing tests the fit or estimates the noise
-    if n_values <= free.sum() and prior_sigma is None:
+    # as many values as parameters fit exactly: nothing tests the fit or estimates the noise; nor do
+    # rows that copy another exactly (one pose logged 50 times was '27 mm -> 0.000 mm', exit 0)
+    copies = copied(model_samples(model))
+    distinct = n_values - int((seen if excluded is None else seen & ~excluded)[copies].sum()) * dims
+    if distinct <= free.sum() and prior_sigma is None:
         refused = len(impossible) if impossible else 0   # beams that miss the start's screen among them
-        raise TooFewValues(n_values, int(free.sum()), refused=(refused, refused * dims), n_params=n)
+        raise TooFewValues(distinct, int(free.sum()), refused=(refused, refused * dims), n_params=n,
+                           copies=int(copies.sum()))
 
     def fit(problem: Problem, start_x: np.ndarray) -> Fit:
         if options.method == "lm":

@@ -102,11 +102,14 @@ class TooFewValues(ValueError):
     (estimation.impossible: the nominal beam misses the screen by far). When those values are
     at least as many as the values left, the refusals, not the poses, made them too few, and
     the data are not the nominal model's: readings in other units (a continuous joint's in
-    degrees, which no joint range catches) or another arm's file, so the line says that."""
+    degrees, which no joint range catches) or another arm's file, so the line says that.
+    copies: the rows left uncounted as exact copies of another (io.revisits.copied)."""
 
     def __init__(self, n_values: int, n_free: int, rejected: int = 0, refused: tuple[int, int] = (0, 0),
-                 n_params: int | None = None):
+                 n_params: int | None = None, copies: int = 0):
         left = f" left after {rejected} rejected as outliers" if rejected else ""
+        if copies:  # a copied row adds values that neither determine nor check anything
+            left += f" (not counting {copies} rows that copy another row exactly)"
         if refused[0]:
             left += (f"{' and' if rejected else ' left after'} {refused[0]} refused as physically impossible (the "
                      "nominal model's beam misses the screen or lands far from the spot)")

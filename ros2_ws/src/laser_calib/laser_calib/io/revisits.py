@@ -83,12 +83,23 @@ def _measured(samples: Samples) -> np.ndarray:
     return samples.seen.reshape(len(samples), -1).any(axis=1)
 
 
+def originals(samples: Samples) -> np.ndarray:
+    """(P,) per row the index of the first row whose readings and measured values it equals exactly
+    (its own index when none before it does)."""
+    _, first, group = np.unique(_row_keys(samples), return_index=True, return_inverse=True)
+    return first[group]
+
+
+def copied(samples: Samples) -> np.ndarray:
+    """(P,) bool: the row measures something and copies an earlier row exactly (module docstring)."""
+    return _measured(samples) & (originals(samples) != np.arange(len(samples)))
+
+
 def copy_warnings(samples: Samples, where: str) -> list[str]:
     """One warning naming ``where`` and the first rows (counted from 1 after the header) whose
     readings and measured values equal an earlier row's exactly (module docstring)."""
-    _, first, group = np.unique(_row_keys(samples), return_index=True, return_inverse=True)
-    original = first[group]
-    copies = np.flatnonzero(_measured(samples) & (original != np.arange(len(samples))))
+    original = originals(samples)
+    copies = np.flatnonzero(copied(samples))
     if not len(copies):
         return []
     named = [f"row {r + 1} = row {original[r] + 1} (pose {samples.pose[r]})" for r in copies[:LISTED]]
