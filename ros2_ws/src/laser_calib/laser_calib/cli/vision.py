@@ -104,10 +104,11 @@ def cmd_render_calibration_images(args: argparse.Namespace) -> int:
     camera = default_camera()
     rng = np.random.default_rng(args.seed)
     with staged_folder(args.out) as out:
-        for name, images in (("board", [render_board_frame(camera, rvec, tvec, rng, options=CALIBRATION_LIGHT)
-                                        for rvec, tvec in board_poses(camera, count=args.board_views, rng=rng)]),
-                             ("screen", [render_fiducial_frame(camera, rng, CALIBRATION_LIGHT)
-                                         for _ in range(args.screen_views)])):
+        # each image written as it is rendered: a list of 100000 screen views held 24 GB until the OOM killer
+        for name, images in (("board", (render_board_frame(camera, rvec, tvec, rng, options=CALIBRATION_LIGHT)
+                                        for rvec, tvec in board_poses(camera, count=args.board_views, rng=rng))),
+                             ("screen", (render_fiducial_frame(camera, rng, CALIBRATION_LIGHT)
+                                         for _ in range(args.screen_views)))):
             (out / name).mkdir()
             for k, image in enumerate(images):
                 _write_image(out / name / f"{name}_{k:03d}.png", image)
