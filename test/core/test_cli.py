@@ -409,6 +409,49 @@ def test_identify_prints_the_table(simulated, capsys):
     assert "numerical rank: 33" in out and "all parameters identifiable" in out
 
 
+def test_identify_where_no_beam_reaches_the_screen_is_one_line(simulated, tmp_path, capsys):
+    """Both lasers turned away from the screen: identify printed '0 spots ... numerical rank: 0',
+    exit 0, where estimate refuses the same files."""
+    import yaml
+    data = yaml.safe_load((simulated / "robot_nominal.yaml").read_text())
+    data["lasers"] = [{"gamma": 3.0, "beta": 0.0}, {"gamma": -3.0, "beta": 0.0}]
+    robot = tmp_path / "away.yaml"
+    robot.write_text(yaml.safe_dump(data))
+    samples = simulated / "case3_cal.csv"
+    assert main(["identify", "--robot", str(robot), "--samples", str(samples)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"laser-calib: {robot}: no measured spot of {samples} is reached: at every one the nominal model's beam misses "
+        "the screen; check the joint readings' units (radians; metres for a prismatic joint) and the robot file "
+        "(lengths in metres, joint zeros, the laser module, the screen)"]
+
+
+def test_plan_for_a_robot_without_lasers_names_its_file(tmp_path, capsys):
+    robot_path = tmp_path / "robot.yaml"
+    save_robot(replace(bundled_robot("paper-4dof"), lasers=()), robot_path)
+    assert main(["plan", "--robot", str(robot_path), "--n", "10", "--out", str(tmp_path / "poses.csv")]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"laser-calib: {robot_path}: pose planning needs a robot with joints and the two-laser module ('slm:' and "
+        "'lasers:')"]
+
+
+@pytest.mark.parametrize("field, value, says", [
+    ("u", "1e11", "1e+11 m is not a plausible spot coordinate on the fixture: coordinates are in metres"),
+    ("v", "500", "500 m is not a plausible spot coordinate on the fixture: coordinates are in metres (this looks "
+                 "like millimetres or centimetres)")])
+def test_slm_spot_coordinates_beyond_any_fixture_are_refused(tmp_path, capsys, field, value, says):
+    """u = 1e11 m (a typo) gave beta +0.0005 +- 0.009 deg where the slope says 1.15 deg, exit 0."""
+    rows = ["laser,distance,u,v"] + [f"{j},{d},{0.02 * d},{(0.5 if j == 1 else -0.7) * d}"
+                                     for j in (1, 2) for d in (0.5, 1.0, 1.5)]
+    first = dict(zip(("laser", "distance", "u", "v"), rows[1].split(",")), **{field: value})
+    rows[1] = ",".join(first.values())
+    (tmp_path / "slm.csv").write_text("\n".join(rows) + "\n")
+    robot_path = tmp_path / "robot.yaml"
+    save_robot(bundled_robot("paper-4dof"), robot_path)
+    assert main(["slm-calibrate", "--robot", str(robot_path), "--measurements", str(tmp_path / "slm.csv"),
+                 "--out", str(tmp_path / "out.yaml")]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"laser-calib: {tmp_path / 'slm.csv'}: line 2, field {field}: {says}"]
+
+
 def test_slm_calibrate_recovers_the_laser_angles(tmp_path, capsys):
     """Spots at three fixture distances, noise 0.1 mm; the angles of eq. 16."""
     rng = np.random.default_rng(0)

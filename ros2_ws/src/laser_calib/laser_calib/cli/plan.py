@@ -24,6 +24,9 @@ def _same_file(a: str, b: str) -> bool:
 
 def cmd_plan(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
+    if robot.n_joints == 0 or len(robot.lasers) != 2:  # the planner's own refusal, said of the file
+        raise InputError(args.robot, "pose planning needs a robot with joints and the two-laser module "
+                                     "('slm:' and 'lasers:')")
     if _same_file(args.out, args.robot):  # the pose list would replace the robot file it was planned for
         raise InputError(args.out, "is the --robot file: the pose list would replace it; give --out another name")
     options = PlanOptions(n=args.n, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
