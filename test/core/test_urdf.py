@@ -150,6 +150,21 @@ def test_calibrated_urdf_reproduces_the_calibrated_model(key):
     assert [len(link.visuals) for link in written.robot.links] == [len(link.visuals) for link in source.robot.links]
 
 
+def test_a_calibrated_urdf_writes_a_non_unit_axis_as_the_unit_axis_it_moves_along():
+    """The column's lift axis written 3 times its length: the model moves 1 m per metre read, as urdfdom
+    and KDL normalise; yourdfpy moved 3 m, so the calibrated URDF disagreed with the model by 0.59 m
+    in yourdfpy (the parser docs/urdf.md names). Written as the unit axis, both agree."""
+    text = (DATA / "column_arm.urdf").read_text()
+    lift = text[text.index('<joint name="lift"'):]
+    assert '<axis xyz="0 0 1"/>' in lift
+    scaled = text.replace(lift, lift.replace('<axis xyz="0 0 1"/>', '<axis xyz="0 0 3"/>', 1))
+    robot = robot_from_urdf(scaled, "base_link", "marker")
+    calibrated = robot.with_errors(np.random.default_rng(6).normal(0, 0.02, robot.n_params))
+    q = _poses(robot, 20, 7)
+    reference, _ = _yourdfpy_fk(calibrated_urdf(calibrated), q, "base_link", "marker")
+    assert np.abs(forward(calibrated, q).origin - reference[:, :3, 3]).max() < 1e-9
+
+
 def test_xacro_and_robot_description_text_give_the_same_robot():
     from_urdf = load_urdf_robot(DATA / "column_arm.urdf", "base_link", "marker")
     from_xacro = load_urdf_robot(DATA / "column_arm.urdf.xacro", "base_link", "marker")

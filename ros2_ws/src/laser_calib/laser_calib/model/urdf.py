@@ -362,6 +362,7 @@ def calibrated_urdf(robot: Robot) -> str:
 
     root = etree.fromstring(robot.chain.urdf.encode(), etree.XMLParser(remove_blank_text=False))
     origins = calibrated_origins(robot)
+    axes = {joint.name: joint.axis for joint in robot.chain.joints}
     for element in root.iter("joint"):
         name = element.get("name")
         if name not in origins or element.getparent() is not root:
@@ -371,4 +372,9 @@ def calibrated_urdf(robot: Robot) -> str:
             origin = etree.SubElement(element, "origin")
         for key, value in origin_attributes(origins[name]).items():
             origin.set(key, value)
+        axis = element.find("axis")
+        # The model moves along the unit axis, as urdfdom, KDL and MoveIt do; yourdfpy scales a prismatic
+        # joint's motion by the axis's length: a unit axis written leaves no reader in doubt.
+        if axis is not None and abs(np.linalg.norm(np.array(axis.get("xyz", "1 0 0").split(), float)) - 1.0) > 1e-12:
+            axis.set("xyz", " ".join(repr(float(v)) for v in axes[name]))
     return etree.tostring(root, encoding="unicode", xml_declaration=False) + "\n"
