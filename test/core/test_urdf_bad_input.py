@@ -129,6 +129,11 @@ BAD = {  # (text replaced, by) in ARM -> the one line
     "revolute without limit": ((J2_LIMIT, ''), "joint 'j2': limit: a revolute joint needs finite <limit lower="),
     "prismatic without limit": (('<limit lower="0" upper="0.2" effort="9" velocity="1"/>', ''),
                                 "joint 'j3': limit: a prismatic joint needs finite <limit lower="),
+    "limit without effort and velocity": ((J2_LIMIT, '<limit lower="-2" upper="2"/>'),
+                                          "arm.urdf: joint 'j2': limit: missing attribute 'effort' and 'velocity': "
+                                          "urdfdom (robot_state_publisher, RViz, MoveIt) refuses"),
+    "limit without velocity": (('upper="3" effort="9" velocity="1"/>', 'upper="3" effort="9"/>'),
+                               "joint 'j1': limit: missing attribute 'velocity'"),
     "limit without lower": (('lower="-2" upper="2"', 'upper="2"'), "joint 'j2': limit: a revolute joint needs"),
     "nan bound": (('lower="-2" upper="2"', 'lower="-2" upper="nan"'), "joint 'j2': limit upper: expected a number, "
                                                                       "got 'nan'"),

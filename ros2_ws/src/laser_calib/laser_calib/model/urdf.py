@@ -174,6 +174,11 @@ def _chain_joint(joint, source: str, rpy: float = 0.0) -> ChainJoint:
                                             "(a missing one is 0 in the URDF spec, holding it still), got " +
                                             ", ".join(f"{key} {'none' if bound is None else bound}"
                                                       for key, bound in zip(("lower", "upper"), bounds)))
+    missing = [] if joint.limit is None else [key for key in ("effort", "velocity") if getattr(joint.limit, key) is None]
+    if missing:
+        raise InputError(f"{where}: limit", f"missing attribute {' and '.join(map(repr, missing))}: urdfdom "
+                                            "(robot_state_publisher, RViz, MoveIt) refuses a <limit> without effort "
+                                            "and velocity, and the calibrated URDF would carry it")
     lower, upper = (float(bounds[0]), float(bounds[1])) if limited else (-UNLIMITED, UNLIMITED)
     if lower >= upper and _KINDS[joint.type] != FIXED_JOINT:
         raise InputError(f"{where}: limit", f"lower {lower} is not below upper {upper}")
