@@ -435,9 +435,10 @@ def test_plan_for_a_robot_without_lasers_names_its_file(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("field, value, says", [
-    ("u", "1e11", "1e+11 m is not a plausible spot coordinate on the fixture: coordinates are in metres"),
-    ("v", "500", "500 m is not a plausible spot coordinate on the fixture: coordinates are in metres (this looks "
-                 "like millimetres or centimetres)")])
+    ("u", "1e11", "1e+11 m is not a plausible spot coordinate on the fixture (over 100 m): lengths are in metres "
+                  "(this looks like millimetres)"),
+    ("v", "500", "500 m is not a plausible spot coordinate on the fixture (over 100 m): lengths are in metres (this "
+                 "looks like millimetres or centimetres)")])
 def test_slm_spot_coordinates_beyond_any_fixture_are_refused(tmp_path, capsys, field, value, says):
     """u = 1e11 m (a typo) gave beta +0.0005 +- 0.009 deg where the slope says 1.15 deg, exit 0."""
     rows = ["laser,distance,u,v"] + [f"{j},{d},{0.02 * d},{(0.5 if j == 1 else -0.7) * d}"

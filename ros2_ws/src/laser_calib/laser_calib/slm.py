@@ -82,7 +82,7 @@ from scipy.special import chdtrc, chdtri, fdtrc
 from laser_calib.estimation.redundancy import FAMILY_FALSE_REJECTION, outlier_limit, sigma_warnings
 from laser_calib.estimation.robust import MAX_REJECTED
 from laser_calib.io.errors import InputError
-from laser_calib.model.robot import Laser, Robot
+from laser_calib.model.robot import Laser, Robot, plausible_length
 from laser_calib.io.read import csv_rows, length_units, parse_int, parse_number, read_text
 from laser_calib.io.samples import MAX_DISTANCE
 from laser_calib.slm_lines import SCALE_FLOOR, SPOT_VALUES, Spots, deletion, line_fit, robust_scale
@@ -165,16 +165,6 @@ def _check_distance(distance: float, where: str) -> None:
                                 f"(this looks like {length_units(distance, MAX_DISTANCE)})")
 
 
-def _check_coordinate(value: float, where: str) -> None:
-    """A spot lies on the fixture within MAX_DISTANCE of its origin, as the fixture within it of the
-    SLM: beyond, the value is in other units (u = 1e11 gave a beta of 0 +- 0.009 deg, exit 0)."""
-    if abs(value) > MAX_DISTANCE:
-        units = (f" (this looks like {length_units(abs(value), MAX_DISTANCE)})" if abs(value) * 1e-3 <= MAX_DISTANCE
-                 else "")
-        raise InputError(where, f"{value:g} m is not a plausible spot coordinate on the fixture: coordinates are in "
-                                f"metres{units}")
-
-
 def load_measurements(path: str | Path) -> Measurements:
     """CSV with header laser,distance,u,v (laser 1 or 2; metres)."""
     path = Path(path)
@@ -192,8 +182,8 @@ def load_measurements(path: str | Path) -> Measurements:
             raise InputError(f"{path}: line {line}, field laser", f"expected 1 or 2, got {laser}")
         values = [parse_number(cell, f"{path}: line {line}, field {name}") for name, cell in zip(COLUMNS[1:], row[1:])]
         _check_distance(values[0], f"{path}: line {line}, field distance")
-        for name, value in zip(COLUMNS[2:], values[1:]):
-            _check_coordinate(value, f"{path}: line {line}, field {name}")
+        for name, value in zip(COLUMNS[2:], values[1:]):  # u = 1e11 gave beta 0 +- 0.009 deg, exit 0
+            plausible_length(f"{path}: line {line}, field {name}", value, MAX_DISTANCE, "spot coordinate on the fixture")
         data[laser].append((line, *values))
     lasers = {}
     for laser, entries in data.items():
