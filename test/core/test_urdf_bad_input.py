@@ -124,6 +124,9 @@ BAD = {  # (text replaced, by) in ARM -> the one line
                      "arm.urdf: link 'l1': defined twice (lines 3 and 3)"),
     "a joint name twice": (('name="camera_mount"', 'name="j2"'),
                            "arm.urdf: joint 'j2': defined twice (lines 7 and 13)"),
+    "a second root": (('<link name="fan"/>', '<link name="fan"/><link name="orphan"/>'),
+                      "arm.urdf: link 'orphan': a second root link beside 'base_link' (no joint has it as its child): "
+                      "urdfdom (robot_state_publisher, RViz, MoveIt) refuses a URDF with two root links"),
     "a link the child of two joints": (('<child link="cam"/>', '<child link="l2"/>'),
                                        "arm.urdf: link 'l2': child of two joints ('j2' and 'camera_mount')"),
     "revolute without limit": ((J2_LIMIT, ''), "joint 'j2': limit: a revolute joint needs finite <limit lower="),

@@ -189,7 +189,7 @@ def check_tree(root, source: str) -> None:
     into a tree our walks never leave: names missing or twice, a joint's parent
     / child not one link, a link the child of two joints, a loop, a vector not
     of three finite numbers, a number that is none; and, for urdfdom, a link's
-    inertial or a colour it cannot read."""
+    inertial or a colour it cannot read, and a second root link."""
     if root.tag != "robot":
         raise InputError(source, f"expected a <robot> element, got <{root.tag}>")
     if root.get("name") is None:
@@ -208,3 +208,8 @@ def check_tree(root, source: str) -> None:
                                                           f"'{name}'): a closed loop, which a URDF cannot describe")
         parent_of[child], joint_of[child] = parent, name
     _check_loops(parent_of, joint_of, source)
+    roots = [link for link in links if link not in parent_of]
+    if len(roots) > 1:  # kept in the calibrated URDF, which robot_state_publisher then could not load
+        raise InputError(f"{source}: link '{roots[1]}'", f"a second root link beside '{roots[0]}' (no joint has it "
+                                                         "as its child): urdfdom (robot_state_publisher, RViz, "
+                                                         "MoveIt) refuses a URDF with two root links")
