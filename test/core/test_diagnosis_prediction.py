@@ -89,6 +89,19 @@ def test_a_wrong_test_spot_is_listed_and_keeps_the_verdict_from_explained():
     assert diagnosis.verdict == UNDETERMINED, diagnosis.evidence
 
 
+def test_a_test_set_missed_at_every_spot_is_structure_not_explained():
+    """Every test spot 50 mm off (a test set of another day's camera set-up): each is beyond the
+    robust rule's limit, so none was left to test, the test said nothing and the verdict stayed
+    "explained" beside a 70 mm test error."""
+    session = clean_session()
+    test = replace(session.test, spots=session.test.spots + 0.05)
+    diagnosis = run(replace(session, test=test))
+    assert diagnosis.prediction.beyond == int(session.test.seen.sum()) and diagnosis.prediction.dof[0] == 0
+    assert diagnosis.verdict == STRUCTURE, diagnosis.evidence
+    assert "Test poses: structure remains: every test measurement" in diagnosis.evidence
+    assert json.loads(json.dumps(diagnosis.to_json()["test_prediction"], allow_nan=False))["ratio"] is None
+
+
 def test_a_significant_excess_within_the_margin_is_a_warning_not_structure():
     """An effect-free 7-DOF session of the effects bench (seed 2, 80 and 80 poses) whose test
     poses fit worse by chance, as one data set in 1 / alpha does: ratio 1.32, p = 0.008 against 1,

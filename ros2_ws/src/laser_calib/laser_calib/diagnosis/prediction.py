@@ -29,6 +29,8 @@ verdict counts them as it counts the calibration's (verdict.predicted).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import stats
 
@@ -75,6 +77,10 @@ def predictive_test(final: Fitted, test: Data, noise: NoiseModel) -> Prediction 
         a_r += a.T @ r_t
         a_a += a.T @ a
         m_test += int(block_res.valid.sum()) * block_res.r.shape[2]
+    if m_test < 1 and beyond.any():
+        # Every test measurement grossly missed: the model does not predict the test poses at all (a test
+        # set 50 mm off kept "explained", nothing said). No F to compute; it fails any margin.
+        return Prediction(math.inf, (0, dof), 0.0, 0.0, MARGIN, int(beyond.sum()), named(test, beyond))
     if m_test < 1 or scale2 <= 0:
         return None
     quadratic = total - float(a_r @ np.linalg.solve(np.eye(k) + a_a, a_r))

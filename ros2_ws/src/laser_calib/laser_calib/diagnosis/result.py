@@ -122,6 +122,9 @@ class Prediction:
     beyond_named: str = ""
 
     def sentence(self) -> str:
+        if not self.dof[0]:
+            return (f"every test measurement ({self.beyond}) lies beyond the robust rule's limit "
+                    f"({self.beyond_named}): the final model does not predict the test poses")
         text = (f"the test poses' whitened residual is {self.ratio:.2f} times the calibration poses' in mean square, "
                 f"their prediction variance allowed for (predictive F on {self.dof[0]}, {self.dof[1]} dof: "
                 f"p = {self.p:.2g} against 1, p = {self.p_margin:.2g} against {self.margin:g}^2)")
@@ -243,7 +246,8 @@ class Diagnosis:
                                "p": v.p, "p_adjusted": v.p_adjusted, "share": v.share, "shape": v.shape}
                               for v in self.specification[:10]],
             "test_prediction": None if self.prediction is None else {
-                "ratio": self.prediction.ratio, "dof": list(self.prediction.dof), "p": self.prediction.p,
+                "ratio": self.prediction.ratio if math.isfinite(self.prediction.ratio) else None,
+                "dof": list(self.prediction.dof), "p": self.prediction.p,
                 "margin": self.prediction.margin, "p_margin": self.prediction.p_margin,
                 "beyond_limit": self.prediction.beyond},
             "compensator": None if self.compensator is None else {
