@@ -328,21 +328,28 @@ def test_an_overflowing_trial_is_a_rejected_step_without_warning():
 
 
 class _Undefined:
-    """One parameter, predicted NaN at every x: a model evaluated where it is not defined."""
+    """One parameter, predicted ``value`` (NaN, inf) at every x: a model evaluated where it is not
+    defined, or overflowing."""
 
     names = ("x",)
     scales = np.ones(1)
 
+    def __init__(self, value):
+        self.value = value
+
     def residuals(self, x, jacobian=True):
-        predicted = np.full((4, 1, 1), np.nan)
+        predicted = np.full((4, 1, 1), self.value)
         return Residuals(1.0 - predicted, np.ones((4, 1), bool), predicted[..., None] if jacobian else None,
                          None, predicted)
 
 
-def test_normal_equations_without_a_finite_step_are_a_breakdown_not_a_loop():
-    problem = Problem(_Undefined(), NoiseModel(1.0), np.ones(1, bool))
-    with pytest.raises(np.linalg.LinAlgError, match="no finite damped step"):
-        levenberg_marquardt(problem, np.zeros(1))
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_normal_equations_without_a_finite_step_are_a_breakdown_not_a_loop(value):
+    problem = Problem(_Undefined(value), NoiseModel(1.0), np.ones(1, bool))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # inf - inf on the way: the breakdown is the test
+        with pytest.raises(np.linalg.LinAlgError, match="no finite damped step"):
+            levenberg_marquardt(problem, np.zeros(1))
 
 
 def test_information_update_is_the_kalman_update():

@@ -93,7 +93,8 @@ def levenberg_marquardt(problem: Problem, x0: np.ndarray, options: LmOptions = L
 def _check_damping(damping: float, normal: Normal) -> None:
     """Raise LinAlgError once the damping has passed any that a finite step could need."""
     largest = np.max(np.abs(np.diag(normal.information)), initial=1.0)
-    if not damping <= MAX_DAMPING_RATIO * largest:
+    # infinite information (an overflow) or a damping overflowed to inf: no step to find either
+    if not (np.isfinite(largest) and np.isfinite(damping) and damping <= MAX_DAMPING_RATIO * largest):
         raise np.linalg.LinAlgError(f"no finite damped step: the normal equations are not finite "
                                     f"(cost {normal.cost:g}, damping {damping:.0e})")
 
