@@ -12,10 +12,13 @@ The sessions are 10 poses, too few for the diagnosis (12 needed with 5 folds and
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -185,6 +188,38 @@ def test_a_failing_node_ends_the_launch_with_its_reason(tmp_path):
     reasons = [line for line in log.splitlines() if "error: parameter sync_tolerance: expected >= 0, got -0.01" in line]
     assert reasons, log[-3000:]
     assert re.search(r"\[ERROR\] \[launch\]: .*estimator\S* exited with code 2", log), log[-3000:]
+    assert "Traceback" not in log, log[-4000:]
+
+
+def child_pid(parent: int, executable: str) -> int:
+    """The pid of the child process of ``parent`` running ``executable`` (a launch's node)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            command = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, IndexError, ValueError):  # a process that ended meanwhile
+            continue
+        if ppid == parent and executable in command:
+            return int(stat.parent.name)
+    raise AssertionError(f"no child {executable} of {parent}")
+
+
+def test_a_node_that_stops_cleanly_mid_session_ends_the_launch_with_exit_1(tmp_path):
+    """The camera given Ctrl-C on its own, 2 poses in: it exits 0, and the launch ended the session
+    with exit 0 and no reason, 3 of 12 poses measured (run-session said exit 1). A node that ends
+    before the session does is a failure whatever its code."""
+    ros = Ros(tmp_path)
+    out = tmp_path / "session"
+    proc = launch_session(ros, "launch", out, speed=0.3)
+    try:
+        wait_for(lambda: csv_rows(out / "samples.csv") >= 2, SESSION_SECONDS, "2 measured poses", ros, "launch")
+        os.kill(child_pid(proc.pid, "camera_sim"), signal.SIGINT)
+        code = ros.wait_exit("launch", STOP_SECONDS + 30)
+    finally:
+        ros.stop_all()
+    log = ros.log("launch")
+    assert code == 1, log[-3000:]
+    assert re.search(r"\[ERROR\] \[launch\]: .*camera_sim\S* exited with code 0", log), log[-3000:]
     assert "Traceback" not in log, log[-4000:]
 
 
