@@ -90,16 +90,18 @@ def originals(samples: Samples) -> np.ndarray:
     return first[group]
 
 
-def copied(samples: Samples) -> np.ndarray:
-    """(P,) bool: the row measures something and copies an earlier row exactly (module docstring)."""
-    return _measured(samples) & (originals(samples) != np.arange(len(samples)))
+def copied(samples: Samples, original: np.ndarray | None = None) -> np.ndarray:
+    """(P,) bool: the row measures something and copies an earlier row exactly (module docstring);
+    ``original``: originals(samples), when the caller has them."""
+    original = originals(samples) if original is None else original
+    return _measured(samples) & (original != np.arange(len(samples)))
 
 
 def copy_warnings(samples: Samples, where: str) -> list[str]:
     """One warning naming ``where`` and the first rows (counted from 1 after the header) whose
     readings and measured values equal an earlier row's exactly (module docstring)."""
     original = originals(samples)
-    copies = np.flatnonzero(copied(samples))
+    copies = np.flatnonzero(copied(samples, original))
     if not len(copies):
         return []
     named = [f"row {r + 1} = row {original[r] + 1} (pose {samples.pose[r]})" for r in copies[:LISTED]]
