@@ -259,10 +259,14 @@ def _best_without(design: _Design, current: int, candidates: np.ndarray) -> tupl
     return int(candidates[k]), float(gain[k])
 
 
+class NotPlannable(ValueError):
+    """A robot without joints or the two-laser module: the planner knows why, a command the file."""
+
+
 def plan(robot: Robot, options: PlanOptions, progress: ProgressCallback | None = None) -> Plan:
     """N poses maximising the D-criterion of the whitened information (module docstring)."""
     if robot.n_joints == 0 or len(robot.lasers) != 2:
-        raise ValueError("pose planning needs a robot with joints and the two-laser module")
+        raise NotPlannable("pose planning needs a robot with joints and the two-laser module ('slm:' and 'lasers:')")
     rng = np.random.default_rng(options.seed)
     q = candidate_poses(robot, options.candidates, rng, options.margin)
     g = whitened_jacobians(robot, q, options.spot_sigma, options.joint_sigma)

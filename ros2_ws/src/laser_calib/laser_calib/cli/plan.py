@@ -10,7 +10,7 @@ from laser_calib.cli.arguments import (non_negative, non_negative_int, out_file,
 from laser_calib.estimation.redundancy import NO_VARIANCE_DOF, NOISE_RATIO, sigma_upper
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
-from laser_calib.planning import PlanOptions, plan
+from laser_calib.planning import NotPlannable, PlanOptions, plan
 from laser_calib.report.progress import Progress
 from laser_calib.session.poses import format_poses
 
@@ -24,15 +24,15 @@ def _same_file(a: str, b: str) -> bool:
 
 def cmd_plan(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
-    if robot.n_joints == 0 or len(robot.lasers) != 2:  # the planner's own refusal, said of the file
-        raise InputError(args.robot, "pose planning needs a robot with joints and the two-laser module "
-                                     "('slm:' and 'lasers:')")
     if _same_file(args.out, args.robot):  # the pose list would replace the robot file it was planned for
         raise InputError(args.out, "is the --robot file: the pose list would replace it; give --out another name")
     options = PlanOptions(n=args.n, spot_sigma=args.spot_sigma, joint_sigma=args.joint_sigma,
                           candidates=args.candidates, margin=args.margin, seed=args.seed)
     with Progress("plan", unit="pose") as progress:
-        result = plan(robot, options, progress)
+        try:
+            result = plan(robot, options, progress)
+        except NotPlannable as exc:  # the planner knows why, the command the file
+            raise InputError(args.robot, str(exc)) from None
     try:
         Path(args.out).write_text(format_poses(result.q))
     except OSError as exc:  # --out was checked at the start: the disk filled or the folder went meanwhile
