@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Iterator
 
 from laser_calib.estimation.failures import NoSpotToFit, is_failure
+from laser_calib.estimation.identifiability import CHECK_UNITS
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import parse_int, parse_number
 from laser_calib.io.sensor_samples import POINT_COLUMNS, QUATERNION_COLUMNS
@@ -206,9 +207,7 @@ def no_spot_to_fit(robot: str, samples: str, compensator: str | None = None) -> 
     return InputError(robot, f"no measured spot of {samples} to fit: at every one the nominal model's beam"
                              + (f" (compensated by {compensator})" if compensator else "")
                              + " misses the screen or lands far from the spot, and each was refused as impossible; "
-                               "check the joint readings' units (radians; metres for a prismatic joint) and the "
-                               "robot file (lengths in metres, joint zeros, the laser module, the screen)"
-                               + (" and the compensator" if compensator else ""))
+                               f"{CHECK_UNITS}" + (" and the compensator" if compensator else ""))
 
 
 # A fit that did not converge, or whose minimum dropped measurements: its files are written

@@ -24,7 +24,8 @@ from laser_calib.estimation.ekf import EkfOptions
 from laser_calib.estimation.lm import LmOptions
 from laser_calib.estimation.problem import whitened_factor
 from laser_calib.report.progress import Progress
-from laser_calib.estimation.identifiability import AMPLIFY, STD_FACTOR, TooFewValues, UnknownFixed, analyse
+from laser_calib.estimation.identifiability import (AMPLIFY, CHECK_UNITS, STD_FACTOR, TooFewValues, UnknownFixed,
+                                                   analyse)
 from laser_calib.measurement.base import NoiseModel
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.report.calibration import shown_mm
@@ -163,9 +164,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     factor, n_values = whitened_factor(model, NoiseModel(args.spot_sigma, args.joint_sigma), np.zeros(robot.n_params))
     if n_values == 0:  # a table of rank 0 for what estimate refuses as no spot to fit
         raise InputError(args.robot, f"no measured spot of {args.samples} is reached: at every one the nominal "
-                                     "model's beam misses the screen; check the joint readings' units (radians; "
-                                     "metres for a prismatic joint) and the robot file (lengths in metres, joint "
-                                     "zeros, the laser module, the screen)")
+                                     f"model's beam misses the screen; {CHECK_UNITS}")
     print(f"{robot.name}: {len(samples)} poses, {n_values // 2} spots")
     # the given noise sets the threshold: what the poses would determine worse than 10 tolerances is listed
     print(analyse(factor, model.scales, model.names, std_factor=STD_FACTOR, amplify=AMPLIFY).table())

@@ -93,6 +93,11 @@ TIE = 1e-6  # carriers' coefficients this close (relative) are equal
 TERM_THRESHOLD = 0.05  # terms below 5 % of the largest are not printed, except the held parameter's own (describe)
 
 
+# What to check when the nominal model reaches none or few of the measured spots
+CHECK_UNITS = ("check the joint readings' units (radians; metres for a prismatic joint) and the robot file "
+               "(lengths in metres, joint zeros, the laser module, the screen)")
+
+
 class TooFewValues(ValueError):
     """As many measured values as free parameters, or fewer: they fit exactly, and nothing
     tests the fit or estimates the noise. The estimator knows the counts, a command the file.
@@ -113,9 +118,7 @@ class TooFewValues(ValueError):
         if refused[0]:
             left += (f"{' and' if rejected else ' left after'} {refused[0]} refused as physically impossible (the "
                      "nominal model's beam misses the screen or lands far from the spot)")
-        advice = ("check the joint readings' units (radians; metres for a prismatic joint) and the robot file "
-                  "(lengths in metres, joint zeros, the laser module, the screen)" if refused[1] >= n_values
-                  else "measure more poses or use the prior")
+        advice = CHECK_UNITS if refused[1] >= n_values else "measure more poses or use the prior"
         # n_free counts what these values reach: one pose of a 33-parameter arm reaches 4
         what = (f"reach only {n_free} of the model's {n_params} parameters and cannot determine and check even those"
                 if n_params and n_params > n_free else f"cannot determine and check {n_free} parameters")
