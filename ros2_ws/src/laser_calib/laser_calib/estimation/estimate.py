@@ -261,7 +261,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     # the threshold, decides what the data add.
     factor = options.std_factor if prior_sigma is None else None
     given_factor = None if options.spot_sigma is None else factor
-    n_values = int((seen if excluded is None else seen & ~excluded).sum()) * dims
+    kept = seen if excluded is None else seen & ~excluded   # (P,C) the spots the fit is given
+    n_values = int(kept.sum()) * dims
     if n_values == 0:
         raise NoSpotToFit()
     start_factor = _factor_without(model, start_factor, noise, noise, x0, excluded, excluded)
@@ -271,7 +272,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     # as many values as parameters fit exactly: nothing tests the fit or estimates the noise; nor do
     # rows that copy another exactly (one pose logged 50 times was '27 mm -> 0.000 mm', exit 0)
     copies = copied(model_samples(model))
-    distinct = n_values - int((seen if excluded is None else seen & ~excluded)[copies].sum()) * dims
+    distinct = int(kept[~copies].sum()) * dims
     if distinct <= free.sum() and prior_sigma is None:
         refused = len(impossible) if impossible else 0   # beams that miss the start's screen among them
         raise TooFewValues(distinct, int(free.sum()), refused=(refused, refused * dims), n_params=n,
