@@ -51,6 +51,24 @@ def workspace_missing() -> str | None:
     return None
 
 
+def children(pid: int) -> list[int]:
+    """Every live descendant of pid (from /proc)."""
+    parent_of = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            parent_of[int(entry.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+    found, frontier = [], [pid]
+    while frontier:
+        kids = [p for p, parent in parent_of.items() if parent in frontier]
+        found += kids
+        frontier = kids
+    return found
+
+
 def ros2_missing() -> str | None:
     """Why tests of the real ros2 command line cannot run here, or None."""
     reason = workspace_missing()

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from ros_harness import EXAMPLE_ARM, PARAMS, ROBOT, Ros, ros2_missing
+from ros_harness import EXAMPLE_ARM, PARAMS, ROBOT, Ros, children, ros2_missing
 
 POSES = 10
 LAUNCH = ["ros2", "launch", "laser_calib_nodes", "session.launch.py"]
@@ -192,15 +192,13 @@ def test_a_failing_node_ends_the_launch_with_its_reason(tmp_path):
 
 
 def child_pid(parent: int, executable: str) -> int:
-    """The pid of the child process of ``parent`` running ``executable`` (a launch's node)."""
-    for stat in Path("/proc").glob("[0-9]*/stat"):
+    """The pid of the descendant of ``parent`` running ``executable`` (a launch's node)."""
+    for pid in children(parent):
         try:
-            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-            command = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except (OSError, IndexError, ValueError):  # a process that ended meanwhile
+            if executable.encode() in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return pid
+        except OSError:  # a process that ended meanwhile
             continue
-        if ppid == parent and executable in command:
-            return int(stat.parent.name)
     raise AssertionError(f"no child {executable} of {parent}")
 
 

@@ -10,28 +10,10 @@ import signal
 import time
 from pathlib import Path
 
-from ros_harness import ROOT, Ros
+from ros_harness import ROOT, Ros, children
 from test_crash_resume import csv_rows
 
 RUN_SESSION = str(ROOT / "scripts" / "run-session")
-
-
-def children(pid: int) -> list[int]:
-    """Every live descendant of pid (from /proc)."""
-    parent_of = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text()
-            except OSError:
-                continue
-            parent_of[int(entry.name)] = int(stat.rsplit(")", 1)[1].split()[1])
-    found, frontier = [], [pid]
-    while frontier:
-        kids = [p for p, parent in parent_of.items() if parent in frontier]
-        found += kids
-        frontier = kids
-    return found
 
 
 def alive(pid: int) -> bool:
