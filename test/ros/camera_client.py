@@ -26,6 +26,7 @@ from laser_calib.vision import RenderOptions, default_camera, render_frame
 from laser_calib_interfaces.msg import SpotPair
 
 TRUE = np.array([[-0.3, 0.25], [0.4, -0.15]])
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"  # rmw's name of a node whose discovery data has not come yet
 PERIOD = 0.3  # s between frames; the detector needs ~2 ms a frame
 
 
@@ -52,7 +53,7 @@ def main() -> None:
     rclpy.init()
     node = rclpy.create_node("test_camera")
     got = []
-    node.create_subscription(SpotPair, "spots", got.append, 10)
+    spot_sub = node.create_subscription(SpotPair, "spots", got.append, 10)
     image_pub = node.create_publisher(Image, "camera/image_raw", qos)
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     info_pub = node.create_publisher(CameraInfo, "camera/camera_info", latched if info_mode == "once_latched" else qos)
@@ -69,6 +70,19 @@ def main() -> None:
     data, step = encode(frame, encoding)
     deadline = time.monotonic() + (float(sys.argv[3]) if len(sys.argv) > 3 else 60.0)
     while image_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    # the rest of the round trip is matched too: a frame whose CameraInfo found no subscription yet is
+    # held back by the detector, and a SpotPair sent before its reader matched is lost
+    waiting = []
+    if not info_mode.startswith("once"):
+        waiting.append(info_pub.get_subscription_count)
+    readers = node.get_subscriptions_info_by_topic(image_pub.topic_name)
+    while any(reader.node_name == UNKNOWN_NODE for reader in readers) and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)  # a reader's node is named a little after it matched
+        readers = node.get_subscriptions_info_by_topic(image_pub.topic_name)
+    if any(reader.node_name == "spot_detector" for reader in readers):
+        waiting.append(spot_sub.get_publisher_count)
+    while not all(count() for count in waiting) and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
     published = 0
     while (published < frames if frames else len(got) < 3) and time.monotonic() < deadline:

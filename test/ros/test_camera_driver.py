@@ -87,8 +87,9 @@ def test_a_refused_spot_is_a_warning_with_why(ros):
     'not seen', so the detector's WARN names the laser and why, which says what to set."""
     ros.start("spot_detector", "-p", "speckle_contrast:=0.0", "-p", "gain_e_per_dn:=1000000.0",
               "-p", "read_noise_dn:=0.01")
-    got = run_camera(ros, "bgr8", "0", "20", "reliable", "3")
-    assert got["frames"] == 3 and not np.array(got["spots"])[:, :, 2].any(), got
+    # frames until 3 spot pairs came back: the first one can still be held back for its CameraInfo
+    got = run_camera(ros, "bgr8", "0", "20", "reliable")
+    assert got["frames"] >= 3 and not np.array(got["spots"])[:, :, 2].any(), got
     log = ros.log("spot_detector")
     assert "laser 1 refused: not one clean spot: its fit's chi^2 is" in log, log
     assert "laser 2 refused: not one clean spot" in log and "Traceback" not in log
