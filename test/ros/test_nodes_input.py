@@ -197,7 +197,7 @@ def test_launch_refuses_bad_speed_and_method_before_any_node_starts(ros, tmp_pat
 
 
 def test_parameters_out_of_range_are_refused_at_the_start(ros, tmp_path):
-    """A negative tolerance, timeout or seed: one line naming the parameter and exit 2 at the start,
+    """A negative tolerance, timeout, seed or margin: one line naming the parameter and exit 2 at the start,
     not a traceback (the estimator at once; the sequencer once the arm had settled at its first pose)."""
     ros.start("est_sync", "-p", f"robot:={ROBOT}", "-p", "input:=stream", "-p", "sync_tolerance:=-0.01",
               node="estimator")
@@ -207,6 +207,9 @@ def test_parameters_out_of_range_are_refused_at_the_start(ros, tmp_path):
                                                              "got 0.0"),
              "seq_estimate": ("estimate.timeout:=0.0", "parameter estimate.timeout: expected > 0, got 0.0"),
              "seq_seed": ("seed:=-1", "seed: must be >= 0, got -1"),
+             # spots planned off the screen (then unseen), and nan: "found only 0 of 60 poses" before
+             "seq_margin": ("margin:=-0.5", "margin: must be >= 0 m, got -0.5"),
+             "seq_margin_nan": ("margin:=.nan", "margin: must be >= 0 m, got nan"),
              "seq_unseen": ("unseen_limit:=-1", "parameter unseen_limit: expected >= 0, got -1")}
     for name, (param, _) in cases.items():
         ros.start(name, "-p", f"robot:={ROBOT}", "-p", f"output_dir:={tmp_path / name}", "-p", param,

@@ -7,6 +7,7 @@ load_poses reads.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -136,6 +137,8 @@ def _poses_from_csv(text: str, source: str, robot: Robot) -> tuple[list[int], li
 
 
 def _sample(robot: Robot, count: int, rng: np.random.Generator, span: str, margin: float) -> np.ndarray:
+    if not (math.isfinite(margin) and margin >= 0):  # below 0: spots planned off the screen, then unseen
+        raise InputError("margin", f"must be >= 0 m, got {margin}")
     try:
         return sample_poses([robot], count, rng, span, margin)
     except RuntimeError as exc:
