@@ -1,7 +1,7 @@
 """Out-of-range parameter values are refused at the start, in one line naming the parameter,
 exit 2, as the nodes' other parameters are. Before: a negative seed of the simulation ended
 arm_driver and camera_sim with numpy's traceback (exit 1); rate:=.inf started a timer of
-period 0 (a busy loop 'publishing at inf Hz'); camera_sim's spot_sigma:=0.0 rendered no spot
+period 0 (a busy loop 'publishing at inf Hz'), and rate:=1e9 one of 1 ns (a busy loop too); camera_sim's spot_sigma:=0.0 rendered no spot
 (a divide-by-zero warning, every spot unseen) and spot_detector's screen.half_y:=-1.0 saw no
 spot in any frame, both without a word. The estimator's spot_sigma:=0.5 (0.5 mm meant) was taken as a
 camera's noise of half a metre; its joint_sigma:=3.0 (degrees meant) is refused the same way, and so is
@@ -15,8 +15,11 @@ from ros_harness import ROBOT
 CASES = {  # name: (node, parameters, the reason's start)
     "arm_seed": ("arm_driver", [f"robot:={ROBOT}", "sim.seed:=-1"], "error: parameter sim.seed: expected >= 0"),
     "arm_rate": ("arm_driver", [f"robot:={ROBOT}", "rate:=.inf"], "error: parameter rate: expected > 0"),
+    "arm_rate_busy": ("arm_driver", [f"robot:={ROBOT}", "rate:=1e9"],
+                      "error: parameter rate: expected > 0 and <= 1000 Hz, got 1000000000.0"),
     "camera_seed": ("camera_sim", ["seed:=-1"], "error: parameter seed: expected >= 0"),
     "camera_rate": ("camera_sim", ["rate:=.inf"], "error: parameter rate: expected > 0"),
+    "camera_rate_busy": ("camera_sim", ["rate:=5000.0"], "error: parameter rate: expected > 0 and <= 1000 Hz"),
     "camera_sigma": ("camera_sim", ["spot_sigma:=0.0"], "error: parameter spot_sigma: expected > 0"),
     "detector_half": ("spot_detector", ["screen.half_y:=-1.0"], "error: parameter screen.half_y: expected > 0"),
     "detector_rate": ("spot_detector", ["false_refusal_rate:=1.5"],

@@ -51,7 +51,7 @@ class ArmDriver(Node):
                         "Joint names, base to tip (default joint1..jointN; a URDF arm's: its joints').",
                         type_=Parameter.Type.STRING_ARRAY)
         self.joint_names = RobotJoints(self.robot, names, "parameter joint_names").names  # checked: one per joint
-        rate = declare("rate", 50.0, "Joint state publishing rate, Hz.", rule=parameters.positive)
+        rate = declare("rate", 50.0, "Joint state publishing rate, Hz.", rule=parameters.rate)
 
         # simulation
         true_path = declare("sim.true_robot", "", "Sim: true robot model file; empty: nominal + sim.errors.")

@@ -41,7 +41,7 @@ def camera_info(camera: CameraModel, stamp, frame_id: str = CAMERA_FRAME) -> Cam
 class CameraSim(Node):
     def __init__(self):
         super().__init__("camera_sim")
-        rate = parameters.declare(self, "rate", 10.0, "Frame rate, Hz.", rule=parameters.positive)
+        rate = parameters.declare(self, "rate", 10.0, "Frame rate, Hz.", rule=parameters.rate)
         # a negative seed was numpy's traceback, a 0 sigma rendered no spot
         seed = parameters.declare(self, "seed", 1, "Random seed of the image noise (speckle, shot and read noise).",
                                   rule=parameters.non_negative)

@@ -147,6 +147,11 @@ non_negative = Rule(">= 0", lambda value: None if math.isfinite(value) and value
 positive = Rule("> 0", lambda value: None if math.isfinite(value) and value > 0 else f"expected > 0, got {value}")
 
 
+MAX_RATE = 1000.0  # Hz: ros2_control's loop and a Dynamixel bus's fastest reads; above, a timer is a busy loop
+rate = Rule(f"> 0 and <= {MAX_RATE:g} Hz", lambda value: None if math.isfinite(value) and 0 < value <= MAX_RATE
+            else f"expected > 0 and <= {MAX_RATE:g} Hz, got {value}")
+
+
 def at_least(minimum: int) -> Rule:
     return Rule(f">= {minimum}", lambda value: None if value >= minimum else f"expected >= {minimum}, got {value}")
 
