@@ -215,6 +215,20 @@ def test_replay_bad_bag_is_one_line(session, tmp_path):
         assert "Traceback" not in result.stderr
 
 
+def test_a_replay_no_one_listened_to_is_a_warning(session):
+    """Without --wait-for, a replay whose topic no node subscribes to (here /samples remapped away
+    from the estimator) said "replayed 12 messages", exit 0: now a warning counts what nothing
+    received, per topic; a replay that was listened to says nothing of the kind."""
+    ros, out = session
+    replay = [str(ros_bin("replay")), str(out / "bag"), "--rate", "1000", "--topics", "/samples"]
+    unheard = ros.run(replay + ["--ros-args", "-r", "/samples:=/unheard_samples"], timeout=120)
+    assert unheard.returncode == 0, unheard.stderr
+    assert (f"replay: warning: {POSES} of {POSES} messages went out with no subscriber on their topic "
+            f"(/samples: {POSES})") in unheard.stderr, unheard.stderr
+    heard = ros.run(replay + ["--wait-for", "/samples"], timeout=120)
+    assert heard.returncode == 0 and "warning" not in heard.stderr, heard.stderr
+
+
 def test_replay_leaves_out_motion_commands(session):
     """A replayed joint_trajectory would move a live arm on the same domain: left out, and said so,
     unless named in --topics; --topics naming others leaves it out without a word (the user chose)."""

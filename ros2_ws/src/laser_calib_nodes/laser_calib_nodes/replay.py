@@ -7,7 +7,8 @@ replayed, they would move a live arm on the same domain. Messages go out as
 recorded (raw CDR, same types, same QoS as offered at recording, header stamps
 untouched) at the bag's receive times, scaled by
 1/R. With --wait-for, playback starts once each named topic's publisher has
-matched a subscriber (so nothing is published into the void). An estimator listening to
+matched a subscriber (so nothing is published into the void); without it, messages that went out
+while their topic had no subscriber are counted in a warning. An estimator listening to
 the replayed samples computes what it computed live.
 
 ``main(argv)`` is the entry point of the `replay` executable and of
@@ -21,6 +22,7 @@ import importlib
 import signal
 import sys
 import time
+from collections import Counter
 
 import rclpy
 from rclpy.duration import Duration
@@ -134,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
             start_wall = None
             first = None
             sent = 0
+            unheard = Counter()  # topic: messages published while no subscriber had matched (lost)
             for topic, _, timestamp, raw in bag.read_messages(args.bag, list(chosen)):
                 if first is None:
                     first, start_wall = timestamp, time.monotonic()
@@ -147,11 +150,17 @@ def main(argv: list[str] | None = None) -> int:
                     break
                 publishers[topic].publish(raw)
                 sent += 1
+                if publishers[topic].get_subscription_count() == 0:
+                    unheard[topic] += 1
             for publisher in publishers.values():
                 if rclpy.ok() and publisher.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
                     publisher.wait_for_all_acked(Duration(seconds=5))
             if not args.quiet:
                 print(f"replayed {sent} messages", flush=True)
+            if unheard:  # exit 0 as ros2 bag play, but a replay nothing received is not a silent success
+                print(f"replay: warning: {sum(unheard.values())} of {sent} messages went out with no subscriber on "
+                      f"their topic ({', '.join(f'{t}: {n}' for t, n in sorted(unheard.items()))}): nothing received "
+                      "them; start the listeners first, or give --wait-for", file=sys.stderr, flush=True)
         except (KeyboardInterrupt, ExternalShutdownException):
             code = 0
         except InputError as exc:

@@ -158,7 +158,8 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--topics", nargs="+", help="only these topics (default: all but motion commands)")
     parser.add_argument("--exclude", nargs="+", default=[], help="not these topics (each must be in the bag)")
     parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
-                        help="start once each of these topics has a subscriber")
+                        help="start once each of these topics has a subscriber (without it, messages sent "
+                             "while their topic had none are counted in a warning)")
     parser.add_argument("--wait-timeout", type=positive, default=30.0, help="for --wait-for, s (default 30)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
