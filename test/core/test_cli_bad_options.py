@@ -98,6 +98,9 @@ CASES = {
     "estimate --joint-sigma 0.1 (deg)": (lambda d: _estimate(d, "--joint-sigma", "0.1"),
                                          "--joint-sigma: 0.1 rad is not a plausible joint noise (at most 0.035 rad"),
     "estimate --prior-length 10 (m)": (lambda d: _estimate(d, "--prior-length", "10"), "--prior-length"),
+    # a tolerance of almost three turns: taken as given, a prior that says nothing
+    "estimate --prior-angle-deg 1000": (lambda d: _estimate(d, "--prior-angle-deg", "1000"),
+                                        "--prior-angle-deg: 1000 deg is not a plausible tolerance"),
     # 0.5 mm typed as metres: accepted as a camera's noise of half a metre (under the 1 m of every noise level)
     "estimate --spot-sigma 0.5 (m)": (lambda d: _estimate(d, "--spot-sigma", "0.5"), "--spot-sigma: 0.5 m is not a "
                                                                                        "plausible spot noise"),

@@ -87,6 +87,15 @@ def tolerance_length(text: str) -> float:
     return _length(text, "tolerance", SIGMA_LENGTH[0])
 
 
+def tolerance_angle_deg(text: str) -> float:
+    """A prior's angle tolerance in degrees: beyond half a turn it says nothing of an angle."""
+    value = positive(text)
+    if value > 180:
+        raise argparse.ArgumentTypeError(f"{text} deg is not a plausible tolerance (at most 180 deg; this option is "
+                                         "in degrees)")
+    return value
+
+
 def noise_length(text: str) -> float:
     """A simulated noise half-width in metres (0: none)."""
     return _length(text, "noise level", 0.0)

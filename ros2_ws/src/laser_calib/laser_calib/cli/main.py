@@ -43,9 +43,9 @@ from laser_calib.cli import vision as vision_cli
 from laser_calib.cli.sample_sets import add_sample_arguments, read_sample_sets
 from laser_calib.cli.arguments import (MAX_SIGMA_DEG, SIGMA_LENGTH, OneLineParser, add_replay_arguments,
                                       noise_angle_deg, noise_length, non_negative_int, no_spot_to_fit, out_file,
-                                      out_folder, positive, print_warnings, readable_file, replay_argv,
+                                      out_folder, print_warnings, readable_file, replay_argv,
                                       require_measured, sigma_angle, span_poses, spot_sigma, staged_folder,
-                                      tolerance_length)
+                                      tolerance_angle_deg, tolerance_length)
 
 EXIT_BAD_INPUT = 2
 # A breakdown of our own numerics (numpy's LinAlgError, which Python counts as a ValueError): not the input's fault.
@@ -248,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prior", action="store_true", help="tolerance prior: 10 mm and 1 deg per error")
     p.add_argument("--prior-length", type=tolerance_length, default=None,
                    help=f"length tolerance, m ({SIGMA_LENGTH[0]:g} .. {SIGMA_LENGTH[1]:g}; implies --prior)")
-    p.add_argument("--prior-angle-deg", type=positive, default=None, help="angle tolerance, deg (implies --prior)")
+    p.add_argument("--prior-angle-deg", type=tolerance_angle_deg, default=None, help="angle tolerance, deg (implies --prior)")
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
                    help="robust fit: outlier spots rejected and listed (default; the rule is in result.json)")
     p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")

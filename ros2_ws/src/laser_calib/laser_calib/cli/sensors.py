@@ -19,7 +19,7 @@ import numpy as np
 
 from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fraction, non_negative_int, out_folder,
                                       positive, print_notes, print_warnings, require_measured, sigma_length,
-                                      staged_folder, tolerance_length)
+                                      staged_folder, tolerance_angle_deg, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
 from laser_calib.estimation.identifiability import FIXED_NOTE, TooFewValues, carried_note
@@ -350,7 +350,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prior", action="store_true", help="tolerance prior on the D-H errors: 10 mm and 1 deg")
     p.add_argument("--frame-prior-length", type=tolerance_length, default=None,
                    help=f"prior std of frame offsets, m ({SIGMA_LENGTH[0]:g} .. {SIGMA_LENGTH[1]:g})")
-    p.add_argument("--frame-prior-angle-deg", type=positive, default=None, help="prior std of frame angles, deg")
+    p.add_argument("--frame-prior-angle-deg", type=tolerance_angle_deg, default=None, help="prior std of frame angles, deg")
     p.add_argument("--scale", action="store_true", help="estimate the sensor's scale per axis")
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
                    help="robust fit: outlying samples rejected and listed (default; rule in result.json)")
