@@ -13,7 +13,9 @@ Fault switches, set from the test thread on ``emulator.servos[id]``:
 sends carries a wrong CRC), ``lost_torque_offs`` (that many of the next
 WRITE instructions of Torque Enable = 0 reaching it, broadcast included, are
 lost before the servo, as on a noisy line: not executed and, as Protocol 2.0
-has it for an instruction never received, not answered); and
+has it for an instruction never received, not answered); ``emulator.glitch(id, reads,
+ticks)`` (its next reads of Present Position report it off while it stays put: a glitch of
+its encoder or of the bus); and
 ``emulator.set_hardware_error(id, status)``
 (its status packets carry the alert bit 0x80, as a real servo's do after a
 hardware fault).
@@ -143,12 +145,25 @@ class EmulatedServo:
     silent: bool = False
     corrupt_crc: bool = False
     lost_torque_offs: int = 0
+    glitched_reads: int = 0
+    glitch_ticks: int = 0
 
     def get(self, address: int, length: int, signed: bool = False) -> int:
         return int.from_bytes(self.table[address : address + length], "little", signed=signed)
 
     def put(self, address: int, length: int, value: int, signed: bool = False) -> None:
         self.table[address : address + length] = value.to_bytes(length, "little", signed=signed)
+
+    def reported(self, address: int, length: int) -> bytes:
+        """Control-table bytes as a READ or SYNC READ returns them: Present Position off by
+        ``glitch_ticks`` in the next ``glitched_reads`` reads that include it."""
+        data = bytearray(self.table[address : address + length])
+        start = ADDR_PRESENT_POSITION - address
+        if self.glitched_reads and 0 <= start and start + 4 <= length:
+            self.glitched_reads -= 1
+            ticks = int.from_bytes(data[start : start + 4], "little", signed=True) + self.glitch_ticks
+            data[start : start + 4] = ticks.to_bytes(4, "little", signed=True)
+        return bytes(data)
 
     def advance(self, dt: float) -> None:
         """Move toward the goal for ``dt`` seconds at the profile velocity, then refresh the table."""
@@ -221,6 +236,12 @@ class DynamixelEmulator:
     def present_position(self, servo_id: int) -> int:
         """Present Position [ticks]."""
         return self.read(servo_id, ADDR_PRESENT_POSITION, 4, signed=True)
+
+    def glitch(self, servo_id: int, reads: int, ticks: int) -> None:
+        """The servo's next ``reads`` reads of Present Position report it ``ticks`` off; it stays put."""
+        with self._lock:
+            servo = self.servos[servo_id]
+            servo.glitched_reads, servo.glitch_ticks = reads, ticks
 
     def set_hardware_error(self, servo_id: int, status: int) -> None:
         """Latch a Hardware Error Status (bit 0x20 = overload, ...); the servo drops torque like a real one."""
@@ -302,7 +323,7 @@ class DynamixelEmulator:
         address, length = int.from_bytes(params[:2], "little"), int.from_bytes(params[2:], "little")
         if servo is None or address + length > TABLE_SIZE:
             return self._reply(servo_id, ERR_ACCESS)
-        return self._reply(servo_id, 0, bytes(servo.table[address : address + length]))
+        return self._reply(servo_id, 0, servo.reported(address, length))
 
     def _write(self, target: int, params: bytes) -> list[bytes]:
         if len(params) < 3:
@@ -334,7 +355,7 @@ class DynamixelEmulator:
             reply
             for servo_id in params[4:]
             if servo_id in self.servos
-            for reply in self._reply(servo_id, 0, bytes(self.servos[servo_id].table[address : address + length]))
+            for reply in self._reply(servo_id, 0, self.servos[servo_id].reported(address, length))
         ]
 
     def _sync_write(self, params: bytes) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 import yaml
 
 from laser_calib.session.average import FrameCollector
+from laser_calib.session.settle import SettleDetector, SettleRule
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 
@@ -27,7 +28,8 @@ def test_the_hardware_launchs_defaults_pair_a_camera_at_any_phase():
         period = 1.0 / rate
         state = (np.zeros(4), None)
         for phase in np.linspace(0.0, period, 7, endpoint=False):   # a frame's offset from the joint states
-            collector = FrameCollector(3, tolerance, 100.0, state)    # settled at 100 s
+            collector = FrameCollector(3, tolerance, SettleDetector(np.zeros(4), SettleRule(), 0.0), 100.0,
+                                       state)                         # settled at 100 s
             for stamp in 100.0 + period * np.arange(1, 2 * rate):      # two seconds of joint states
                 collector.add_state(stamp, state)
             for stamp in 100.0 + phase + np.arange(1, 4) / 3.0:       # a 3 Hz camera's three frames

@@ -50,18 +50,65 @@ def test_a_spot_counts_when_seen_in_at_least_half_the_frames():
     np.testing.assert_allclose(two.spots[0, 1], [0.5, 0.5])
 
 
+def settled(goal: np.ndarray, rule: SettleRule = SettleRule()) -> SettleDetector:
+    """The detector of an arm settled at goal (N,) (what the sequencer hands FrameCollector)."""
+    return SettleDetector(np.asarray(goal, dtype=float), rule, after=0.0)
+
+
 def test_collector_pairs_frames_from_the_settle_instant():
-    c = FrameCollector(frames=2, tolerance=0.01, settled_stamp=1.0, settled_state=(np.zeros(1), None))
+    c = FrameCollector(frames=2, tolerance=0.01, settle=settled([0.0]), settled_stamp=1.0,
+                       settled_state=(np.zeros(1), None))
     c.add_frame(0.99, np.zeros((2, 2)))            # before the arm settled: ignored
     c.add_frame(1.0, np.ones((2, 2)))              # pairs with the settle instant
     assert not c.complete
     c.add_frame(1.1, np.full((2, 2), 3.0))
-    c.add_state(1.1, (np.ones(1), None))
+    c.add_state(1.1, (np.array([0.002]), None))    # within the settle rule's 0.003 rad of the goal
     assert c.complete
     sample = c.sample(4)
     np.testing.assert_allclose(sample.spots[0], np.full((2, 2), 2.0))
-    np.testing.assert_allclose(sample.q[0], [0.5])
+    np.testing.assert_allclose(sample.q[0], [0.001])
     assert sample.stamp[0] == 1.1
+
+
+def test_a_joint_reading_off_the_goal_while_the_frames_are_taken_starts_them_again():
+    """A servo's reading glitched by 0.15 rad for two reads of a 50 Hz driver once the arm had
+    settled (its bus or encoder; the arm did not move, its spots were right): averaged into the
+    pose's frames, the sample was 0.05 rad off, and nothing was said. The frames so far are now
+    dropped, and taken again once the arm has settled anew by the settle rule (0.2 s held)."""
+    goal = np.array([0.3, -0.2])
+    c = FrameCollector(frames=3, tolerance=0.005, settle=settled(goal), settled_stamp=1.0,
+                       settled_state=(goal, None))
+    glitched = {1.04: goal + [0.0, 0.15], 1.06: goal + [0.0, 0.15]}
+    paired_from = None
+    for stamp in np.round(1.0 + 0.02 * np.arange(0, 40), 2):    # joint states at 50 Hz, a frame with every other
+        c.add_state(stamp, (glitched.get(stamp, goal), None))
+        if round(stamp * 50) % 2 == 0:
+            c.add_frame(stamp, np.full((2, 2), 0.1))
+        if c.complete:
+            break
+        paired_from = c.after
+    assert c.complete and len(c.disturbed) == 1
+    assert c.disturbed[0][0] == 1.04 and c.disturbed[0][1][1] == pytest.approx(-0.05)
+    assert paired_from >= 1.06 + 0.2                          # after the glitch and a whole hold time
+    np.testing.assert_allclose(c.sample(0).q[0], goal)
+    assert c.shortfall(["a", "b"]).startswith(
+        "3 paired, the joint readings left the goal 1 time(s) while the frames were taken (the last: b at "
+        "-0.05000 rad, goal -0.20000)")
+
+
+def test_a_joint_that_leaves_its_goal_for_good_is_named_in_the_shortfall():
+    """An arm that sags after settling (torque off) or is held off its goal: no frame is used,
+    and the timeout's line names the joint, not the camera."""
+    goal = np.zeros(2)
+    c = FrameCollector(frames=3, tolerance=0.005, settle=settled(goal), settled_stamp=1.0, settled_state=(goal, None))
+    for k in range(1, 30):
+        stamp = 1.0 + 0.02 * k
+        c.add_state(stamp, (np.array([0.0, -0.01 * k]), None))    # joint b sags
+        c.add_frame(stamp, np.zeros((2, 2)))
+    assert not c.complete
+    assert c.shortfall(["a", "b"]) == ("0 paired, the joint readings left the goal 1 time(s) while the frames were "
+                                       "taken (the last: b at -0.01000 rad, goal 0.00000) and have not settled since "
+                                       "(b at -0.29000 rad, goal 0.00000)")
 
 
 def test_one_pose_list_writer_round_trips_with_test_poses(tmp_path):
@@ -148,22 +195,23 @@ def test_a_collector_short_of_frames_says_what_their_stamps_were():
     settled, and the session ended in 'fewer than 3 spot frames paired', as if the camera were
     slow: the line now says how the frames were stamped."""
     state = (np.zeros(1), None)
-    c = FrameCollector(frames=3, tolerance=0.01, settled_stamp=1000.0, settled_state=state)
-    assert c.shortfall() == "no spot frame came since the arm settled"
+    c = FrameCollector(frames=3, tolerance=0.01, settle=settled([0.0]), settled_stamp=1000.0, settled_state=state)
+    assert c.shortfall([]) == "no spot frame came since the arm settled"
     for k in range(5):
         c.add_state(1000.0 + 0.02 * k, state)
         c.add_frame(0.0, np.zeros((2, 2)))            # unstamped frames
     assert not c.complete
-    assert c.shortfall() == ("0 paired, 5 stamped before the arm settled (the last 1000.000 s before: a camera "
+    assert c.shortfall([]) == ("0 paired, 5 stamped before the arm settled (the last 1000.000 s before: a camera "
                              "stamping 0, or on another clock?)")
-    ahead = FrameCollector(frames=3, tolerance=0.01, settled_stamp=1000.0, settled_state=state)
+    ahead = FrameCollector(frames=3, tolerance=0.01, settle=settled([0.0]), settled_stamp=1000.0, settled_state=state)
     ahead.add_frame(1015.0, np.zeros((2, 2)))         # a camera clock 15 s ahead: waits for joint states
-    assert ahead.shortfall().endswith("the newest frame is stamped 15.000 s after the newest joint state "
+    assert ahead.shortfall([]).endswith("the newest frame is stamped 15.000 s after the newest joint state "
                                       "(a camera clock ahead?)")
-    between = FrameCollector(frames=3, tolerance=0.001, settled_stamp=1000.0, settled_state=state)
+    between = FrameCollector(frames=3, tolerance=0.001, settle=settled([0.0]), settled_stamp=1000.0,
+                             settled_state=state)
     between.add_frame(1000.01, np.zeros((2, 2)))
     between.add_state(1000.02, state)                 # 10 ms from either joint state: tolerance 1 ms
-    assert between.shortfall() == "0 paired, 1 without a joint state within the tolerance"
+    assert between.shortfall([]) == "0 paired, 1 without a joint state within the tolerance"
 
 
 def test_a_driver_stamping_its_joint_states_0_is_named_when_the_arm_does_not_settle():

@@ -109,7 +109,7 @@ class Sequencer(Node):
         # ---- state shared with the worker thread ----
         self.cond = threading.Condition()
         self.arm_joints = ArmJointStates(self.joint_names, self.robot.n_joints, self.get_logger())
-        self.last_state = None                 # (stamp, q (N,), velocity (N,) or None)
+        self.last_state = None                 # (stamp, q (N,), velocity (N,) or None, monotonic time received)
         self.state_count = self.spot_count = 0
         self.settle: SettleDetector | None = None
         self.collector: FrameCollector | None = None
@@ -125,13 +125,16 @@ class Sequencer(Node):
                 return
             (q, v), self.joint_names = read, self.arm_joints.names
             stamp = common.stamp_seconds(msg.header.stamp)
-            self.last_state = (stamp, q, v)
+            self.last_state = (stamp, q, v, time.monotonic())
             self.state_count += 1
             if self.collector is not None:
+                disturbed = len(self.collector.disturbed)
                 self.collector.add_state(stamp, (q, v))
+                if len(self.collector.disturbed) > disturbed:
+                    sequencer_parts.warn_disturbed(self, self.collector)
             elif self.settle is not None and self.settle.update(stamp, q, v):
+                self.collector = FrameCollector(self.frames, self.sync_tol, self.settle, stamp, (q, v))
                 self.settle = None
-                self.collector = FrameCollector(self.frames, self.sync_tol, stamp, (q, v))
             self.cond.notify_all()
 
     def on_spots(self, msg) -> None:
@@ -193,16 +196,16 @@ class Sequencer(Node):
             self.settle = SettleDetector(goal, self.settle_rule, common.now_ns(self) * 1e-9)
             self.collector = None
         self.recorder.publish(self.traj_pub, common.JOINT_TRAJECTORY, traj)
-        where = f"pose {self.progress.done + 1}/{len(self.poses)} (id {pose_id})"  # as its progress line will say
+        where = self.where = f"pose {self.progress.done + 1}/{len(self.poses)} (id {pose_id})"  # as its progress line
         try:
             self.wait(lambda: self.collector is not None, self.settle_timeout,
                       lambda: f"{where}: arm not settled after {self.settle_timeout:g} s "
-                              f"({self.settle.worst_joint(self.joint_names)})")
+                              f"({self.settle.worst_joint(self.joint_names)}){sequencer_parts.stale(self)}")
             self.publish_progress("measuring", pose_id)
             self.wait(lambda: self.collector.complete, self.frame_timeout,
                       lambda: f"{where}: fewer than {self.frames} spot frames paired with joint states within "
                               f"{self.frame_timeout:g} s (sync_tolerance {self.sync_tol:g} s): "
-                              f"{self.collector.shortfall()}")
+                              f"{self.collector.shortfall(self.joint_names)}{sequencer_parts.stale(self)}")
             with self.cond:
                 sample, collector, self.collector = self.collector.sample(pose_id), self.collector, None
         finally:

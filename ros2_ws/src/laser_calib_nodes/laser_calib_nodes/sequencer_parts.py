@@ -32,6 +32,8 @@ from laser_calib.session.poses import generate_poses, load_poses, with_test_pose
 from laser_calib_nodes import common, parameters, sole_owner
 
 TRUE_ROBOT_FILE = "robot_true.yaml"   # where launch and run-session let the sim arm_driver write the truth
+# s without a joint state after which a timeout says they stopped: a driver publishes at 10 Hz or more
+STALE_STATES = 1.0
 
 
 PLAN_HELP = {   # the parameters of the pose plan (defaults: folder.PLAN_DEFAULTS)
@@ -201,6 +203,22 @@ def measured(node, line: str, spots: np.ndarray) -> None:
                                "screen in the camera's view, the spot_detector's min_peak_dn reachable? Those poses "
                                f"are kept in {node.session.path}; run again to resume from the next one "
                                "(unseen_limit:=0 measures on regardless)", 2)
+
+
+def warn_disturbed(node, collector) -> None:
+    """Said at once: a joint reading left the goal while the frames of the pose were taken."""
+    q = collector.disturbed[-1][1]
+    node.get_logger().warning(
+        f"{node.where}: a joint reading left the goal while its frames were taken "
+        f"({collector.settle.off_goal(q, node.joint_names)}): a reading glitch, or the arm was moved; the frames "
+        "are taken again once it has settled anew")
+
+
+def stale(node) -> str:
+    """'; no joint state for T s ...' when the arm's joint states stopped coming (a driver that
+    died leaves the sequencer waiting for a settling that cannot come), else ''."""
+    age = time.monotonic() - node.last_state[3]
+    return f"; no joint state for {age:.1f} s: has the arm driver stopped?" if age > STALE_STATES else ""
 
 
 def client(node):

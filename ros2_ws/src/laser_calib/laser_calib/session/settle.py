@@ -44,7 +44,7 @@ class SettleDetector:
             self.early, self.early_stamp = self.early + 1, float(stamp)
             return False
         self.last_q = np.asarray(q, dtype=float)
-        calm = bool(np.all(np.abs(self.last_q - self.goal) < self.rule.position_tolerance))
+        calm = self.at_goal(self.last_q)
         if velocity is not None:
             calm = calm and bool(np.all(np.abs(velocity) < self.rule.velocity_tolerance))
         if not calm:
@@ -54,6 +54,15 @@ class SettleDetector:
             self.since = stamp
         return stamp - self.since >= self.rule.hold_time
 
+    def at_goal(self, q: np.ndarray) -> bool:
+        """Every reading of q (N,) within the position tolerance of the goal."""
+        return bool(np.all(np.abs(q - self.goal) < self.rule.position_tolerance))
+
+    def off_goal(self, q: np.ndarray, names: list[str]) -> str:
+        """'<joint> at <reading> rad, goal <goal>' for the joint of q (N,) farthest from its goal."""
+        worst = int(np.argmax(np.abs(q - self.goal)))
+        return f"{names[worst]} at {q[worst]:.5f} rad, goal {self.goal[worst]:.5f}"
+
     def worst_joint(self, names: list[str]) -> str:
         """'<joint> at <reading> rad, goal <goal>' for the joint farthest from its goal."""
         if self.last_q is None and self.early:  # readings came, stamped in the past: said, not 'none came'
@@ -61,5 +70,4 @@ class SettleDetector:
                     f"{self.after - self.early_stamp:.3f} s before: a driver stamping 0, or on another clock?)")
         if self.last_q is None:
             return "no joint state since the command"
-        worst = int(np.argmax(np.abs(self.last_q - self.goal)))
-        return f"{names[worst]} at {self.last_q[worst]:.5f} rad, goal {self.goal[worst]:.5f}"
+        return self.off_goal(self.last_q, names)
