@@ -8,7 +8,10 @@ cannot be used: one line, exit 2."""
 from __future__ import annotations
 
 import math
+import signal
+import sys
 import time
+from pathlib import Path
 
 from ros_harness import ROOT
 
@@ -62,6 +65,20 @@ def test_torque_off_not_confirmed_on_shutdown_is_an_error(ros):
         assert emulator.torque_enabled(1) and not any(emulator.torque_enabled(i) for i in (2, 3, 4))
 
 
+def start_glitching_session(ros, ticks: int, out, poses: int, *sequencer_args: str) -> None:
+    """glitching_arm.py (servos whose last one's reading glitches by ``ticks`` as each pose is
+    measured, and a camera of the true arm), arm_driver on its servos, and a sequencer."""
+    ros.start_command("glitching_arm", [sys.executable, str(Path(__file__).with_name("glitching_arm.py")),
+                                        str(ROBOT_4DOF), "1,2,3,4", str(ticks)])
+    ros.wait_log("glitching_arm", "\n", 60)
+    port = ros.log("glitching_arm").splitlines()[0]
+    ros.start("arm_driver", "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel", "-p", f"dynamixel.port:={port}",
+              "-p", "dynamixel.ids:=[1, 2, 3, 4]", "-p", "dynamixel.profile_velocity:=0", "-p", "rate:=50.0",
+              params=False)
+    ros.start("sequencer", "-p", f"robot:={ROBOT_4DOF}", "-p", f"output_dir:={out}", "-p", f"poses:={poses}",
+              "-p", "estimate.mode:=none", "-p", "move.joint_speed:=2.0", *sequencer_args)
+
+
 def test_a_reading_glitch_while_a_pose_is_measured_is_not_averaged_in(ros, tmp_path):
     """A session of arm_driver on servos whose last one's reading glitches by 300 ticks (0.46 rad)
     for two reads each time a pose has settled, while its frames are taken (glitching_arm.py;
@@ -69,24 +86,13 @@ def test_a_reading_glitch_while_a_pose_is_measured_is_not_averaged_in(ros, tmp_p
     sample: poses recorded up to 0.15 rad off, their spots the true arm's, exit 0 and not a word.
     Now the sequencer warns and takes the frames again once the arm has settled anew: every
     sample is at its pose."""
-    import sys
-    from pathlib import Path
-
     import numpy as np
     from laser_calib.io.samples import load_samples
     from laser_calib.model.robot_file import load_robot
     from laser_calib.session.poses import load_poses
     poses = 4
-    ros.start_command("glitching_arm", [sys.executable, str(Path(__file__).with_name("glitching_arm.py")),
-                                        str(ROBOT_4DOF), "1,2,3,4", "300"])
-    ros.wait_log("glitching_arm", "\n", 60)
-    port = ros.log("glitching_arm").splitlines()[0]
-    ros.start("arm_driver", "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel", "-p", f"dynamixel.port:={port}",
-              "-p", "dynamixel.ids:=[1, 2, 3, 4]", "-p", "dynamixel.profile_velocity:=0", "-p", "rate:=50.0",
-              params=False)
     out = tmp_path / "out"
-    ros.start("sequencer", "-p", f"robot:={ROBOT_4DOF}", "-p", f"output_dir:={out}", "-p", f"poses:={poses}",
-              "-p", "estimate.mode:=none", "-p", "move.joint_speed:=2.0")
+    start_glitching_session(ros, 300, out, poses)
     assert ros.wait_exit("sequencer", 180) == 0, ros.log("sequencer")[-3000:]
     log = ros.log("sequencer")
     # each pose's glitch lands among its frames unless the driver's DDS lagged the camera's 0.2 s of them
@@ -96,6 +102,20 @@ def test_a_reading_glitch_while_a_pose_is_measured_is_not_averaged_in(ros, tmp_p
     measured, planned = load_samples(out / "samples.csv", robot), load_poses(out / "poses.csv", robot)
     assert len(measured.q) == poses
     assert np.abs(measured.q - planned.q[:poses]).max() < 0.003, measured.q - planned.q[:poses]  # settle tolerance
+
+
+def test_an_arm_driver_that_died_is_named_when_the_pose_times_out(ros, tmp_path):
+    """arm_driver killed after the first pose: the sequencer waited out settle.timeout and said
+    "arm not settled (... joint states since the command, every one stamped before it ... a
+    driver stamping 0, or on another clock?)", blaming clocks. The line now says the joint
+    states stopped."""
+    start_glitching_session(ros, 0, tmp_path / "out", 4, "-p", "settle.timeout:=3.0")
+    ros.wait_log("sequencer", "1/4 poses done", 120)
+    ros.procs["arm_driver"].send_signal(signal.SIGKILL)
+    assert ros.wait_exit("sequencer", 60) == 3, ros.log("sequencer")[-3000:]
+    last = [line for line in ros.log("sequencer").splitlines() if line.strip()][-1]
+    assert "arm not settled after 3 s" in last and "no joint state for" in last, last
+    assert last.endswith("s: has the arm driver stopped?"), last
 
 
 STARTS_INTERRUPTED = """import sys, rclpy
