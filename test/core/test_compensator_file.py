@@ -111,6 +111,8 @@ CASES = {
     "model a list": (_set("model", []), "model", "expected an object"),
     "model without names": (lambda d: d["model"].pop("names"), "no key 'model.names'", ""),
     "model values short": (lambda d: d["model"]["values"].pop(), "model.values", "expected 21"),
+    "model held a string": (lambda d: d["model"].update(held="d2"), "model.held", "expected a list of names"),
+    "model held unknown": (lambda d: d["model"].update(held=["d9"]), "model.held", "'d9' is not one of model.names"),
     "version 1 with coef": (_set("version", 1), "no key 'coef_rad'", ""),
 }
 

@@ -128,4 +128,4 @@ def backfit(detection: Detection, model: EffectModel, x: np.ndarray, options: Es
         regression = clone(regression).fit(X, y.ravel())
         compensator = Compensator.of(regression, detection, model.names, x)
     return replace(compensator, values=estimate_model(compensator.apply(model), replace(options, restarts=0), None,
-                                                      x).values)
+                                                      x).values, held=tuple(options.fixed))

@@ -15,13 +15,15 @@ through the kinematics, so it applies to any pose and any measurement model:
 with robot the nominal robot of the diagnosis and effects those of its
 robot_calibrated.yaml (effects_from_robot): the file holds the geometric
 errors and effect values refitted together with the compensation
-(compensation.backfit, which also chose its basis).
+(compensation.backfit, which also chose its basis), and the errors that fit held
+at nominal, which a calibration applying it holds too (report.calibration.calibrate).
 
 File (JSON, compensator.json of a diagnosis, version 3): inputs, targets
 (theta_j are joint offsets, alpha_j, d_j and a_j offsets of the link's
 parameters), the basis (standardisation, knots, pairs, size, and ``tensor``: a
 pair as the products of its splines; versions 1 and 2, from before it, hold
-the product of the readings), the coefficients
+the product of the readings), the model it completes (``model``: names, values and
+``held``, absent from files written before it), the coefficients
 ``coef`` (m', b) of the directions used, in SI units (rad for theta_j and
 alpha_j, m for d_j and a_j; version 1 files, from before the length
 directions, hold only angles under ``coef_rad`` and still load); load it with
@@ -63,7 +65,9 @@ class Compensator:
     detector's held-out gain of the regression (fraction of the whitened
     residual sum of squares); names and values (n,) of the model it completes
     (its geometric errors and effect parameters refitted with the compensation);
-    source the file it was read from, which its errors name."""
+    source the file it was read from, which its errors name; held the errors its
+    fit held at nominal (not determined by the data: applied without holding them,
+    its offsets make such a pair barely separable, and the fit moves along it)."""
 
     inputs: tuple[str, ...]
     targets: tuple[str, ...]
@@ -74,6 +78,7 @@ class Compensator:
     names: tuple[str, ...] = ()
     values: np.ndarray = field(default_factory=lambda: np.zeros(0))
     source: str = "compensator"
+    held: tuple[str, ...] = ()   # of names, held at nominal in its fit: applied, it is held again
 
     @classmethod
     def of(cls, regression: OffsetRegression, detection: Detection, names: tuple[str, ...], values: np.ndarray
@@ -155,7 +160,7 @@ class Compensator:
                 "knots": self.basis.knots.tolist(), "pairs": self.basis.pairs.tolist(), "size": self.basis.size,
                 "tensor": self.basis.tensor,
                 "coef": self.coef.tolist(), "heldout_gain": self.heldout_gain,
-                "model": {"names": list(self.names), "values": self.values.tolist()}}
+                "model": {"names": list(self.names), "values": self.values.tolist(), "held": list(self.held)}}
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_json(), indent=1))
@@ -183,9 +188,9 @@ def load_compensator(path: str | Path) -> Compensator:
     key = "coef_rad" if version == 1 else "coef"
     coef = _array(file[key], file.where(key), ((int(used.sum()), "one row per used target"),
                                                (basis.width, "one per basis function")))
-    names, values = _model(file)
+    names, values, held = _model(file)
     return Compensator(inputs, targets, used, basis, coef, _number(file["heldout_gain"], file.where("heldout_gain")),
-                       names, values, source)
+                       names, values, source, held)
 
 
 @dataclass(frozen=True)
@@ -254,14 +259,20 @@ def _basis(file: _Fields, inputs: tuple[str, ...], version: int) -> Basis:
     return Basis(mean, std, knots, _pairs(file["pairs"], file.where("pairs"), inputs), size, tensor)
 
 
-def _model(file: _Fields) -> tuple[tuple[str, ...], np.ndarray]:
-    """The names and values of the model the compensator completes (predict's values)."""
+def _model(file: _Fields) -> tuple[tuple[str, ...], np.ndarray, tuple[str, ...]]:
+    """The names and values of the model the compensator completes (predict's values), and the
+    names its fit held (none in a file from before the key)."""
     model = file["model"]
     if not isinstance(model, dict):
         raise file.error("model", f"expected an object with names and values, not {reprlib.repr(model)}")
     fields = _Fields(file.source, model, "model.")
     names = _names(fields["names"], fields.where("names"))
-    return names, _array(fields["values"], fields.where("values"), ((len(names), "one per name of model.names"),))
+    values = _array(fields["values"], fields.where("values"), ((len(names), "one per name of model.names"),))
+    held = _names(model.get("held", []), fields.where("held"))
+    unknown = [name for name in held if name not in names]
+    if unknown:
+        raise fields.error("held", f"'{unknown[0]}' is not one of model.names")
+    return names, values, held
 
 
 def _names(value: object, where: str) -> tuple[str, ...]:

@@ -124,7 +124,7 @@ class Calibration:
         est = self.estimate
         written = est.written(self.start)
         corrected = with_held(self.robot.with_errors(written[:self.robot.n_params]),
-                              (*est.identifiability.merged, *est.undetermined))
+                              (*est.identifiability.merged, *est.undetermined, *held_for(self.compensator, self.robot)))
         if not self.effects:
             return corrected
         values = np.split(written[self.robot.n_params:], np.cumsum([len(e.params) for e in self.effects])[:-1])
@@ -181,6 +181,8 @@ class Calibration:
                      "identifiable": bool(est.identifiable[i]), "unit": unit}
             if name in est.undetermined:  # a failed fit's: where it went is no value (errors), the file has nominal
                 entry["note"] = UNDETERMINED
+            elif name in held_for(self.compensator, self.robot):
+                entry["note"] = "held at nominal: the compensator's fit could not determine it"
             elif name in options.fixed and name not in held(self.robot):  # the user's, not the data's
                 entry["note"] = FIXED_NOTE
             elif name in est.identifiability.merged:
@@ -320,13 +322,19 @@ def test_status(model: RobotModel, test: Samples, est: Estimate) -> np.ndarray:
     return status
 
 
+def held_for(compensator: Compensator | None, robot: Robot) -> tuple[str, ...]:
+    """The errors the compensator's fit held at nominal that the robot file does not hold already."""
+    return tuple(name for name in (compensator.held if compensator else ()) if name not in held(robot))
+
+
 def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Samples | None = None,
               sources: dict | None = None, compensator: Compensator | None = None) -> Calibration:
     """Estimate the errors from samples and evaluate the result (no files written): the
     geometric errors, and the robot file's effects and compensator when it has any (module docstring)."""
     sources = dict(sources or {})
-    # what the calibration that wrote the robot file could not determine, this one holds too
-    options = replace(options, fixed=tuple(dict.fromkeys((*options.fixed, *held(robot)))))
+    # what the calibration that wrote the robot file, or the compensator's fit, could not determine, this one holds too
+    compensator_held = held_for(compensator, robot)
+    options = replace(options, fixed=tuple(dict.fromkeys((*options.fixed, *held(robot), *compensator_held))))
     effects, values = effects_from_robot(robot, str(sources.get("robot", "robot")))
     effects = tuple(effects)
     model = spot_model(robot, samples, effects, compensator)
@@ -338,6 +346,8 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
         beyond = extrapolation_note([e.label for e in effects if isinstance(e, Surface)], samples.spots, test.spots)
         said += [f"test: {beyond}"] if beyond else []
     said += held_warnings(robot, sources.get("robot", "the robot file")) + noise_warnings(robot, est)
+    said += [f"held at nominal, as the fit of the compensator {compensator.source} held them (not determined by its "
+             f"data; its key model.held): {', '.join(compensator_held)}"] if compensator_held else []
     sets = evaluate(robot, samples, est, test, effects, compensator, start)
     said += test_outliers(sets) + worse_on_test(sets)
     est = replace(est, warnings=est.warnings + tuple(said))
