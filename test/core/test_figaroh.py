@@ -164,3 +164,17 @@ def test_swapped_joint_columns_are_no_calibration(tmp_path, capsys):
     # 94 since near-duplicate columns are deferred (identifiability.py): the fit at that offset held
     # 9 of 30 directions (7 of the frames) where it now holds the elbow and wrist_1 offsets, near-duplicates there
     assert "error: NOT A CALIBRATION: shoulder_lift_joint.offset is fitted at 94 times its tolerance scale" in out, out
+
+
+def test_a_split_in_time_of_a_file_without_time_says_the_row_order_is_taken(tmp_path, capsys):
+    """FIGAROH's file holds no stamps: the reader numbers the rows, and --chronological split the
+    poses by file order without a word (on the rows shuffled, the chronological result went from
+    better than nominal to worse). Said where time is used; a plain calibration says nothing."""
+    args = ["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
+            "wrist_3_link", "--samples", str(UR10E / "calibration.csv"), "--folds", "0"]
+    assert main(args + ["--chronological", "0.7", "--out", str(tmp_path / "split")]) == 0
+    said = f"{UR10E / 'calibration.csv'}: a FIGAROH file holds no time stamps: its rows are taken as measured in file"
+    assert said in capsys.readouterr().err
+    assert any(w.startswith(said) for w in json.loads((tmp_path / "split" / "result.json").read_text())["warnings"])
+    assert main(args + ["--out", str(tmp_path / "plain")]) == 0
+    assert "no time stamps" not in capsys.readouterr().err

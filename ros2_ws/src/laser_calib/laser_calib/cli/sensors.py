@@ -24,6 +24,7 @@ from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
 from laser_calib.estimation.identifiability import FIXED_NOTE, TooFewValues, carried_note
 from laser_calib.model.robot import Robot
+from laser_calib.io.figaroh import ROW_ORDER_AS_TIME, is_figaroh
 from laser_calib.io.positioner import read_positioner
 from laser_calib.io.revisits import repeat_warnings
 from laser_calib.model.robot_file import held, held_warnings, load_robot_description, save_robot, with_held
@@ -35,6 +36,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.measurement.base import MeasurementModel
 from laser_calib.report.pose_table import NOT_FITTED, fit_status, save_pose_table
 from laser_calib.report.statistics import STATISTICS, iso9283, summary, worse_on_test_warning
+from laser_calib.io.read import read_text
 from laser_calib.io.samples import Samples
 from laser_calib.io.sensor_samples import load_sensor_samples, save_sensor_samples
 
@@ -278,6 +280,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
         result["warnings"].append(f"{args.robot}: its effects ({len(stale)}) are not fitted by calibrate-poses (the "
                                   "geometric model and the frames only): the calibrated robot is written without "
                                   "them; --diagnose selects effects anew")
+    if (args.chronological or args.diagnose) and is_figaroh(read_text(args.samples)):
+        result["warnings"].append(f"{args.samples}: {ROW_ORDER_AS_TIME}")
     accuracy = _accuracy(samples, fit.model, fit, used)
     if accuracy:
         result["insample"]["iso9283"] = accuracy

@@ -10,7 +10,8 @@ matched to the robot's readings by their URDF names; the chain does not model
 the others: one warning names those whose readings move (a joint beyond the
 tip, or one the URDF marks fixed), a still one (a held gripper) goes unsaid.
 Poses are numbered by row; with K markers a row gives K samples (pose ids
-K r + k, a ``tip`` column). A row whose marker fields are empty did not see
+K r + k, a ``tip`` column), and the row number is their stamp: the file holds
+no time (ROW_ORDER_AS_TIME). A row whose marker fields are empty did not see
 that marker.
 """
 
@@ -30,6 +31,9 @@ from laser_calib.model.robot import Robot
 POSITION, ROTATION = ("x", "y", "z"), ("phix", "phiy", "phiz")
 _MARKER = re.compile(r"(x|y|z|phix|phiy|phiz)(\d+)")
 MAX_ANGLE = 2 * np.pi + 0.5  # rad: a roll, pitch or yaw beyond it is in degrees
+# said where time matters (a chronological split, a drift): the file has none, the parser numbers the rows
+ROW_ORDER_AS_TIME = ("a FIGAROH file holds no time stamps: its rows are taken as measured in file order (stamp = row "
+                     "number), which the chronological split and a drift in time follow")
 
 
 def is_figaroh(text: str) -> bool:
