@@ -235,6 +235,7 @@ def test_a_negated_joint_column_is_no_calibration_and_worse_on_the_test_poses():
     assert any(w.startswith("NOT A CALIBRATION: slm_") and "times its tolerance scale" in w for w in warnings), warnings
     assert any(w.startswith("test: the calibrated model misses the held-out spots by more than the nominal one")
                for w in warnings), warnings
+    assert result.caution.startswith("test: the calibrated model misses the held-out spots")  # in the files' header
     honest = calibrate_spots(session.nominal, cal, EstimateOptions(), test).estimate.warnings
     assert not any(w.startswith(("NOT A CALIBRATION", "implausible", "test: the calibrated")) for w in honest), honest
 

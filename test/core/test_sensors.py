@@ -363,7 +363,8 @@ def test_quaternions_written_in_xyzw_order_are_one_line_naming_the_columns(tmp_p
 def test_a_calibration_worse_than_the_robot_as_designed_on_held_out_poses_is_warned(tmp_path, capsys):
     """A robot built as designed: the calibration can only fit noise, and on 30 poses its 5-fold
     held-out position error exceeds the frames-only fit's (seed 6: 0.334 -> 0.358 mm). The figure is
-    printed either way; the warning says what it means, on the console and in result.json."""
+    printed either way; the warning says what it means, on the console, in result.json and in the
+    calibrated robot file (a CAUTION line of its header)."""
     robot = rig()
     (tmp_path / "robot.yaml").write_text(dump_robot(robot))
     save_sensor_samples(simulate(robot, _errors(robot, 6, 0.0), 30, 6, "pose"), tmp_path / "s.csv")
@@ -372,3 +373,5 @@ def test_a_calibration_worse_than_the_robot_as_designed_on_held_out_poses_is_war
     said = "5-fold held-out: the calibrated model misses these poses by more than the nominal D-H with its frames fitted"
     assert said in capsys.readouterr().err
     assert any(w.startswith(said) for w in json.loads((tmp_path / "out" / "result.json").read_text())["warnings"])
+    # and in the file written, which a user loads without the console (it was written as any calibration)
+    assert f"\n# CAUTION: {said}" in (tmp_path / "out" / "robot_calibrated.yaml").read_text()

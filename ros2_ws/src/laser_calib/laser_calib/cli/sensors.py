@@ -112,12 +112,15 @@ def _evaluate(model: MeasurementModel, fit: SensorFit, prefix: str = "",
     return out
 
 
+WORSE_THAN_DESIGN = "the calibrated model misses these poses by more than the"  # _worse's; the files say it too
+
+
 def _worse(label: str, columns: dict[str, np.ndarray], prefix: str, poses: np.ndarray, design: str) -> list[str]:
     """The warning when the calibration misses poses it never saw (``label``: the held-out or test
     set) by more in position than the frames-only fit of the robot as designed (report.statistics)."""
     return worse_on_test_warning(
         columns[f"{prefix}nominal_position_m"], columns[f"{prefix}position_m"], poses,
-        f"{label}: the calibrated model misses these poses by more than the {design} with its frames fitted "
+        f"{label}: {WORSE_THAN_DESIGN} {design} with its frames fitted "
         "(RMS position {before:.3g} mm -> {after:.3g} mm over the {count} poses both predict)",
         "the calibration does not carry over to them (errors too small for these poses to determine: keep the robot "
         "as designed; a wrong minimum; joint readings out of step with the measurements; orientations in another "
@@ -311,15 +314,18 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                      + ("; its effects are in result.json, not in the calibrated robot file (the geometric model)"
                         if len(result["diagnosis"]["stages"]) > 1 else ""))
     failure = first_failure(fit.estimate.warnings)
+    caution = next((w for w in result["warnings"] if WORSE_THAN_DESIGN in w), None)
     with staged_folder(args.out) as out:
         if robot.chain is not None:
-            written = save_calibrated_urdf(fit.corrected(robot), robot, fit.determined, out, str(args.robot), failure)
+            written = save_calibrated_urdf(fit.corrected(robot), robot, fit.determined, out, str(args.robot), failure,
+                                           caution)
         else:
             corrected = with_held(fit.corrected(robot), fit.held)
             save_robot(replace(corrected, extra={k: v for k, v in corrected.extra.items() if k != "effects"}),
                        out / "robot_calibrated.yaml",
                        header=f"Calibrated from {args.samples} (laser-calib calibrate-poses)."
                               + (f"\nNO CALIBRATION: {failure}" if failure else "")
+                              + (f"\nCAUTION: {caution}" if caution else "")
                               + undetermined_note(fit.undetermined)
                               + (f"\nThe geometric model only: the effects --diagnose chose "
                                  f"({result['diagnosis']['stages'][-1]['model']}) are in result.json, not here."

@@ -240,6 +240,12 @@ class Calibration:
         CALIBRATION: estimation/failures.py), None when it is one."""
         return first_failure(self.estimate.warnings)
 
+    @property
+    def caution(self) -> str | None:
+        """The warning that the test poses, never fitted, are missed by more than the nominal
+        model (worse_on_test), said in the calibrated files too; None without."""
+        return next(iter(worse_on_test(self.sets)), None)
+
     def summary(self) -> str:
         """One line: the spot error before and after over the spots fitted, as the nodes log it."""
         before, after = self.spot_error["calibration"]["before"]["all"], self.spot_error["calibration"]["after"]["all"]

@@ -51,6 +51,7 @@ def calibrated_robot_yaml(calibration: Calibration) -> str:
                              + (f" with the effects {', '.join(e.label for e in calibration.effects)}"
                                 if calibration.effects else "") + "."
                              + (f"\nNO CALIBRATION: {calibration.failure}" if calibration.failure else "")
+                             + (f"\nCAUTION: {calibration.caution}" if calibration.caution else "")
                              + (f"\nNot identifiable, held at nominal: {merged}" if merged else "")
                              + undetermined_note(est.undetermined)
                              + ("\nFitted with the learned compensator "
@@ -96,7 +97,7 @@ def _write_tables(calibration: Calibration, out: Path) -> None:
     (out / "robot_calibrated.yaml").write_text(calibrated_robot_yaml(calibration))
     if calibration.robot.chain is not None:  # the URDF to apply (docs/urdf.md)
         save_calibrated_urdf(calibration.calibrated, calibration.robot, calibration.estimate.determined, out,
-                             str(calibration.sources.get("robot", "")), calibration.failure)
+                             str(calibration.sources.get("robot", "")), calibration.failure, calibration.caution)
     (out / "result.json").write_text(result_json(calibration))
     save_pose_table({name: (s.samples.pose, s.samples.stamp, spot_columns(s.samples, s.calibrated, s.nominal)
                             | (spot_status(s.status) if s.status is not None else {}))

@@ -49,18 +49,21 @@ def corrections(robot: Robot, nominal: Robot, identifiable: np.ndarray | None = 
 
 
 def save_calibrated_urdf(calibrated: Robot, nominal: Robot, identifiable: np.ndarray, folder: Path,
-                         source: str, failure: str | None = None) -> tuple[str, str]:
+                         source: str, failure: str | None = None, caution: str | None = None) -> tuple[str, str]:
     """robot_calibrated.urdf and urdf_corrections.json (with the fitted frames) in folder.
-    failure: why the fit is no calibration (estimation/failures.py), said in both files: the
-    tools that load a URDF show no console."""
+    failure: why the fit is no calibration (estimation/failures.py); caution: poses it never saw
+    say it is worse than the robot as designed; both said in both files: the tools that load a
+    URDF show no console."""
     folder = Path(folder)
     text = calibrated_urdf(calibrated)
-    if failure:
+    said = [f"NO CALIBRATION: {failure}"] * bool(failure) + [f"CAUTION: {caution}"] * bool(caution)
+    if said:
         declaration = text.index("?>") + 2 if text.startswith("<?xml") else 0
-        text = (text[:declaration] + f"\n<!-- NO CALIBRATION: {failure.replace('--', '- -')} -->"
+        text = (text[:declaration] + "".join(f"\n<!-- {line.replace('--', '- -')} -->" for line in said)
                 + text[declaration:])
     (folder / "robot_calibrated.urdf").write_text(text)
-    data = {"source": source, "failure": failure, "base": calibrated.chain.base, "tips": list(calibrated.chain.tip_links),
+    data = {"source": source, "failure": failure, "caution": caution, "base": calibrated.chain.base,
+            "tips": list(calibrated.chain.tip_links),
             "joints": corrections(calibrated, nominal, identifiable),
             "frames": calibrated.extra.get("frames", {})}
     (folder / "urdf_corrections.json").write_text(json.dumps(data, indent=2))
