@@ -447,6 +447,17 @@ def test_learned_compensator_is_saved_loaded_and_predicts_as_in_the_diagnosis(tm
     held = {e["name"]: e for e in estimated["errors"] if e["name"] in diagnosis.merged}
     assert all(e["value"] is None and "compensator's fit" in e["note"] for e in held.values()), held
     assert any("as the fit of the compensator" in w for w in estimated["warnings"]), estimated["warnings"]
+    assert not any("makes the calibration worse" in w for w in estimated["warnings"]), estimated["warnings"]
+    # Another unit of the arm, without the coupling: the compensator's offsets are errors its fit cannot
+    # remove (0.43 -> 0.65 mm, nothing said): the same fit without it is better, and the warning says so.
+    other_unit = effect_session("paper-4dof", SEED + 1, lambda *_: [], 80, 40, NOISE)
+    save_samples(other_unit.cal, tmp_path / "other_cal.csv")
+    save_samples(other_unit.test, tmp_path / "other_test.csv")
+    assert cli_main(args[:1] + ["--samples", str(tmp_path / "other_cal.csv"), "--test", str(tmp_path / "other_test.csv")]
+                    + args[5:] + ["--robot", str(tmp_path / "robot.yaml"), "--out", str(tmp_path / "o")]) == 0
+    warned = [w for w in json.loads((tmp_path / "o" / "result.json").read_text())["warnings"]
+              if "makes the calibration worse than the same fit without it" in w]
+    assert len(warned) == 1 and "calibration RMS" in warned[0] and "test RMS" in warned[0], warned
     assert estimated["spot_error"]["test"]["after"]["all"]["mean_mm"] == pytest.approx(
         np.nanmean(diagnosis.compensated_test) * 1e3, rel=1e-6)
     # Made for that model: a robot file with another effect is not it (one line, exit 2).

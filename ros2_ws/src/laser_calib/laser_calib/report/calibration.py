@@ -356,6 +356,9 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
              f"data; its key model.held): {', '.join(compensator_held)}"] if compensator_held else []
     sets = evaluate(robot, samples, est, test, effects, compensator, start)
     said += test_outliers(sets) + worse_on_test(sets)
+    if compensator is not None:  # the check refits without it: only when one is applied
+        from laser_calib.report.compensator_check import compensator_warnings
+        said += compensator_warnings(robot, samples, options, effects, start, sets, compensator.source)
     est = replace(est, warnings=est.warnings + tuple(said))
     return Calibration(robot, options, est, sets, start, sources, effects, compensator)
 
