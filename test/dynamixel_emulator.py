@@ -15,10 +15,17 @@ WRITE instructions of Torque Enable = 0 reaching it, broadcast included, are
 lost before the servo, as on a noisy line: not executed and, as Protocol 2.0
 has it for an instruction never received, not answered); ``emulator.glitch(id, reads,
 ticks)`` (its next reads of Present Position report it off while it stays put: a glitch of
-its encoder or of the bus); and
+its encoder or of the bus), ``short_reads`` (that many of its next replies to a read
+carry half the bytes asked for, with a valid CRC); and
 ``emulator.set_hardware_error(id, status)``
 (its status packets carry the alert bit 0x80, as a real servo's do after a
 hardware fault).
+
+The control table holds an X-series servo's defaults where the driver reads them
+(Operating Mode 3, position control; Min/Max Position Limit 0 and 4095; Velocity
+Limit 265), and in position control a Goal Position beyond the limits is not
+taken, as a real servo refuses it: a WRITE answers Data Limit Error, a SYNC WRITE
+(no status) leaves the old goal.
 
 The CRC and stuffing are written independently of dynamixel_sdk, so the tests
 that run the SDK against this emulator cross-check both sides.
@@ -55,6 +62,7 @@ INST_SYNC_WRITE = 0x83
 ERR_INSTRUCTION = 0x02
 ERR_CRC = 0x03
 ERR_DATA_LENGTH = 0x05
+ERR_DATA_LIMIT = 0x06
 ERR_ACCESS = 0x07
 ERRBIT_ALERT = 0x80
 
@@ -62,6 +70,10 @@ ERRBIT_ALERT = 0x80
 ADDR_MODEL_NUMBER = 0
 ADDR_FIRMWARE_VERSION = 6
 ADDR_ID = 7
+ADDR_OPERATING_MODE = 11
+ADDR_VELOCITY_LIMIT = 44
+ADDR_MAX_POSITION_LIMIT = 48
+ADDR_MIN_POSITION_LIMIT = 52
 ADDR_TORQUE_ENABLE = 64
 ADDR_HARDWARE_ERROR_STATUS = 70
 ADDR_PROFILE_VELOCITY = 112
@@ -78,6 +90,9 @@ FIRMWARE_VERSION = 6
 TICKS_PER_REV = 4096
 VELOCITY_UNIT_RPM = 0.229  # Profile Velocity and Present Velocity units
 VELOCITY_LIMIT = 265  # Velocity Limit default: the speed when Profile Velocity is 0 (no profile)
+POSITION_CONTROL = 3  # Operating Mode default; its goals must lie within Min/Max Position Limit
+EXTENDED_POSITION_CONTROL = 4  # multi-turn: the limits do not apply
+MIN_POSITION_LIMIT, MAX_POSITION_LIMIT = 0, 4095  # defaults: one turn
 
 
 def crc16(data: bytes) -> int:
@@ -147,6 +162,7 @@ class EmulatedServo:
     lost_torque_offs: int = 0
     glitched_reads: int = 0
     glitch_ticks: int = 0
+    short_reads: int = 0
 
     def get(self, address: int, length: int, signed: bool = False) -> int:
         return int.from_bytes(self.table[address : address + length], "little", signed=signed)
@@ -156,8 +172,12 @@ class EmulatedServo:
 
     def reported(self, address: int, length: int) -> bytes:
         """Control-table bytes as a READ or SYNC READ returns them: Present Position off by
-        ``glitch_ticks`` in the next ``glitched_reads`` reads that include it."""
+        ``glitch_ticks`` in the next ``glitched_reads`` reads that include it; the next
+        ``short_reads`` replies carry half the bytes asked for (a bridge or firmware at fault)."""
         data = bytearray(self.table[address : address + length])
+        if self.short_reads:
+            self.short_reads -= 1
+            return bytes(data[: length // 2])
         start = ADDR_PRESENT_POSITION - address
         if self.glitched_reads and 0 <= start and start + 4 <= length:
             self.glitched_reads -= 1
@@ -190,6 +210,10 @@ class DynamixelEmulator:
             servo.put(ADDR_MODEL_NUMBER, 2, MODEL_NUMBER)
             servo.put(ADDR_FIRMWARE_VERSION, 1, FIRMWARE_VERSION)
             servo.put(ADDR_ID, 1, servo_id)
+            servo.put(ADDR_OPERATING_MODE, 1, POSITION_CONTROL)
+            servo.put(ADDR_VELOCITY_LIMIT, 4, VELOCITY_LIMIT)
+            servo.put(ADDR_MAX_POSITION_LIMIT, 4, MAX_POSITION_LIMIT)
+            servo.put(ADDR_MIN_POSITION_LIMIT, 4, MIN_POSITION_LIMIT)
             servo.put(ADDR_GOAL_POSITION, 4, initial_ticks, signed=True)
             servo.advance(0.0)
             self.servos[servo_id] = servo
@@ -333,10 +357,8 @@ class DynamixelEmulator:
             return self._reply(target, ERR_ACCESS)
         targets = self.servos if target == BROADCAST_ID else [target]
         lost = [servo_id for servo_id in targets if self._lost(servo_id, address, data)]
-        for servo_id in targets:
-            if servo_id not in lost:
-                self._store(servo_id, address, data)
-        return [] if target == BROADCAST_ID or lost else self._reply(target, 0)
+        stored = [self._store(servo_id, address, data) for servo_id in targets if servo_id not in lost]
+        return [] if target == BROADCAST_ID or lost else self._reply(target, 0 if all(stored) else ERR_DATA_LIMIT)
 
     def _lost(self, servo_id: int, address: int, data: bytes) -> bool:
         """Whether this torque-off write to the servo is one of its ``lost_torque_offs``."""
@@ -366,9 +388,17 @@ class DynamixelEmulator:
         for start in range(0, len(records) - length, length + 1):
             self._store(records[start], address, records[start + 1 : start + 1 + length])
 
-    def _store(self, servo_id: int, address: int, data: bytes) -> None:
+    def _store(self, servo_id: int, address: int, data: bytes) -> bool:
+        """Whether the servo took the data: in Position Control Mode, a Goal Position beyond its
+        Min/Max Position Limit is not taken (a WRITE answers Data Limit Error, a SYNC WRITE nothing)."""
         servo = self.servos.get(servo_id)
         if servo is None or servo.silent:
-            return
+            return True
+        if (address == ADDR_GOAL_POSITION and len(data) == 4
+                and servo.get(ADDR_OPERATING_MODE, 1) == POSITION_CONTROL
+                and not servo.get(ADDR_MIN_POSITION_LIMIT, 4) <= int.from_bytes(data, "little", signed=True)
+                <= servo.get(ADDR_MAX_POSITION_LIMIT, 4)):
+            return False
         servo.table[address : address + len(data)] = data
         servo.advance(0.0)
+        return True

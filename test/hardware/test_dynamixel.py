@@ -12,10 +12,14 @@ import pytest
 from dynamixel_emulator import (
     ADDR_FIRMWARE_VERSION,
     ADDR_GOAL_POSITION,
+    ADDR_MAX_POSITION_LIMIT,
+    ADDR_MIN_POSITION_LIMIT,
+    ADDR_OPERATING_MODE,
     ADDR_PRESENT_POSITION,
     ADDR_PROFILE_VELOCITY,
     ADDR_TORQUE_ENABLE,
     INST_SYNC_READ,
+    EXTENDED_POSITION_CONTROL,
     INST_WRITE,
     MODEL_NUMBER,
     DynamixelEmulator,
@@ -27,6 +31,7 @@ from laser_calib.hardware.dynamixel_arm import (
     DynamixelConfig,
     DynamixelError,
     DynamixelJointConfig,
+    DynamixelSettingError,
     StuffedPacketHandler,
 )
 
@@ -99,8 +104,16 @@ def test_sdk_ping_read_write(emulator: DynamixelEmulator, sdk: tuple[dxl.PortHan
     assert emulator.present_position(2) == 2048
 
 
+def multi_turn(emulator: DynamixelEmulator) -> DynamixelEmulator:
+    """Its servos in extended position control, where a goal may lie beyond one turn (0..4095)."""
+    for servo in emulator.servos.values():
+        servo.put(ADDR_OPERATING_MODE, 1, EXTENDED_POSITION_CONTROL)
+    return emulator
+
+
 def test_sdk_sync_write_and_sync_read(emulator: DynamixelEmulator, sdk: tuple[dxl.PortHandler, Any]) -> None:
     port, packet = sdk
+    multi_turn(emulator)
     goals = {1: 1000, 2: -5000, 3: 4095}
     writer = dxl.GroupSyncWrite(port, packet, ADDR_GOAL_POSITION, 4)
     for servo_id, goal in goals.items():
@@ -122,6 +135,7 @@ STUFFED_TICKS = -131073  # little-endian FF FF FD FF: on the wire it must read F
 
 def test_sdk_byte_stuffing_round_trip(emulator: DynamixelEmulator, sdk: tuple[dxl.PortHandler, Any]) -> None:
     port, packet = sdk
+    multi_turn(emulator)
     register = STUFFED_TICKS & 0xFFFFFFFF
     result = StuffedPacketHandler().write4ByteTxRx(port, 1, ADDR_GOAL_POSITION, register)
     assert result == (dxl.COMM_SUCCESS, 0)
@@ -133,7 +147,7 @@ def test_sdk_byte_stuffing_round_trip(emulator: DynamixelEmulator, sdk: tuple[dx
 
 def test_arm_byte_stuffing_round_trip() -> None:
     with DynamixelEmulator(IDS, initial_ticks=STUFFED_TICKS) as emulator:
-        with DynamixelArm(arm_config(emulator.port, zero_ticks=STUFFED_TICKS)) as arm:
+        with DynamixelArm(arm_config(multi_turn(emulator).port, zero_ticks=STUFFED_TICKS)) as arm:
             q, _ = arm.read()
             np.testing.assert_array_equal(q, 0.0)
             assert b"\xff\xff\xfd\xfd\xff" in emulator.replies[-1]  # sync read status packet
@@ -312,3 +326,53 @@ def test_a_ctrl_c_while_torque_is_enabled_leaves_no_servo_on(emulator: Dynamixel
     _, error = run_within(FAULT_DEADLINE, arm.open)
     assert isinstance(error, KeyboardInterrupt)
     assert not any(emulator.torque_enabled(i) for i in IDS)
+
+
+def test_the_emulator_refuses_a_goal_beyond_the_position_limits_as_a_servo_does(
+        emulator: DynamixelEmulator, sdk: tuple[dxl.PortHandler, Any]) -> None:
+    """In position control (the default Operating Mode 3) a goal beyond Min/Max Position Limit is
+    not taken: a WRITE is answered with Data Limit Error, a SYNC WRITE (no status) leaves the old
+    goal. The emulator took any goal, so a driver's goal that a servo ignores could not be seen."""
+    port, packet = sdk
+    assert packet.read1ByteTxRx(port, 1, ADDR_OPERATING_MODE) == (3, dxl.COMM_SUCCESS, 0)
+    assert packet.read4ByteTxRx(port, 1, ADDR_MAX_POSITION_LIMIT) == (4095, dxl.COMM_SUCCESS, 0)
+    assert packet.write4ByteTxRx(port, 1, ADDR_GOAL_POSITION, 5000) == (dxl.COMM_SUCCESS, 0x06)
+    writer = dxl.GroupSyncWrite(port, packet, ADDR_GOAL_POSITION, 4)
+    assert writer.addParam(2, list((-10).to_bytes(4, "little", signed=True)))
+    assert writer.txPacket() == dxl.COMM_SUCCESS
+    assert packet.write4ByteTxRx(port, 3, ADDR_GOAL_POSITION, 3000) == (dxl.COMM_SUCCESS, 0)
+    assert [emulator.read(i, ADDR_GOAL_POSITION, 4, signed=True) for i in IDS] == [2048, 2048, 3000]
+
+
+@pytest.mark.parametrize(("setting", "said"), [
+    # a goal beyond the servo's limits is ignored: the session ended in "arm not settled", the servo unnamed
+    ({ADDR_MIN_POSITION_LIMIT: 1900, ADDR_MAX_POSITION_LIMIT: 2200},
+     "Dynamixel servo 2: joint2's range is ticks 1070 .. 3026, beyond the servo's Min/Max Position Limit 1900 .. 2200"),
+    ({ADDR_OPERATING_MODE: 1}, "Dynamixel servo 2: Operating Mode 1 (velocity control) ignores goal positions"),
+])
+def test_a_servo_setting_that_ignores_the_goals_is_refused_before_torque_on(
+        emulator: DynamixelEmulator, setting: dict[int, int], said: str) -> None:
+    for address, value in setting.items():
+        emulator.servos[2].put(address, 1 if address == ADDR_OPERATING_MODE else 4, value)
+    _, error = run_within(FAULT_DEADLINE, DynamixelArm(arm_config(emulator.port)).__enter__)
+    assert isinstance(error, DynamixelSettingError) and isinstance(error, ValueError), error
+    assert str(error).startswith(said) and "\n" not in str(error), error
+    assert not any(emulator.torque_enabled(i) for i in IDS)
+    # multi-turn, the limits do not apply: the same range opens
+    if ADDR_OPERATING_MODE not in setting:
+        emulator.servos[2].put(ADDR_OPERATING_MODE, 1, EXTENDED_POSITION_CONTROL)
+        with DynamixelArm(arm_config(emulator.port)) as arm:
+            assert arm.read()[0].shape == (3,)
+
+
+def test_a_reply_shorter_than_the_state_asked_for_is_retried_never_read_as_joints(
+        emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    """A status packet of 4 of the 8 bytes asked for, with a valid CRC: the SDK hands it over
+    whole, and its bytes were read as q = -31 rad with no error. It is now a corrupt reply:
+    retried once, then a fault naming the servo."""
+    emulator.servos[2].short_reads = 1
+    q, _ = arm.read()
+    np.testing.assert_allclose(q, 0.0, atol=1e-12)
+    emulator.servos[2].short_reads = 100
+    _, error = run_within(FAULT_DEADLINE, arm.read)
+    assert isinstance(error, DynamixelError) and "servo 2: sync read failed: corrupt status packet" in str(error)

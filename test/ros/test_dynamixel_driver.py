@@ -149,7 +149,8 @@ def test_a_ctrl_c_while_the_driver_starts_leaves_no_servo_on(ros):
 
 def test_a_port_or_baud_rate_that_cannot_be_used_is_a_setting_exit_2(ros, tmp_path):
     """A port that names no device, or a baud rate the adapter cannot take, is a setting to
-    correct: one line and exit 2, as the other bad parameters (it was exit 1, a bus fault's)."""
+    correct: one line and exit 2, as the other bad parameters (it was exit 1, a bus fault's); so is
+    a servo whose Max Position Limit is inside its joint's range (it was "arm not settled" later)."""
     from dynamixel_emulator import DynamixelEmulator
     with DynamixelEmulator(ids=(1, 2, 3, 4)) as emulator:
         for name, port, baud, said in (("no_port", tmp_path / "ttyUSB9", 57600, "cannot open"),
@@ -160,4 +161,15 @@ def test_a_port_or_baud_rate_that_cannot_be_used_is_a_setting_exit_2(ros, tmp_pa
             assert ros.wait_exit(name, 60) == 2, ros.log(name)
             lines = ros.log(name).strip().splitlines()
             assert len(lines) == 1 and said in lines[0] and str(port) in lines[0], lines
+        assert not any(emulator.torque_enabled(i) for i in (1, 2, 3, 4))
+        # a servo whose own limits would ignore the joint's goals: a setting too, said before any torque is on
+        from dynamixel_emulator import ADDR_MAX_POSITION_LIMIT
+        emulator.servos[3].put(ADDR_MAX_POSITION_LIMIT, 4, 2100)
+        ros.start("servo_limits", "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel",
+                  "-p", f"dynamixel.port:={emulator.port}", "-p", "dynamixel.ids:=[1, 2, 3, 4]", node="arm_driver",
+                  params=False)
+        assert ros.wait_exit("servo_limits", 60) == 2, ros.log("servo_limits")
+        lines = ros.log("servo_limits").strip().splitlines()
+        assert len(lines) == 1 and "Dynamixel servo 3: joint3's range is ticks" in lines[0], lines
+        assert "beyond the servo's Min/Max Position Limit 0 .. 2100" in lines[0], lines
         assert not any(emulator.torque_enabled(i) for i in (1, 2, 3, 4))

@@ -29,14 +29,13 @@ from typing import Iterator, Sequence
 import dynamixel_sdk as dxl
 import numpy as np
 
+from laser_calib.hardware.dynamixel_table import (ADDR_GOAL_POSITION, ADDR_HARDWARE_ERROR_STATUS,
+                                                  ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY, ADDR_PROFILE_VELOCITY,
+                                                  ADDR_TORQUE_ENABLE, ERRBIT_ALERT, HARDWARE_ERRORS,
+                                                  INSTRUCTION_ERRORS, setting_problem)
+
 logger = logging.getLogger(__name__)
 
-ADDR_TORQUE_ENABLE = 64
-ADDR_HARDWARE_ERROR_STATUS = 70
-ADDR_PROFILE_VELOCITY = 112
-ADDR_GOAL_POSITION = 116
-ADDR_PRESENT_VELOCITY = 128
-ADDR_PRESENT_POSITION = 132
 # Present Velocity (128..131) and Present Position (132..135) are adjacent: one sync read gets both.
 STATE_ADDRESS = ADDR_PRESENT_VELOCITY
 STATE_LENGTH = 8
@@ -45,23 +44,6 @@ ATTEMPTS = 3  # per exchange; only a fault persisting through all of them is rep
 STOP_LOCK_TIMEOUT = 2.0  # [s] longer than any exchange in flight on another thread
 VELOCITY_UNIT = 0.229 * 4096 / 60.0  # [ticks/s] per Present Velocity unit
 
-ERRBIT_ALERT = 0x80
-INSTRUCTION_ERRORS = {
-    1: "result fail",
-    2: "instruction error",
-    3: "CRC error in the instruction packet",
-    4: "data range error",
-    5: "data length error",
-    6: "data limit error",
-    7: "access error",
-}
-HARDWARE_ERRORS = {
-    0x01: "input voltage",
-    0x04: "overheating",
-    0x08: "motor encoder",
-    0x10: "electrical shock",
-    0x20: "overload",
-}
 
 
 class StuffedPacketHandler(dxl.Protocol2PacketHandler):
@@ -88,6 +70,11 @@ class DynamixelError(RuntimeError):
 class DynamixelPortError(DynamixelError, ValueError):
     """The configured port cannot be opened at the configured baud rate: a setting to correct (a
     ValueError, as the other bad settings), not a fault of the bus."""
+
+
+class DynamixelSettingError(DynamixelError, ValueError):
+    """A servo's own setting (Operating Mode, position limits) the arm cannot run with: a setting
+    to correct, found before its torque is on (dynamixel_table.setting_problem)."""
 
 
 @dataclass(frozen=True)
@@ -203,6 +190,13 @@ class DynamixelArm:
             with self._io_errors():
                 for servo_id in self._ids:
                     self._ping(servo_id)
+                for servo_id, joint, name in zip(self._ids, self.config.joints, self.joint_names):
+                    ends = sorted(joint.zero_ticks + q * joint.ticks_per_rad for q in (joint.min, joint.max))
+                    problem = setting_problem(lambda address, length: self._read(servo_id, address, length),
+                                              name, *ends)
+                    if problem:
+                        self.stop()
+                        raise DynamixelSettingError(f"Dynamixel servo {servo_id}: {problem}", servo_id)
                 ticks, _ = self._read_state()
                 # Goal = present before torque on, so enabling torque cannot jump to a stale goal.
                 self._write_goal(ticks)
@@ -326,6 +320,15 @@ class DynamixelArm:
                 return
         raise self._servo_fault(servo_id, f"ping failed: {self._comm_fault(result)}")
 
+    def _read(self, servo_id: int, address: int, length: int) -> int:
+        """One register of one servo (unsigned), within ATTEMPTS exchanges."""
+        for _ in range(ATTEMPTS):
+            data, result, error = self._packet.readTxRx(self._port, servo_id, address, length)
+            if result == dxl.COMM_SUCCESS and len(data) == length:
+                self._check_status(servo_id, error)
+                return int.from_bytes(bytes(data), "little")
+        raise self._servo_fault(servo_id, f"read of address {address} failed: {self._comm_fault(result)}")
+
     def _write(self, servo_id: int, address: int, length: int, value: int) -> None:
         data = list(value.to_bytes(length, "little", signed=value < 0))
         for _ in range(ATTEMPTS):
@@ -370,6 +373,8 @@ class DynamixelArm:
         replies = []
         for servo_id in self._ids:
             data, result, error = self._packet.readRx(self._port, servo_id, STATE_LENGTH)
+            if result == dxl.COMM_SUCCESS and len(data) != STATE_LENGTH:  # the SDK takes a short reply whole
+                result = dxl.COMM_RX_CORRUPT
             if result != dxl.COMM_SUCCESS:
                 return servo_id, result, replies
             replies.append((servo_id, bytes(data), error))

@@ -1,0 +1,66 @@
+"""The Dynamixel X-series control table as the arm backend uses it (ROBOTIS e-manual), and
+the servo settings it checks when it opens the arm.
+
+A servo's own settings decide whether it follows a goal at all: in velocity, current or PWM
+control (Operating Mode) it ignores Goal Position, and in position control (mode 3) it
+ignores a goal beyond its Min/Max Position Limit (a SYNC WRITE gets no status back). Either
+way the arm never reaches the pose, and the session ended in "arm not settled" naming a joint
+but not why. So each servo's mode, and in position control its limits against the joint's
+range in ticks, are read before its torque is enabled.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+ADDR_OPERATING_MODE = 11
+ADDR_MAX_POSITION_LIMIT = 48
+ADDR_MIN_POSITION_LIMIT = 52
+ADDR_TORQUE_ENABLE = 64
+ADDR_HARDWARE_ERROR_STATUS = 70
+ADDR_PROFILE_VELOCITY = 112
+ADDR_GOAL_POSITION = 116
+ADDR_PRESENT_VELOCITY = 128
+ADDR_PRESENT_POSITION = 132
+
+POSITION_CONTROL = 3  # the only mode whose goals Min/Max Position Limit bound (one turn)
+# Operating Mode values; the three position modes follow Goal Position
+MODES = {0: "current control", 1: "velocity control", 3: "position control", 4: "extended position control",
+         5: "current-based position control", 16: "PWM control"}
+GOAL_MODES = (3, 4, 5)
+
+ERRBIT_ALERT = 0x80
+INSTRUCTION_ERRORS = {
+    1: "result fail",
+    2: "instruction error",
+    3: "CRC error in the instruction packet",
+    4: "data range error",
+    5: "data length error",
+    6: "data limit error",
+    7: "access error",
+}
+HARDWARE_ERRORS = {
+    0x01: "input voltage",
+    0x04: "overheating",
+    0x08: "motor encoder",
+    0x10: "electrical shock",
+    0x20: "overload",
+}
+
+
+def setting_problem(read: Callable[[int, int], int], joint_name: str, low_ticks: float, high_ticks: float
+                    ) -> str | None:
+    """Why a servo cannot drive the joint ``joint_name`` over its range [low_ticks, high_ticks],
+    or None; ``read(address, length)`` reads one register of the servo (unsigned)."""
+    mode = read(ADDR_OPERATING_MODE, 1)
+    if mode not in GOAL_MODES:
+        return (f"Operating Mode {mode} ({MODES.get(mode, 'unknown')}) ignores goal positions: set it to "
+                f"{POSITION_CONTROL} (position control) with the servo's torque off (Dynamixel Wizard)")
+    if mode != POSITION_CONTROL:
+        return None
+    minimum, maximum = read(ADDR_MIN_POSITION_LIMIT, 4), read(ADDR_MAX_POSITION_LIMIT, 4)
+    if minimum <= low_ticks and high_ticks <= maximum:
+        return None
+    return (f"{joint_name}'s range is ticks {low_ticks:.0f} .. {high_ticks:.0f}, beyond the servo's Min/Max Position "
+            f"Limit {minimum} .. {maximum}, where it ignores a goal (the arm would not settle there): narrow "
+            "dynamixel.min/max or the robot's joint range, or widen the servo's limits")
