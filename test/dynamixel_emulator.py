@@ -16,7 +16,9 @@ lost before the servo, as on a noisy line: not executed and, as Protocol 2.0
 has it for an instruction never received, not answered); ``emulator.glitch(id, reads,
 ticks)`` (its next reads of Present Position report it off while it stays put: a glitch of
 its encoder or of the bus), ``short_reads`` (that many of its next replies to a read
-carry half the bytes asked for, with a valid CRC); and
+carry half the bytes asked for, with a valid CRC), ``damaged_instructions`` (that many of
+the next instructions addressed to it arrive damaged, as by noise: answered with a CRC
+error, not executed); and
 ``emulator.set_hardware_error(id, status)``
 (its status packets carry the alert bit 0x80, as a real servo's do after a
 hardware fault).
@@ -163,6 +165,7 @@ class EmulatedServo:
     glitched_reads: int = 0
     glitch_ticks: int = 0
     short_reads: int = 0
+    damaged_instructions: int = 0
 
     def get(self, address: int, length: int, signed: bool = False) -> int:
         return int.from_bytes(self.table[address : address + length], "little", signed=signed)
@@ -301,6 +304,10 @@ class DynamixelEmulator:
         """Status packets answering one instruction packet (``frame`` as on the wire)."""
         self.requests.append(frame)
         target = frame[4]
+        servo = self.servos.get(target)
+        if servo is not None and servo.damaged_instructions:  # noise on the line: the servo sees a bad CRC
+            servo.damaged_instructions -= 1
+            return self._reply(target, ERR_CRC)
         if crc16(frame[:-2]) != int.from_bytes(frame[-2:], "little"):
             return self._reply(target, ERR_CRC)
         if UNSTUFFED_HEADER.search(frame[7:-2]):
@@ -389,11 +396,15 @@ class DynamixelEmulator:
             self._store(records[start], address, records[start + 1 : start + 1 + length])
 
     def _store(self, servo_id: int, address: int, data: bytes) -> bool:
-        """Whether the servo took the data: in Position Control Mode, a Goal Position beyond its
-        Min/Max Position Limit is not taken (a WRITE answers Data Limit Error, a SYNC WRITE nothing)."""
+        """Whether the servo took the data: a Profile Velocity above its Velocity Limit, or in
+        Position Control Mode a Goal Position beyond its Min/Max Position Limit, is not taken (a
+        WRITE answers Data Limit Error, a SYNC WRITE nothing)."""
         servo = self.servos.get(servo_id)
         if servo is None or servo.silent:
             return True
+        if (address == ADDR_PROFILE_VELOCITY and len(data) == 4
+                and int.from_bytes(data, "little") > servo.get(ADDR_VELOCITY_LIMIT, 4)):
+            return False
         if (address == ADDR_GOAL_POSITION and len(data) == 4
                 and servo.get(ADDR_OPERATING_MODE, 1) == POSITION_CONTROL
                 and not servo.get(ADDR_MIN_POSITION_LIMIT, 4) <= int.from_bytes(data, "little", signed=True)

@@ -15,6 +15,7 @@ from dynamixel_emulator import (
     ADDR_MAX_POSITION_LIMIT,
     ADDR_MIN_POSITION_LIMIT,
     ADDR_OPERATING_MODE,
+    ADDR_VELOCITY_LIMIT,
     ADDR_PRESENT_POSITION,
     ADDR_PROFILE_VELOCITY,
     ADDR_TORQUE_ENABLE,
@@ -96,9 +97,12 @@ def test_sdk_ping_read_write(emulator: DynamixelEmulator, sdk: tuple[dxl.PortHan
         assert packet.ping(port, servo_id) == (MODEL_NUMBER, dxl.COMM_SUCCESS, 0)
     assert packet.ping(port, 9)[1] == dxl.COMM_RX_TIMEOUT
     assert packet.read1ByteTxRx(port, 2, ADDR_FIRMWARE_VERSION) == (6, dxl.COMM_SUCCESS, 0)
-    assert packet.write4ByteTxRx(port, 2, ADDR_PROFILE_VELOCITY, 321) == (dxl.COMM_SUCCESS, 0)
-    assert packet.read4ByteTxRx(port, 2, ADDR_PROFILE_VELOCITY) == (321, dxl.COMM_SUCCESS, 0)
-    assert emulator.read(2, ADDR_PROFILE_VELOCITY, 4) == 321
+    assert packet.write4ByteTxRx(port, 2, ADDR_PROFILE_VELOCITY, 221) == (dxl.COMM_SUCCESS, 0)
+    assert packet.read4ByteTxRx(port, 2, ADDR_PROFILE_VELOCITY) == (221, dxl.COMM_SUCCESS, 0)
+    assert emulator.read(2, ADDR_PROFILE_VELOCITY, 4) == 221
+    # above the Velocity Limit (265): refused with Data Limit Error, the value kept
+    assert packet.write4ByteTxRx(port, 2, ADDR_PROFILE_VELOCITY, 321) == (dxl.COMM_SUCCESS, 6)
+    assert emulator.read(2, ADDR_PROFILE_VELOCITY, 4) == 221
     # Present Position is read-only: the servo answers with an access error and keeps its value.
     assert packet.write4ByteTxRx(port, 2, ADDR_PRESENT_POSITION, 0) == (dxl.COMM_SUCCESS, 7)
     assert emulator.present_position(2) == 2048
@@ -349,6 +353,9 @@ def test_the_emulator_refuses_a_goal_beyond_the_position_limits_as_a_servo_does(
     ({ADDR_MIN_POSITION_LIMIT: 1900, ADDR_MAX_POSITION_LIMIT: 2200},
      "Dynamixel servo 2: joint2's range is ticks 1070 .. 3026, beyond the servo's Min/Max Position Limit 1900 .. 2200"),
     ({ADDR_OPERATING_MODE: 1}, "Dynamixel servo 2: Operating Mode 1 (velocity control) ignores goal positions"),
+    # the servo refused the profile velocity's write as "data limit error", no register named, exit 1
+    ({ADDR_VELOCITY_LIMIT: 80}, "Dynamixel servo 2: dynamixel.profile_velocity 100 is above the servo's Velocity "
+                                "Limit 80"),
 ])
 def test_a_servo_setting_that_ignores_the_goals_is_refused_before_torque_on(
         emulator: DynamixelEmulator, setting: dict[int, int], said: str) -> None:
@@ -359,7 +366,7 @@ def test_a_servo_setting_that_ignores_the_goals_is_refused_before_torque_on(
     assert str(error).startswith(said) and "\n" not in str(error), error
     assert not any(emulator.torque_enabled(i) for i in IDS)
     # multi-turn, the limits do not apply: the same range opens
-    if ADDR_OPERATING_MODE not in setting:
+    if ADDR_MAX_POSITION_LIMIT in setting:
         emulator.servos[2].put(ADDR_OPERATING_MODE, 1, EXTENDED_POSITION_CONTROL)
         with DynamixelArm(arm_config(emulator.port)) as arm:
             assert arm.read()[0].shape == (3,)
@@ -376,3 +383,15 @@ def test_a_reply_shorter_than_the_state_asked_for_is_retried_never_read_as_joint
     emulator.servos[2].short_reads = 100
     _, error = run_within(FAULT_DEADLINE, arm.read)
     assert isinstance(error, DynamixelError) and "servo 2: sync read failed: corrupt status packet" in str(error)
+
+
+def test_an_instruction_damaged_on_the_line_is_sent_again(emulator: DynamixelEmulator) -> None:
+    """A servo that got our packet with a bad CRC (noise) answers error 3: the open failed at once
+    ("instruction refused"), where a lost or corrupt reply is retried. Once is now sent again;
+    a line that damages every packet is still a fault naming the servo."""
+    emulator.servos[2].damaged_instructions = 1
+    with DynamixelArm(arm_config(emulator.port)):
+        assert all(emulator.torque_enabled(i) for i in IDS)
+    emulator.servos[2].damaged_instructions = 100
+    _, error = run_within(FAULT_DEADLINE, DynamixelArm(arm_config(emulator.port)).__enter__)
+    assert isinstance(error, DynamixelError) and "servo 2: instruction refused (CRC error" in str(error), error

@@ -31,8 +31,8 @@ import numpy as np
 
 from laser_calib.hardware.dynamixel_table import (ADDR_GOAL_POSITION, ADDR_HARDWARE_ERROR_STATUS,
                                                   ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY, ADDR_PROFILE_VELOCITY,
-                                                  ADDR_TORQUE_ENABLE, ERRBIT_ALERT, HARDWARE_ERRORS,
-                                                  INSTRUCTION_ERRORS, setting_problem)
+                                                  ADDR_TORQUE_ENABLE, ERR_INSTRUCTION_CRC, ERRBIT_ALERT,
+                                                  HARDWARE_ERRORS, INSTRUCTION_ERRORS, setting_problem)
 
 logger = logging.getLogger(__name__)
 
@@ -193,7 +193,7 @@ class DynamixelArm:
                 for servo_id, joint, name in zip(self._ids, self.config.joints, self.joint_names):
                     ends = sorted(joint.zero_ticks + q * joint.ticks_per_rad for q in (joint.min, joint.max))
                     problem = setting_problem(lambda address, length: self._read(servo_id, address, length),
-                                              name, *ends)
+                                              name, *ends, self.config.profile_velocity)
                     if problem:
                         self.stop()
                         raise DynamixelSettingError(f"Dynamixel servo {servo_id}: {problem}", servo_id)
@@ -313,27 +313,33 @@ class DynamixelArm:
             raise self._servo_fault(servo_id, f"instruction refused ({fault})")
 
     def _ping(self, servo_id: int) -> None:
-        for _ in range(ATTEMPTS):
+        for attempt in range(ATTEMPTS):
             _, result, error = self._packet.ping(self._port, servo_id)
-            if result == dxl.COMM_SUCCESS:
+            if result == dxl.COMM_SUCCESS and self._final(error, attempt):
                 self._check_status(servo_id, error)
                 return
         raise self._servo_fault(servo_id, f"ping failed: {self._comm_fault(result)}")
 
+    @staticmethod
+    def _final(error: int, attempt: int) -> bool:
+        """Whether a status packet's error ends the exchange: a packet noise damaged on its way to
+        the servo (its CRC error) is sent again, as a lost or corrupt reply is."""
+        return error != ERR_INSTRUCTION_CRC or attempt == ATTEMPTS - 1
+
     def _read(self, servo_id: int, address: int, length: int) -> int:
         """One register of one servo (unsigned), within ATTEMPTS exchanges."""
-        for _ in range(ATTEMPTS):
+        for attempt in range(ATTEMPTS):
             data, result, error = self._packet.readTxRx(self._port, servo_id, address, length)
-            if result == dxl.COMM_SUCCESS and len(data) == length:
+            if result == dxl.COMM_SUCCESS and len(data) == length and self._final(error, attempt):
                 self._check_status(servo_id, error)
                 return int.from_bytes(bytes(data), "little")
         raise self._servo_fault(servo_id, f"read of address {address} failed: {self._comm_fault(result)}")
 
     def _write(self, servo_id: int, address: int, length: int, value: int) -> None:
         data = list(value.to_bytes(length, "little", signed=value < 0))
-        for _ in range(ATTEMPTS):
+        for attempt in range(ATTEMPTS):
             result, error = self._packet.writeTxRx(self._port, servo_id, address, length, data)
-            if result == dxl.COMM_SUCCESS:
+            if result == dxl.COMM_SUCCESS and self._final(error, attempt):
                 self._check_status(servo_id, error)
                 return
         raise self._servo_fault(servo_id, f"write of address {address} failed: {self._comm_fault(result)}")

@@ -6,7 +6,8 @@ control (Operating Mode) it ignores Goal Position, and in position control (mode
 ignores a goal beyond its Min/Max Position Limit (a SYNC WRITE gets no status back). Either
 way the arm never reaches the pose, and the session ended in "arm not settled" naming a joint
 but not why. So each servo's mode, and in position control its limits against the joint's
-range in ticks, are read before its torque is enabled.
+range in ticks, are read before its torque is enabled, and its Velocity Limit against the
+profile velocity the driver would write (refused as "data limit error", no register named).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 from typing import Callable
 
 ADDR_OPERATING_MODE = 11
+ADDR_VELOCITY_LIMIT = 44
 ADDR_MAX_POSITION_LIMIT = 48
 ADDR_MIN_POSITION_LIMIT = 52
 ADDR_TORQUE_ENABLE = 64
@@ -30,6 +32,7 @@ MODES = {0: "current control", 1: "velocity control", 3: "position control", 4: 
 GOAL_MODES = (3, 4, 5)
 
 ERRBIT_ALERT = 0x80
+ERR_INSTRUCTION_CRC = 3  # the servo got our packet damaged (line noise): worth sending again
 INSTRUCTION_ERRORS = {
     1: "result fail",
     2: "instruction error",
@@ -48,10 +51,15 @@ HARDWARE_ERRORS = {
 }
 
 
-def setting_problem(read: Callable[[int, int], int], joint_name: str, low_ticks: float, high_ticks: float
-                    ) -> str | None:
-    """Why a servo cannot drive the joint ``joint_name`` over its range [low_ticks, high_ticks],
-    or None; ``read(address, length)`` reads one register of the servo (unsigned)."""
+def setting_problem(read: Callable[[int, int], int], joint_name: str, low_ticks: float, high_ticks: float,
+                    profile_velocity: int) -> str | None:
+    """Why a servo cannot drive the joint ``joint_name`` over its range [low_ticks, high_ticks]
+    at ``profile_velocity`` (dynamixel.profile_velocity), or None; ``read(address, length)``
+    reads one register of the servo (unsigned)."""
+    limit = read(ADDR_VELOCITY_LIMIT, 4)
+    if profile_velocity > limit:  # the servo refuses the write: a Data Limit Error naming no register
+        return (f"dynamixel.profile_velocity {profile_velocity} is above the servo's Velocity Limit {limit} "
+                "(0.229 rev/min units): lower it, or 0 for the limit itself")
     mode = read(ADDR_OPERATING_MODE, 1)
     if mode not in GOAL_MODES:
         return (f"Operating Mode {mode} ({MODES.get(mode, 'unknown')}) ignores goal positions: set it to "
