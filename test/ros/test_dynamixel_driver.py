@@ -74,7 +74,9 @@ def start_glitching_session(ros, ticks: int, out, poses: int, *sequencer_args: s
     port = ros.log("glitching_arm").splitlines()[0]
     ros.start("arm_driver", "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel", "-p", f"dynamixel.port:={port}",
               "-p", "dynamixel.ids:=[1, 2, 3, 4]", "-p", "dynamixel.profile_velocity:=0", "-p", "rate:=50.0",
-              params=False)
+              # the emulator answers from a Python thread beside a ROS node: on a loaded machine later than
+              # a USB adapter's 2 x 16 ms (the driver stopped the arm, 'no answer'), as test/hardware allows
+              "-p", "dynamixel.latency_timer_ms:=250.0", params=False)
     ros.start("sequencer", "-p", f"robot:={ROBOT_4DOF}", "-p", f"output_dir:={out}", "-p", f"poses:={poses}",
               "-p", "estimate.mode:=none", "-p", "move.joint_speed:=2.0", *sequencer_args)
 

@@ -88,6 +88,8 @@ class ArmDriver(Node):
                         type_=Parameter.Type.DOUBLE_ARRAY)
         profile = declare("dynamixel.profile_velocity", 30,
                           "Dynamixel: Profile Velocity (units of 0.229 rev/min; 0 = no limit).")
+        latency = declare("dynamixel.latency_timer_ms", 16.0, "Dynamixel: the USB adapter's latency timer, ms (FTDI's "
+                          "default 16); the SDK waits twice this for a reply.", rule=parameters.positive)
 
         self.sim: SimArm | None = None
         if backend == "sim":
@@ -115,7 +117,8 @@ class ArmDriver(Node):
             try:
                 self.backend = dynamixel_backend(
                     port, baud, ids, list(tpr or [4096 / (2 * math.pi)] * n), list(zero or [2048] * n),
-                    list(q_min or self.robot.q_min), list(q_max or self.robot.q_max), profile, self.joint_names)
+                    list(q_min or self.robot.q_min), list(q_max or self.robot.q_max), profile, self.joint_names,
+                    latency)
             except ValueError as exc:
                 raise parameters.NodeError(f"dynamixel parameters: {exc}", 2) from None
             except RuntimeError as exc:  # DynamixelError: one line naming the servo

@@ -131,7 +131,7 @@ class SimArm:
 
 def dynamixel_backend(port: str, baudrate: int, ids: Sequence[int], ticks_per_rad: Sequence[float],
                       zero_ticks: Sequence[int], q_min: Sequence[float], q_max: Sequence[float],
-                      profile_velocity: int, joint_names: Sequence[str]):
+                      profile_velocity: int, joint_names: Sequence[str], latency_timer_ms: float = 16.0):
     """An opened DynamixelArm (laser_calib.hardware.dynamixel_arm) for the given joints."""
     from laser_calib.hardware.dynamixel_arm import DynamixelArm, DynamixelConfig, DynamixelJointConfig
     n = len(joint_names)
@@ -141,6 +141,7 @@ def dynamixel_backend(port: str, baudrate: int, ids: Sequence[int], ticks_per_ra
             raise ValueError(f"dynamixel.{name} has {len(values)} entries, the arm has {n} joints")
     joints = tuple(DynamixelJointConfig(int(i), float(t), int(z), float(lo), float(hi))
                    for i, t, z, lo, hi in zip(ids, ticks_per_rad, zero_ticks, q_min, q_max))
-    arm = DynamixelArm(DynamixelConfig(port, int(baudrate), joints, int(profile_velocity)), joint_names)
+    arm = DynamixelArm(DynamixelConfig(port, int(baudrate), joints, int(profile_velocity), float(latency_timer_ms)),
+                       joint_names)
     arm.open()
     return arm

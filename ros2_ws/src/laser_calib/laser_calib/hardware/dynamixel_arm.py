@@ -32,7 +32,7 @@ import numpy as np
 from laser_calib.hardware.dynamixel_table import (ADDR_GOAL_POSITION, ADDR_HARDWARE_ERROR_STATUS,
                                                   ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY, ADDR_PROFILE_VELOCITY,
                                                   ADDR_TORQUE_ENABLE, ERR_INSTRUCTION_CRC, ERRBIT_ALERT,
-                                                  HARDWARE_ERRORS, INSTRUCTION_ERRORS, setting_problem)
+                                                  HARDWARE_ERRORS, INSTRUCTION_ERRORS, int32, setting_problem)
 
 logger = logging.getLogger(__name__)
 
@@ -90,12 +90,14 @@ class DynamixelJointConfig:
 
 @dataclass(frozen=True)
 class DynamixelConfig:
-    """Bus and joints; ``profile_velocity`` in Profile Velocity units (0.229 rev/min, 0 = no limit)."""
+    """Bus and joints; ``profile_velocity`` in Profile Velocity units (0.229 rev/min, 0 = no limit);
+    ``latency_timer_ms`` the USB adapter's latency timer, of which the SDK waits twice for a reply."""
 
     port: str
     baudrate: int
     joints: tuple[DynamixelJointConfig, ...]
     profile_velocity: int
+    latency_timer_ms: float = 16.0  # FTDI's default, the SDK's assumption
 
     def __post_init__(self) -> None:
         ids = [joint.id for joint in self.joints]
@@ -128,6 +130,7 @@ class DynamixelArm:
         self._ids = [joint.id for joint in config.joints]
         self._ticks_per_rad = np.array([joint.ticks_per_rad for joint in config.joints], dtype=float)
         self._zero_ticks = np.array([joint.zero_ticks for joint in config.joints], dtype=float)
+        dxl.port_handler.LATENCY_TIMER = config.latency_timer_ms  # where ROBOTIS has it set: the SDK's module
         self._port = dxl.PortHandler(config.port)
         self._packet = StuffedPacketHandler()
         self._reader = dxl.GroupSyncRead(self._port, self._packet, STATE_ADDRESS, STATE_LENGTH)
@@ -365,8 +368,8 @@ class DynamixelArm:
             raise self._fail(f"{where}: sync read failed: {self._comm_fault(result)}", failed_id)
         for servo_id, _, error in replies:
             self._check_status(servo_id, error)
-        ticks = [_int32(data, ADDR_PRESENT_POSITION - STATE_ADDRESS) for _, data, _ in replies]
-        velocity = [_int32(data, ADDR_PRESENT_VELOCITY - STATE_ADDRESS) for _, data, _ in replies]
+        ticks = [int32(data, ADDR_PRESENT_POSITION - STATE_ADDRESS) for _, data, _ in replies]
+        velocity = [int32(data, ADDR_PRESENT_VELOCITY - STATE_ADDRESS) for _, data, _ in replies]
         return np.array(ticks, dtype=float), np.array(velocity, dtype=float)
 
     def _sync_read_once(self) -> tuple[int | None, int, list[tuple[int, bytes, int]]]:
@@ -385,11 +388,6 @@ class DynamixelArm:
                 return servo_id, result, replies
             replies.append((servo_id, bytes(data), error))
         return None, result, replies
-
-
-def _int32(data: bytes, offset: int) -> int:
-    """The signed 4-byte little-endian register at ``offset`` of ``data``."""
-    return int.from_bytes(data[offset : offset + 4], "little", signed=True)
 
 
 def log_unconfirmed(where: str, unconfirmed: list[int]) -> None:

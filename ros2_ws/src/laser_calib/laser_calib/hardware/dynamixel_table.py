@@ -51,6 +51,11 @@ HARDWARE_ERRORS = {
 }
 
 
+def int32(data: bytes, offset: int) -> int:
+    """The signed 4-byte little-endian register at ``offset`` of ``data``."""
+    return int.from_bytes(data[offset : offset + 4], "little", signed=True)
+
+
 def setting_problem(read: Callable[[int, int], int], joint_name: str, low_ticks: float, high_ticks: float,
                     profile_velocity: int) -> str | None:
     """Why a servo cannot drive the joint ``joint_name`` over its range [low_ticks, high_ticks]
