@@ -193,3 +193,28 @@ def test_a_urdf_worse_than_the_robot_as_designed_on_held_out_poses_says_so_in_th
     said = "5-fold held-out: the calibrated model misses these poses by more than the nominal joint placements"
     assert f"<!-- CAUTION: {said}" in (tmp_path / "out" / "robot_calibrated.urdf").read_text()
     assert json.loads((tmp_path / "out" / "urdf_corrections.json").read_text())["caution"].startswith(said)
+
+
+def test_held_out_figures_leave_a_rejected_pose_apart(tmp_path):
+    """One reading 0.2 m off in the UR10e's file: the robust rule rejects the pose, but its own
+    held-out error (some 200 mm) was averaged into the 5-fold figure: mean 12.5 mm beside a P95
+    of 6.6 mm. The held-out figures are now over the poses the calibration fitted, the rejected
+    ones apart, as the in-sample figures are."""
+    lines = (UR10E / "calibration.csv").read_text().splitlines()
+    column = lines[0].split(",").index("x1")
+    row = lines[6].split(",")
+    row[column] = repr(float(row[column]) + 0.2)
+    (tmp_path / "outlier.csv").write_text("\n".join(lines[:6] + [",".join(row)] + lines[7:]) + "\n")
+    args = ["calibrate-poses", "--robot", str(UR10E / "ur10_robot.urdf"), "--base", "base_link", "--tip",
+            "wrist_3_link", "--folds", "5"]
+    results = {}
+    for name, samples in (("clean", UR10E / "calibration.csv"), ("outlier", tmp_path / "outlier.csv")):
+        assert main(args + ["--samples", str(samples), "--out", str(tmp_path / name)]) == 0
+        results[name] = json.loads((tmp_path / name / "result.json").read_text())
+    held = results["outlier"]["heldout"]
+    assert 5 in results["outlier"]["rejected_poses"]
+    assert held["not_fitted"]["rejected"]["position_mm"]["max"] > 150     # the 0.2 m reading, apart
+    kept = held["position_mm"]
+    assert kept["p95"] >= kept["mean"] and kept["max"] < 20, kept         # no 200 mm pose inside
+    # the clean file's own rejected poses (14, 19) are apart there too
+    assert set(results["clean"]["rejected_poses"]) <= set(results["outlier"]["rejected_poses"])

@@ -187,6 +187,28 @@ def _split(robot: Robot, samples: Samples, options: SensorFitOptions, train: np.
     return columns
 
 
+def _held_out_summaries(table: dict[str, np.ndarray], prefix: str) -> dict:
+    """A held-out error's summaries over the poses the calibration fitted, and apart
+    (``not_fitted``) over those it rejected or refused: a gross outlier's own held-out error says
+    nothing of the model (one 0.2 m reading made a 5-fold mean of 12.5 mm with a P95 of 6.6)."""
+    status, held = table["fit"], np.isfinite(table[f"{prefix}position_m"])
+    return {**_summaries(table, prefix, status == "fitted"),
+            "not_fitted": {word: _summaries(table, prefix, status == word) for word in NOT_FITTED
+                           if (held & (status == word)).any()}}
+
+
+def _held_out_lines(label: str, section: dict, design: str) -> list[str]:
+    return [_line(label, section, design)] + [_line(f"{label}, {word} poses not fitted", apart, design)
+                                              for word, apart in section["not_fitted"].items()]
+
+
+def _fitted_only(table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The table's columns with NaN on the poses the calibration did not fit (rejected, refused)."""
+    kept = table["fit"] == "fitted"
+    return {name: np.where(kept, values, np.nan) if name.endswith(("_m", "_rad")) else values
+            for name, values in table.items()}
+
+
 def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: SensorFitOptions,
              table: dict, result: dict, lines: list[str]) -> None:
     """k-fold and chronological held-out errors into the result, the table and the console."""
@@ -203,11 +225,11 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
         if samples.kind == "pose":
             table.update({"kfold_nominal_rotation_rad": held.nominal_rotation, "kfold_rotation_rad": held.rotation})
         outside = outside_range(samples.q, held.fold, range(args.folds))
-        result["heldout"] = {"folds": args.folds, "seed": args.seed, **_summaries(table, "kfold_"),
+        result["heldout"] = {"folds": args.folds, "seed": args.seed, **_held_out_summaries(table, "kfold_"),
                              "outside_joint_range": outside.tolist()}
         result["warnings"] += range_warnings(outside, f"{args.folds}-fold held-out", robot.joint_names) + _worse(
-            f"{args.folds}-fold held-out", table, "kfold_", samples.pose, _design(robot))
-        lines.append(_line(f"{args.folds}-fold held-out", result["heldout"], _design(robot)))
+            f"{args.folds}-fold held-out", _fitted_only(table), "kfold_", samples.pose, _design(robot))
+        lines += _held_out_lines(f"{args.folds}-fold held-out", result["heldout"], _design(robot))
     if args.chronological:
         train = chronological_labels(len(samples), args.chronological) == 0
         try:
@@ -220,11 +242,12 @@ def _heldout(args: argparse.Namespace, robot: Robot, samples: Samples, options: 
         outside = outside_range(samples.q, (~train).astype(int), (1,))
         result["chronological"] = {"calibration_fraction": args.chronological,
                                    "calibration_poses": int(train.sum()), "test_poses": int((~train).sum()),
-                                   **_summaries(table, "chronological_"), "outside_joint_range": outside.tolist()}
+                                   **_held_out_summaries(table, "chronological_"),
+                                   "outside_joint_range": outside.tolist()}
         result["warnings"] += range_warnings(outside, "chronological test", robot.joint_names) + _worse(
-            "chronological test", table, "chronological_", samples.pose, _design(robot))
-        lines.append(_line(f"chronological held-out (first {train.sum()} poses -> last {(~train).sum()})",
-                           result["chronological"], _design(robot)))
+            "chronological test", _fitted_only(table), "chronological_", samples.pose, _design(robot))
+        lines += _held_out_lines(f"chronological held-out (first {train.sum()} poses -> last {(~train).sum()})",
+                                 result["chronological"], _design(robot))
 
 
 def _test(args: argparse.Namespace, robot: Robot, samples: Samples, test: Samples, fit: SensorFit,
