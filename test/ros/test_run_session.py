@@ -76,11 +76,13 @@ def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
     proc = ros.start_command("run-session", [RUN_SESSION, "--no-setup", "--out", str(out), "--poses", "10",
                                              "--speed", "4.0"])
     deadline = time.monotonic() + 300
-    # Measuring: a pose in samples.csv. The file appears as the session opens, while the other nodes still
-    # start and log their first lines; a line logged in the very instant of the stop goes to /rosout after
-    # rclpy's signal thread has shut the context ('Failed to publish log message to rosout', 4 of 18 runs
-    # here): rclpy shuts it from its own thread, and no node can order its lines around that.
-    while not csv_rows(out / "samples.csv"):
+    # Measuring: the first pose's line in the sequencer's log. A line logged in the very instant of the stop
+    # goes to /rosout after rclpy's signal thread has shut the context ('Failed to publish log message to
+    # rosout'): rclpy shuts it from its own thread, and no node can order its lines around that. So the stop
+    # comes between two lines: not as samples.csv opens (the other nodes still logged their first lines: 4 of
+    # 18 runs), nor as its first row is written (the sequencer's 'measured' line follows it at once: CI, once).
+    log = out / "logs" / "sequencer.log"
+    while not (log.exists() and "1/10 poses done" in log.read_text()):
         assert proc.poll() is None and time.monotonic() < deadline, ros.log("run-session")
         time.sleep(0.1)
     nodes = [pid for pid in children(proc.pid) if b"lib/laser_calib_nodes/" in Path(f"/proc/{pid}/cmdline").read_bytes()]
