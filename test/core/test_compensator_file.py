@@ -108,6 +108,9 @@ CASES = {
     "coef short row": (lambda d: d["coef"][0].pop(), "coef[0]", "values, expected"),
     "size 0": (_set("size", 0), "size", "expected above 0"),
     "heldout_gain text": (_set("heldout_gain", "high"), "heldout_gain", "not a number"),
+    # a gain is a share of the residual the compensator predicts held out: -5 was loaded and applied
+    "heldout_gain negative": (_set("heldout_gain", -5), "heldout_gain", "-5, expected above 0 and at most 1"),
+    "heldout_gain above 1": (_set("heldout_gain", 1.5), "heldout_gain", "expected above 0 and at most 1"),
     "model a list": (_set("model", []), "model", "expected an object"),
     "model without names": (lambda d: d["model"].pop("names"), "no key 'model.names'", ""),
     "model values short": (lambda d: d["model"]["values"].pop(), "model.values", "expected 21"),

@@ -189,8 +189,10 @@ def load_compensator(path: str | Path) -> Compensator:
     coef = _array(file[key], file.where(key), ((int(used.sum()), "one row per used target"),
                                                (basis.width, "one per basis function")))
     names, values, held = _model(file)
-    return Compensator(inputs, targets, used, basis, coef, _number(file["heldout_gain"], file.where("heldout_gain")),
-                       names, values, source, held)
+    gain = _number(file["heldout_gain"], file.where("heldout_gain"))
+    if not 0 < gain <= 1:  # a share of the residual sum of squares, kept only when above 0
+        raise file.error("heldout_gain", f"{gain:g}, expected above 0 and at most 1 (a share of the residual)")
+    return Compensator(inputs, targets, used, basis, coef, gain, names, values, source, held)
 
 
 @dataclass(frozen=True)
