@@ -28,6 +28,7 @@ from dynamixel_emulator import DynamixelEmulator  # noqa: E402
 from laser_calib.model.kinematics import predict  # noqa: E402
 from laser_calib.model.robot_file import load_robot  # noqa: E402
 from laser_calib_interfaces.msg import SessionProgress, Spot, SpotPair  # noqa: E402
+from spin_node import spin_until_interrupted  # noqa: E402
 
 TICKS_PER_RAD = 4096 / (2 * math.pi)
 
@@ -61,13 +62,7 @@ def main() -> None:
         node.create_subscription(SessionProgress, "/session/progress", on_progress,
                                  QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                             durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        try:
-            rclpy.spin(node)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            node.destroy_node()
-            rclpy.try_shutdown()
+        spin_until_interrupted(node)
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from laser_calib.hardware.trajectory import TrajectoryPoint, trajectory_goal
 from laser_calib.model.kinematics import predict
 from laser_calib.model.robot_file import load_robot
 from laser_calib_interfaces.msg import Spot, SpotPair
+from spin_node import spin_until_interrupted
 
 GRIPPER = "gripper_finger_joint"
 
@@ -84,14 +85,7 @@ class StandIn(Node):
 
 def main() -> None:
     rclpy.init()
-    node = StandIn(load_robot(sys.argv[1]), sys.argv[2].split(","))
-    try:
-        rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_interrupted(StandIn(load_robot(sys.argv[1]), sys.argv[2].split(",")))
 
 
 if __name__ == "__main__":
