@@ -24,7 +24,7 @@ import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import dynamixel_sdk as dxl
 import numpy as np
@@ -43,7 +43,6 @@ STATE_LENGTH = 8
 ATTEMPTS = 3  # per exchange; only a fault persisting through all of them is reported
 STOP_LOCK_TIMEOUT = 2.0  # [s] longer than any exchange in flight on another thread
 VELOCITY_UNIT = 0.229 * 4096 / 60.0  # [ticks/s] per Present Velocity unit
-
 
 
 class StuffedPacketHandler(dxl.Protocol2PacketHandler):
@@ -198,8 +197,7 @@ class DynamixelArm:
                     problem = setting_problem(lambda address, length: self._read(servo_id, address, length),
                                               name, *ends, self.config.profile_velocity)
                     if problem:
-                        self.stop()
-                        raise DynamixelSettingError(f"Dynamixel servo {servo_id}: {problem}", servo_id)
+                        raise self._servo_fault(servo_id, problem, DynamixelSettingError)
                 ticks, _ = self._read_state()
                 # Goal = present before torque on, so enabling torque cannot jump to a stale goal.
                 self._write_goal(ticks)
@@ -278,13 +276,14 @@ class DynamixelArm:
         if not self._port.is_open:
             raise DynamixelError(f"Dynamixel port {self.config.port}: not open")
 
-    def _fail(self, message: str, servo_id: int | None = None) -> DynamixelError:
-        """Stop the arm, then return the error for the caller to raise."""
+    def _fail(self, message: str, servo_id: int | None = None, kind: type[DynamixelError] = DynamixelError
+              ) -> DynamixelError:
+        """Stop the arm, then return the error (of ``kind``) for the caller to raise."""
         self.stop()
-        return DynamixelError(message, servo_id)
+        return kind(message, servo_id)
 
-    def _servo_fault(self, servo_id: int, fault: str) -> DynamixelError:
-        return self._fail(f"Dynamixel servo {servo_id}: {fault}", servo_id)
+    def _servo_fault(self, servo_id: int, fault: str, kind: type[DynamixelError] = DynamixelError) -> DynamixelError:
+        return self._fail(f"Dynamixel servo {servo_id}: {fault}", servo_id, kind)
 
     @contextmanager
     def _io_errors(self) -> Iterator[None]:
@@ -315,37 +314,34 @@ class DynamixelArm:
             fault = INSTRUCTION_ERRORS.get(error, f"error 0x{error:02X}")
             raise self._servo_fault(servo_id, f"instruction refused ({fault})")
 
-    def _ping(self, servo_id: int) -> None:
+    def _exchange(self, servo_id: int, what: str, send: Callable[[], tuple], length: int = 0):
+        """One instruction to one servo (``send``: the SDK call, giving (data, result, error); a
+        ping's data is the model number) and the data of its status packet (``length`` bytes asked
+        for, 0: none), once its error byte is checked. A lost, short or corrupt
+        reply, or a packet noise damaged on its way to the servo (its CRC error), is sent again,
+        up to ATTEMPTS times; ``what`` names the instruction in the fault."""
         for attempt in range(ATTEMPTS):
-            _, result, error = self._packet.ping(self._port, servo_id)
-            if result == dxl.COMM_SUCCESS and self._final(error, attempt):
+            data, result, error = send()
+            if result == dxl.COMM_SUCCESS and length and len(data) < length:  # the SDK takes a short reply whole
+                result = dxl.COMM_RX_CORRUPT
+            if result == dxl.COMM_SUCCESS and (error != ERR_INSTRUCTION_CRC or attempt == ATTEMPTS - 1):
                 self._check_status(servo_id, error)
-                return
-        raise self._servo_fault(servo_id, f"ping failed: {self._comm_fault(result)}")
+                return data
+        raise self._servo_fault(servo_id, f"{what} failed: {self._comm_fault(result)}")
 
-    @staticmethod
-    def _final(error: int, attempt: int) -> bool:
-        """Whether a status packet's error ends the exchange: a packet noise damaged on its way to
-        the servo (its CRC error) is sent again, as a lost or corrupt reply is."""
-        return error != ERR_INSTRUCTION_CRC or attempt == ATTEMPTS - 1
+    def _ping(self, servo_id: int) -> None:
+        self._exchange(servo_id, "ping", lambda: self._packet.ping(self._port, servo_id))
 
     def _read(self, servo_id: int, address: int, length: int) -> int:
-        """One register of one servo (unsigned), within ATTEMPTS exchanges."""
-        for attempt in range(ATTEMPTS):
-            data, result, error = self._packet.readTxRx(self._port, servo_id, address, length)
-            if result == dxl.COMM_SUCCESS and len(data) == length and self._final(error, attempt):
-                self._check_status(servo_id, error)
-                return int.from_bytes(bytes(data), "little")
-        raise self._servo_fault(servo_id, f"read of address {address} failed: {self._comm_fault(result)}")
+        """One register of one servo (unsigned)."""
+        data = self._exchange(servo_id, f"read of address {address}",
+                              lambda: self._packet.readTxRx(self._port, servo_id, address, length), length)
+        return int.from_bytes(bytes(data), "little")
 
     def _write(self, servo_id: int, address: int, length: int, value: int) -> None:
         data = list(value.to_bytes(length, "little", signed=value < 0))
-        for attempt in range(ATTEMPTS):
-            result, error = self._packet.writeTxRx(self._port, servo_id, address, length, data)
-            if result == dxl.COMM_SUCCESS and self._final(error, attempt):
-                self._check_status(servo_id, error)
-                return
-        raise self._servo_fault(servo_id, f"write of address {address} failed: {self._comm_fault(result)}")
+        self._exchange(servo_id, f"write of address {address}",
+                       lambda: ((), *self._packet.writeTxRx(self._port, servo_id, address, length, data)))
 
     def _write_goal(self, ticks: np.ndarray) -> None:
         """Sync write Goal Position ``ticks`` (N,) to all servos; no status packets come back."""
