@@ -175,21 +175,22 @@ class Calibration:
         est, options = self.estimate, self.options
         units = self.units()
         errors = []
+        robot_held, compensator_held = held(self.robot), held_for(self.compensator, self.robot)
         for i, name in enumerate(est.names):
             unit = {"mm": "m", "deg": "rad"}.get(units[i][1], units[i][1])
             entry = {"name": name, "value": finite_or_none(est.errors[i]), "std": finite_or_none(est.std[i]),
                      "identifiable": bool(est.identifiable[i]), "unit": unit}
             if name in est.undetermined:  # a failed fit's: where it went is no value (errors), the file has nominal
                 entry["note"] = UNDETERMINED
-            elif name in held_for(self.compensator, self.robot):
+            elif name in compensator_held:
                 entry["note"] = "held at nominal: the compensator's fit could not determine it"
-            elif name in options.fixed and name not in held(self.robot):  # the user's, not the data's
+            elif name in options.fixed and name not in robot_held:  # the user's, not the data's
                 entry["note"] = FIXED_NOTE
             elif name in est.identifiability.merged:
                 entry["note"] = est.identifiability.merged[name]
             elif name in est.identifiability.carried:
                 entry["note"] = carried_note(name, est.identifiability.carried[name])
-            elif name in held(self.robot):
+            elif name in robot_held:
                 entry["note"] = "held at nominal: the calibration that wrote the robot file could not determine it"
             errors.append(entry)
         ident = est.identifiability
@@ -240,10 +241,10 @@ class Calibration:
         CALIBRATION: estimation/failures.py), None when it is one."""
         return first_failure(self.estimate.warnings)
 
-    @property
+    @cached_property
     def caution(self) -> str | None:
         """The warning that the test poses, never fitted, are missed by more than the nominal
-        model (worse_on_test), said in the calibrated files too; None without."""
+        model (worse_on_test), said in the calibrated files too (read once per file); None without."""
         return next(iter(worse_on_test(self.sets)), None)
 
     def summary(self) -> str:
