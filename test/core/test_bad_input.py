@@ -329,6 +329,9 @@ def _one_pose() -> str:
 REFUSED_BEFORE_THE_WORK = {
     "estimate --fix of an unknown name": (lambda d: _estimate(d, None, None, "--fix", "a1", "bogus"),
                                           "laser-calib: --fix: 'bogus' is not a parameter of "),
+    # a fit of nothing said NOT A CALIBRATION, "a wrong robot file", exit 3
+    "estimate --fix of every parameter": (lambda d: _estimate(d, None, None, "--fix", *ROBOT.param_names),
+                                          "laser-calib: --fix: holds every one of the 21 parameters of "),
     "estimate --compensator missing": (lambda d: _estimate(d, None, None, "--compensator", str(d / "none.json")),
                                        "laser-calib estimate: argument --compensator: "),
     "diagnose --folds 1": (lambda d: _diagnose(d, "--folds", "1"),

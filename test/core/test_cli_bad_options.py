@@ -220,6 +220,17 @@ ARGUMENT_ERRORS = {
     "diagnose without --out": (["diagnose", "--robot", "R", "--samples", "S"],
                                "laser-calib diagnose: the following arguments are required: --out"),
     "no command": ([], "laser-calib: the following arguments are required: command"),
+    # argparse kept the last: the second compensator was applied, the first dropped without a word
+    "estimate --compensator twice": (["estimate", "--robot", "R", "--samples", "S", "--out", "X", "--compensator",
+                                      "A", "--compensator=B"],
+                                     "laser-calib estimate: argument --compensator: given twice; give it once"),
+    # argparse kept the last list: only b was held
+    "calibrate-poses --fix twice": (["calibrate-poses", "--robot", "R", "--samples", "S", "--out", "X", "--fix", "a",
+                                     "--fix", "b"], "laser-calib calibrate-poses: argument --fix: given twice; give "
+                                                    "it once, with all its values"),
+    # an empty --fix was taken as "hold nothing"
+    "estimate --fix without names": (["estimate", "--robot", "R", "--samples", "S", "--out", "X", "--fix"],
+                                     "laser-calib estimate: argument --fix: expected at least one argument"),
 }
 
 

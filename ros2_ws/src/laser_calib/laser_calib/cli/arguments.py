@@ -34,6 +34,22 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str):
         self.exit(2, f"{self.prog}: {message}\n")
 
+    def parse_known_args(self, args=None, namespace=None):
+        """As argparse's, refusing an option given twice: argparse keeps the last value silently,
+        so `--compensator A --compensator B` applied B, and `--fix a --fix b` held b alone."""
+        words = sys.argv[1:] if args is None else list(args)
+        seen = set()
+        for word in words[:words.index("--")] if "--" in words else words:
+            action = self._option_string_actions.get(word.split("=", 1)[0]) if word.startswith("-") else None
+            # a flag said twice says the same; an append action collects its repeats
+            if action is None or action.nargs == 0 or isinstance(action, (argparse._AppendAction, argparse._CountAction)):
+                continue
+            if action in seen:
+                self.error(f"argument {'/'.join(action.option_strings)}: given twice; give it once"
+                           + (", with all its values" if action.nargs in ("*", "+") else ""))
+            seen.add(action)
+        return super().parse_known_args(args, namespace)
+
 
 # Plausible noise levels (measurement.noise_bounds); a length tolerance is bounded like a noise
 # level: 10 (mm typed as m) is no arm's tolerance.

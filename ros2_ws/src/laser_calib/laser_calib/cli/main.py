@@ -109,6 +109,9 @@ def _options(args: argparse.Namespace, progress: Progress | None = None) -> Esti
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
+    if set(robot.param_names) <= set(args.fix):  # a fit of nothing: NOT A CALIBRATION, blaming the robot file
+        raise InputError("--fix", f"holds every one of the {robot.n_params} parameters of {args.robot}: nothing "
+                                  "is left to estimate")
     sets = read_sample_sets(args, robot)
     samples, test = sets.samples, sets.test
     compensator = None
@@ -251,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prior-angle-deg", type=tolerance_angle_deg, default=None, help="angle tolerance, deg (implies --prior)")
     p.add_argument("--robust", action=argparse.BooleanOptionalAction, default=True,
                    help="robust fit: outlier spots rejected and listed (default; the rule is in result.json)")
-    p.add_argument("--fix", nargs="*", default=[], help="error names to hold at nominal")
+    p.add_argument("--fix", nargs="+", default=[], help="error names to hold at nominal")
     p.add_argument("--compensator", type=readable_file,
                    help="a diagnosis's compensator.json, applied to every pose (made for the robot file's model: "
                         "its robot_calibrated.yaml's effects)")

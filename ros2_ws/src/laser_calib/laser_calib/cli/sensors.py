@@ -379,7 +379,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="noise std per position value, m (default: estimated from the residual)")
     p.add_argument("--rotation-length", type=positive, default=None,
                    help="m/rad weighing rotation residuals (default: estimated from the residuals)")
-    p.add_argument("--fix", nargs="*", default=[], help="parameter names to hold (D-H, frame or scale)")
+    p.add_argument("--fix", nargs="+", default=[], help="parameter names to hold (D-H, frame or scale)")
     p.add_argument("--prior", action="store_true", help="tolerance prior on the D-H errors: 10 mm and 1 deg")
     p.add_argument("--frame-prior-length", type=tolerance_length, default=None,
                    help=f"prior std of frame offsets, m ({SIGMA_LENGTH[0]:g} .. {SIGMA_LENGTH[1]:g})")
