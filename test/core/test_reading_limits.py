@@ -50,3 +50,21 @@ def test_a_pose_list_stays_inside_the_limits(tmp_path):
                     + ",".join(repr(float(v)) for v in q) + "\n")
     with pytest.raises(InputError, match=r"pose 0, field q2: .* rad outside the joint range \[[^]]*\]$"):
         load_poses(path, ROBOT)
+
+
+def test_one_joint_in_degrees_within_a_turn_is_named_as_degrees(tmp_path):
+    """q2 (+-20 deg) written in degrees: its readings are under a turn, so the first refused one
+    (a few degrees) did not look like degrees and the line gave no hint of the units."""
+    samples = paper_session("paper-4dof", 0, n_per_span=6).samples
+    samples.q[:, JOINT] = np.degrees(samples.q[:, JOINT])
+    assert ROBOT.q_max[JOINT] < abs(samples.q[0, JOINT]) < 2 * np.pi   # the first refused reading
+    (tmp_path / "samples.csv").write_text(format_samples(samples))
+    with pytest.raises(InputError, match=r"field q2: .* this looks like degrees"):
+        load_samples(tmp_path / "samples.csv", ROBOT)
+
+
+def test_one_reading_past_a_limit_is_not_said_to_be_degrees(tmp_path):
+    _, samples = _samples_past_the_limit(tmp_path, 4 * READING_SLACK)
+    with pytest.raises(InputError) as refused:
+        load_samples(samples, ROBOT)
+    assert "degrees" not in str(refused.value)

@@ -356,7 +356,12 @@ def check_joint_range(q: np.ndarray, robot: Robot, source: str, pose: np.ndarray
                     f"{length_units(q[r, i], LIMIT_TRAVEL)})" if abs(q[r, i]) > LIMIT_TRAVEL else "")
         else:
             unit = "rad"
-            hint = " (readings are in radians; this looks like degrees)" if abs(q[r, i]) > 2 * math.pi + 0.5 else ""
+            # degrees: beyond a turn, or a column whose readings are mostly outside the range and, read
+            # as degrees, all inside it (a joint of +-20 deg in degrees: 12 deg is under a turn)
+            as_degrees, margin = np.radians(q[:, i]), np.broadcast_to(slack, robot.q_min.shape)[i]
+            degrees = (abs(q[r, i]) > 2 * math.pi + 0.5 or outside[:, i].sum() > max(1, len(q) / 2) and bool(
+                np.all((as_degrees >= robot.q_min[i] - margin) & (as_degrees <= robot.q_max[i] + margin))))
+            hint = " (readings are in radians; this looks like degrees)" if degrees else ""
         joint = f" ({robot.joint_names[i]})" if robot.chain is not None else ""
         beyond = f" by more than {READING_SLACK * 100:g} % of its travel" if measured else ""
         raise InputError(f"{source}: {label}, field q{i + 1}{joint}",
