@@ -234,6 +234,9 @@ def test_a_guess_in_millimetres_is_refused_at_the_import(run, tmp_path, capsys):
     ("measurements.yaml", "'1593701755':", "'nan':", "measurements.yaml: nan: key is not a time stamp in seconds "
                                                      "(not finite: 'nan')"),
     ("measurements.yaml", "  - -0.5229825973510742\n", "  - .nan\n", ".target_joints[0]: not finite (nan)"),
+    # a stamp in milliseconds was read as seconds: year 52,000, every drift rate 1000 times too small
+    ("measurements.yaml", "'1593701755':", "'1593701755000':", "measurements.yaml: 1593701755000: key is not a time "
+                                                               "stamp in seconds (this looks like milliseconds"),
 ])
 def test_an_unknown_key_is_refused_at_the_import(run, tmp_path, capsys, file, old, new, expected):
     """A misspelt or unexpected key in the source files was dropped without a word (the tester's

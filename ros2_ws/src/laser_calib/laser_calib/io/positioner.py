@@ -32,6 +32,10 @@ GUESSES = "pose_initial_guesses.yaml"
 # The source's keys, checked strictly: a misspelt one would otherwise drop its value unseen.
 GUESS_KEYS = {"camera_mount_to_camera_guess": "sensor", "target_mount_to_target_guess": "target"}
 ENTRY_KEYS = ("target_joints", "pose", "camera_joints")
+# A Unix time in seconds is below 1e11 until the year 5138; above it, a count of a finer clock.
+MAX_STAMP = 1e11
+FINER_CLOCKS = (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9),
+                ("a count finer than nanoseconds", math.inf))
 
 # Facts of the source's nominal model (README): standard D-H, base in world.
 NOMINAL_JOINTS = (
@@ -95,6 +99,9 @@ def read_positioner(directory: str | Path) -> tuple[Robot, SensorSamples]:
             raise InputError(where, "key is not a time stamp in seconds") from None
         if not math.isfinite(stamp):  # 'nan' and 'inf' are floats to Python, and samples.csv refuses them
             raise InputError(where, f"key is not a time stamp in seconds (not finite: {key!r})")
+        if abs(stamp) >= MAX_STAMP:  # a finer clock's count: taken as seconds, every drift rate is off by its factor
+            unit = next(name for name, factor in FINER_CLOCKS if abs(stamp) / factor < MAX_STAMP)
+            raise InputError(where, f"key is not a time stamp in seconds (this looks like {unit} since 1970)")
         if not isinstance(entry, Mapping) or "target_joints" not in entry or "pose" not in entry:
             raise InputError(where, "expected target_joints and pose")
         known_keys(where, entry, ENTRY_KEYS)
