@@ -345,28 +345,23 @@ def check_joint_range(q: np.ndarray, robot: Robot, source: str, pose: np.ndarray
     """One line for the first joint value outside [min, max] of its joint: beyond it by more
     than READING_SLACK of the joint's travel for measured readings, at all for commanded poses
     (measured=False: a pose list the arm is sent to)."""
-    slack = (READING_SLACK * (robot.q_max - robot.q_min) if measured else 0.0) + 1e-9
+    travel = robot.q_max - robot.q_min
+    slack = (READING_SLACK * travel if measured else 0.0) + 1e-9
     outside = (q < robot.q_min - slack) | (q > robot.q_max + slack)
     if outside.any():
         r, i = np.argwhere(outside)[0]
         label = f"pose {pose[r]}" if pose is not None else f"row {r}"
-        if robot.prismatic[i]:
-            unit = "m"
-            hint = (f" (a prismatic joint's readings are in metres; this looks like "
-                    f"{length_units(q[r, i], LIMIT_TRAVEL)})" if abs(q[r, i]) > LIMIT_TRAVEL else "")
-        else:
-            unit = "rad"
-            # degrees: beyond a turn, or a column whose readings are mostly outside the range and, read
-            # as degrees, all inside it (a joint of +-20 deg in degrees: 12 deg is under a turn)
-            as_degrees, margin = np.radians(q[:, i]), np.broadcast_to(slack, robot.q_min.shape)[i]
-            degrees = (abs(q[r, i]) > 2 * math.pi + 0.5 or outside[:, i].sum() > max(1, len(q) / 2) and bool(
-                np.all((as_degrees >= robot.q_min[i] - margin) & (as_degrees <= robot.q_max[i] + margin))))
-            hint = " (readings are in radians; this looks like degrees)" if degrees else ""
+        # degrees: beyond a turn, or mostly outside and all inside read as degrees (+-20 deg: 12 deg is under a turn)
+        inside = np.abs(np.radians(q[:, i]) - (robot.q_min[i] + robot.q_max[i]) / 2) <= (travel / 2 + slack)[i]
+        degrees = abs(q[r, i]) > 2 * math.pi + 0.5 or outside[:, i].sum() > max(1, len(q) / 2) and inside.all()
+        hint = ((f" (a prismatic joint's readings are in metres; this looks like {length_units(q[r, i], LIMIT_TRAVEL)})"
+                 if abs(q[r, i]) > LIMIT_TRAVEL else "") if robot.prismatic[i]
+                else " (readings are in radians; this looks like degrees)" if degrees else "")
         joint = f" ({robot.joint_names[i]})" if robot.chain is not None else ""
         beyond = f" by more than {READING_SLACK * 100:g} % of its travel" if measured else ""
-        raise InputError(f"{source}: {label}, field q{i + 1}{joint}",
-                         f"{q[r, i]:.6g} {unit} outside the joint range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]"
-                         + beyond + hint)
+        unit = "m" if robot.prismatic[i] else "rad"
+        raise InputError(f"{source}: {label}, field q{i + 1}{joint}", f"{q[r, i]:.6g} {unit} outside the joint "
+                         f"range [{robot.q_min[i]:.6g}, {robot.q_max[i]:.6g}]" + beyond + hint)
 
 
 def load_samples(path: str | Path, robot: Robot | None = None) -> Samples:
