@@ -143,6 +143,32 @@ def test_the_calibration_predicts_the_test_file_with_its_own_frames(point_data, 
     assert not any(c.startswith("kfold") for c in rows[0])                   # --folds 0: no k-fold columns
 
 
+def test_a_test_pose_missed_grossly_is_listed_and_reported_apart(point_data, tmp_path, capsys):
+    """One test reading 50 mm off (a wrong marker, a swapped row): it went into the test figures
+    unsaid, a sound calibration's test RMS several times the honest one. It is now listed, its
+    figure apart, as estimate does for a wrong test spot; the others are the figures."""
+    data_path, robot, cal, test = point_data
+    position = test.position.copy()
+    position[5] += [0.05, 0.0, 0.0]
+    wrong = Samples(test.pose, test.stamp, test.q, position=position)
+    save_sensor_samples(wrong, tmp_path / "wrong.csv")
+    status, clean = run(data_path, "--folds", "0", "--test", str(data_path / "test.csv"))
+    assert status == 0 and clean["test"]["outliers"] is None
+    captured = capsys.readouterr()
+    assert "outlier" not in captured.err + captured.out
+    honest = np.array([float(r["position_m"]) for r in residual_rows(data_path) if r["set"] == "test"]) * 1e3
+    status, result = run(data_path, "--folds", "0", "--test", str(tmp_path / "wrong.csv"))
+    assert status == 0
+    err = capsys.readouterr().err
+    assert f"test: 1 of {len(test)} held-out poses lie beyond the outlier limit" in err and "pose 101" in err
+    kept = np.arange(len(test)) != 5
+    assert result["test"]["position_mm"]["rms"] == pytest.approx(np.sqrt(np.mean(honest[kept] ** 2)), rel=1e-9)
+    assert result["test"]["position_mm"]["max"] == pytest.approx(honest[kept].max(), rel=1e-9)
+    assert result["test"]["outliers"]["position_mm"]["max"] > 45.0
+    rows = [r for r in residual_rows(data_path) if r["set"] == "test"]
+    assert [r["fit"] for r in rows] == ["tested" if k else "outlier" for k in kept]
+
+
 def test_fixed_frames_stay_fixed_on_the_test_file(point_data, capsys):
     tmp_path, robot, cal, test = point_data
     frame = [f"sensor_{p}" for p in ("x", "y", "z", "rx", "ry", "rz")]

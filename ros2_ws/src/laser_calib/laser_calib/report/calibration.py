@@ -28,23 +28,21 @@ from laser_calib.effects.base import Effect
 from laser_calib.effects.catalog import effects_from_robot, effects_to_yaml
 from laser_calib.effects.effect_model import EffectModel
 from laser_calib.effects.screen import Surface, extrapolation_note
-from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate, spot_sigma_at_zero
+from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.failures import UNDETERMINED, first_failure
 from laser_calib.estimation.folds import test_range_warnings
 from laser_calib.estimation.identifiability import FIXED_NOTE, carried_note
-from laser_calib.estimation.outliers import named
-from laser_calib.estimation.problem import Problem, residuals_at
-from laser_calib.estimation.redundancy import deletion_distances, outlier_limit
+from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples, reading_warnings
 from laser_calib.measurement.base import NoiseModel, RobotModel
-from laser_calib.measurement.noise_components import MIN_SIGMA
 from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import held, held_warnings, with_held
 from laser_calib.report.noise import noise_warnings
 from laser_calib.report.plots import display_units
 from laser_calib.report.pose_table import NOT_FITTED, fit_status
+from laser_calib.report.test_outliers import test_outlier_warnings, test_status
 from laser_calib.report.statistics import iso9283, laser_stats, worse_on_test_warning
 
 if TYPE_CHECKING:  # scikit-learn (1 s to import): only where a compensator is loaded
@@ -292,41 +290,9 @@ def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None
                                         fit_status(samples.seen, est.rejected, est.impossible))}
     if test is not None:
         model = spot_model(robot, test, effects, compensator)
-        out["test"] = SetEvaluation(test, residuals_at(model, start).predicted,
-                                    residuals_at(model, est.values).predicted, test_status(model, test, est),
-                                    ("tested", "beyond"))
+        out["test"] = SetEvaluation(test, residuals_at(model, start).predicted, residuals_at(model, est.values).predicted,
+                                    test_status(model, test.seen, est, test.spots.shape[2]), ("tested", "beyond"))
     return out
-
-
-# More test spots than this share beyond the outlier limit are no wrong spots but a model that misses
-# the test poses (a joint column negated in the calibration set: 56 of 60): all are counted. The share is
-# below the robust rule's third (estimation.robust.MAX_REJECTED): the test figures are what shows a wrong
-# model, and leaving its misses out would hide it.
-MAX_TEST_OUTLIERS = 0.1
-
-
-def test_status(model: RobotModel, test: Samples, est: Estimate) -> np.ndarray:
-    """(P,2) per test spot: 'tested', 'outlier', 'beyond' (beyond the limit, but more than
-    MAX_TEST_OUTLIERS of them: counted) or empty (not seen). An outlier's residual under the
-    calibrated model, against its noise plus the estimate's uncertainty carried to it, is beyond the
-    robust rule's limit at the calibration residual's variance (redundancy.deletion_distances and
-    outlier_limit, as for a unit the fit left out), or the model's beam misses the screen there.
-    One wrong test spot made a sound calibration's test figure 18 times the honest one, unsaid (a
-    new user's probe); without the carried uncertainty, half of the paper arms' clean test sets
-    had a spot beyond the limit. An exact fit (no noise) tests nothing: every spot 'tested'."""
-    seen = test.seen
-    status = np.where(seen, "tested", "").astype("U8")  # room for the longest word
-    if spot_sigma_at_zero(est.sigma, est.sigma_estimated) or not seen.any():
-        return status
-    noise = NoiseModel(max(est.sigma, MIN_SIGMA), est.joint_sigma)
-    t2, dof = deletion_distances(Problem(model, noise, est.fit.free), est.fit, seen)
-    beyond = seen & (t2 > outlier_limit(test.spots.shape[2], dof, int(seen.sum()))) if dof >= 1 else \
-        np.zeros_like(seen)
-    if beyond.sum() <= MAX_TEST_OUTLIERS * seen.sum():
-        status[beyond] = "outlier"
-    else:  # the model misses the test poses: counted, and said (test_outliers)
-        status[beyond] = "beyond"
-    return status
 
 
 def held_for(compensator: Compensator | None, robot: Robot) -> tuple[str, ...]:
@@ -367,18 +333,7 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
 def test_outliers(sets: dict[str, SetEvaluation]) -> list[str]:
     """The warning naming the test spots beyond the outlier limit (test_status), none without."""
     s = sets.get("test")
-    if s is None:
-        return []
-    outlier, beyond, seen = (s.status == "outlier"), (s.status == "beyond"), int((s.status != "").sum())
-    if beyond.any():
-        return [f"test: {int(beyond.sum())} of {seen} held-out spots lie beyond the outlier limit of the calibrated "
-                f"model, more than {MAX_TEST_OUTLIERS:.0%}: the model misses the test poses (all counted)"]
-    pairs = list(zip(*np.nonzero(outlier)))
-    if not pairs:
-        return []
-    return [f"test: {len(pairs)} of {seen} held-out spots lie beyond the outlier limit of the calibrated model and "
-            f"are not counted in the test figures: {named(s.samples, pairs)} (their figures apart; residuals.csv "
-            "l1_fit, l2_fit): wrong spots, or structure the calibration poses do not show (diagnose tests which)"]
+    return [] if s is None else test_outlier_warnings(s.status, s.samples, "residuals.csv l1_fit, l2_fit")
 
 
 def worse_on_test(sets: dict[str, SetEvaluation]) -> list[str]:
