@@ -13,7 +13,8 @@ import pytest
 
 from laser_calib.cli.main import main
 from laser_calib.io.samples import load_samples, save_samples
-from laser_calib.model.robot_file import load_robot
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot_file import load_robot, load_robot_description
 from laser_calib.model.urdf import calibrated_origins, origin_attributes
 from test_sensor_held import beyond_the_data, origin_values, written_errors
 from test_urdf_cli import _urdf_robot_yaml
@@ -84,6 +85,10 @@ def test_a_failed_estimate_writes_a_urdf_without_what_it_did_not_determine(tmp_p
     for joint in corrections["joints"]:
         assert np.allclose(origin_values(joint["calibrated_origin"]),
                            origin_values(origin_attributes(expected[joint["joint"]])), atol=1e-9), joint["joint"]
+    # the URDF carries its failure as a comment before <robot>: read back as a nominal model (calibrate-poses
+    # --robot, a robot file's urdf:), it passed the failure on with exit 0, as the YAML once did
+    with pytest.raises(InputError, match=r"robot_calibrated.urdf: written by a fit that is no calibration \(NOT "):
+        load_robot_description(tmp_path / "out" / "robot_calibrated.urdf", corrections["base"], corrections["tips"])
 
 
 def test_a_failed_diagnosis_writes_the_errors_it_held_at_nominal(tmp_path):

@@ -274,12 +274,27 @@ def robot_from_urdf(text: str, base: str, tip: str | Sequence[str], source: str 
     robot file (conventions.md), and spots are predicted from the first tip.
     """
     tips = check_tips((tip,) if isinstance(tip, str) else tuple(tip), source)
+    refuse_failed_urdf(text, source)
     if lasers and slm is None:
         raise InputError(source, "lasers need an slm placement")
     urdf = _parse(text, source)
     chain = chain_from_urdf(urdf, text, base, tips, source)
     robot_name = name or urdf.robot.name or "robot"
     return Robot(name=robot_name, joints=(), slm=slm, lasers=tuple(lasers), screen=screen, chain=chain)
+
+
+# The comment report.urdf_export writes before <robot> when the fit is no calibration
+_FAILED_FIT = re.compile(r"<!--\s*NO CALIBRATION:(.*?)-->", re.S)
+
+
+def refuse_failed_urdf(text: str, where: str) -> None:
+    """A URDF written by a fit that failed is no robot model: as for the robot YAML
+    (robot_file.refuse_failed_fit), the comment before <robot> is its only mark, and the file
+    read as a nominal model would pass the failure on silently."""
+    failed = _FAILED_FIT.search(text[:text.find("<robot")] if "<robot" in text else "")
+    if failed:
+        raise InputError(where, f"written by a fit that is no calibration ({' '.join(failed[1].split())[:120]}); "
+                                "give the nominal model")
 
 
 def load_urdf_robot(path: str | Path, base: str, tip: str | Sequence[str]) -> Robot:
