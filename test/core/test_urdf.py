@@ -150,6 +150,26 @@ def test_calibrated_urdf_reproduces_the_calibrated_model(key):
     assert [len(link.visuals) for link in written.robot.links] == [len(link.visuals) for link in source.robot.links]
 
 
+def test_a_urdf_in_the_encoding_its_declaration_names_is_read(tmp_path):
+    """A URDF declared ISO-8859-1 (an author's name in a comment) is valid XML and ROS reads it:
+    it was refused as 'not UTF-8 text'. The calibrated URDF written from it is UTF-8 and says so."""
+    path, base, tip = ROBOTS["paper 7-DOF"]
+    text = path.read_text().replace("<link", "<!-- auteur : Jos\u00e9 M\u00fcller -->\n  <link", 1)
+    declaration = '<?xml version="1.0" encoding="ISO-8859-1"?>\n'
+    latin = tmp_path / "arm.urdf"
+    latin.write_bytes((declaration + text[text.index("?>") + 2:] if text.startswith("<?xml") else
+                       declaration + text).encode("latin-1"))
+    robot = load_urdf_robot(latin, base, tip)
+    assert robot.param_names == load_urdf_robot(path, base, tip).param_names
+    written = calibrated_urdf(robot)
+    assert "Jos\u00e9 M\u00fcller" in written and "ISO-8859-1" not in written
+    (tmp_path / "out.urdf").write_text(written, encoding="utf-8")
+    assert load_urdf_robot(tmp_path / "out.urdf", base, tip).param_names == robot.param_names
+    (tmp_path / "bad.urdf").write_bytes(declaration.replace("ISO-8859-1", "klingon").encode() + b"<robot/>")
+    with pytest.raises(InputError, match="bad.urdf: its XML declaration names an unknown encoding 'klingon'"):
+        load_urdf_robot(tmp_path / "bad.urdf", base, tip)
+
+
 def test_a_calibrated_urdf_writes_a_non_unit_axis_as_the_unit_axis_it_moves_along():
     """The column's lift axis written 3 times its length: the model moves 1 m per metre read, as urdfdom
     and KDL normalise; yourdfpy moved 3 m, so the calibrated URDF disagreed with the model by 0.59 m

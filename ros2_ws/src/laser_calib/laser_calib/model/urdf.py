@@ -86,7 +86,7 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None, args_w
     would be built), named at ``args_where`` (the robot file's key)."""
     path = Path(path)
     if path.suffix.lower() != ".xacro":
-        return read_text(path)
+        return _xml_text(path)
     try:
         import xacro  # only for xacro input
 
@@ -122,6 +122,27 @@ def _failed_in(path: Path) -> str:
     if len(stack) < 2 or Path(stack[0]) != path:
         return str(path)
     return f"{stack[-1]} (included from {' <- '.join(reversed(stack[:-1]))})"
+
+
+_DECLARED = re.compile(rb"^(\xef\xbb\xbf)?\s*<\?xml[^>]*?encoding\s*=\s*[\"']([A-Za-z0-9._-]+)[\"']")
+
+
+def _xml_text(path: Path) -> str:
+    """The text of an XML file in the encoding its declaration names (UTF-8 without one), its
+    declaration then saying UTF-8: the text is encoded as UTF-8 for the parser, and the
+    calibrated URDF written from it is. A URDF in ISO-8859-1 (an author's name in a comment) is
+    valid XML, and ROS reads it."""
+    declared = _DECLARED.match(path.read_bytes()[:200]) if path.is_file() else None
+    encoding = declared[2].decode() if declared else "utf-8"
+    if encoding.lower().replace("_", "-") in ("utf-8", "utf8"):
+        return read_text(path)
+    try:
+        text = path.read_bytes().decode(encoding)
+    except LookupError:
+        raise InputError(str(path), f"its XML declaration names an unknown encoding {encoding!r}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(str(path), f"not {encoding} text, as its XML declaration says (byte {exc.start})") from None
+    return re.sub(r"""(encoding\s*=\s*["'])[A-Za-z0-9._-]+""", r"\1UTF-8", text, count=1)
 
 
 def _parse(text: str, source: str):
