@@ -128,8 +128,8 @@ def implausible(names: tuple[str, ...], x: np.ndarray, scales: np.ndarray, own: 
         worst = int(np.argmax(np.where(geometric, size, 0.0)))
         return [f"{NOT_A_CALIBRATION}: {names[worst]} is fitted at {size[worst]:.0f} times its tolerance scale, "
                 f"beyond the {FAR_SCALES:g} of any manufacturing error: the nominal model is wrong (a joint's zero "
-                "or direction, an axis, the laser module's mounting), joint readings swapped or negated, or the "
-                "minimum is wrong; correct the robot file or the data"]
+                "or direction, an axis, the laser module's mounting, lengths in another unit than metres), joint "
+                "readings swapped or negated, or the minimum is wrong; correct the robot file or the data"]
     if far.any():
         worst = int(np.argmax(np.where(far, size, 0.0)))
         return [f"implausible: {names[worst]} is fitted at {size[worst]:.0f} times its tolerance scale; a wrong "
