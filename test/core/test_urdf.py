@@ -239,6 +239,25 @@ def test_a_xacro_failure_names_the_included_file_it_is_in(tmp_path):
     assert "__pi" in str(refused.value)
 
 
+def test_a_missing_include_of_a_package_names_the_package_folder(tmp_path, monkeypatch):
+    """$(find my_desc) on ROS_PACKAGE_PATH resolves through a temporary ament prefix: a missing
+    include was named by that prefix's path (/tmp/ros_package_path_.../share/my_desc/...), a
+    folder gone once the line is read; it is named in the package's own folder."""
+    package = tmp_path / "pkgs" / "my_desc"
+    (package / "urdf").mkdir(parents=True)
+    (package / "package.xml").write_text('<package format="3"><name>my_desc</name><version>0.0.0</version>'
+                                         '<description>d</description><maintainer email="a@b.c">m</maintainer>'
+                                         '<license>MIT</license></package>\n')
+    (tmp_path / "arm.xacro").write_text('<robot name="arm" xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
+                                        '  <xacro:include filename="$(find my_desc)/urdf/nothere.xacro"/>\n'
+                                        '  <link name="base_link"/>\n</robot>\n')
+    monkeypatch.setenv("ROS_PACKAGE_PATH", str(tmp_path / "pkgs"))
+    with pytest.raises(InputError) as refused:
+        urdf_text(tmp_path / "arm.xacro")
+    assert f"{package.resolve() / 'urdf' / 'nothere.xacro'}" in str(refused.value), refused.value
+    assert "ros_package_path_" not in str(refused.value)
+
+
 def test_parameters_of_a_urdf_chain():
     robot, *_ = _robot("column (prismatic, continuous, tilted axis, fixed frames)")
     assert robot.chain.readings == ("lift", "shoulder_yaw", "shoulder_pitch", "elbow")

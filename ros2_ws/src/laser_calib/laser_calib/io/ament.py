@@ -12,6 +12,7 @@ entry as rospack does. ``package_index`` makes both visible to the ament index
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 import xml.etree.ElementTree as ElementTree
 from contextlib import contextmanager
@@ -56,10 +57,11 @@ def ros_packages() -> dict[str, Path]:
 
 
 @contextmanager
-def package_index() -> Iterator[None]:
+def package_index() -> Iterator[str]:
     """Within the block, AMENT_PREFIX_PATH ends with a temporary prefix that
     indexes the ROS_PACKAGE_PATH packages as an install would (share/<name> and
-    the ament index marker): installed packages are found first, then those."""
+    the ament index marker): installed packages are found first, then those.
+    Yields the prefix (a path under it is one of the packages' files: in_package)."""
     before = os.environ.get("AMENT_PREFIX_PATH")
     with tempfile.TemporaryDirectory(prefix="ros_package_path_") as prefix:
         (Path(prefix) / INDEX).mkdir(parents=True)
@@ -68,9 +70,19 @@ def package_index() -> Iterator[None]:
             (Path(prefix) / "share" / name).symlink_to(folder.resolve(), target_is_directory=True)
         os.environ["AMENT_PREFIX_PATH"] = os.pathsep.join(p for p in (before, prefix) if p)
         try:
-            yield
+            yield prefix
         finally:
             if before is None:
                 del os.environ["AMENT_PREFIX_PATH"]
             else:
                 os.environ["AMENT_PREFIX_PATH"] = before
+
+
+def in_package(text: str, prefix: str) -> str:
+    """``text`` with the paths under package_index's temporary ``prefix`` written as the package
+    folders they stand for: a message naming a file must name one the user can find."""
+    if not prefix:
+        return text
+    packages = ros_packages()
+    return re.sub(re.escape(str(Path(prefix) / "share")) + r"/([^/\s'\"]+)",
+                  lambda m: str(packages[m[1]].resolve()) if m[1] in packages else m[0], text)

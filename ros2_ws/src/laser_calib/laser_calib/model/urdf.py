@@ -29,7 +29,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from laser_calib.io.ament import package_index
+from laser_calib.io.ament import in_package, package_index
 from laser_calib.io.errors import InputError
 from laser_calib.io.read import read_text
 from laser_calib.measurement.frames import Pose
@@ -87,13 +87,14 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None, args_w
     path = Path(path)
     if path.suffix.lower() != ".xacro":
         return _xml_text(path)
+    prefix = ""  # package_index's, to name the packages' files in a message
     try:
         import xacro  # only for xacro input
 
         args = _ArgsRead(xacro_args or {})
         if not isinstance(xacro.substitution_args_context, _FileContext):
             xacro.substitution_args_context = _FileContext(xacro.substitution_args_context)
-        with package_index():  # $(find pkg): installed packages, then ROS_PACKAGE_PATH's
+        with package_index() as prefix:  # $(find pkg): installed packages, then ROS_PACKAGE_PATH's
             text = xacro.process_file(str(path), mappings=args).toxml()
     except OSError as exc:
         raise InputError(str(path), f"cannot read ({exc.strerror})") from None
@@ -103,7 +104,8 @@ def urdf_text(path: str | Path, xacro_args: dict[str, str] | None = None, args_w
             raise InputError(str(path), f"xacro: package '{missing[1]}' ($(find {missing[1]})) is not in "
                                         "AMENT_PREFIX_PATH or ROS_PACKAGE_PATH: source the workspace that installs "
                                         "it, or add its source folder to ROS_PACKAGE_PATH") from None
-        raise InputError(_failed_in(path), f"xacro failed ({' '.join(str(exc).split())})") from None
+        raise InputError(in_package(_failed_in(path), prefix),
+                         f"xacro failed ({in_package(' '.join(str(exc).split()), prefix)})") from None
     unknown = sorted(set(xacro_args or {}) - args.asked)
     if unknown:
         declared = sorted(args.asked)
