@@ -19,7 +19,8 @@ from laser_calib.measurement.chain import chain_names, target_in_sensor
 from laser_calib.measurement.frames import robot_frames
 from laser_calib.model.kinematics import forward, joint_jacobian, predict
 from laser_calib.model.robot_file import dump_robot, load_robot
-from laser_calib.model.urdf import load_urdf_robot, robot_from_urdf, urdf_text
+from laser_calib.model.urdf import load_urdf_robot, robot_from_urdf
+from laser_calib.model.urdf_text import urdf_text
 from laser_calib.report.statistics import spot_distances
 from laser_calib.report.urdf_export import calibrated_urdf
 from laser_calib.sim.simulation import bundled_robot, paper_session, sample_poses

@@ -38,7 +38,8 @@ from laser_calib.measurement.spot import SpotModel
 from laser_calib.model.joint_chain import UNLIMITED
 from laser_calib.model.kinematics import forward
 from laser_calib.model.robot_file import load_robot
-from laser_calib.model.urdf import calibrated_urdf, load_urdf_robot, robot_from_urdf, urdf_text
+from laser_calib.model.urdf import calibrated_urdf, load_urdf_robot, robot_from_urdf
+from laser_calib.model.urdf_text import urdf_text
 from laser_calib.sim.simulation import robot_session, sample_poses
 
 PUBLIC = Path(__file__).parent / "data" / "public"

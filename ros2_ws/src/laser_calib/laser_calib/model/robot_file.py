@@ -26,7 +26,8 @@ from laser_calib.measurement.noise_bounds import joint_sigma_problem, spot_sigma
 from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, LIMIT_TRAVEL, MAX_ANGLE, MAX_LENGTH, MAX_SLM_OFFSET,
                                      PAPER, Joint, Laser, Robot, Screen, Slm, plausible_angle, plausible_length)
 from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, link_ends, load_urdf_robot,
-                                    robot_from_urdf, urdf_text)
+                                    robot_from_urdf)
+from laser_calib.model.urdf_text import urdf_text
 
 _KNOWN_KEYS = ("name", "joints", "slm", "lasers", "screen", "gravity", "convention")
 # A URDF robot: the arm from the URDF text (a file, the text itself, or the node's topic).
