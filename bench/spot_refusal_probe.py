@@ -4,8 +4,9 @@ Rendered frames (seeded) of the default camera; per case, every spot's error in 
 centre against the projection of the true spot) and whether SpotDetector reported it:
 
 - clean: random spots over the screen (the two lasers >= 0.1 m apart) with the default RenderOptions,
-  the calibration-light room, the screen's corners (vignetting, fiducials near the window) and 5x
-  over-exposed spots; a refusal here is a false refusal;
+  the calibration-light room, the screen's corners (vignetting, fiducials near the window), 5x
+  over-exposed spots and the elongated spots of beams up to 70 deg oblique; a refusal here is a false
+  refusal;
 - touching: the two lasers' spots d px apart (each laser's channel sees the other's crosstalk);
 - jpeg: clean frames JPEG-compressed at a quality;
 - edge: a camera of twice the focal length (the screen overfills the frame), laser 1 at e px from the
@@ -17,7 +18,8 @@ A spot is "biased" when its error exceeds 0.3 px (the noise is 0.03-0.04 px rms)
 
     .venv/bin/python bench/spot_refusal_probe.py [--spots 600] [--name spot_refusal] [--before NAME]
 
-spot_refusal_before: this probe with the detector before the chi^2 test (commit 1824110).
+spot_refusal_before: this probe with the detector before the chi^2 test (commit 1824110);
+spot_refusal_round: with the round spot model, before the elliptical one and its skewness test.
 """
 
 from __future__ import annotations
@@ -81,7 +83,8 @@ def with_blob(camera: CameraModel, spots: np.ndarray, blob_yz: np.ndarray, ratio
 def clean(camera, detector, spots: int, seed: int) -> dict:
     variants = {"default": (RenderOptions(), 0.95), "calibration light": (RenderOptions(ambient_dn=150.0), 0.95),
                 "corners": (RenderOptions(), None), "over-exposed 5x": (RenderOptions(laser_radiance_dn=(3000.0,
-                                                                                                      3000.0)), 0.95)}
+                                                                                                      3000.0)), 0.95),
+                "oblique beams 0-70 deg": (RenderOptions(), 0.95)}
     results = {}
     for k, (name, (options, half)) in enumerate(variants.items()):
         rng = np.random.default_rng(seed + k)
@@ -93,9 +96,18 @@ def clean(camera, detector, spots: int, seed: int) -> dict:
                     truth = rng.choice([-1.0, 1.0], (2, 2)) * rng.uniform(0.8, 0.99, (2, 2))
                 else:
                     truth = rng.uniform(-half, half, (2, 2))
-            errors += outcome(camera, detector, render_frame(camera, truth, BOTH, rng, options), truth)
+            beams = oblique_beams(rng, 70.0) if name.startswith("oblique") else None
+            errors += outcome(camera, detector, render_frame(camera, truth, BOTH, rng, options, beams=beams), truth)
         results[name] = summary(errors)
     return results
+
+
+def oblique_beams(rng: np.random.Generator, most_deg: float) -> np.ndarray:
+    """(2, 3) beam directions towards the screen (-x), at incidences uniform up to most_deg, any azimuth:
+    the footprints stretched by 1 / cos i (the paper arms' beams: 48 deg median, a tenth beyond 70)."""
+    incidence, azimuth = np.radians(rng.uniform(0.0, most_deg, 2)), rng.uniform(0.0, 2 * np.pi, 2)
+    return np.stack([-np.cos(incidence), np.sin(incidence) * np.cos(azimuth), np.sin(incidence) * np.sin(azimuth)],
+                    axis=1)
 
 
 def cases(camera, detector, count: int, seed: int) -> dict:
@@ -160,7 +172,7 @@ def table(results: dict, before: dict | None) -> str:
             rms = "-" if s["rms_px"] is None else f"{s['rms_px']:.3f}"
             worst = "-" if s["max_px"] is None else f"{s['max_px']:.3f}"
             old = "| - | - |"
-            if before is not None:
+            if before is not None and name in before[group]:
                 biased = np.array(before[group][name]["errors_px"]) > BIASED_PX
                 refused = biased & np.isnan(np.array(s["errors_px"]))
                 old = f"| {biased.sum()} | {refused.sum()} |"

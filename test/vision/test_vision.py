@@ -51,6 +51,16 @@ def test_ideal_calibration_inverts_projection(camera):
     assert np.max(np.abs(back - points)) < 1e-9
 
 
+def test_a_driver_distortion_that_moves_the_image_edge_is_measured_in_pixels(camera):
+    """spot_detector compared only the driver's K with the calibration's: a D from another lens (or none)
+    passed unsaid. The difference is measured where it matters, in pixels at the image's edge."""
+    calibration = camera.ideal_calibration()
+    assert calibration.distortion_difference_px(calibration.dist) == 0.0
+    assert calibration.distortion_difference_px(calibration.dist + [1e-4, 0, 0, 0, 0]) < 0.1
+    # the default camera's k1 = -0.12 against a driver that says there is no distortion
+    assert calibration.distortion_difference_px(np.zeros(5)) > 20.0
+
+
 def test_calibration_yaml_round_trip(camera, tmp_path):
     calibration = camera.ideal_calibration()
     path = tmp_path / "screen.yaml"
@@ -91,6 +101,55 @@ def test_spot_error_within_noise_tolerance(camera, detector):
     # No bias beyond the noise of the mean plus the 0.02 mm systematic floor of a noise-free frame.
     assert np.all(np.abs(errors.mean(axis=0)) <= 3.0 * predicted_mm[:, None] / np.sqrt(n) + 0.02)
     assert np.max(np.abs(errors)) <= 4.5 * predicted_mm.max() * 3.1 / 2.6
+
+
+def test_elongated_spots_of_oblique_beams_are_measured_within_noise(camera, detector):
+    """A beam meeting the screen at incidence i draws an ellipse 1 / cos i long (the paper arms: 48 deg
+    median, a tenth beyond 70). The round spot model refused every spot 1.3:1 or longer as 'not one
+    clean spot' (a new user's probe): half a real session's spots lost. Here incidences up to 60 deg in
+    any direction: every spot seen, within the noise of test_spot_error_within_noise_tolerance, whose
+    speckle term along an axis of sigma s1 grows as sqrt(s1 / s2) (sum I^2 x^2 / (sum I)^2 over an
+    elliptical Gaussian is s1 / (8 pi s2)): at most sqrt(1 / cos i) on the screen, the lens blur
+    rounding the image's ellipse."""
+    predicted_mm = np.array([0.11, 0.08])
+    rng = np.random.default_rng(31)
+    n = 30
+    truth = rng.uniform(-0.9, 0.9, (n, 2, 2))
+    while (close := np.linalg.norm(truth[:, 0] - truth[:, 1], axis=1) < 0.2).any():  # spots apart (exclusion_px)
+        truth[close, 1] = rng.uniform(-0.9, 0.9, (close.sum(), 2))
+    incidence = np.radians(rng.uniform(0.0, 60.0, (n, 2)))
+    azimuth = rng.uniform(0.0, 2.0 * np.pi, (n, 2))
+    beams = np.stack([-np.cos(incidence), np.sin(incidence) * np.cos(azimuth), np.sin(incidence) * np.sin(azimuth)],
+                     axis=-1)
+    errors = np.full((n, 2, 2), np.nan)
+    for k in range(n):
+        spots, seen, why = detector.detect_why(render_frame(camera, truth[k], BOTH, rng, beams=beams[k]))
+        errors[k, seen] = (spots[seen] - truth[k, seen]) * 1000.0
+    # clean spots are refused at DetectorOptions.false_refusal_rate (1e-3): two of 60, 2e-3
+    assert np.isnan(errors[..., 0]).sum() <= 1, np.degrees(incidence[np.isnan(errors[..., 0])])
+    rms = np.sqrt(np.nanmean(errors ** 2, axis=(0, 2)))
+    allowed = predicted_mm * np.sqrt(np.mean(1.0 / np.cos(incidence))) * (1.0 + 3.0 / np.sqrt(2 * 2 * n))
+    assert np.all(rms <= allowed), (rms, allowed)
+
+
+def test_an_over_exposed_spot_is_measured_from_its_wings_or_refused_as_saturated(camera, detector):
+    """25 times over-exposed (the core clipped at 255): the fit of the unsaturated wings measures the spot,
+    within the largest error test_spot_error_within_noise_tolerance allows. 160 times: refused, and the
+    line says the photosites are saturated; it said 'its fit did not settle' alone, or crashed in lstsq
+    once the elliptical fit's steps left the ellipses."""
+    rng = np.random.default_rng(41)
+    truth = np.array([[0.3, 0.3], [-0.4, -0.2]])
+    for _ in range(4):
+        spots, seen, why = detector.detect_why(render_frame(camera, truth, BOTH, rng,
+                                                            RenderOptions(laser_radiance_dn=(15000.0, 15000.0))))
+        assert seen.all(), why
+        assert np.max(np.abs(spots - truth)) * 1e3 <= 4.5 * 0.11 * 3.1 / 2.6
+    refused = []
+    for _ in range(4):
+        _, seen, why = detector.detect_why(render_frame(camera, truth, BOTH, rng,
+                                                        RenderOptions(laser_radiance_dn=(100000.0, 100000.0))))
+        refused += [reason for reason in why if reason]
+    assert refused and all("photosites saturated (lower the exposure or the laser's power)" in r for r in refused)
 
 
 def test_lasers_are_told_apart_by_colour(camera, detector):
@@ -237,9 +296,12 @@ def test_touching_spots_are_refused(camera, detector):
             assert all("the other laser's spot" in reason for reason in why), why  # the node logs it
 
 
-def test_reflection_beside_spot_is_refused(camera, detector):
+@pytest.mark.parametrize("share", [0.2, 0.1])
+def test_reflection_beside_spot_is_refused(camera, detector, share):
     # A red blob of 20 % of laser 1's radiance 3 px from it (a reflection) is inside the exclusion
-    # radius, so not ambiguous: it pulled the centre by 0.4-0.65 px, reported as good.
+    # radius, so not ambiguous: it pulled the centre by 0.4-0.65 px, reported as good. An elliptical
+    # fit takes such a pair in as one elongated spot, chi^2 and all; its skewness gives it away
+    # (10 %: one of five passed the round fit's chi^2, 0.66 mm off).
     from laser_calib.vision.render import _ambient, _expose, _photosites, _screen_maps
     from laser_calib.vision.screen_calibration import ScreenLayout
     rng = np.random.default_rng(22)
@@ -252,10 +314,11 @@ def test_reflection_beside_spot_is_refused(camera, detector):
         base = _ambient(camera, rng, options) * albedo * vignetting
         scene = _photosites(camera, base, layout, spots, BOTH, rng, options)
         scene += _photosites(camera, np.zeros_like(base), layout, blob, np.array([True, False]), rng,
-                             RenderOptions(laser_radiance_dn=(120.0, 0.0)))
+                             RenderOptions(laser_radiance_dn=(share * 600.0, 0.0)))
         found, seen, why = detector.detect_why(_expose(scene, rng, options))
         np.testing.assert_array_equal(seen, [False, True])
-        assert why[0].startswith("not one clean spot: its fit's chi^2") and why[1] is None, why
+        assert why[0].startswith(("not one clean spot: its fit's chi^2", "not one symmetric spot")), why
+        assert why[1] is None, why
 
 
 def test_defocused_spot_is_measured_within_noise(camera, detector):
@@ -270,13 +333,14 @@ def test_defocused_spot_is_measured_within_noise(camera, detector):
     rng = np.random.default_rng(23)
     for psf in (2.0, 4.0):
         options = RenderOptions(psf_sigma_px=psf, laser_radiance_dn=(600.0 * (psf / 1.3) ** 2,) * 2)
-        errors = np.empty((n, 2, 2))
+        errors = np.full((n, 2, 2), np.nan)
         for k in range(n):
             spots = rng.uniform(-0.8, 0.8, (2, 2))
             found, seen = detector.detect(render_frame(camera, spots, BOTH, rng, options))
-            assert seen.all(), (psf, k)
-            errors[k] = _pixel_errors(camera, found, spots)
-        rms = np.sqrt(np.mean(errors ** 2, axis=(0, 2)))
+            errors[k, seen] = _pixel_errors(camera, found, spots)[seen]
+        # clean spots are refused at DetectorOptions.false_refusal_rate (1e-3): two of 24, 3e-4
+        assert np.isnan(errors[..., 0]).sum() <= 1, (psf, np.argwhere(np.isnan(errors[..., 0])))
+        rms = np.sqrt(np.nanmean(errors ** 2, axis=(0, 2)))
         assert np.all(rms <= predicted_px * (1.0 + 3.0 / np.sqrt(2 * 2 * n))), (psf, rms)
 
 

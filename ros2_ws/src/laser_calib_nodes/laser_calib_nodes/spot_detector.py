@@ -54,6 +54,9 @@ from laser_calib_nodes import common, parameters
 # with each frame, and it may come second; one that sent it once, volatile, before this node started
 # never will, and waiting for it would refuse the whole session's frames.
 INFO_WAIT_FRAMES = 5
+# A lens model off by a pixel at the image's edge moves a spot there by 2-3 mm on the screen, 20 times the
+# detector's noise; the calibration's own reprojection error is a few tenths of a pixel.
+DISTORTION_TOLERANCE_PX = 1.0
 
 
 class SpotDetectorNode(Node):
@@ -140,6 +143,13 @@ class SpotDetectorNode(Node):
         if k[0, 0] > 0 and not np.allclose(k, c.K, rtol=0.01, atol=1.0):
             self.get_logger().warning("the driver's CameraInfo intrinsics differ from the calibration file's "
                                       "(the file's are used): re-run screen-calibrate if the camera changed")
+        # a driver's D of the calibration's model (plumb_bob: k1 k2 p1 p2 k3) that moves the image's edge
+        if msg.distortion_model == "plumb_bob" and len(msg.d) == 5 and np.all(np.isfinite(msg.d)):
+            apart = c.distortion_difference_px(np.array(msg.d, dtype=float))
+            if apart > DISTORTION_TOLERANCE_PX:
+                self.get_logger().warning(
+                    f"the driver's CameraInfo distortion differs from the calibration file's by up to {apart:.1f} "
+                    "px at the image's edge (the file's is used): re-run screen-calibrate if the lens changed")
 
     def reject(self, why: str) -> None:
         self.bad_frames += 1

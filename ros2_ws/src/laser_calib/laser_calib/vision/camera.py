@@ -171,6 +171,19 @@ class ScreenCalibration:
         rotation = np.column_stack([np.cross(m[:, 0], m[:, 1]), m[:, 0], m[:, 1]])
         return -rotation.T @ m[:, 2]
 
+    def distortion_difference_px(self, dist: np.ndarray) -> float:
+        """The largest distance, px, between where this calibration's distortion and ``dist`` (k1 k2 p1 p2
+        k3, a driver's CameraInfo D) undistort the image's border (a 9 x 9 grid's edge points): how far
+        apart the two lens models put a spot at the image's edge. The detector uses its calibration's;
+        a driver whose D differs (a lens changed, refocused) says the calibration is stale."""
+        edge = np.linspace(0.0, 1.0, 9)
+        border = np.array([(u, v) for u in edge for v in edge if u in (0.0, 1.0) or v in (0.0, 1.0)])
+        pixels = (border * [self.width - 1, self.height - 1]).reshape(-1, 1, 2)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+        mine, theirs = (cv2.undistortPoints(pixels, self.K, np.asarray(d, float), P=self.K, criteria=criteria)
+                        for d in (self.dist, dist))
+        return float(np.max(np.linalg.norm(mine - theirs, axis=-1)))
+
     def pixels_to_screen(self, pixels: np.ndarray) -> np.ndarray:
         """Screen (y, z) in metres (M,2) of distorted image pixels (M,2)."""
         pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)

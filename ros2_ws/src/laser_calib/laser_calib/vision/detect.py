@@ -14,8 +14,9 @@ Per laser (1: red, 2: green, see render.py):
    glint off the arm, whose small blob demosaicing fringes with colour. Nor
    are two lasers whose maxima are within ``exclusion_px``: each one's
    crosstalk is in the other's fit.
-3. locate: weighted least-squares fit of a Gaussian on a tilted plane to the
-   laser's own channel in a window around the maximum, using only photosites
+3. locate: weighted least-squares fit of an elliptical Gaussian (an oblique
+   beam's footprint is stretched along its plane of incidence) on a tilted
+   plane to the laser's own channel in a window around the maximum, using only photosites
    of the laser's colour (Bayer mosaic) that are not saturated, weighted by the
    camera's noise model (read noise, shot noise, speckle); spot_fit.py. Its
    error is close to the shot- and speckle-limited floor; a thresholded
@@ -23,9 +24,15 @@ Per laser (1: red, 2: green, see render.py):
    grid by up to 0.05 px. The window grows with the spot (second moment, then
    the fitted sigma) to 5 sigmas. A spot whose window leaves the image, that
    is too large for the largest window, whose fit does not settle, or whose
-   fit's chi^2 says the window holds more than one clean spot (a touching
-   spot, a reflection, compression artefacts) is not seen: each of these moved
-   the centre by 0.3-2 px while the spot was reported.
+   fit's chi^2 or skewness says the window holds more than one clean spot (a
+   touching spot, a reflection, compression artefacts) is not seen: each of
+   these moved the centre by 0.3-2 px while the spot was reported. Not told
+   apart by shape: a reflection within about 2 px (1.5 spot sigmas), whose sum
+   with the spot is an elliptical Gaussian within the noise, and a spot an edge
+   in front of the screen (the arm) hides partly, which is a narrower one
+   (0.8 mm off with the edge 1.5 px from the centre, the arm as bright as the
+   screen); poses whose beams the arm hides from the camera are for the plan
+   to avoid, and such a spot is for the robust rule to reject.
 4. map: undistort the fitted centre (cv2.undistortPoints, P = K) and apply the
    homography to screen metres. A spot outside the measuring area
    (|y| > half_y or |z| > half_z) is not a measurement (conventions.md): not seen.
@@ -83,15 +90,16 @@ class DetectorOptions:
         starts at window_half_px and grows with the spot; a spot of sigma > max_window_half_px / 5 px
         (defocused) is not seen.
     false_refusal_rate: the fit's chi^2, weighted by the noise model below, of a clean spot follows the
-        chi^2 distribution of the window's fitted photosites less 7 parameters (~50 red, ~105 green in a
-        15 x 15 window; clean spots: chi^2 / dof 1.00-1.02). Above its upper false_refusal_rate quantile
-        the window holds more than one clean spot: not seen. A rate, not a tuned threshold: the quantile
-        follows the window's photosite count. Measured: 3 of 2400 clean spots refused (room and
-        calibration light, screen corners, 5x over-exposure; bench/results/spot_refusal.md), 5 of 1000 in
-        vision_bench's main run: 2.4e-3 at the default 1e-3 (this chi^2 spreads up to 1.13 times the
-        distribution's, chi^2 / dof 1.00-1.02 on average). Of the spots a
-        touching spot, a reflection or JPEG (quality <= 90) moved by > 0.3 px, 4 of 192 still pass (JPEG
-        at quality 50-75: smoothing lowers the chi^2). Only with a bayer_pattern: without one the pixels
+        chi^2 distribution of the window's fitted photosites less 9 parameters (~50 red, ~105 green in a
+        15 x 15 window; clean spots: chi^2 / dof 1.00-1.02), and its skewness score chi^2 with 4 (spot_fit:
+        mean 3.7-4.5 on clean spots in room and calibration light, 5x over-exposure, defocus). Above the
+        upper quantile of half the rate, either says the window holds more than one clean spot: not seen.
+        A rate, not a tuned threshold: the quantile follows the window's photosite count. Measured: 1 of
+        3000 clean spots refused (room and calibration light, screen corners, 5x over-exposure, beams up to
+        70 deg oblique; bench/results/spot_refusal.md), 1 of 1000 in vision_bench's main run. Of the spots a
+        touching spot, a reflection or JPEG (quality <= 90) moved by > 0.3 px, 4 of 192 still pass (a
+        reflection of 35 % 3 px off, 0.9 px, that the round model's chi^2 refused; JPEG at quality 50).
+        Only with a bayer_pattern: without one the pixels
         are interpolations (demosaiced, 4:2:2 chroma) whose noise is not the model's (chi^2 / dof 1.4-2.5).
     gain_e_per_dn, read_noise_dn, speckle_contrast: the noise model that
         weights the fit: variance = read^2 + signal / gain + (contrast * spot)^2.

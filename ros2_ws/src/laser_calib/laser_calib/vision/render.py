@@ -16,7 +16,10 @@ What a frame contains, and why:
   and cos^4 vignetting;
 * each laser spot: a Gaussian of sigma ``spot_sigma_m`` on the screen (the
   paper's ~4 mm diffraction length taken as 2 sigma), integrated over each
-  pixel (5 x 5 samples), blurred by the lens PSF, multiplied by speckle;
+  pixel (5 x 5 samples), blurred by the lens PSF, multiplied by speckle; given
+  the beam's direction, the footprint of a collimated beam: stretched by
+  1 / cos i along the plane of incidence (i the angle to the screen's normal),
+  its peak lowered by cos i (the same power on a larger area);
 * speckle: an independent Gamma-distributed factor per photosite, of mean 1
   and standard deviation ``speckle_contrast`` (the pixel-integrated intensity
   of a speckle pattern with 1/contrast^2 grains per pixel). The default 0.1
@@ -26,8 +29,9 @@ What a frame contains, and why:
 * the sensor: Bayer colour filters with crosstalk, shot noise (Gaussian
   approximation of Poisson), read noise, saturation at full well = 255 DN.
 
-Not modelled: the arm occluding the screen, spot elongation for oblique beams
-(the renderer is given spots, not beams), blooming, motion blur.
+Not modelled: the arm occluding the screen, blooming, motion blur; spot
+elongation when the beams are not given (the simulated session's camera_sim is
+given spots, not beams).
 """
 
 from __future__ import annotations
@@ -213,10 +217,21 @@ def _ambient(camera: CameraModel, rng: np.random.Generator, options: RenderOptio
     return options.ambient_dn * (1.0 + options.ambient_gradient * ramp)
 
 
+def _footprint(beam: np.ndarray | None) -> tuple[float, np.ndarray]:
+    """(cos i, t (2,)) of a beam (3,) in frame {0}: i its angle to the screen's normal, t the unit (y, z)
+    direction of its plane of incidence; (1, 0) for None."""
+    beam = np.array([1.0, 0.0, 0.0]) if beam is None else np.asarray(beam, float) / np.linalg.norm(beam)
+    along = np.hypot(beam[1], beam[2])
+    return abs(float(beam[0])), (beam[1:] / along if along > 0 else np.zeros(2))
+
+
 def _spot(camera: CameraModel, layout: ScreenLayout, spot_yz: np.ndarray, radiance: float,
-          rng: np.random.Generator, options: RenderOptions) -> tuple[int, int, np.ndarray] | None:
-    """One laser spot as (row0, col0, patch) with patch float32 DN, or None if out of view."""
-    centre, step = camera.project(np.array([spot_yz, spot_yz + [options.spot_sigma_m, 0.0]]))
+          rng: np.random.Generator, options: RenderOptions, beam: np.ndarray | None = None
+          ) -> tuple[int, int, np.ndarray] | None:
+    """One laser spot as (row0, col0, patch) with patch float32 DN, or None if out of view; beam (3,):
+    the beam's direction in frame {0}, None for a round spot."""
+    cos_i, incidence = _footprint(beam)
+    centre, step = camera.project(np.array([spot_yz, spot_yz + [options.spot_sigma_m / cos_i, 0.0]]))
     sigma_px = np.hypot(np.linalg.norm(step - centre), options.psf_sigma_px)
     half = int(np.ceil(5.0 * sigma_px)) + 2
     col0, row0 = int(round(centre[0])) - half, int(round(centre[1])) - half
@@ -232,8 +247,11 @@ def _spot(camera: CameraModel, layout: ScreenLayout, spot_yz: np.ndarray, radian
     albedo = cv2.remap(texture, ((extent - yz[:, 0]) / _TEXEL - 0.5).astype(np.float32).reshape(n, n),
                        ((extent - yz[:, 1]) / _TEXEL - 0.5).astype(np.float32).reshape(n, n), cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=WALL_ALBEDO).ravel()
-    r2 = np.sum((yz - spot_yz) ** 2, axis=1) / options.spot_sigma_m ** 2
-    samples = (radiance * albedo * np.exp(-0.5 * r2)).reshape(size, _SPOT_SUPERSAMPLE, size, _SPOT_SUPERSAMPLE)
+    # r^T C^-1 r, C = s^2 (I + (1 / cos^2 i - 1) t t^T): C^-1 = (I - (1 - cos^2 i) t t^T) / s^2
+    offset = yz - spot_yz
+    r2 = (np.sum(offset ** 2, axis=1) - (1.0 - cos_i ** 2) * (offset @ incidence) ** 2) / options.spot_sigma_m ** 2
+    samples = (radiance * cos_i * albedo * np.exp(-0.5 * r2)).reshape(size, _SPOT_SUPERSAMPLE, size,
+                                                                      _SPOT_SUPERSAMPLE)
     patch = samples.mean(axis=(1, 3)).astype(np.float32)
     patch = cv2.GaussianBlur(patch, (0, 0), options.psf_sigma_px, borderType=cv2.BORDER_CONSTANT)
     if options.speckle_contrast > 0.0:
@@ -258,15 +276,18 @@ def _expose(scene: np.ndarray, rng: np.random.Generator, options: RenderOptions)
 
 
 def _photosites(camera: CameraModel, base: np.ndarray, layout: ScreenLayout, spots_yz: np.ndarray,
-                seen: np.ndarray, rng: np.random.Generator, options: RenderOptions) -> np.ndarray:
-    """Noise-free signal (H, W) float32 DN at each photosite: ambient light plus the lasers."""
+                seen: np.ndarray, rng: np.random.Generator, options: RenderOptions,
+                beams: np.ndarray | None = None) -> np.ndarray:
+    """Noise-free signal (H, W) float32 DN at each photosite: ambient light plus the lasers (beams (2, 3):
+    their directions, None for round spots)."""
     sites = _bayer_sites(camera.height, camera.width)
     scene = base * _ambient_response(camera.height, camera.width)
     _, vignetting = _screen_maps(camera, layout)
     for laser in range(2):
         if not seen[laser]:
             continue
-        spot = _spot(camera, layout, spots_yz[laser], options.laser_radiance_dn[laser], rng, options)
+        spot = _spot(camera, layout, spots_yz[laser], options.laser_radiance_dn[laser], rng, options,
+                     None if beams is None else beams[laser])
         if spot is None:
             continue
         row0, col0, patch = spot
@@ -279,14 +300,16 @@ def _photosites(camera: CameraModel, base: np.ndarray, layout: ScreenLayout, spo
 
 
 def render_frame(camera: CameraModel, spots_yz: np.ndarray, seen: np.ndarray, rng: np.random.Generator,
-                 options: RenderOptions = RenderOptions(), layout: ScreenLayout = ScreenLayout()) -> np.ndarray:
+                 options: RenderOptions = RenderOptions(), layout: ScreenLayout = ScreenLayout(),
+                 beams: np.ndarray | None = None) -> np.ndarray:
     """A bgr8 frame (H, W, 3) uint8 of the screen with the laser spots on it.
 
     spots_yz (2, 2): (y, z) in metres of laser 1 (row 0, red) and laser 2 (row
     1, green) on the plane x = 0; seen (2,) bool: whether each beam reaches
     that plane (False: the laser is off or points away; nothing is drawn). A
     seen spot outside the measuring area is still drawn where it lands (screen
-    border, wall), as a camera would see it.
+    border, wall), as a camera would see it. beams (2, 3): the beams' directions
+    in frame {0}, for their elongated footprints; None: round spots.
     """
     spots_yz = np.asarray(spots_yz, dtype=float).reshape(2, 2)
     seen = np.asarray(seen, dtype=bool).reshape(2)
@@ -294,7 +317,7 @@ def render_frame(camera: CameraModel, spots_yz: np.ndarray, seen: np.ndarray, rn
         raise ValueError(f"a seen spot must have finite coordinates, got {spots_yz.tolist()}")
     albedo, vignetting = _screen_maps(camera, layout)
     base = _ambient(camera, rng, options) * albedo * vignetting
-    scene = _photosites(camera, base, layout, spots_yz, seen, rng, options)
+    scene = _photosites(camera, base, layout, spots_yz, seen, rng, options, beams)
     return _expose(scene, rng, options)
 
 
