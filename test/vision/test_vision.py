@@ -357,3 +357,27 @@ def test_clean_spots_are_kept(camera, detector):
             found, seen = detector.detect(render_frame(camera, spots, BOTH, rng, options))
             assert seen.all(), options
             assert np.max(np.abs(_pixel_errors(camera, found, spots))) < 0.25
+
+
+def test_the_simulated_arm_gives_the_camera_the_beams_of_its_true_spots():
+    """camera_sim draws each spot's footprint from the beam the sim arm_driver sends with it
+    (TrueSpots): the beam from the true laser module's origin meets the screen x = 0 at the spot."""
+    from laser_calib.hardware.backends import SimArm
+    from laser_calib.model.kinematics import predict
+    from laser_calib.sim.simulation import bundled_robot, paper_session
+
+    robot = bundled_robot("paper-7dof")
+    q = paper_session("paper-7dof", 0, n_per_span=4).samples.q
+    arm = SimArm(robot, [f"joint{i + 1}" for i in range(robot.n_joints)], np.random.default_rng(5), disturbance=0.0)
+    checked = 0
+    for reading in q:
+        arm.q = reading.copy()
+        arm.goal = reading.copy()
+        spots, seen, beams = arm.true_spots()
+        origin = predict(robot, arm.true_joints()[None]).state.origin[0]
+        for j in np.flatnonzero(seen):
+            along = -origin[0] / beams[j, 0]                  # to the plane x = 0
+            assert along > 0 and np.allclose((origin + along * beams[j])[1:], spots[j], atol=1e-9)
+            assert abs(np.linalg.norm(beams[j]) - 1.0) < 1e-12
+            checked += 1
+    assert checked > len(q)

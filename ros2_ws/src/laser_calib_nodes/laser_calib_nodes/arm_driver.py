@@ -11,7 +11,7 @@ Subscribes  joint_trajectory (trajectory_msgs/JointTrajectory), accepted under t
             still poses).
 Publishes   joint_states (sensor_msgs/JointState) at ``rate`` Hz: position
             (rad) and velocity (rad/s) as read from the arm.
-            sim/true_spots (laser_calib_interfaces/SpotPair), backend 'sim' only:
+            sim/true_spots (laser_calib_interfaces/TrueSpots), backend 'sim' only:
             the true spots of the two lasers (true robot at the true joint
             angles, laser_calib.model.kinematics.predict), stamped like the joint
             state of the same instant. Private to the simulation: camera_sim
@@ -108,8 +108,8 @@ class ArmDriver(Node):
                                                         f"sim.errors={errors_kind}, seed {seed}")
             self.sim = SimArm(true_robot, self.joint_names, rng, speed, tau, disturbance, read_noise)
             self.backend = self.sim
-            from laser_calib_interfaces.msg import SpotPair
-            self.true_pub = self.create_publisher(SpotPair, common.TRUE_SPOTS, common.STREAM_QOS)
+            from laser_calib_interfaces.msg import TrueSpots
+            self.true_pub = self.create_publisher(TrueSpots, common.TRUE_SPOTS, common.STREAM_QOS)
         elif backend == "dynamixel":
             ids = list(ids or [])
             if not ids:
@@ -164,12 +164,13 @@ class ArmDriver(Node):
         msg.velocity = [float(v) for v in velocity]
         self.state_pub.publish(msg)
         if self.sim is not None:
-            from laser_calib_interfaces.msg import SpotPair
-            spots, seen = self.sim.true_spots()
-            true = SpotPair()
+            from laser_calib_interfaces.msg import TrueSpots
+            spots, seen, beams = self.sim.true_spots()
+            true = TrueSpots()
             true.header.stamp = stamp
             true.header.frame_id = common.SCREEN_FRAME
             true.spots = common.spots_to_msg(spots, seen)
+            true.beams = [float(v) for v in np.where(seen[:, None], beams, 0.0).ravel()]
             self.true_pub.publish(true)
 
     def fail(self, message: str) -> None:

@@ -1,9 +1,10 @@
 """camera_sim: the simulated camera watching the screen.
 
-Subscribes  sim/true_spots (laser_calib_interfaces/SpotPair) from the sim arm_driver.
+Subscribes  sim/true_spots (laser_calib_interfaces/TrueSpots) from the sim arm_driver.
 Publishes   camera/image_raw (sensor_msgs/Image, bgr8) and camera/camera_info
             (sensor_msgs/CameraInfo, plumb_bob) at ``rate`` Hz, rendered by
-            laser_calib.vision.render.render_frame from the latest true spots.
+            laser_calib.vision.render.render_frame from the latest true spots and
+            their beams (an oblique beam's footprint is elongated, as a real one is).
             The image is stamped with the stamp of the true spots it shows (the
             capture instant), which is also the stamp of a joint state.
 """
@@ -52,8 +53,8 @@ class CameraSim(Node):
         self.rng = np.random.default_rng(seed)
         self.latest = None
         self.last_stamp = None
-        from laser_calib_interfaces.msg import SpotPair
-        self.create_subscription(SpotPair, common.TRUE_SPOTS, self.on_spots, common.STREAM_QOS)
+        from laser_calib_interfaces.msg import TrueSpots
+        self.create_subscription(TrueSpots, common.TRUE_SPOTS, self.on_spots, common.STREAM_QOS)
         self.image_pub = self.create_publisher(Image, common.IMAGE, common.IMAGE_QOS)
         # volatile, as most drivers publish it: the subscribers' latched profile for drivers that latch it
         # (common.subscribe_camera) does not match, which is no fault here (it was a WARN each session)
@@ -74,7 +75,8 @@ class CameraSim(Node):
         self.last_stamp = msg.header.stamp
         spots = common.spots_from_msg(msg.spots)
         seen = np.array([s.seen for s in msg.spots])
-        frame = render.render_frame(self.camera, np.nan_to_num(spots), seen, self.rng, self.options)
+        frame = render.render_frame(self.camera, np.nan_to_num(spots), seen, self.rng, self.options,
+                                    beams=np.array(msg.beams, dtype=float).reshape(2, 3))
         image = Image()
         image.header.stamp = msg.header.stamp
         image.header.frame_id = CAMERA_FRAME

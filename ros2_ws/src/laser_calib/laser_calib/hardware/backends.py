@@ -113,10 +113,11 @@ class SimArm:
         """The physical joint angles (reading + disturbance) at the last read."""
         return self.q + self.disturbance
 
-    def true_spots(self) -> tuple[np.ndarray, np.ndarray]:
-        """(spots (2,2) m, seen (2,)): the two spots of the true robot at the physical joints."""
+    def true_spots(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(spots (2,2) m, seen (2,), beams (2,3) unit directions in {0}): the two spots of the true robot at
+        the physical joints, and their beams (the simulated camera draws an oblique beam's footprint)."""
         prediction = predict(self.robot, self.true_joints()[None])
-        return prediction.spots[0], prediction.hit[0]
+        return prediction.spots[0], prediction.hit[0], prediction.state.beams[0]
 
     def stop(self) -> list[int]:
         self._advance()
