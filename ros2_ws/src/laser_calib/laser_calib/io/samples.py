@@ -328,9 +328,10 @@ def check_spot_units(spots: np.ndarray, robot: Robot, where: str) -> None:
 def check_joint_count(n_q: int, robot: Robot | None, source: str) -> None:
     """One line when the file's q1..qN do not match the robot's readings (named for a URDF robot)."""
     if robot is not None and n_q != robot.n_joints:
-        names = f": q1..q{robot.n_joints} are {', '.join(robot.joint_names)}" if robot.chain is not None else ""
-        raise _header_error(source, f"{n_q} joint columns but robot '{robot.name}' has {robot.n_joints} joints"
-                                    + names)
+        names = (f": q1{f'..q{robot.n_joints} are' if robot.n_joints > 1 else ' is'} {', '.join(robot.joint_names)}"
+                 if robot.chain is not None else "")
+        raise _header_error(source, f"{n_q} joint column{'s' * (n_q != 1)} but robot '{robot.name}' has "
+                                    f"{robot.n_joints} joint{'s' * (robot.n_joints != 1)}{names}")
 
 
 # A measured reading may lie a little beyond its joint's limit: the arm settled against the stop,

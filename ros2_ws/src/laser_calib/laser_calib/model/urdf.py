@@ -312,4 +312,13 @@ def calibrated_urdf(robot: Robot) -> str:
         # joint's motion by the axis's length: a unit axis written leaves no reader in doubt.
         if axis is not None and abs(np.linalg.norm(np.array(axis.get("xyz", "1 0 0").split(), float)) - 1.0) > 1e-12:
             axis.set("xyz", " ".join(repr(float(v)) for v in axes[name]))
-    return etree.tostring(root, encoding="unicode", xml_declaration=False) + "\n"
+    # the comments around <robot> (a generator's banner, a licence) are kept, but those a calibration
+    # wrote there about its own fit (report.urdf_export): this file says its own
+    around = [[etree.tostring(node, encoding="unicode", with_tail=False) for node in nodes
+               if not (node.tag is etree.Comment and (node.text or "").strip().startswith(OWN_COMMENTS))]
+              for nodes in (reversed(list(root.itersiblings(preceding=True))), root.itersiblings())]
+    return "\n".join(around[0] + [etree.tostring(root, encoding="unicode", with_tail=False)] + around[1]) + "\n"
+
+
+# The comments report.urdf_export writes before <robot> about the fit that wrote the file
+OWN_COMMENTS = ("NO CALIBRATION:", "CAUTION:")
