@@ -7,8 +7,9 @@ subprocess in the workspace environment. Prints one JSON document.
         SECONDS (60) passed; with FRAMES (0: as without), exactly FRAMES frames, one per PERIOD s.
         INFO: each frame's CameraInfo first ('first', default), or its image first ('image_first');
         or one CameraInfo only, before any subscriber matched, volatile ('once': lost) or latched
-        ('once_latched': transient local). Prints the spots spot_detector published back, their
-        stamps and the frames published.
+        ('once_latched': transient local); 'zero_distortion': first, its D zeros (the camera's k1 is
+        -0.12); 'repeat_stamp': first, every second frame other pixels with the stamp of the one before.
+        Prints the spots spot_detector published back, their stamps and the frames published.
 """
 
 from __future__ import annotations
@@ -60,14 +61,15 @@ def main() -> None:
 
     def info(stamp) -> CameraInfo:
         msg = CameraInfo(width=info_width, height=camera.height, distortion_model="plumb_bob",
-                         k=[float(v) for v in camera.K.ravel()])
+                         k=[float(v) for v in camera.K.ravel()], d=[0.0] * 5 * (info_mode == "zero_distortion"))
         msg.header.stamp = stamp
         return msg
 
     if info_mode.startswith("once"):
         info_pub.publish(info(node.get_clock().now().to_msg()))
-    frame = render_frame(camera, TRUE, np.ones(2, bool), np.random.default_rng(5), RenderOptions())
-    data, step = encode(frame, encoding)
+    rng = np.random.default_rng(5)
+    data, step = encode(render_frame(camera, TRUE, np.ones(2, bool), rng, RenderOptions()), encoding)
+    other, _ = encode(render_frame(camera, TRUE, np.ones(2, bool), rng, RenderOptions()), encoding)
     deadline = time.monotonic() + (float(sys.argv[3]) if len(sys.argv) > 3 else 60.0)
     while image_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
@@ -85,11 +87,15 @@ def main() -> None:
     while not all(count() for count in waiting) and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
     published = 0
+    stamp = None
     while (published < frames if frames else len(got) < 3) and time.monotonic() < deadline:
-        stamp = node.get_clock().now().to_msg()
-        image = Image(height=camera.height, width=camera.width, encoding=encoding, step=step, data=data)
+        repeat = info_mode == "repeat_stamp" and published % 2 == 1
+        stamp = stamp if repeat else node.get_clock().now().to_msg()
+        image = Image(height=camera.height, width=camera.width, encoding=encoding, step=step,
+                      data=other if repeat else data)
         image.header.stamp = stamp
-        sent = {"first": [(info_pub, info(stamp)), (image_pub, image)],
+        first = [(info_pub, info(stamp)), (image_pub, image)]
+        sent = {"first": first, "zero_distortion": first, "repeat_stamp": first,
                 "image_first": [(image_pub, image), (info_pub, info(stamp))]}.get(info_mode, [(image_pub, image)])
         for publisher, msg in sent:
             publisher.publish(msg)

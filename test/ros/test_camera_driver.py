@@ -95,6 +95,28 @@ def test_a_refused_spot_is_a_warning_with_why(ros):
     assert "laser 2 refused: not one clean spot" in log and "Traceback" not in log
 
 
+def test_a_driver_distortion_other_than_the_calibrations_is_a_warning(ros):
+    """spot_detector compared the driver's K with its calibration's, never D: a lens model that moves the
+    image's edge by 20 px (a driver saying 'no distortion' of a k1 = -0.12 lens) passed unsaid."""
+    ros.start("spot_detector")
+    got = run_camera(ros, "bgr8", "0", "20", "reliable", "3", "zero_distortion")
+    assert got["frames"] == 3
+    log = ros.log("spot_detector")
+    assert "the driver's CameraInfo distortion differs from the calibration file's by up to" in log, log
+
+
+def test_frames_that_repeat_a_stamp_are_dropped_with_a_warning(ros):
+    """A frame with the stamp of an earlier one was taken for that frame through the detector's other
+    subscription and dropped without a word: a camera whose clock repeats stamps lost half its frames
+    unsaid. Frames with the same stamp and other pixels are now said to be dropped (a spot is matched
+    to the joint readings by its stamp); the same frame twice is still used once."""
+    ros.start("spot_detector")
+    got = run_camera(ros, "bgr8", "0", "20", "reliable", "6", "repeat_stamp")
+    assert got["frames"] == 3 and len({tuple(s) for s in got["stamps"]}) == 3, got
+    log = ros.log("spot_detector")
+    assert "frames with the stamp of an earlier frame and other pixels dropped" in log, log
+
+
 def test_sequencer_records_a_best_effort_camera(ros, tmp_path):
     """The bag holds camera_info (and the images, record_images) of a best-effort driver, whose
     frames a reliable subscription never matched (none were recorded), and each frame of a

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-from collections import deque
+import zlib
 from pathlib import Path
 
 import cv2
@@ -54,6 +54,8 @@ from laser_calib_nodes import common, parameters
 # with each frame, and it may come second; one that sent it once, volatile, before this node started
 # never will, and waiting for it would refuse the whole session's frames.
 INFO_WAIT_FRAMES = 5
+RECENT_FRAMES = 20   # stamps remembered, to use a frame two subscriptions deliver once
+PIXEL_SAMPLE = 997   # every 997th byte tells two frames apart (noise alone differs in thousands of them)
 # A lens model off by a pixel at the image's edge moves a spot there by 2-3 mm on the screen, 20 times the
 # detector's noise; the calibration's own reprojection error is a few tenths of a pixel.
 DISTORTION_TOLERANCE_PX = 1.0
@@ -113,7 +115,8 @@ class SpotDetectorNode(Node):
         # a frame two subscriptions deliver is used once (on_image's recent stamps; on_info takes the first)
         common.subscribe_camera(self, Image, common.IMAGE, self.on_image, depth=5)
         common.subscribe_camera(self, CameraInfo, common.CAMERA_INFO, self.on_info, depth=5)
-        self.recent = deque(maxlen=20)   # (stamp sec, nanosec, frame_id) of the frames used
+        self.recent = {}                 # (stamp sec, nanosec, frame_id) -> a digest of the pixels, of the frames used
+        self.repeated_stamps = 0
         self.bad_frames = 0
         self.info_problem: str | None = None
         self.info_checked = False
@@ -167,10 +170,19 @@ class SpotDetectorNode(Node):
 
     def on_image(self, msg: Image) -> None:
         key = (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id)
-        if key in self.recent:
-            return  # the same frame through the other subscription
+        digest = zlib.crc32(bytes(msg.data[::PIXEL_SAMPLE]))
+        if key in self.recent:  # the same frame through the other subscription, or a stamp used twice
+            if self.recent[key] != digest:
+                self.repeated_stamps += 1
+                self.get_logger().warning(
+                    f"frames with the stamp of an earlier frame and other pixels dropped ({self.repeated_stamps} so "
+                    "far): the camera repeats stamps (a coarse clock?), and a spot is matched to the joint readings "
+                    "by its stamp", throttle_duration_sec=5.0)
+            return
         if key[:2] != (0, 0):  # an unstamped camera's frames cannot be told apart: all are used
-            self.recent.append(key)
+            self.recent[key] = digest
+            while len(self.recent) > RECENT_FRAMES:
+                del self.recent[next(iter(self.recent))]
         if (not self.info_checked and self.held_back < INFO_WAIT_FRAMES
                 and self.count_publishers(self.resolve_topic_name(common.CAMERA_INFO)) > 0):  # remapped: rclpy won't
             # the driver's CameraInfo, sent with each frame, may arrive second: its size is checked first
