@@ -18,8 +18,8 @@ while measurements flow in, a bad request answered with success = false and one
 line; ~/reset forgets the samples; ~/calibrate is the action (calibrate.py).
 spot_sigma and joint_sigma (parameters.noise), the noise of the requests that leave theirs 0
 and of the online EKF, are the command line's --spot-sigma and --joint-sigma; not given:
-spot_sigma 0 (estimated), joint_sigma -1 (estimated with the spot sigma when that is, else
-0); joint_sigma 0: no joint-reading noise. They, stream.max_joint_speed and markers can be
+spot_sigma 0 (estimated), joint_sigma -1 (estimated from the residual, with the spot sigma or
+at the one given); joint_sigma 0: no joint-reading noise. They, stream.max_joint_speed and markers can be
 set at run time; the rest are read-only.
 """
 

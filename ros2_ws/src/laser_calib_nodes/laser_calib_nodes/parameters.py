@@ -179,7 +179,7 @@ def noise(node: Node) -> tuple[float, float]:
     joint = declare(node, "joint_sigma", JOINT_SIGMA_NOT_GIVEN,
                     "Joint-reading sigma, rad (at most 0.035), for requests with joint_sigma 0 and the online EKF "
                     "(from its next reset); 0: no joint-reading noise; -1: not given, as laser-calib estimate "
-                    "without --joint-sigma: estimated with the spot sigma when that is estimated, else 0 (batch) "
+                    "without --joint-sigma: estimated from the residual (batch) "
                     "/ 0 (online).", read_only=False, rule=JOINT_SIGMA)
     return spot, joint
 

@@ -246,8 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spot-sigma", type=spot_sigma, default=None,
                    help="spot noise std per coordinate, m (default: estimated from the residual)")
     p.add_argument("--joint-sigma", type=sigma_angle, default=None,
-                   help="joint reading noise std, rad (default: without --spot-sigma, estimated with the spot "
-                        "sigma from the residual and used where the residual shows it; with it, 0)")
+                   help="joint reading noise std, rad (default: estimated from the residual, with the spot sigma "
+                        "or at the one given, and used where the residual shows it)")
     p.add_argument("--prior", action="store_true", help="tolerance prior: 10 mm and 1 deg per error")
     p.add_argument("--prior-length", type=tolerance_length, default=None,
                    help=f"length tolerance, m ({SIGMA_LENGTH[0]:g} .. {SIGMA_LENGTH[1]:g}; implies --prior)")

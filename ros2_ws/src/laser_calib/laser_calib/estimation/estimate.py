@@ -15,11 +15,11 @@ estimate(robot, samples, options) runs, in order:
    on the same Jacobians, then gross outliers rejected and listed where the
    rest leave residual values to judge them by (never too few: TooFewValues);
 3. if no spot sigma is given, a fit estimates it from the residual
-   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used;
-   with the joint sigma not given either (None), both by maximum likelihood, the joint one
-   kept where the residual shows it (noise_components.joint_noise_evidence): it moves a
-   pose's spots by its levers' length; one sigma spread over them made the stds too small,
-   and the robust rule, which ran without it, runs again with it (outliers.py)
+   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used; a joint sigma
+   not given (None) is estimated by maximum likelihood too (with the spot one, or at the one
+   given), kept where the residual shows it (noise_components.joint_noise_evidence): it moves
+   a pose's spots by its levers' length; taken as 0 the stds were too small (80 % of the errors
+   within two of them), and the robust rule, which ran without it, runs again with it (outliers.py)
    (when the robust rule rejected spots, the fits after it start from its
    final least-squares minimum (by LM), which without a prior is that trial;
    with LM and no joint noise it is also the fit, rescaled to the sigma);
@@ -87,8 +87,7 @@ def spot_sigma_at_zero(sigma: float, sigma_estimated: bool) -> bool:
 @dataclass(frozen=True)
 class EstimateOptions:
     """method 'lm' or 'ekf'; spot_sigma (m) per spot coordinate, None to estimate it;
-    joint_sigma (rad) of the joint readings, None: estimated with the spot sigma when that
-    is (step 3), else 0; prior: tolerance prior_length (m) /
+    joint_sigma (rad) of the joint readings, None: estimated (step 3); prior: tolerance prior_length (m) /
     prior_angle (rad) per error; robust outlier rejection (robust.py); fixed:
     parameter names held at nominal; restarts of LM when the minimum is suspect;
     std_factor: the identifiability threshold (identifiability.py), None for
@@ -305,13 +304,15 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
 
     sigma_estimated = options.spot_sigma is None
     joint_sigma, joint_estimated, unseen_joint = noise.joint_sigma, False, None   # unseen: its ML sigma, not shown
-    if sigma_estimated:
+    spot_held = None if sigma_estimated else sigma   # a given spot sigma is held while the joint one is estimated
+    if sigma_estimated or (options.joint_sigma is None and sigma >= MIN_SIGMA):
         trial = least_squares or levenberg_marquardt(Problem(model, noise, free, excluded=excluded), start_x,
                                                      options.lm)
-        sigma = TRIAL_SIGMA * float(np.sqrt(trial.chi2 / trial.dof))
-        sigma_dof = trial.n_values - int(trial.free.sum())   # the residual values it rests on
+        if sigma_estimated:
+            sigma = TRIAL_SIGMA * float(np.sqrt(trial.chi2 / trial.dof))
+            sigma_dof = trial.n_values - int(trial.free.sum())   # the residual values it rests on
         if options.joint_sigma is None and sigma >= MIN_SIGMA:
-            spot, joint, p = joint_noise(model, trial, excluded)
+            spot, joint, p = joint_noise(model, trial, excluded, spot_held)
             if p < JOINT_NOISE_ALPHA:
                 if options.robust:  # the rule again, with the noise it did not know (outliers.py)
                     shown = NoiseModel(spot, joint)
@@ -323,13 +324,13 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
                     trial = least_squares or levenberg_marquardt(Problem(model, shown, free, excluded=excluded),
                                                                  trial.x, options.lm)
                     sigma_dof = trial.n_values - int(trial.free.sum())
-                    spot, joint, _ = joint_noise(model, trial, excluded)   # of the units it kept
+                    spot, joint, _ = joint_noise(model, trial, excluded, spot_held)   # of the units it kept
                 sigma, joint_sigma, joint_estimated = spot, joint, True
             else:
                 unseen_joint = joint
         noise = NoiseModel(max(sigma, 1e-9), joint_sigma)
         start_x = trial.x
-    if sigma_estimated or rejected:
+    if sigma_estimated or rejected or joint_estimated:
         ident = analyse(_factor_without(model, start_factor, start_noise, noise, x0, excluded, removed),
                         model.scales, names, user_fixed, std_factor=factor, amplify=options.amplify)
         start_x = start_x if np.array_equal(ident.free, free) else x0   # holding more: no start (step 4)
@@ -348,7 +349,7 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
         result = rescaled(least_squares, noise.sigma / robust_sigma)
     else:
         result = fit(problem, start_x)
-    if joint_estimated and prior_sigma is None and result.chi2 > 0:
+    if joint_estimated and sigma_estimated and prior_sigma is None and result.chi2 > 0:
         # the variance factor a posteriori: the likelihood set the components' ratio, chi^2 / dof their level
         # (none when the fit moved every beam off the screen: no residual to set it, the loss is said below)
         ratio = float(np.sqrt(result.chi2 / result.dof))

@@ -107,7 +107,8 @@ def hidden(model: MeasurementModel, fit: Fit, excluded: np.ndarray | None, joint
     # without joint noise the covariance is sigma^2 N^-1, sigma the residual's (the variance factor)
     plain = np.diag(inverse) * float(np.sum((res.r * valid[..., None]) ** 2)) / fit.dof
     ratio = np.full(len(fit.x), np.nan)
-    ratio[fit.free] = np.sqrt(np.diag(sandwich) / plain)
+    with np.errstate(divide="ignore", invalid="ignore"):   # an exact fit: no ratio (NaN, which hidden_warnings skips)
+        ratio[fit.free] = np.sqrt(np.diag(sandwich) / plain)
     return HiddenJointNoise(joint_up, spot_up, ratio)
 
 

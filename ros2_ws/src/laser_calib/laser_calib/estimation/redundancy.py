@@ -116,16 +116,17 @@ def sigma_warnings(sigma: float, dof: int, remedy: str = "measure more poses or 
     return []
 
 
-def joint_noise(model: MeasurementModel, trial: Fit, excluded: np.ndarray | None) -> tuple[float, float, float]:
+def joint_noise(model: MeasurementModel, trial: Fit, excluded: np.ndarray | None,
+                spot: float | None = None) -> tuple[float, float, float]:
     """(spot sigma, joint sigma, p of no joint noise) of the trial fit's residual over the units it
-    fitted, by the restricted likelihood of the parameters it determined; p 1 for a model whose
-    measurements do not depend on joint readings."""
+    fitted, by the restricted likelihood of the parameters it determined, the spot sigma held at
+    ``spot`` when given; p 1 for a model whose measurements do not depend on joint readings."""
     res = residuals_at(model, trial.x, jacobian=True)
     if res.jac_q is None:
-        return 0.0, 0.0, 1.0
+        return spot or 0.0, 0.0, 1.0
     if excluded is not None:
         res = replace(res, valid=res.valid & ~excluded)
-    return joint_noise_evidence(res, 1.0, determined_jacobian(model, trial, res))
+    return joint_noise_evidence(res, 1.0, determined_jacobian(model, trial, res), spot)
 
 
 def determined_jacobian(model: MeasurementModel, fit: Fit, res: Residuals) -> np.ndarray:

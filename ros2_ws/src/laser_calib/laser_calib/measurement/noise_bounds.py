@@ -19,7 +19,7 @@ MAX_SPOT_SIGMA = 0.05
 # for 0.1 deg: 5.7 deg, which weighed every pose by a noise its spots did not show).
 MAX_SIGMA_ANGLE = 0.035
 # The ROS parameters' and requests' joint sigma that is not given (a ROS parameter cannot be None): as the
-# command line without --joint-sigma, estimated with the spot sigma when that is estimated, else 0.
+# command line without --joint-sigma, estimated from the residual (with the spot sigma, or at the one given).
 JOINT_SIGMA_NOT_GIVEN = -1.0
 
 

@@ -124,12 +124,14 @@ def boundary_p(ratio: float) -> float:
     return 0.5 * float(chdtrc(1, ratio)) if ratio > 0 else 1.0
 
 
-def joint_noise_evidence(res: Residuals, scale: float, jac: np.ndarray | None = None) -> tuple[float, float, float]:
+def joint_noise_evidence(res: Residuals, scale: float, jac: np.ndarray | None = None,
+                         spot: float | None = None) -> tuple[float, float, float]:
     """(spot sigma m, joint sigma rad, p) of a fit's residuals (scaled as in deviance; restricted
-    with ``jac``) with both components estimated, and the p-value of "no joint-reading noise":
-    the one-sided likelihood-ratio test against the spot noise alone (boundary_p)."""
+    with ``jac``) with both components estimated (the spot one held at ``spot`` when given), and
+    the p-value of "no joint-reading noise": the one-sided likelihood-ratio test against the spot
+    noise alone (boundary_p)."""
     value = deviance(res, scale, jac)
-    spot, joint = noise_components(res, scale, None, None, jac)
-    alone = noise_components(res, scale, None, 0.0, jac)
+    alone = noise_components(res, scale, spot, 0.0, jac)
+    spot, joint = noise_components(res, scale, spot, None, jac)
     ratio = value(*alone) - value(spot, joint)
     return spot, joint, boundary_p(ratio)

@@ -37,8 +37,8 @@ def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool,
                      joint_sigma: float = JOINT_SIGMA_NOT_GIVEN) -> EstimateOptions:
     """EstimateOptions from ROS-style values, as the command line makes them from its options:
     method '' = 'lm'; spot_sigma 0 = estimate it (no --spot-sigma); joint_sigma (rad)
-    JOINT_SIGMA_NOT_GIVEN (-1) = no --joint-sigma (None: estimated with the spot sigma when that is
-    estimated, else 0), 0 = no joint-reading noise, > 0 = that sigma. A bad value: InputError."""
+    JOINT_SIGMA_NOT_GIVEN (-1) = no --joint-sigma (None: estimated from the residual), 0 = no
+    joint-reading noise, > 0 = that sigma. A bad value: InputError."""
     method = method or "lm"
     if method not in METHODS:
         raise InputError("method", f"expected one of {', '.join(METHODS)}, got {method!r}")
