@@ -24,7 +24,7 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       staged_folder, tolerance_angle_deg, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
-from laser_calib.estimation.identifiability import FIXED_NOTE, TooFewValues, carried_note
+from laser_calib.estimation.identifiability import FIXED_NOTE, WEAK_AND_LARGE, TooFewValues, carried_note
 from laser_calib.model.robot import Robot
 from laser_calib.io.figaroh import ROW_ORDER_AS_TIME, is_figaroh
 from laser_calib.io.positioner import read_positioner
@@ -159,7 +159,8 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                      + ("; its effects are in result.json, not in the calibrated robot file (the geometric model)"
                         if len(result["diagnosis"]["stages"]) > 1 else ""))
     failure = first_failure(fit.estimate.warnings)
-    caution = next((w for w in result["warnings"] if WORSE_THAN_DESIGN in w), None)
+    caution = next((w for w in result["warnings"] if WORSE_THAN_DESIGN in w),
+                   next((w for w in result["warnings"] if w.startswith(WEAK_AND_LARGE)), None))
     with staged_folder(args.out) as out:
         if robot.chain is not None:
             written = save_calibrated_urdf(fit.corrected(robot), robot, fit.determined, out, str(args.robot), failure,

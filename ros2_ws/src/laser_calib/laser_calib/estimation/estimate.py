@@ -15,11 +15,10 @@ estimate(robot, samples, options) runs, in order:
    on the same Jacobians, then gross outliers rejected and listed where the
    rest leave residual values to judge them by (never too few: TooFewValues);
 3. if no spot sigma is given, a fit estimates it from the residual
-   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used; a joint sigma
-   not given (None) is estimated by maximum likelihood too (with the spot one, or at the one
-   given), kept where the residual shows it (noise_components.joint_noise_evidence): it moves
-   a pose's spots by its levers' length; taken as 0 the stds were too small (80 % of the errors
-   within two of them), and the robust rule, which ran without it, runs again with it (outliers.py)
+   (sigma^2 = chi^2 / dof at a trial sigma of 1 mm), and that value is used; a joint sigma not given
+   (None) is estimated by maximum likelihood (with the spot one, or at the one given), kept where the
+   residual shows it (noise_components.joint_noise_evidence): it moves a pose's spots by its levers'
+   length, and taken as 0 the stds were too small; the robust rule runs again with it (outliers.py)
    (when the robust rule rejected spots, the fits after it start from its
    final least-squares minimum (by LM), which without a prior is that trial;
    with LM and no joint noise it is also the fit, rescaled to the sigma);
@@ -175,9 +174,9 @@ class Estimate:
 def prior_sigmas(model: MeasurementModel, n_geometric: int, options: EstimateOptions) -> np.ndarray | None:
     if not options.prior:
         return None
-    sigma = np.full(len(model.names), np.inf)
-    lengths = model.scales[:n_geometric] == LENGTH_SCALE  # D-H or joint placements alike
-    sigma[:n_geometric] = np.where(lengths, options.prior_length, options.prior_angle)
+    sigma = np.full(len(model.names), np.inf)   # a length or an angle tolerance, of D-H or joint placements alike
+    sigma[:n_geometric] = np.where(model.scales[:n_geometric] == LENGTH_SCALE, options.prior_length,
+                                   options.prior_angle)
     return sigma
 
 
@@ -388,7 +387,8 @@ def estimate_model(model: MeasurementModel, options: EstimateOptions, prior_sigm
     sound = not sigma_estimated or (not exact and not noise_doubts)
     warnings.extend(implausible(names, result.x, model.scales, own, getattr(getattr(model, "robot", None),
                                 "param_names", ()), *((result.std, ident.carry) if sound else (None, None))))
-    warnings.extend(weak_warnings(names, result.std, model.scales, own) if sound and prior_sigma is None else [])
+    warnings.extend(weak_warnings(names, result.std, model.scales, own, result.x)
+                    if sound and prior_sigma is None else [])
     if getattr(model, "robot", None) is not None and getattr(model, "samples", None) is not None:
         warnings.extend(still_joint_warnings(model.samples.q, model.robot.joint_names))
     if not result.converged:

@@ -31,7 +31,7 @@ from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.failures import UNDETERMINED, first_failure
 from laser_calib.estimation.folds import test_range_warnings
-from laser_calib.estimation.identifiability import FIXED_NOTE, carried_note
+from laser_calib.estimation.identifiability import FIXED_NOTE, WEAK_AND_LARGE, carried_note
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples, reading_warnings
@@ -242,8 +242,11 @@ class Calibration:
     @cached_property
     def caution(self) -> str | None:
         """The warning that the test poses, never fitted, are missed by more than the nominal
-        model (worse_on_test), said in the calibrated files too (read once per file); None without."""
-        return next(iter(worse_on_test(self.sets)), None)
+        model (worse_on_test), or else that large corrections are written that the data barely
+        determine (identifiability.WEAK_AND_LARGE), said in the calibrated files too (read once per
+        file); None without."""
+        return next(iter(worse_on_test(self.sets)),
+                    next((w for w in self.estimate.warnings if w.startswith(WEAK_AND_LARGE)), None))
 
     def summary(self) -> str:
         """One line: the spot error before and after over the spots fitted, as the nodes log it."""
@@ -290,7 +293,8 @@ def evaluate(robot: Robot, samples: Samples, est: Estimate, test: Samples | None
                                         fit_status(samples.seen, est.rejected, est.impossible))}
     if test is not None:
         model = spot_model(robot, test, effects, compensator)
-        out["test"] = SetEvaluation(test, residuals_at(model, start).predicted, residuals_at(model, est.values).predicted,
+        out["test"] = SetEvaluation(test, residuals_at(model, start).predicted,
+                                    residuals_at(model, est.values).predicted,
                                     test_status(model, test.seen, est, test.spots.shape[2]), ("tested", "beyond"))
     return out
 
