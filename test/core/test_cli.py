@@ -90,6 +90,7 @@ def test_estimate_writes_calibrated_robot_result_and_report(simulated, tmp_path,
                  "--method", method, "--spot-sigma", "0.0011547", "--joint-sigma", "0.001", "--out", str(out)])
     assert code == 0
     result = json.loads((out / "result.json").read_text())
+    assert result["failure"] is None and result["caution"] is None
     assert [e["name"] for e in result["errors"]][:4] == ["a1", "d1", "alpha1", "theta1"]
     assert all(e["identifiable"] and e["std"] > 0 for e in result["errors"])
     truth = json.loads((simulated / "truth.json").read_text())["errors"]

@@ -201,6 +201,10 @@ class Calibration:
         return {
             "robot": self.robot.name,
             "software": f"laser_calib {__version__}",
+            # said at the top, as urdf_corrections.json and diagnosis.json say them: a reader of the values
+            # below finds no other mark of a fit that is no calibration than a line among the warnings
+            "failure": self.failure,
+            "caution": self.caution,
             "method": options.method,
             "options": options_dict,
             "errors": errors,
