@@ -10,7 +10,7 @@ import pytest
 
 from laser_calib.hardware.trajectory import TrajectoryPoint, joint_order, move_time, trajectory_goal
 from laser_calib.model.robot_file import load_robot
-from laser_calib.session.average import FrameCollector, average_frames
+from laser_calib.session.average import FrameCollector, StillPoses, average_frames
 from laser_calib.session.poses import format_poses, generate_poses, load_poses, save_poses, with_test_poses
 from laser_calib.session.settle import SettleDetector, SettleRule
 
@@ -226,3 +226,32 @@ def test_a_driver_stamping_its_joint_states_0_is_named_when_the_arm_does_not_set
                                          "latest 1000.000 s before: a driver stamping 0, or on another clock?)")
     s.update(1000.5, np.array([0.0, 0.5]), None)      # one stamped after it: the usual line
     assert s.worst_joint(["a", "b"]) == "b at 0.50000 rad, goal 0.00000"
+
+
+def test_the_still_frames_of_a_stream_are_one_sample_per_pose():
+    """The estimator's 'stream' input took each still frame as a pose: 20 poses were 222 in the
+    estimate, the frames of one pose (its joint disturbance and spots shared) counted as independent,
+    the stds 3-4 times too small. StillPoses averages a pose's frames into one sample; a moving pair,
+    or a reading off the pose's first by more than the tolerance, ends it."""
+    poses = StillPoses(tolerance=0.003)
+    first, second = np.array([0.1, 0.2]), np.array([0.5, -0.3])
+    spots = [np.array([[0.1, 0.2], [0.3, 0.4]]), np.array([[0.1002, 0.2], [np.nan, np.nan]]),
+             np.array([[0.0998, 0.2], [0.3, 0.4]])]
+    ended = [poses.add(1.0 + 0.1 * k, first + 0.001 * k, spot, True) for k, spot in enumerate(spots)]
+    assert ended == [None, None, None] and poses.pending().q[0] == pytest.approx(first + 0.001)
+    assert poses.add(1.3, (first + second) / 2, spots[0], False) is not None       # the arm moves: ended
+    assert poses.count == 1 and poses.pending() is None
+    assert poses.add(1.4, second, spots[0], True) is None
+    sample = poses.add(1.5, second + 0.004, spots[2], True)                          # off the pose: a new one
+    assert sample.pose.tolist() == [1] and sample.stamp.tolist() == [1.4] and sample.q[0] == pytest.approx(second)
+    assert poses.close().pose.tolist() == [2] and poses.close() is None
+
+
+def test_a_pose_s_sample_averages_its_frames_and_the_spots_seen_in_half():
+    poses = StillPoses(tolerance=0.003)
+    spots = [np.array([[0.1, 0.2], [0.3, 0.4]]), np.array([[0.1002, 0.2], [np.nan, np.nan]]),
+             np.array([[0.0998, 0.2], [0.3, 0.4]])]
+    for k, spot in enumerate(spots):
+        poses.add(1.0 + 0.1 * k, np.array([0.1, 0.2]), spot, True)
+    sample = poses.close()
+    assert sample.spots[0] == pytest.approx(np.array([[0.1, 0.2], [0.3, 0.4]]))   # laser 2 seen in 2 of 3

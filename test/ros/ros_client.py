@@ -514,6 +514,15 @@ def stream(robot_path: str, layout: str, count: int, wait: float = 10.0) -> dict
         until = time.monotonic() + 0.1
         while time.monotonic() < until:
             rclpy.spin_once(node, timeout_sec=0.02)
+    # the arm moves on: a moving pair ends the last pose (the estimator averages a pose's still frames)
+    stamp = node.get_clock().now().to_msg()
+    state = JointState(name=[f"joint{i + 1}" for i in order] + extra, position=[float(q[-1, i]) for i in order]
+                       + [0.0] * len(extra), velocity=[1.0] * (n + len(extra)))
+    state.header.stamp = stamp
+    pair = SpotPair(spots=[Spot(y=math.nan, z=math.nan, seen=False) for _ in range(2)])
+    pair.header.stamp, pair.header.frame_id = stamp, "screen"
+    states.publish(state)
+    pairs.publish(pair)
     until = time.monotonic() + wait
     while time.monotonic() < until and not (got and got[-1].sample_count >= count):
         rclpy.spin_once(node, timeout_sec=0.1)

@@ -5,8 +5,9 @@ Input 'samples' (Sample, as the sequencer or replay publishes them; subscribed
 with the sequencer's transient-local QoS and with the default one, each (pose,
 stamp) counted once; the held-out ones on test_samples kept apart, never fitted,
 for the estimate's test figures and the diagnosis's predictive test) or 'stream'
-(joint_states + spots paired by stamp within sync_tolerance, counted when every
-|joint velocity| < stream.max_joint_speed). In
+(joint_states + spots paired by stamp within sync_tolerance, taken when every
+|joint velocity| < stream.max_joint_speed, the frames of one still pose averaged into one
+sample, as the sequencer's are). In
 both, and in the ~/estimate request's samples, each joint's reading is found by its
 name, ``joint_names``, as the sequencer does (joint_states.py; a Sample's by
 laser_calib.io.joint_names, as estimate --bag reads a bag's).
@@ -46,7 +47,9 @@ from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
 from laser_calib_nodes.joint_states import JointStateReader
 from laser_calib_nodes.markers import MAX_POINTS, calibration_markers, online_parameters
-from laser_calib_nodes.sample_rows import Row, check_row, request_options, request_sets, row_from_msg
+from laser_calib_nodes.sample_rows import (Row, check_row, request_options, request_sets, row_from_msg,
+                                           sample_row)
+from laser_calib.session.average import StillPoses
 from laser_calib.session.estimate import online_options, run_calibration
 from laser_calib.session.sync import StampSynchronizer
 
@@ -64,6 +67,11 @@ class Estimator(Node):
         self.max_speed = d("stream.max_joint_speed", 0.002, "'stream': a pair counts only when every |joint "
                                                             "velocity| is below this, rad/s.",
                            read_only=False, rule=parameters.positive)
+        pose_tolerance = d("stream.pose_tolerance", 0.003, "'stream': the still frames of one pose are averaged into "
+                                                           "one sample; a reading that leaves the pose's first by "
+                                                           "more than this (rad, or m for a prismatic joint) starts "
+                                                           "another, as a moving one ends it.",
+                           rule=parameters.positive)
         self.spot_sigma, self.joint_sigma = parameters.noise(self)
         self.markers_on = d("markers", True, "Publish calibration_markers.", read_only=False)
         names = d("joint_names", Parameter.Type.STRING_ARRAY, "The robot's joints, base to tip, found by name in "
@@ -102,6 +110,7 @@ class Estimator(Node):
                                          event_callbacks=events)
         else:
             self.sync, self.reported_drops = StampSynchronizer(self.sync_tol), 0
+            self.poses = StillPoses(pose_tolerance)
             self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.KEEP_ALL_QOS,
                                      callback_group=inputs)
             self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.KEEP_ALL_QOS,
@@ -172,16 +181,27 @@ class Estimator(Node):
                                       f"within sync_tolerance of the stamp, or over {self.sync.max_pending} waiting")
 
     def add_pair(self, pair) -> None:
+        """A still pair is a frame of its pose; a moving one (joint reading and image then describe no one
+        pose) ends it: the pose's frames averaged are one sample (StillPoses)."""
         q, v = pair.a
-        if v is not None and not bool(np.all(np.abs(v) < self.max_speed)):
-            return  # moving: joint reading and image do not describe the same pose
-        row = (len(self.rows), pair.b_stamp, q, pair.b)
-        try:
-            check_row(self.robot, row, "joint state")
-        except InputError as exc:
-            self.get_logger().error(f"ignored: {exc}")
-            return
-        self.add(row)
+        still = v is None or bool(np.all(np.abs(v) < self.max_speed))
+        if still:
+            try:
+                check_row(self.robot, (self.poses.count, pair.b_stamp, q, pair.b), "joint state")
+            except InputError as exc:
+                self.get_logger().error(f"ignored: {exc}")
+                return
+        with self.lock:
+            ended = self.poses.add(pair.b_stamp, q, pair.b, still)
+        if ended is not None:
+            self.add(sample_row(ended))
+
+    def accumulated(self) -> tuple[list[Row], list[Row]]:
+        """The rows and test rows a request with use_accumulated takes; 'stream': the pose being measured
+        too (the arm has not moved on from it)."""
+        with self.lock:
+            pending = self.poses.pending() if self.input == "stream" else None
+            return self.rows + ([sample_row(pending)] if pending is not None else []), list(self.test_rows)
 
     def add(self, row) -> None:
         with self.lock:
@@ -209,6 +229,7 @@ class Estimator(Node):
             if self.input == "stream":
                 self.sync.reset()
                 self.reported_drops = 0
+                self.poses = StillPoses(self.poses.tolerance)
         response.success = True
         response.message = "accumulated samples cleared, online EKF restarted"
         self.get_logger().info(response.message)

@@ -40,8 +40,7 @@ def request_sets(node, request) -> tuple[Samples, Samples | None, dict]:
         raise InputError("request", f"use_accumulated is true and the request holds {len(request.samples)} samples "
                          f"and {len(request.test_samples)} test samples: send samples or use_accumulated, not both")
     if request.use_accumulated:
-        with node.lock:
-            rows, test_rows = list(node.rows), list(node.test_rows)
+        rows, test_rows = node.accumulated()
         if not rows:
             raise InputError("request", "use_accumulated is true but no samples have been accumulated yet")
         by = f"accumulated by {node.get_fully_qualified_name()}"
@@ -69,3 +68,8 @@ def request_options(node, request) -> EstimateOptions:
     parameter (parameters.noise). A bad value: InputError naming it."""
     return estimate_options(request.method, request.spot_sigma or node.spot_sigma, request.prior, request.robust,
                             request.joint_sigma or node.joint_sigma)
+
+
+def sample_row(sample: Samples) -> Row:
+    """The row of a one-pose sample (session.average's)."""
+    return int(sample.pose[0]), float(sample.stamp[0]), sample.q[0], sample.spots[0]
