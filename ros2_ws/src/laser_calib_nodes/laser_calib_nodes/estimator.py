@@ -37,7 +37,6 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -47,11 +46,9 @@ from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
 from laser_calib_nodes.joint_states import JointStateReader
 from laser_calib_nodes.markers import MAX_POINTS, calibration_markers, online_parameters
-from laser_calib_nodes.sample_rows import (Row, check_row, request_options, request_sets, row_from_msg,
-                                           sample_row)
-from laser_calib.session.average import StillPoses
+from laser_calib_nodes.sample_rows import Row, request_options, request_sets, row_from_msg
+from laser_calib_nodes.stream_input import StreamInput
 from laser_calib.session.estimate import online_options, run_calibration
-from laser_calib.session.sync import StampSynchronizer
 
 
 class Estimator(Node):
@@ -85,7 +82,7 @@ class Estimator(Node):
         parameters.dynamic(self, {**parameters.NOISE_ATTRIBUTES, "stream.max_joint_speed": "max_speed",
                                   "markers": "markers_on"})
 
-        from laser_calib_interfaces.msg import DhParameters, Sample, SpotPair
+        from laser_calib_interfaces.msg import DhParameters, Sample
         from laser_calib_interfaces.srv import Estimate
 
         self.lock = threading.Lock()
@@ -109,12 +106,7 @@ class Estimator(Node):
                 self.create_subscription(Sample, common.TEST_SAMPLES, self.on_test_sample, qos, callback_group=inputs,
                                          event_callbacks=events)
         else:
-            self.sync, self.reported_drops = StampSynchronizer(self.sync_tol), 0
-            self.poses = StillPoses(pose_tolerance)
-            self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.KEEP_ALL_QOS,
-                                     callback_group=inputs)
-            self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.KEEP_ALL_QOS,
-                                     callback_group=inputs)
+            self.stream = StreamInput(self, self.sync_tol, pose_tolerance, inputs)
         self.estimate_service = self.create_service(Estimate, common.PRIVATE_ESTIMATE, self.on_estimate,
                                                     qos_profile=common.KEEP_ALL_QOS, callback_group=services)
         self.create_service(Trigger, common.PRIVATE_RESET, self.on_reset, qos_profile=common.KEEP_ALL_QOS,
@@ -163,45 +155,12 @@ class Estimator(Node):
             keys.add(key)
         return row
 
-    def on_joint_state(self, msg: JointState) -> None:
-        reading = self.joints.read(msg)
-        if reading is None:
-            return
-        self.take_pairs(self.sync.add_a(common.stamp_seconds(msg.header.stamp), reading))
-
-    def on_spots(self, msg) -> None:
-        self.take_pairs(self.sync.add_b(common.stamp_seconds(msg.header.stamp), common.spots_from_msg(msg.spots)))
-
-    def take_pairs(self, pairs) -> None:
-        for pair in pairs:
-            self.add_pair(pair)
-        if self.sync.dropped > self.reported_drops:  # none in a steady stream: each one said
-            self.reported_drops = self.sync.dropped
-            self.get_logger().warning(f"stream: {self.reported_drops} spot frames dropped so far: no joint state "
-                                      f"within sync_tolerance of the stamp, or over {self.sync.max_pending} waiting")
-
-    def add_pair(self, pair) -> None:
-        """A still pair is a frame of its pose; a moving one (joint reading and image then describe no one
-        pose) ends it: the pose's frames averaged are one sample (StillPoses)."""
-        q, v = pair.a
-        still = v is None or bool(np.all(np.abs(v) < self.max_speed))
-        if still:
-            try:
-                check_row(self.robot, (self.poses.count, pair.b_stamp, q, pair.b), "joint state")
-            except InputError as exc:
-                self.get_logger().error(f"ignored: {exc}")
-                return
-        with self.lock:
-            ended = self.poses.add(pair.b_stamp, q, pair.b, still)
-        if ended is not None:
-            self.add(sample_row(ended))
-
     def accumulated(self) -> tuple[list[Row], list[Row]]:
         """The rows and test rows a request with use_accumulated takes; 'stream': the pose being measured
         too (the arm has not moved on from it)."""
         with self.lock:
-            pending = self.poses.pending() if self.input == "stream" else None
-            return self.rows + ([sample_row(pending)] if pending is not None else []), list(self.test_rows)
+            pending = self.stream.pending() if self.input == "stream" else None
+            return self.rows + ([pending] if pending is not None else []), list(self.test_rows)
 
     def add(self, row) -> None:
         with self.lock:
@@ -227,9 +186,7 @@ class Estimator(Node):
             self.keys, self.test_keys = set(), set()
             self.online = self.make_online()
             if self.input == "stream":
-                self.sync.reset()
-                self.reported_drops = 0
-                self.poses = StillPoses(self.poses.tolerance)
+                self.stream.reset()
         response.success = True
         response.message = "accumulated samples cleared, online EKF restarted"
         self.get_logger().info(response.message)
