@@ -35,6 +35,30 @@ CASES = {  # name: (node, parameters, the reason's start)
     "sequencer_no_joint_noise": ("sequencer", [f"robot:={ROBOT}", "estimate.joint_sigma:=0.0"],
                                  "error: parameter estimate.joint_sigma: 0 (no joint-reading noise) cannot be asked "
                                  "of the estimator"),
+    # taken without a word (a new ROS user's probe): a 2 m spot, joints read 3 rad off, pairs of frame and
+    # joint state 5 s apart, 100 rad/s commanded, a contrast no 8-bit image reaches, a mono8 mosaic of no
+    # colours refused frame by frame, a capture folder that cannot be made named by errno alone, and a
+    # truth file found missing after the whole session was measured
+    "camera_sigma_m": ("camera_sim", ["spot_sigma:=2.0"], "error: parameter spot_sigma: expected > 0 and <= 0.05 m"),
+    "arm_disturbance": ("arm_driver", [f"robot:={ROBOT}", "sim.joint_disturbance:=5.0"],
+                        "error: parameter sim.joint_disturbance: expected >= 0 and <= 0.035"),
+    "arm_read_noise": ("arm_driver", [f"robot:={ROBOT}", "sim.read_noise:=3.0"],
+                       "error: parameter sim.read_noise: expected >= 0 and <= 0.035"),
+    "sequencer_sync": ("sequencer", [f"robot:={ROBOT}", "sync_tolerance:=5.0"],
+                       "error: parameter sync_tolerance: expected >= 0 and <= 0.5 s"),
+    "estimator_sync": ("estimator", [f"robot:={ROBOT}", "sync_tolerance:=10.0"],
+                       "error: parameter sync_tolerance: expected >= 0 and <= 0.5 s"),
+    "sequencer_speed": ("sequencer", [f"robot:={ROBOT}", "move.joint_speed:=100.0"],
+                        "error: parameter move.joint_speed: expected > 0 and <= 10 rad/s"),
+    "detector_capture_count": ("spot_detector", ["capture_count:=-5"], "error: parameter capture_count: expected >= 0"),
+    "detector_capture_period": ("spot_detector", ["capture_period:=-1.0"],
+                                "error: parameter capture_period: expected >= 0"),
+    "detector_min_peak": ("spot_detector", ["min_peak_dn:=5000.0"], "error: parameter min_peak_dn: expected 0..255"),
+    "detector_mono": ("spot_detector", ["mono_pattern:=ZZZZ"], "error: parameter mono_pattern: bayer_pattern must be"),
+    "detector_capture_dir": ("spot_detector", ["capture_dir:=/proc/x"],
+                             "error: parameter capture_dir: cannot make /proc/x"),
+    "sequencer_truth": ("sequencer", [f"robot:={ROBOT}", "truth:=/nonexistent/robot_true.yaml"],
+                        "error: parameter truth: /nonexistent/robot_true.yaml: cannot read"),
 }
 
 

@@ -27,7 +27,10 @@ def test_an_integer_for_a_double_parameter_is_stored_as_a_double(ros):
                 ("/estimator", "spot_sigma", '"abc"'),
                 # joint_sigma: 0 (none) and -1 (not given) are its values, other negatives are not
                 ("/estimator", "joint_sigma", "0"), ("/estimator", "joint_sigma", "-3"),
-                ("/estimator", "joint_sigma", "-1")]
+                ("/estimator", "joint_sigma", "-1"),
+                # rclpy lets any node switch to simulated time while it runs: without /clock the timers of
+                # arm_driver and camera_sim stopped, and the session ended blaming the arm driver
+                ("/spot_detector", "use_sim_time", "true"), ("/estimator", "use_sim_time", "true")]
     got = ros.client("set-param", *[part for setting in settings for part in setting])
     for (_, name, value), result in zip(settings[:3], got):
         assert result == {"successful": True, "reason": "", "type": "DOUBLE", "value": float(value)}, (name, result)
@@ -43,6 +46,9 @@ def test_an_integer_for_a_double_parameter_is_stored_as_a_double(ros):
         "joint_sigma: -3 rad is not a plausible joint-reading noise"), got[9]
     assert got[9]["value"] == 0.0
     assert got[10] == {"successful": True, "reason": "", "type": "DOUBLE", "value": -1.0}, got[10]
+    for result in got[11:]:
+        assert not result["successful"] and result["reason"].startswith("use_sim_time: set it when the node starts")
+        assert result["value"] is False, result
     assert ros.stop("estimator") == 0 and ros.stop("spot_detector") == 0
 
 

@@ -65,9 +65,9 @@ class ArmDriver(Node):
                       rule=parameters.positive)
         disturbance = declare("sim.joint_disturbance", float(NoiseSpec().joint),
                               "Sim: half-width of the uniform joint disturbance drawn per goal, rad "
-                              "(the paper's 0.1 deg).", rule=parameters.non_negative)
+                              "(the paper's 0.1 deg).", rule=parameters.JOINT_NOISE)
         read_noise = declare("sim.read_noise", 0.0, "Sim: joint reading noise, rad (one sigma).",
-                             rule=parameters.non_negative)
+                             rule=parameters.JOINT_NOISE)
         true_out = declare("sim.true_robot_out", "", "Sim: write the true robot model to this file (for evaluation).")
 
         # dynamixel

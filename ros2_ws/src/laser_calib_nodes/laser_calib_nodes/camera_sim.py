@@ -47,7 +47,7 @@ class CameraSim(Node):
         seed = parameters.declare(self, "seed", 1, "Random seed of the image noise (speckle, shot and read noise).",
                                   rule=parameters.non_negative)
         spot_sigma = parameters.declare(self, "spot_sigma", 0.002, "Gaussian sigma of a laser spot on the screen, m.",
-                                        rule=parameters.positive)
+                                        rule=parameters.up_to(0.05, "m", "more is millimetres typed as metres"))
         self.camera = default_camera()
         self.options = render.RenderOptions(spot_sigma_m=spot_sigma)
         self.rng = np.random.default_rng(seed)

@@ -29,7 +29,7 @@ from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import load_robot
 
 from laser_calib.io import bag
-from laser_calib_nodes.parameters import NodeError, declare
+from laser_calib_nodes.parameters import NodeError, declare, refuse_clock_change
 from laser_calib_nodes.shutdown import ExitWatchdog, StopFlag, die_with_parent, interruptible
 
 # Topic and service names (relative: a namespace or a remap moves them).
@@ -325,6 +325,7 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
             if stop.stopped:
                 raise KeyboardInterrupt
             node = make_node()
+            refuse_clock_change(node)
             warn_undeclared(node)
             executor.add_node(node)
             if until is None:

@@ -60,7 +60,7 @@ class Estimator(Node):
         self.input = d("input", "samples", "'samples' (synchronized Sample messages) or 'stream' (joint_states "
                                            "and spots paired by stamp).")
         self.sync_tol = d("sync_tolerance", 0.02, "'stream': max stamp difference of a pair, s (at least half the "
-                                                  "joint_states period).", rule=parameters.non_negative)
+                                                  "joint_states period).", rule=parameters.SYNC_TOLERANCE)
         self.max_speed = d("stream.max_joint_speed", 0.002, "'stream': a pair counts only when every |joint "
                                                             "velocity| is below this, rad/s.",
                            read_only=False, rule=parameters.positive)

@@ -156,6 +156,40 @@ def at_least(minimum: int) -> Rule:
     return Rule(f">= {minimum}", lambda value: None if value >= minimum else f"expected >= {minimum}, got {value}")
 
 
+def up_to(maximum: float, unit: str, why: str) -> Rule:
+    """Above 0 and at most ``maximum`` (in ``unit``); ``why``: what a larger value is (units typed wrong)."""
+    return Rule(f"> 0 and <= {maximum:g} {unit}", lambda value: None if math.isfinite(value) and 0 < value <= maximum
+                else f"expected > 0 and <= {maximum:g} {unit} ({why}), got {value}")
+
+
+def at_most(maximum: float, unit: str, why: str) -> Rule:
+    """0 up to ``maximum`` (in ``unit``)."""
+    return Rule(f">= 0 and <= {maximum:g} {unit}", lambda value: None if math.isfinite(value) and 0 <= value <= maximum
+                else f"expected >= 0 and <= {maximum:g} {unit} ({why}), got {value}")
+
+
+# a joint's noise or disturbance beyond 2 deg is degrees typed as radians (noise_bounds.MAX_SIGMA_ANGLE)
+JOINT_NOISE = at_most(MAX_SIGMA_ANGLE, "rad", "more is degrees typed as radians")
+# a commanded joint speed: industrial arms' fastest joints turn 3-7 rad/s; 100 was taken, unsaid
+JOINT_SPEED = Rule("> 0 and <= 10 rad/s", lambda value: None if math.isfinite(value) and 0 < value <= 10.0
+                   else f"expected > 0 and <= 10 rad/s (no arm's joints turn faster), got {value}")
+# a frame paired with a joint state half a second away shows another instant of a moving arm
+SYNC_TOLERANCE = at_most(0.5, "s", "a pair further apart shows two instants")
+
+
+def refuse_clock_change(node: Node) -> None:
+    """use_sim_time, which rclpy lets any node change at run time: switched on with no /clock, the
+    timers of arm_driver and camera_sim stopped, joint_states and frames with them, and the session
+    ended 10 s later blaming the arm driver. Our nodes run on the clock they started with."""
+    def on_set(params) -> SetParametersResult:
+        if any(param.name == "use_sim_time" for param in params):
+            return SetParametersResult(successful=False, reason="use_sim_time: set it when the node starts "
+                                                                "(-p use_sim_time:=true), not while it runs")
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(on_set)
+
+
 def inside(low: float, high: float) -> Rule:
     """Between low and high, both excluded."""
     return Rule(f"{low:g} < value < {high:g}",
@@ -177,7 +211,8 @@ def noise(node: Node) -> tuple[float, float]:
                                             "(from its next reset); 0: estimate it (batch) / 1 mm (online).",
                    read_only=False, rule=SPOT_SIGMA)
     joint = declare(node, "joint_sigma", JOINT_SIGMA_NOT_GIVEN,
-                    "Joint-reading sigma, rad (at most 0.035), for requests with joint_sigma 0 and the online EKF "
+                    f"Joint-reading sigma, rad (at most {MAX_SIGMA_ANGLE:g}), for requests with joint_sigma 0 and "
+                    "the online EKF "
                     "(from its next reset); 0: no joint-reading noise; -1: not given, as laser-calib estimate "
                     "without --joint-sigma: estimated from the residual (batch) "
                     "/ 0 (online).", read_only=False, rule=JOINT_SIGMA)

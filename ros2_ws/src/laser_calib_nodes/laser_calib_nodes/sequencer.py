@@ -48,7 +48,7 @@ class Sequencer(Node):
                   "joint_states and controller name them (default: joint_states' names when it has exactly the "
                   "robot's joints).", type_=Parameter.Type.STRING_ARRAY)
         self.joint_speed = d("move.joint_speed", 0.5, "Commanded: time_from_start = largest joint move / this, rad/s.",
-                             rule=parameters.positive)
+                             rule=parameters.JOINT_SPEED)
         try:
             self.settle_rule = SettleRule(d("settle.position_tolerance", 0.003, "Settled: every |reading - goal| "
                                             "below this, rad."),
@@ -65,7 +65,7 @@ class Sequencer(Node):
                                rule=parameters.positive)
         self.sync_tol = d("sync_tolerance", 0.02, "Max stamp difference pairing a frame with a joint state, s "
                                                    "(at least half the joint_states period).",
-                          rule=parameters.non_negative)
+                          rule=parameters.SYNC_TOLERANCE)
         self.wait_timeout = d("wait_timeout", 60.0, "Wait this long for the arm's joint states and the spots, s.",
                               rule=parameters.positive)
         self.unseen_limit = d("unseen_limit", 5, "End the session (exit 2, what was measured kept) when this run's "

@@ -139,11 +139,11 @@ def declare(node) -> SimpleNamespace:
         method=d("estimate.method", "lm", "Final estimate: 'lm' or 'ekf'."),
         spot_sigma=d("estimate.spot_sigma", 0.0, "Final estimate: spot sigma, m (0: estimate it; 'service': the "
                                                   "estimator's spot_sigma, whose 0 is that)."),
-        joint_sigma=d("estimate.joint_sigma", JOINT_SIGMA_NOT_GIVEN, "Final estimate: joint-reading sigma, rad (at "
-                      "most 0.5); -1: not given, as laser-calib estimate without --joint-sigma: estimated with the "
-                      "spot sigma when that is estimated, else 0 ('service': the estimator's joint_sigma, whose -1 "
-                      "is that); 0: no joint-reading noise ('local' only: an Estimate request's 0 is the "
-                      "estimator's); > 0: that sigma."),
+        joint_sigma=d("estimate.joint_sigma", JOINT_SIGMA_NOT_GIVEN, "Final estimate: joint-reading sigma, rad; -1: "
+                      "not given, as laser-calib estimate without --joint-sigma: estimated from the residual "
+                      "('service': the estimator's joint_sigma, whose -1 is that); 0: no joint-reading noise "
+                      "('local' only: an Estimate request's 0 is the estimator's); > 0: that sigma.",
+                      rule=parameters.JOINT_SIGMA),
         prior=d("estimate.prior", False, "Final estimate: tolerance prior."),
         robust=d("estimate.robust", True, "Final estimate: robust fit, outlying spots rejected."),
         diagnose=d("estimate.diagnose", False, "Final estimate: residual diagnosis."),
@@ -161,6 +161,11 @@ def declare(node) -> SimpleNamespace:
         final_options(end)
     except InputError as exc:
         raise parameters.NodeError(f"parameter estimate.{exc.where}: {exc.problem}", 2) from None
+    try:  # read at the end, for the report: a bad one was said after the whole session was measured
+        if end.truth:
+            load_robot(end.truth)
+    except InputError as exc:
+        raise parameters.NodeError(f"parameter truth: {exc}", 2) from None
     if end.mode == "service" and end.joint_sigma == 0:
         raise parameters.NodeError("parameter estimate.joint_sigma: 0 (no joint-reading noise) cannot be asked of the "
                                    "estimator (an Estimate request's 0 is its joint_sigma parameter): set the "

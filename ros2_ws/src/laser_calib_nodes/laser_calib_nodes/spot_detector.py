@@ -74,7 +74,7 @@ class SpotDetectorNode(Node):
                    rule=parameters.positive)
         min_peak = d("min_peak_dn", DetectorOptions().min_peak_dn, "Least smoothed colour contrast of a spot, DN "
                                                                   "(settable at run time, from the next frame).",
-                     read_only=False, rule=parameters.positive)
+                     read_only=False, rule=parameters.inside(0.0, 255.0))   # an 8-bit image's contrast
         pattern = d("bayer_pattern", "RGGB", "Photosite mosaic behind demosaiced (rgb8/bgr8) images; 'none' for a "
                                              "camera measuring every colour per pixel. Raw bayer_* images give it.")
         self.mono_pattern = d("mono_pattern", "", "mono8 images are this raw Bayer mosaic (e.g. RGGB); empty: "
@@ -90,8 +90,9 @@ class SpotDetectorNode(Node):
             ("false_refusal_rate", "Chance that the spot fit's chi^2 test refuses a clean spot.",
              parameters.inside(0.0, 1.0)))}
         self.capture_dir = d("capture_dir", "", "Save frames here (PNG) for laser-calib screen-calibrate; empty: off.")
-        self.capture_left = d("capture_count", 10, "Frames to save in capture_dir.")
-        self.capture_period = d("capture_period", 1.0, "Seconds between saved frames (move the board meanwhile).")
+        self.capture_left = d("capture_count", 10, "Frames to save in capture_dir.", rule=parameters.non_negative)
+        self.capture_period = d("capture_period", 1.0, "Seconds between saved frames (move the board meanwhile).",
+                                rule=parameters.non_negative)
         if path:
             self.calibration = load_calibration(path)
         else:
@@ -99,13 +100,19 @@ class SpotDetectorNode(Node):
             self.get_logger().info("calibration: the simulated camera's exact one (parameter calibration is empty)")
         self.options = DetectorOptions(half_y=half_y, half_z=half_z, min_peak_dn=min_peak, **noise,
                                        bayer_pattern=None if pattern.lower() == "none" else pattern.upper())
-        try:
-            self.detectors = {None: SpotDetector(self.calibration, self.options)}
-        except ValueError as exc:
-            raise parameters.NodeError(f"parameter bayer_pattern: {exc}", 2) from None
+        for name, value in (("bayer_pattern", self.options.bayer_pattern), ("mono_pattern", self.mono_pattern)):
+            try:  # as the detector checks it (a bad mono_pattern was refused frame by frame)
+                SpotDetector(self.calibration, dataclasses.replace(self.options, bayer_pattern=value))
+            except ValueError as exc:
+                raise parameters.NodeError(f"parameter {name}: {exc}", 2) from None
+        self.detectors = {None: SpotDetector(self.calibration, self.options)}
         parameters.dynamic(self, {"min_peak_dn": "min_peak_dn"})
-        if self.capture_dir:
-            Path(self.capture_dir).mkdir(parents=True, exist_ok=True)
+        try:
+            if self.capture_dir:
+                Path(self.capture_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise parameters.NodeError(f"parameter capture_dir: cannot make {self.capture_dir} "
+                                       f"({exc.strerror or exc})", 2) from None
         self.captured, self.last_capture = 0, -np.inf
         from laser_calib_interfaces.msg import SpotPair
         self.SpotPair = SpotPair
