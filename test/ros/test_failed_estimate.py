@@ -15,6 +15,9 @@ import pytest
 from ros_harness import ROOT
 
 ROBOT = ROOT / "config" / "robots" / "manipulator_4dof.yaml"
+# a contrast no spot reaches (a rendered spot's smoothed contrast is 25-70 DN), below the 255 of an 8-bit
+# image, which the detector refuses as a threshold nothing can reach: the lasers as if off
+NO_SPOT = 254.0
 
 
 @pytest.mark.parametrize("mode, diagnose", [("local", False), ("service", False), ("local", True)])
@@ -57,7 +60,7 @@ def test_poses_whose_spots_are_not_seen_are_warned_of_and_kept(ros, tmp_path):
     out = tmp_path / "out"
     ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
     ros.start("camera_sim")
-    ros.start("spot_detector", "-p", "min_peak_dn:=1000000.0")
+    ros.start("spot_detector", "-p", f"min_peak_dn:={NO_SPOT}")
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=3",
               "-p", "test_poses:=0", "-p", "seed:=5", "-p", "estimate.mode:=local",
               "-p", "estimate.diagnose:=false", "-p", "estimate.prior:=true")
@@ -98,7 +101,7 @@ def test_a_run_whose_first_poses_see_no_spot_ends_early_and_keeps_them(ros, tmp_
     out = tmp_path / "out"
     ros.start("arm_driver", "-p", f"robot:={ROBOT}", "-p", "sim.joint_speed:=4.0")
     ros.start("camera_sim")
-    ros.start("spot_detector", "-p", "min_peak_dn:=1000000.0")
+    ros.start("spot_detector", "-p", f"min_peak_dn:={NO_SPOT}")
     ros.start("sequencer", "-p", f"robot:={ROBOT}", "-p", f"output_dir:={out}", "-p", "poses:=6",
               "-p", "test_poses:=0", "-p", "seed:=5", "-p", "estimate.mode:=local", "-p", "unseen_limit:=2")
     code = ros.wait_exit("sequencer", 240)
