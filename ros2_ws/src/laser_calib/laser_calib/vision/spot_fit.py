@@ -122,7 +122,8 @@ def _fit(window: np.ndarray, spread: tuple[float, np.ndarray, float], photosites
             break
     else:
         return "its fit did not settle"
-    inverse = np.linalg.eigvalsh(np.array([[q[3], q[4]], [q[4], q[5]]]))   # 1 / sigma^2, ascending
+    precision = np.array([[q[3], q[4]], [q[4], q[5]]])   # the inverse of the spot's covariance
+    inverse = np.linalg.eigvalsh(precision)              # 1 / sigma^2, ascending
     if not (q[0] > 0 and inverse[0] > 0 and inverse[1] < 1 / 0.4 ** 2 and np.all(np.abs(q[1:3]) < w - 1)):
         return "its fit settled on no plausible spot"
     # The residual of the last step, less what that step removed (linear in it): chi^2 at the solution.
@@ -136,7 +137,6 @@ def _fit(window: np.ndarray, spread: tuple[float, np.ndarray, float], photosites
         return (f"not one clean spot: its fit's chi^2 is {chi2:.0f} on {dof} dof, beyond {limit:.0f} (a second "
                 "spot or a reflection in the window, compression, or more noise than the detector's gain, read "
                 "noise and speckle contrast say)")
-    precision = np.array([[q[3], q[4]], [q[4], q[5]]])
     if (skew := _skewness(residual, jacobian, spot / sigma, x, y, precision)) > (limit := float(chdtri(4, rate / 2))):
         return (f"not one symmetric spot: its skewness (score chi^2 {skew:.0f} on 4 dof, beyond {limit:.0f}) says a "
                 "second spot or a reflection overlaps it, or an edge cuts it")
