@@ -183,7 +183,7 @@ def estimate_accumulated() -> dict:
 
 def calibrate(diagnose: bool, cancel: bool) -> dict:
     """A Calibrate goal on the accumulated samples; with cancel, canceled as soon as accepted
-    (the server honours it after the estimate stage). The final status, feedback stages, result."""
+    (the server stops the estimate). The final status, feedback stages, result."""
     from action_msgs.msg import GoalStatus
     from rclpy.action import ActionClient
     from laser_calib_interfaces.action import Calibrate

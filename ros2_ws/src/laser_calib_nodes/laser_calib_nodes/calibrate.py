@@ -3,13 +3,15 @@ long-running calibration, the batch estimate of ~/estimate and then the
 diagnosis, beside the service.
 
 Feedback when each stage starts ('estimate', 'diagnosis') and at the end
-('done'). A cancel is honoured between the stages (the result says what was
-done); a stage once started runs to its end (the core's fits have no hook to
-stop them; Ctrl-C during one ends the node without a word to the client,
-close). Goals are served one at a time; bad goals are aborted with a
-one-line message and the node keeps serving. An estimate that is no calibration
-(NOT CONVERGED, NOT A CALIBRATION) is aborted too, its result filled (success
-false) and its files written, as the command line exits 3 for it.
+('done'). A cancel is honoured at once, also within a stage: the core's fits stop
+at their next model evaluation (estimation/cancel.py), and the result says how far
+the goal got (a goal canceled while another ran computes nothing; one canceled in
+the estimate writes no files; one canceled in the diagnosis keeps the estimate's).
+Ctrl-C during a stage ends the node without a word to the client (close). Goals
+are served one at a time; bad goals are aborted with a one-line message and the
+node keeps serving. An estimate that is no calibration (NOT CONVERGED, NOT A
+CALIBRATION) is aborted too, its result filled (success false) and its files
+written, as the command line exits 3 for it.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from dataclasses import replace
 from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 
+from laser_calib.estimation.cancel import Cancelled, cancellable
 from laser_calib.io.errors import InputError
 from laser_calib.session.estimate import run_calibration, run_diagnosis
 
@@ -48,22 +51,34 @@ class CalibrateServer:
         def stage(name: str, fraction: float, message: str = "") -> None:
             goal.publish_feedback(self.Calibrate.Feedback(stage=name, fraction_done=fraction, message=message))
 
+        def requested() -> bool:
+            return goal.is_cancel_requested
+
         with self.busy:
+            if goal.is_cancel_requested:  # while an earlier goal held the server
+                return self._canceled(goal, result, "canceled before the estimate started; nothing was computed")
+            outcome = None
             try:
                 samples, test, sources = request_sets(node, request)
                 output_dir = common.request_output_dir(request.output_dir)
                 options = request_options(node, request)
                 stage("estimate", 0.0)
-                outcome = run_calibration(node.robot, samples, options, output_dir, sources=sources,
-                                          compensator=node.compensator, test=test)
+                with cancellable(requested):
+                    outcome = run_calibration(node.robot, samples, options, output_dir, sources=sources,
+                                              compensator=node.compensator, test=test)
                 if request.diagnose and goal.is_cancel_requested:
-                    goal.canceled()
-                    result.message = f"canceled before the diagnosis; the estimate: {outcome.message}"
-                    return result
+                    return self._canceled(goal, result,
+                                          f"canceled before the diagnosis; the estimate: {outcome.message}")
                 if request.diagnose:
                     stage("diagnosis", 0.5, outcome.message)
-                    diagnosis = run_diagnosis(node.robot, samples, options, output_dir, test, sources)
+                    with cancellable(requested):
+                        diagnosis = run_diagnosis(node.robot, samples, options, output_dir, test, sources)
                     outcome = replace(outcome, diagnosis_json=json.dumps(diagnosis))
+            except Cancelled:
+                if outcome is None:
+                    return self._canceled(goal, result, "canceled during the estimate; no file was written")
+                return self._canceled(goal, result,
+                                      f"canceled during the diagnosis; the estimate: {outcome.message}")
             except InputError as exc:
                 result.message = str(exc)
                 node.get_logger().warning(f"calibration refused: {exc}")
@@ -84,9 +99,15 @@ class CalibrateServer:
             common.log_warned(node.get_logger(), outcome.warned, outcome.message)
         return result
 
+    def _canceled(self, goal, result, message: str):
+        goal.canceled()
+        result.message = message
+        self.node.get_logger().info(message)
+        return result
+
     def close(self) -> None:
-        """The node's cleanup (Ctrl-C) while a goal's stage runs, which nothing can stop: by then
-        the signal has shut the context down, so no client can be told; the server is destroyed
-        before the node, so that the stage, once it ends, finds its goal handle gone (rclpy then
-        ignores its feedback and state) rather than the node's publishers (an RCLError traceback)."""
+        """The node's cleanup (Ctrl-C) while a goal's stage runs to its end: by then the signal
+        has shut the context down, so no client can be told; the server is destroyed before the
+        node, so that the stage, once it ends, finds its goal handle gone (rclpy then ignores its
+        feedback and state) rather than the node's publishers (an RCLError traceback)."""
         self.server.destroy()

@@ -21,6 +21,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from laser_calib.estimation import cancel
 from laser_calib.measurement.base import MeasurementModel, NoiseModel, Residuals, count_values, whiten
 
 # Poses per block: the Jacobians of one block of the 7-DOF arm (33 errors) take
@@ -58,7 +59,9 @@ def n_poses(model: MeasurementModel) -> int | None:
 
 def pose_blocks(model: MeasurementModel, chunk: int = CHUNK_POSES) -> Iterator[tuple[slice, MeasurementModel]]:
     """(poses, model on them) per block; the model itself when it fits in one
-    (it keeps its own cache of the last point)."""
+    (it keeps its own cache of the last point). Every evaluation of a model passes here, so this
+    is where a caller's cancel (cancel.py) stops a fit."""
+    cancel.check()
     total = n_poses(model)
     if total is None or total <= chunk:
         yield slice(None), model
