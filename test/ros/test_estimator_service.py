@@ -277,22 +277,23 @@ def test_a_robot_file_without_lasers_is_refused_at_start(ros, tmp_path):
     assert "Traceback" not in log, log
 
 
-def test_the_calibrate_action_says_why_an_unexpected_error_aborted_it():
-    """An error the estimate does not expect (a bug; seen with a robot file without lasers, refused at
-    start since) escaped the action's execute callback: rclpy logged it and aborted the goal with an
-    empty message, so the client was not told why. The action now answers as ~/estimate does:
-    'internal error: TYPE: what', success false, the goal aborted, the traceback in the log."""
+def _execute_calibrate_goal(cancel_requested: bool, request_sets: str) -> dict:
+    """CalibrateServer.execute run on one goal in a child process, without rclpy.init or an
+    ActionServer: stand-ins for the node and rclpy's goal handle (is_cancel_requested fixed to
+    ``cancel_requested``) and request_sets replaced by ``request_sets``, Python source defining it.
+    The result's success and message, what happened to the goal and the node's log."""
     import subprocess
     import textwrap
 
     from ros_harness import workspace_env
-    program = textwrap.dedent("""
+    program = textwrap.dedent(f"""
         import json, threading
         from laser_calib_interfaces.action import Calibrate
         from laser_calib_nodes import calibrate
 
         class Logger:
             lines = []
+            def info(self, message): self.lines.append(("INFO", message))
             def warning(self, message): self.lines.append(("WARN", message))
             def error(self, message): self.lines.append(("ERROR", message))
 
@@ -302,25 +303,45 @@ def test_the_calibrate_action_says_why_an_unexpected_error_aborted_it():
             def get_logger(self): return self.logger
 
         class Goal:
-            request, aborted, is_cancel_requested = Calibrate.Goal(use_accumulated=True), False, False
-            def abort(self): self.aborted = True
+            request, ended, is_cancel_requested = Calibrate.Goal(use_accumulated=True), None, {cancel_requested}
+            def abort(self): self.ended = "aborted"
+            def canceled(self): self.ended = "canceled"
             def publish_feedback(self, feedback): pass
-
-        def broken(node, request):
-            raise ValueError("operands could not be broadcast together")
-
-        calibrate.request_sets = broken
-        server = calibrate.CalibrateServer.__new__(calibrate.CalibrateServer)  # no ActionServer, no rclpy.init
+    """) + textwrap.dedent(request_sets) + textwrap.dedent("""
+        calibrate.request_sets = request_sets
+        server = calibrate.CalibrateServer.__new__(calibrate.CalibrateServer)
         server.node, server.Calibrate, server.busy = Node(), Calibrate, threading.Lock()
         goal = Goal()
         result = server.execute(goal)
-        print(json.dumps({"success": result.success, "message": result.message, "aborted": goal.aborted,
+        print(json.dumps({"success": result.success, "message": result.message, "ended": goal.ended,
                           "log": Node.logger.lines}))
     """)
     run = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60,
                          env=workspace_env())
     assert run.returncode == 0, run.stderr
-    out = json.loads(run.stdout.strip().splitlines()[-1])
-    assert out["success"] is False and out["aborted"], out
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def test_the_calibrate_action_says_why_an_unexpected_error_aborted_it():
+    """An error the estimate does not expect (a bug; seen with a robot file without lasers, refused at
+    start since) escaped the action's execute callback: rclpy logged it and aborted the goal with an
+    empty message, so the client was not told why. The action now answers as ~/estimate does:
+    'internal error: TYPE: what', success false, the goal aborted, the traceback in the log."""
+    out = _execute_calibrate_goal(False, """
+        def request_sets(node, request):
+            raise ValueError("operands could not be broadcast together")
+    """)
+    assert out["success"] is False and out["ended"] == "aborted", out
     assert out["message"] == "internal error: ValueError: operands could not be broadcast together", out
     assert out["log"][0][0] == "ERROR" and "Traceback" in out["log"][0][1], out
+
+
+def test_a_calibrate_goal_canceled_while_it_waited_computes_nothing():
+    """Goals are served one at a time: one canceled while another ran used to start its estimate
+    once the server was free, and to be canceled, at best, before its diagnosis."""
+    out = _execute_calibrate_goal(True, """
+        def request_sets(node, request):
+            raise AssertionError("the samples of a canceled goal were gathered")
+    """)
+    assert out["success"] is False and out["ended"] == "canceled", out
+    assert out["message"] == "canceled before the estimate started; nothing was computed", out
