@@ -372,6 +372,10 @@ def test_a_calibration_worse_than_the_robot_as_designed_on_held_out_poses_is_war
                  "--out", str(tmp_path / "out")]) == 0
     said = "5-fold held-out: the calibrated model misses these poses by more than the nominal D-H with its frames fitted"
     assert said in capsys.readouterr().err
-    assert any(w.startswith(said) for w in json.loads((tmp_path / "out" / "result.json").read_text())["warnings"])
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert any(w.startswith(said) for w in result["warnings"])
+    # at the top of result.json too, as estimate writes it (it was a line among the warnings only)
+    assert list(result)[:2] == ["failure", "caution"] and result["failure"] is None
+    assert result["caution"].startswith(said)
     # and in the file written, which a user loads without the console (it was written as any calibration)
     assert f"\n# CAUTION: {said}" in (tmp_path / "out" / "robot_calibrated.yaml").read_text()

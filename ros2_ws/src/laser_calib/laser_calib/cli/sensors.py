@@ -24,7 +24,8 @@ from laser_calib.cli.arguments import (SIGMA_LENGTH, add_robot_arguments, fracti
                                       staged_folder, tolerance_angle_deg, tolerance_length)
 from laser_calib.estimation.estimate import METHODS, EstimateOptions
 from laser_calib.estimation.failures import UNDETERMINED, first_failure, is_failure, undetermined_note
-from laser_calib.estimation.identifiability import FIXED_NOTE, WEAK_AND_LARGE, TooFewValues, carried_note
+from laser_calib.estimation.identifiability import FIXED_NOTE, TooFewValues, carried_note, weak_and_large
+from laser_calib.model.fit_marks import fit_marks
 from laser_calib.model.robot import Robot
 from laser_calib.io.figaroh import ROW_ORDER_AS_TIME, is_figaroh
 from laser_calib.io.positioner import read_positioner
@@ -159,8 +160,9 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
                      + ("; its effects are in result.json, not in the calibrated robot file (the geometric model)"
                         if len(result["diagnosis"]["stages"]) > 1 else ""))
     failure = first_failure(fit.estimate.warnings)
-    caution = next((w for w in result["warnings"] if WORSE_THAN_DESIGN in w),
-                   next((w for w in result["warnings"] if w.startswith(WEAK_AND_LARGE)), None))
+    caution = next((w for w in result["warnings"] if WORSE_THAN_DESIGN in w), weak_and_large(fit.estimate.warnings))
+    # at the top, as estimate's result.json: a failed fit was a line among the warnings, beside its figures
+    result = {"failure": failure, "caution": caution, **result}
     with staged_folder(args.out) as out:
         if robot.chain is not None:
             written = save_calibrated_urdf(fit.corrected(robot), robot, fit.determined, out, str(args.robot), failure,
@@ -170,8 +172,7 @@ def cmd_calibrate_poses(args: argparse.Namespace) -> int:
             save_robot(replace(corrected, extra={k: v for k, v in corrected.extra.items() if k != "effects"}),
                        out / "robot_calibrated.yaml",
                        header=f"Calibrated from {args.samples} (laser-calib calibrate-poses)."
-                              + (f"\nNO CALIBRATION: {failure}" if failure else "")
-                              + (f"\nCAUTION: {caution}" if caution else "")
+                              + "".join(f"\n{line}" for line in fit_marks(failure, caution))
                               + undetermined_note(fit.undetermined)
                               + (f"\nThe geometric model only: the effects --diagnose chose "
                                  f"({result['diagnosis']['stages'][-1]['model']}) are in result.json, not here."

@@ -364,3 +364,8 @@ def weak_warnings(names: tuple[str, ...], std: np.ndarray, scales: np.ndarray, o
 # The start of the warning weak_warnings gives when a value the data barely determine is written large:
 # the calibrated files say it (CAUTION), as they say a calibration worse than nominal on its test poses.
 WEAK_AND_LARGE = "large corrections the data barely determine:"
+
+
+def weak_and_large(warnings) -> str | None:
+    """An estimate's warning that it writes large values the data barely determine, None without."""
+    return next((w for w in warnings if w.startswith(WEAK_AND_LARGE)), None)

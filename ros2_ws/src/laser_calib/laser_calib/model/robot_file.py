@@ -23,6 +23,7 @@ from laser_calib.io.errors import InputError
 from laser_calib.io.read import finite_number, known_keys, load_yaml, read_text, yaml_number
 from laser_calib.measurement.frames import robot_frames
 from laser_calib.measurement.noise_bounds import joint_sigma_problem, spot_sigma_problem
+from laser_calib.model.fit_marks import refuse_failed_fit
 from laser_calib.model.robot import (CONVENTIONS, LIMIT_ANGLE, LIMIT_TRAVEL, MAX_ANGLE, MAX_LENGTH, MAX_SLM_OFFSET,
                                      PAPER, Joint, Laser, Robot, Screen, Slm, plausible_angle, plausible_length)
 from laser_calib.model.urdf import (calibrated_urdf, check_tips, is_urdf, link_ends, load_urdf_robot,
@@ -293,21 +294,6 @@ def load_robot(path: str | Path, description: str | None = None, failed_fit: boo
     if not failed_fit:
         refuse_failed_fit(text, str(path))
     return robot_from_dict(load_yaml(text, str(path)), str(path), Path(path).parent, description)
-
-
-# The header line a fit writes into robot_calibrated.yaml when it is no calibration (report.files)
-FAILED_FIT = "# NO CALIBRATION:"
-
-
-def refuse_failed_fit(text: str, where: str) -> None:
-    """A robot file written by a fit that failed is no robot model: the comment saying so is the
-    only mark it carries, and read as a nominal model it would pass the failure on silently."""
-    for number, line in enumerate(text.splitlines(), 1):
-        if not line.startswith("#"):
-            return
-        if line.startswith(FAILED_FIT):
-            raise InputError(where, f"line {number}: written by a fit that is no calibration "
-                                    f"({line[len(FAILED_FIT):].strip()[:120]}); give the nominal model")
 
 
 def load_robot_description(path: str | Path, base: str | None = None, tip: Sequence[str] | str | None = None) -> Robot:

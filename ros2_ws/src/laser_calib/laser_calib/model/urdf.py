@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import io
 import math
-import re
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -30,6 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from laser_calib.io.errors import InputError
 from laser_calib.measurement.frames import Pose
+from laser_calib.model.fit_marks import is_fit_mark, refuse_failed_urdf
 from laser_calib.model.joint_chain import (FIXED_JOINT, OFFSET, PLACEMENT, PLACEMENT_PARAMS, PRISMATIC, REVOLUTE,
                                            UNLIMITED, ChainJoint, JointChain)
 from laser_calib.model.robot import (LIMIT_ANGLE, LIMIT_TRAVEL, Laser, Robot, Screen, Slm, plausible_angle,
@@ -198,20 +198,6 @@ def robot_from_urdf(text: str, base: str, tip: str | Sequence[str], source: str 
     return Robot(name=robot_name, joints=(), slm=slm, lasers=tuple(lasers), screen=screen, chain=chain)
 
 
-# The comment report.urdf_export writes before <robot> when the fit is no calibration
-_FAILED_FIT = re.compile(r"<!--\s*NO CALIBRATION:(.*?)-->", re.S)
-
-
-def refuse_failed_urdf(text: str, where: str) -> None:
-    """A URDF written by a fit that failed is no robot model: as for the robot YAML
-    (robot_file.refuse_failed_fit), the comment before <robot> is its only mark, and the file
-    read as a nominal model would pass the failure on silently."""
-    failed = _FAILED_FIT.search(text[:text.find("<robot")] if "<robot" in text else "")
-    if failed:
-        raise InputError(where, f"written by a fit that is no calibration ({' '.join(failed[1].split())[:120]}); "
-                                "give the nominal model")
-
-
 def load_urdf_robot(path: str | Path, base: str, tip: str | Sequence[str]) -> Robot:
     return robot_from_urdf(urdf_text(path), base, tip, str(path))
 
@@ -315,10 +301,7 @@ def calibrated_urdf(robot: Robot) -> str:
     # the comments around <robot> (a generator's banner, a licence) are kept, but those a calibration
     # wrote there about its own fit (report.urdf_export): this file says its own
     around = [[etree.tostring(node, encoding="unicode", with_tail=False) for node in nodes
-               if not (node.tag is etree.Comment and (node.text or "").strip().startswith(OWN_COMMENTS))]
+               if not (node.tag is etree.Comment and is_fit_mark(node.text or ""))]
               for nodes in (reversed(list(root.itersiblings(preceding=True))), root.itersiblings())]
     return "\n".join(around[0] + [etree.tostring(root, encoding="unicode", with_tail=False)] + around[1]) + "\n"
 
-
-# The comments report.urdf_export writes before <robot> about the fit that wrote the file
-OWN_COMMENTS = ("NO CALIBRATION:", "CAUTION:")

@@ -31,7 +31,7 @@ from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.failures import UNDETERMINED, first_failure
 from laser_calib.estimation.folds import test_range_warnings
-from laser_calib.estimation.identifiability import FIXED_NOTE, WEAK_AND_LARGE, carried_note
+from laser_calib.estimation.identifiability import FIXED_NOTE, carried_note, weak_and_large
 from laser_calib.estimation.problem import residuals_at
 from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples, reading_warnings
@@ -249,8 +249,7 @@ class Calibration:
         model (worse_on_test), or else that large corrections are written that the data barely
         determine (identifiability.WEAK_AND_LARGE), said in the calibrated files too (read once per
         file); None without."""
-        return next(iter(worse_on_test(self.sets)),
-                    next((w for w in self.estimate.warnings if w.startswith(WEAK_AND_LARGE)), None))
+        return next(iter(worse_on_test(self.sets)), weak_and_large(self.estimate.warnings))
 
     def summary(self) -> str:
         """One line: the spot error before and after over the spots fitted, as the nodes log it."""

@@ -20,6 +20,7 @@ from laser_calib.estimation.estimate import EstimateOptions, spot_sigma_at_zero
 from laser_calib.estimation.failures import undetermined_note
 from laser_calib.estimation.identifiability import carried_note
 from laser_calib.io.samples import Samples
+from laser_calib.model.fit_marks import fit_marks
 from laser_calib.model.robot import Robot
 from laser_calib.model.robot_file import dump_robot
 from laser_calib.report.calibration import MODELS, Calibration, calibrate
@@ -50,8 +51,7 @@ def calibrated_robot_yaml(calibration: Calibration) -> str:
                              f"{len(calibration.samples)} poses"
                              + (f" with the effects {', '.join(e.label for e in calibration.effects)}"
                                 if calibration.effects else "") + "."
-                             + (f"\nNO CALIBRATION: {calibration.failure}" if calibration.failure else "")
-                             + (f"\nCAUTION: {calibration.caution}" if calibration.caution else "")
+                             + "".join(f"\n{line}" for line in fit_marks(calibration.failure, calibration.caution))
                              + (f"\nNot identifiable, held at nominal: {merged}" if merged else "")
                              + undetermined_note(est.undetermined)
                              + ("\nFitted with the learned compensator "

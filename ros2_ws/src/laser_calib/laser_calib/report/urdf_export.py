@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from laser_calib.model.fit_marks import fit_marks
 from laser_calib.model.joint_chain import PLACEMENT_PARAMS, PRISMATIC
 from laser_calib.model.robot import Robot
 from laser_calib.model.urdf import calibrated_origins, calibrated_urdf, origin_attributes
@@ -56,7 +57,7 @@ def save_calibrated_urdf(calibrated: Robot, nominal: Robot, identifiable: np.nda
     URDF show no console."""
     folder = Path(folder)
     text = calibrated_urdf(calibrated)
-    said = [f"NO CALIBRATION: {failure}"] * bool(failure) + [f"CAUTION: {caution}"] * bool(caution)
+    said = fit_marks(failure, caution)
     if said:
         declaration = text.index("?>") + 2 if text.startswith("<?xml") else 0
         text = (text[:declaration] + "".join(f"\n<!-- {line.replace('--', '- -')} -->" for line in said)
