@@ -26,15 +26,8 @@ from dynamixel_emulator import (
     DynamixelEmulator,
 )
 
-from laser_calib.hardware.dynamixel_arm import (
-    ATTEMPTS,
-    DynamixelArm,
-    DynamixelConfig,
-    DynamixelError,
-    DynamixelJointConfig,
-    DynamixelSettingError,
-    StuffedPacketHandler,
-)
+from laser_calib.hardware.dynamixel_arm import DynamixelArm, DynamixelConfig, DynamixelJointConfig
+from laser_calib.hardware.dynamixel_bus import ATTEMPTS, DynamixelError, DynamixelSettingError, StuffedPacketHandler
 
 IDS = (1, 2, 3)
 TICKS_PER_RAD = 4096 / (2 * np.pi)

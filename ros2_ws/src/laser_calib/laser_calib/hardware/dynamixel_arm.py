@@ -9,30 +9,26 @@ shaft, 4096 ticks/rev) divided by ticks_per_rad [rad/s]. Arrays are (N,) in the
 order of ``DynamixelConfig.joints``.
 
 Every communication failure stops the arm (torque off, best effort) and raises
-:class:`DynamixelError` with one line naming the servo and the fault. Each
-exchange is bounded by the SDK's packet timeout and retried at most
-``ATTEMPTS`` times, so no call hangs. Sync writes get no status packets, so a
-dead servo shows up on the next ``read()``, not on ``command()``.
+:class:`DynamixelError` with one line naming the servo and the fault; the packet
+exchange, its retries and status checks are dynamixel_bus.DynamixelBus's. Sync
+writes get no status packets, so a dead servo shows up on the next ``read()``,
+not on ``command()``.
 """
 
 from __future__ import annotations
 
 import fcntl
 import logging
-import termios
-import threading
-from contextlib import contextmanager
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Callable, Iterator, Sequence
+from typing import Sequence
 
 import dynamixel_sdk as dxl
 import numpy as np
 
-from laser_calib.hardware.dynamixel_table import (ADDR_GOAL_POSITION, ADDR_HARDWARE_ERROR_STATUS,
-                                                  ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY, ADDR_PROFILE_VELOCITY,
-                                                  ADDR_TORQUE_ENABLE, ERR_INSTRUCTION_CRC, ERRBIT_ALERT,
-                                                  HARDWARE_ERRORS, INSTRUCTION_ERRORS, int32, setting_problem)
+from laser_calib.hardware.dynamixel_bus import DynamixelBus, DynamixelError, DynamixelPortError, DynamixelSettingError
+from laser_calib.hardware.dynamixel_table import (ADDR_GOAL_POSITION, ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY,
+                                                  ADDR_PROFILE_VELOCITY, ADDR_TORQUE_ENABLE, int32, setting_problem)
 
 logger = logging.getLogger(__name__)
 
@@ -40,40 +36,7 @@ logger = logging.getLogger(__name__)
 STATE_ADDRESS = ADDR_PRESENT_VELOCITY
 STATE_LENGTH = 8
 
-ATTEMPTS = 3  # per exchange; only a fault persisting through all of them is reported
-STOP_LOCK_TIMEOUT = 2.0  # [s] longer than any exchange in flight on another thread
 VELOCITY_UNIT = 0.229 * 4096 / 60.0  # [ticks/s] per Present Velocity unit
-
-
-class StuffedPacketHandler(dxl.Protocol2PacketHandler):
-    """Protocol2PacketHandler whose instruction packets really are byte-stuffed.
-
-    In dynamixel_sdk 4.1.0, addStuffing returns a new list when stuffing lengthens the packet, but
-    txPacket ignores the return value and sends the unstuffed original: an instruction whose data holds
-    FF FF FD (e.g. Goal Position -131073 ticks) would break the protocol. Stuffing in place fixes that.
-    """
-
-    def addStuffing(self, packet: list[int]) -> list[int]:
-        packet[:] = super().addStuffing(packet)
-        return packet
-
-
-class DynamixelError(RuntimeError):
-    """A communication failure, in one line naming the servo (when one is at fault) and the fault."""
-
-    def __init__(self, message: str, servo_id: int | None = None):
-        super().__init__(message)
-        self.servo_id = servo_id
-
-
-class DynamixelPortError(DynamixelError, ValueError):
-    """The configured port cannot be opened at the configured baud rate: a setting to correct (a
-    ValueError, as the other bad settings), not a fault of the bus."""
-
-
-class DynamixelSettingError(DynamixelError, ValueError):
-    """A servo's own setting (Operating Mode, position limits) the arm cannot run with: a setting
-    to correct, found before its torque is on (dynamixel_table.setting_problem)."""
 
 
 @dataclass(frozen=True)
@@ -111,7 +74,7 @@ class DynamixelConfig:
                 raise ValueError(f"Dynamixel config: servo {joint.id} needs ticks_per_rad != 0 and min < max")
 
 
-class DynamixelArm:
+class DynamixelArm(DynamixelBus):
     """N Dynamixel servos as one arm; use as a context manager or call open() and close().
 
     Thread-safe: a lock serialises bus access, so a node may call read(),
@@ -126,17 +89,14 @@ class DynamixelArm:
         )
         if len(self.joint_names) != n:
             raise ValueError(f"{len(self.joint_names)} joint names for {n} joints")
-        self._ids = [joint.id for joint in config.joints]
         self._ticks_per_rad = np.array([joint.ticks_per_rad for joint in config.joints], dtype=float)
         self._zero_ticks = np.array([joint.zero_ticks for joint in config.joints], dtype=float)
         dxl.port_handler.LATENCY_TIMER = config.latency_timer_ms  # where ROBOTIS has it set: the SDK's module
-        self._port = dxl.PortHandler(config.port)
-        self._packet = StuffedPacketHandler()
+        super().__init__(config.port, [joint.id for joint in config.joints])
         self._reader = dxl.GroupSyncRead(self._port, self._packet, STATE_ADDRESS, STATE_LENGTH)
         for servo_id in self._ids:
             self._reader.addParam(servo_id)
         self._writer = dxl.GroupSyncWrite(self._port, self._packet, ADDR_GOAL_POSITION, 4)
-        self._lock = threading.RLock()
 
     def __enter__(self) -> "DynamixelArm":
         try:
@@ -230,39 +190,6 @@ class DynamixelArm:
         q = (ticks - self._zero_ticks) / self._ticks_per_rad
         return q, velocity_units * VELOCITY_UNIT / self._ticks_per_rad
 
-    def stop(self) -> list[int]:
-        """Torque off on every servo, best effort: never raises (it runs on error paths and must
-        not mask the fault being reported), returns within about N * ATTEMPTS packet timeouts.
-        Returns the ids of the servos that did not confirm torque off, each after ATTEMPTS writes
-        (all of them when the bus could not be used): the caller reports them, since a servo that
-        may still hold torque is a safety matter, not a detail of the cleanup."""
-        if not self._lock.acquire(timeout=STOP_LOCK_TIMEOUT):
-            logger.error("Dynamixel stop: bus still busy after %.1f s; torque left as is", STOP_LOCK_TIMEOUT)
-            return list(self._ids)
-        try:
-            if not self._port.is_open:
-                return []
-            # The lock means no exchange is in flight; one aborted by an exception may have left the SDK's
-            # busy flag set, which would make every packet below fail with "port busy".
-            self._port.is_using = False
-            # One broadcast first: it reaches every servo that hears the bus, whatever its replies do.
-            self._packet.write1ByteTxOnly(self._port, dxl.BROADCAST_ID, ADDR_TORQUE_ENABLE, 0)
-            return [servo_id for servo_id in self._ids if not self._torque_off(servo_id)]
-        except Exception as exc:
-            logger.warning("Dynamixel stop failed: %s", exc)
-            return list(self._ids)
-        finally:
-            self._lock.release()
-
-    def _torque_off(self, servo_id: int) -> bool:
-        """Whether the servo confirmed torque off (a status packet) within ATTEMPTS writes: a
-        status packet lost to noise must not leave a servo reported as possibly live."""
-        for _ in range(ATTEMPTS):
-            result, _ = self._packet.write1ByteTxRx(self._port, servo_id, ADDR_TORQUE_ENABLE, 0)
-            if result == dxl.COMM_SUCCESS:
-                return True
-        return False
-
     def close(self) -> list[int]:
         """Torque off (best effort) and release the port; idempotent. The ids of the servos
         that did not confirm torque off (stop())."""
@@ -276,73 +203,6 @@ class DynamixelArm:
         if not self._port.is_open:
             raise DynamixelError(f"Dynamixel port {self.config.port}: not open")
 
-    def _fail(self, message: str, servo_id: int | None = None, kind: type[DynamixelError] = DynamixelError
-              ) -> DynamixelError:
-        """Stop the arm, then return the error (of ``kind``) for the caller to raise."""
-        self.stop()
-        return kind(message, servo_id)
-
-    def _servo_fault(self, servo_id: int, fault: str, kind: type[DynamixelError] = DynamixelError) -> DynamixelError:
-        return self._fail(f"Dynamixel servo {servo_id}: {fault}", servo_id, kind)
-
-    @contextmanager
-    def _io_errors(self) -> Iterator[None]:
-        """Turn an error of the serial port (e.g. adapter unplugged) into a DynamixelError."""
-        try:
-            yield
-        except (OSError, termios.error) as exc:  # pyserial raises both, termios.error from tcflush
-            raise self._fail(f"Dynamixel port {self.config.port}: serial I/O error ({exc})") from exc
-
-    def _comm_fault(self, result: int) -> str:
-        if result == dxl.COMM_RX_TIMEOUT:
-            return "no answer (status packet timeout)"
-        if result == dxl.COMM_RX_CORRUPT:
-            return "corrupt status packet (CRC mismatch or truncated)"
-        return self._packet.getTxRxResult(result).removeprefix("[TxRxResult] ")
-
-    def _check_status(self, servo_id: int, error: int) -> None:
-        """Raise if a status packet's error byte reports a hardware alert or a refused instruction."""
-        if error & ERRBIT_ALERT:
-            status, result, _ = self._packet.read1ByteTxRx(self._port, servo_id, ADDR_HARDWARE_ERROR_STATUS)
-            if result == dxl.COMM_SUCCESS:
-                names = ", ".join(name for bit, name in HARDWARE_ERRORS.items() if status & bit) or "unknown"
-                detail = f"Hardware Error Status 0x{status:02X} ({names})"
-            else:
-                detail = f"Hardware Error Status unreadable ({self._comm_fault(result)})"
-            raise self._servo_fault(servo_id, f"hardware error bit set in status packet, {detail}")
-        if error:
-            fault = INSTRUCTION_ERRORS.get(error, f"error 0x{error:02X}")
-            raise self._servo_fault(servo_id, f"instruction refused ({fault})")
-
-    def _exchange(self, servo_id: int, what: str, send: Callable[[], tuple], length: int = 0):
-        """One instruction to one servo (``send``: the SDK call, giving (data, result, error); a
-        ping's data is the model number) and the data of its status packet (``length`` bytes asked
-        for, 0: none), once its error byte is checked. A lost, short or corrupt
-        reply, or a packet noise damaged on its way to the servo (its CRC error), is sent again,
-        up to ATTEMPTS times; ``what`` names the instruction in the fault."""
-        for attempt in range(ATTEMPTS):
-            data, result, error = send()
-            if result == dxl.COMM_SUCCESS and length and len(data) < length:  # the SDK takes a short reply whole
-                result = dxl.COMM_RX_CORRUPT
-            if result == dxl.COMM_SUCCESS and (error != ERR_INSTRUCTION_CRC or attempt == ATTEMPTS - 1):
-                self._check_status(servo_id, error)
-                return data
-        raise self._servo_fault(servo_id, f"{what} failed: {self._comm_fault(result)}")
-
-    def _ping(self, servo_id: int) -> None:
-        self._exchange(servo_id, "ping", lambda: self._packet.ping(self._port, servo_id))
-
-    def _read(self, servo_id: int, address: int, length: int) -> int:
-        """One register of one servo (unsigned)."""
-        data = self._exchange(servo_id, f"read of address {address}",
-                              lambda: self._packet.readTxRx(self._port, servo_id, address, length), length)
-        return int.from_bytes(bytes(data), "little")
-
-    def _write(self, servo_id: int, address: int, length: int, value: int) -> None:
-        data = list(value.to_bytes(length, "little", signed=value < 0))
-        self._exchange(servo_id, f"write of address {address}",
-                       lambda: ((), *self._packet.writeTxRx(self._port, servo_id, address, length, data)))
-
     def _write_goal(self, ticks: np.ndarray) -> None:
         """Sync write Goal Position ``ticks`` (N,) to all servos; no status packets come back."""
         self._writer.clearParam()
@@ -355,35 +215,10 @@ class DynamixelArm:
 
     def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Present Position [ticks] and Present Velocity [units], each (N,), from one sync read."""
-        for _ in range(ATTEMPTS):
-            failed_id, result, replies = self._sync_read_once()
-            if result == dxl.COMM_SUCCESS:
-                break
-        else:
-            where = f"Dynamixel bus {self.config.port}" if failed_id is None else f"Dynamixel servo {failed_id}"
-            raise self._fail(f"{where}: sync read failed: {self._comm_fault(result)}", failed_id)
-        for servo_id, _, error in replies:
-            self._check_status(servo_id, error)
-        ticks = [int32(data, ADDR_PRESENT_POSITION - STATE_ADDRESS) for _, data, _ in replies]
-        velocity = [int32(data, ADDR_PRESENT_VELOCITY - STATE_ADDRESS) for _, data, _ in replies]
+        replies = self._sync_read(self._reader)
+        ticks = [int32(data, ADDR_PRESENT_POSITION - STATE_ADDRESS) for data in replies]
+        velocity = [int32(data, ADDR_PRESENT_VELOCITY - STATE_ADDRESS) for data in replies]
         return np.array(ticks, dtype=float), np.array(velocity, dtype=float)
-
-    def _sync_read_once(self) -> tuple[int | None, int, list[tuple[int, bytes, int]]]:
-        """One sync read: (failed servo ID or None, SDK result, [(servo ID, 8 state bytes, error byte)])."""
-        result = self._reader.txPacket()
-        if result != dxl.COMM_SUCCESS:
-            return None, result, []
-        # GroupSyncRead.rxPacket drops each status packet's error byte and does not say which servo
-        # failed, so the status packets are collected here, one servo after the other.
-        replies = []
-        for servo_id in self._ids:
-            data, result, error = self._packet.readRx(self._port, servo_id, STATE_LENGTH)
-            if result == dxl.COMM_SUCCESS and len(data) != STATE_LENGTH:  # the SDK takes a short reply whole
-                result = dxl.COMM_RX_CORRUPT
-            if result != dxl.COMM_SUCCESS:
-                return servo_id, result, replies
-            replies.append((servo_id, bytes(data), error))
-        return None, result, replies
 
 
 def log_unconfirmed(where: str, unconfirmed: list[int]) -> None:
