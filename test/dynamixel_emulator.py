@@ -1,6 +1,7 @@
 """Dynamixel Protocol 2.0 servo emulator on a pseudo-terminal, for tests.
 
-A background thread plays several X-series servos on the master side of a pty;
+A background thread plays several X-series servos (Model Number ``model_number``, by default an
+XM430-W350's, as a ping reports it) on the master side of a pty;
 clients open ``emulator.port`` (the slave device) as if it were a USB-serial
 adapter. Supported instructions: PING, READ, WRITE, SYNC READ, SYNC WRITE, with
 CRC-16 and byte stuffing both ways; an instruction carrying an unstuffed
@@ -206,11 +207,11 @@ class EmulatedServo:
 class DynamixelEmulator:
     """Several Protocol 2.0 servos behind one pty; use as a context manager or call close()."""
 
-    def __init__(self, ids: Iterable[int] = (1, 2, 3), initial_ticks: int = 2048):
+    def __init__(self, ids: Iterable[int] = (1, 2, 3), initial_ticks: int = 2048, model_number: int = MODEL_NUMBER):
         self.servos: dict[int, EmulatedServo] = {}
         for servo_id in ids:
             servo = EmulatedServo(id=servo_id, position=float(initial_ticks))
-            servo.put(ADDR_MODEL_NUMBER, 2, MODEL_NUMBER)
+            servo.put(ADDR_MODEL_NUMBER, 2, model_number)
             servo.put(ADDR_FIRMWARE_VERSION, 1, FIRMWARE_VERSION)
             servo.put(ADDR_ID, 1, servo_id)
             servo.put(ADDR_OPERATING_MODE, 1, POSITION_CONTROL)

@@ -13,6 +13,7 @@ from dynamixel_emulator import (
     ADDR_FIRMWARE_VERSION,
     ADDR_GOAL_POSITION,
     ADDR_MAX_POSITION_LIMIT,
+    ADDR_MODEL_NUMBER,
     ADDR_MIN_POSITION_LIMIT,
     ADDR_OPERATING_MODE,
     ADDR_VELOCITY_LIMIT,
@@ -21,6 +22,7 @@ from dynamixel_emulator import (
     ADDR_TORQUE_ENABLE,
     INST_SYNC_READ,
     EXTENDED_POSITION_CONTROL,
+    INST_SYNC_WRITE,
     INST_WRITE,
     MODEL_NUMBER,
     DynamixelEmulator,
@@ -388,3 +390,28 @@ def test_an_instruction_damaged_on_the_line_is_sent_again(emulator: DynamixelEmu
     emulator.servos[2].damaged_instructions = 100
     _, error = run_within(FAULT_DEADLINE, DynamixelArm(arm_config(emulator.port)).__enter__)
     assert isinstance(error, DynamixelError) and "servo 2: instruction refused (CRC error" in str(error), error
+
+
+def writes_but_torque_off(emulator: DynamixelEmulator) -> list[bytes]:
+    """The WRITE and SYNC WRITE instructions on the bus, but those of Torque Enable = 0 (a stop's)."""
+    return [frame for frame in emulator.requests if frame[7] == INST_SYNC_WRITE or frame[7] == INST_WRITE
+            and not (int.from_bytes(frame[8:10], "little") == ADDR_TORQUE_ENABLE and frame[10] == 0)]
+
+
+@pytest.mark.parametrize(("servo_id", "model"), [(2, 30), (3, 54024)])  # MX-28(2.0); PRO H54-200-S500-R
+def test_a_servo_of_another_family_is_refused_before_anything_is_written(
+        emulator: DynamixelEmulator, servo_id: int, model: int) -> None:
+    """A ping's reply is the servo's model number, and it was thrown away: a servo of another
+    family, whose control table puts other registers at Torque Enable 64 or Goal Position 116,
+    was written there as an X-series one. Now its open is refused naming the servo and its
+    model number, before any write; a model of the X-series table other than the default opens."""
+    emulator.servos[servo_id].put(ADDR_MODEL_NUMBER, 2, model)
+    emulator.requests.clear()
+    _, error = run_within(FAULT_DEADLINE, DynamixelArm(arm_config(emulator.port)).__enter__)
+    assert isinstance(error, DynamixelSettingError), error
+    assert str(error).startswith(f"Dynamixel servo {servo_id}: model number {model} is not") and "\n" not in str(error)
+    assert not any(emulator.torque_enabled(i) for i in IDS)
+    assert writes_but_torque_off(emulator) == []
+    with DynamixelEmulator(IDS, model_number=1060) as xl430_w250:
+        with DynamixelArm(arm_config(xl430_w250.port)):
+            assert all(xl430_w250.torque_enabled(i) for i in IDS)

@@ -28,7 +28,8 @@ import numpy as np
 
 from laser_calib.hardware.dynamixel_bus import DynamixelBus, DynamixelError, DynamixelPortError, DynamixelSettingError
 from laser_calib.hardware.dynamixel_table import (ADDR_GOAL_POSITION, ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY,
-                                                  ADDR_PROFILE_VELOCITY, ADDR_TORQUE_ENABLE, int32, setting_problem)
+                                                  ADDR_PROFILE_VELOCITY, ADDR_TORQUE_ENABLE, int32, model_problem,
+                                                  setting_problem)
 
 logger = logging.getLogger(__name__)
 
@@ -113,7 +114,8 @@ class DynamixelArm(DynamixelBus):
         log_unconfirmed("close", self.close())
 
     def open(self) -> None:
-        """Open the port, ping every servo, set the profile velocity and enable torque. A fault
+        """Open the port, ping every servo (its model must be one of dynamixel_table.MODELS), check
+        its settings, set the profile velocity and enable torque. A fault
         stops the arm (_fail); anything else that ends it early (a Ctrl-C between two servos'
         torque on) closes the arm first: the caller never gets it, so nobody else would turn
         the torque of the servos already enabled off."""
@@ -151,7 +153,9 @@ class DynamixelArm(DynamixelBus):
         with self._lock:
             with self._io_errors():
                 for servo_id in self._ids:
-                    self._ping(servo_id)
+                    problem = model_problem(self._ping(servo_id))
+                    if problem:
+                        raise self._servo_fault(servo_id, problem, DynamixelSettingError)
                 for servo_id, joint, name in zip(self._ids, self.config.joints, self.joint_names):
                     ends = sorted(joint.zero_ticks + q * joint.ticks_per_rad for q in (joint.min, joint.max))
                     problem = setting_problem(lambda address, length: self._read(servo_id, address, length),

@@ -54,8 +54,8 @@ class DynamixelPortError(DynamixelError, ValueError):
 
 
 class DynamixelSettingError(DynamixelError, ValueError):
-    """A servo's own setting (Operating Mode, position limits) the arm cannot run with: a setting
-    to correct, found before its torque is on (dynamixel_table.setting_problem)."""
+    """A servo's own setting (Operating Mode, position limits) or model the arm cannot run with: a
+    setting to correct, found before its torque is on (dynamixel_table.setting_problem, model_problem)."""
 
 
 class DynamixelBus:
@@ -154,8 +154,9 @@ class DynamixelBus:
                 return data
         raise self._servo_fault(servo_id, f"{what} failed: {self._comm_fault(result)}")
 
-    def _ping(self, servo_id: int) -> None:
-        self._exchange(servo_id, "ping", lambda: self._packet.ping(self._port, servo_id))
+    def _ping(self, servo_id: int) -> int:
+        """The servo's model number."""
+        return self._exchange(servo_id, "ping", lambda: self._packet.ping(self._port, servo_id))
 
     def _read(self, servo_id: int, address: int, length: int) -> int:
         """One register of one servo (unsigned)."""

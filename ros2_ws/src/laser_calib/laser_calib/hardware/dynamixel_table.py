@@ -8,6 +8,10 @@ way the arm never reaches the pose, and the session ended in "arm not settled" n
 but not why. So each servo's mode, and in position control its limits against the joint's
 range in ticks, are read before its torque is enabled, and its Velocity Limit against the
 profile velocity the driver would write (refused as "data limit error", no register named).
+
+Before that, each servo's model number (a ping's reply) must be one of MODELS: a servo of
+another family (MX(2.0), PRO, AX) answers a ping too, but its registers lie elsewhere, so the
+writes below would land on other registers of it.
 """
 
 from __future__ import annotations
@@ -24,6 +28,17 @@ ADDR_PROFILE_VELOCITY = 112
 ADDR_GOAL_POSITION = 116
 ADDR_PRESENT_VELOCITY = 128
 ADDR_PRESENT_POSITION = 132
+
+# Model Number -> name of the servos whose control table has the addresses above: ROBOTIS e-Manual
+# control tables, Dynamixel2Arduino src/actuator.h and dynamixel-workbench dynamixel_item.h.
+MODELS = {
+    1060: "XL430-W250", 1090: "2XL430-W250", 1070: "XC430-W150", 1080: "XC430-W240", 1160: "2XC430-W250",
+    1030: "XM430-W210", 1020: "XM430-W350", 1130: "XM540-W150", 1120: "XM540-W270",
+    1010: "XH430-W210", 1000: "XH430-W350", 1050: "XH430-V210", 1040: "XH430-V350",
+    1110: "XH540-W150", 1100: "XH540-W270", 1150: "XH540-V150", 1140: "XH540-V270",
+    1011: "XD430-T210", 1111: "XD540-T150",
+    1280: "XW430-T200", 1270: "XW430-T333", 1180: "XW540-T140", 1170: "XW540-T260",
+}
 
 POSITION_CONTROL = 3  # the only mode whose goals Min/Max Position Limit bound (one turn)
 # Operating Mode values; the three position modes follow Goal Position
@@ -77,3 +92,11 @@ def setting_problem(read: Callable[[int, int], int], joint_name: str, low_ticks:
     return (f"{joint_name}'s range is ticks {low_ticks:.0f} .. {high_ticks:.0f}, beyond the servo's Min/Max Position "
             f"Limit {minimum} .. {maximum}, where it ignores a goal (the arm would not settle there): narrow "
             "dynamixel.min/max or the robot's joint range, or widen the servo's limits")
+
+
+def model_problem(model_number: int) -> str | None:
+    """Why a servo of ``model_number`` cannot be driven with this control table, or None."""
+    if model_number in MODELS:
+        return None
+    return (f"model number {model_number} is not an X-series servo of the control table this driver uses "
+            "(laser_calib.hardware.dynamixel_table.MODELS): its registers lie elsewhere, so nothing was written to it")
