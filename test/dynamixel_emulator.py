@@ -22,7 +22,9 @@ the next instructions addressed to it arrive damaged, as by noise: answered with
 error, not executed); and
 ``emulator.set_hardware_error(id, status)``
 (its status packets carry the alert bit 0x80, as a real servo's do after a
-hardware fault).
+hardware fault); ``emulator.switch_torque_off(id)`` (Torque Enable 0 written by
+someone else, e.g. Dynamixel Wizard, or a servo that rebooted: no alert bit, and,
+as a real servo, it no longer moves toward its goal).
 
 The control table holds an X-series servo's defaults where the driver reads them
 (Operating Mode 3, position control; Min/Max Position Limit 0 and 4095; Velocity
@@ -277,6 +279,14 @@ class DynamixelEmulator:
             self._advance()
             servo = self.servos[servo_id]
             servo.put(ADDR_HARDWARE_ERROR_STATUS, 1, status)
+            servo.put(ADDR_TORQUE_ENABLE, 1, 0)
+            servo.advance(0.0)
+
+    def switch_torque_off(self, servo_id: int) -> None:
+        """Torque off from outside the driver; the servo stays where it is and takes goals without moving."""
+        with self._lock:
+            self._advance()
+            servo = self.servos[servo_id]
             servo.put(ADDR_TORQUE_ENABLE, 1, 0)
             servo.advance(0.0)
 

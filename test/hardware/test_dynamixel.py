@@ -415,3 +415,38 @@ def test_a_servo_of_another_family_is_refused_before_anything_is_written(
     with DynamixelEmulator(IDS, model_number=1060) as xl430_w250:
         with DynamixelArm(arm_config(xl430_w250.port)):
             assert all(xl430_w250.torque_enabled(i) for i in IDS)
+
+
+TORQUE_OFF = "torque is off (switched off from outside this driver, or the servo rebooted)"
+
+
+def test_a_servo_whose_torque_was_switched_off_is_named_at_the_next_command(
+        emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    """Torque switched off from outside (Dynamixel Wizard, a brown-out reboot, an overload the
+    status packets did not flag): the goals were taken silently, the servo stayed put and the
+    session failed later with 'arm not settled', blaming the arm. The next command now names the
+    servo, stops the arm and writes no goal."""
+    emulator.switch_torque_off(2)
+    _, error = run_within(FAULT_DEADLINE, lambda: arm.command(np.full(3, 0.3)))
+    assert isinstance(error, DynamixelError) and str(error) == f"Dynamixel servo 2: {TORQUE_OFF}", error
+    assert error.servo_id == 2
+    assert not any(emulator.torque_enabled(i) for i in IDS)
+    assert [emulator.read(i, ADDR_GOAL_POSITION, 4, signed=True) for i in IDS] == [2048] * 3
+
+
+def test_servos_whose_torque_goes_off_on_the_way_are_named_when_they_stop_short(
+        emulator: DynamixelEmulator, arm: DynamixelArm) -> None:
+    """Torque off while the arm moves: the servos stop short of the goal (as real ones, the
+    emulator's no longer move toward it), and the reading that finds them still, off their goal,
+    names them."""
+    arm.command(np.full(3, 1.0))
+    emulator.switch_torque_off(1)
+    emulator.switch_torque_off(3)
+    stopped_at = emulator.present_position(3)
+    error, deadline = None, time.monotonic() + FAULT_DEADLINE
+    while error is None and time.monotonic() < deadline:
+        _, error = run_within(FAULT_DEADLINE, arm.read)
+        time.sleep(0.02)
+    assert isinstance(error, DynamixelError) and str(error) == f"Dynamixel servos 1, 3: {TORQUE_OFF}", error
+    assert emulator.present_position(3) == stopped_at != emulator.read(3, ADDR_GOAL_POSITION, 4, signed=True)
+    assert not any(emulator.torque_enabled(i) for i in IDS)

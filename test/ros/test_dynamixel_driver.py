@@ -1,6 +1,7 @@
 """arm_driver over the Dynamixel backend, against the Protocol 2.0 servo
 emulator on a pseudo-terminal (test/dynamixel_emulator.py): joint states,
-a goal reached, and a servo fault giving one log line, torque off, exit 1;
+a goal reached, and a servo fault giving one log line, torque off, exit 1 (so does a servo whose
+torque was switched off from outside, at the next goal);
 a servo that never confirms torque off on shutdown: one ERROR line, exit 5; a Ctrl-C
 while the driver starts, after the servos' torque is on: torque off; a port or baud rate that
 cannot be used: one line, exit 2."""
@@ -46,6 +47,27 @@ def test_dynamixel_arm_driver(ros):
         errors = [line for line in log.splitlines() if "Dynamixel servo 3" in line]
         assert errors and "arm stopped" in errors[0], log
         assert not emulator.torque_enabled(1) and not emulator.torque_enabled(2)  # safe stop
+
+
+def test_a_servo_whose_torque_was_switched_off_is_named_at_the_next_goal(ros):
+    """Torque switched off from outside the driver mid-session (Dynamixel Wizard, a brown-out
+    reboot): the goals were taken silently, the arm never arrived and the session said 'arm not
+    settled', blaming the arm. The driver now finds it at the next goal: one line naming the
+    servo, the arm stopped, exit 1."""
+    from dynamixel_emulator import DynamixelEmulator
+    from ros_harness import CLIENT
+    with DynamixelEmulator(ids=(1, 2, 3, 4)) as emulator:
+        start_driver(ros, emulator)
+        ros.client("move", "0.2", "-0.1", "0.3", "0.0")
+        emulator.switch_torque_off(2)
+        held = emulator.present_position(2)
+        ros.start_command("move", [sys.executable, str(CLIENT), "move", "0.0", "0.0", "0.0", "0.0"])
+        assert ros.wait_exit("arm_driver", 60) == 1, ros.log("arm_driver")
+        log = ros.log("arm_driver")
+        errors = [line for line in log.splitlines() if "Dynamixel servo 2" in line]
+        assert len(errors) == 1 and "torque is off (switched off from outside this driver" in errors[0], log
+        assert "arm stopped" in errors[0] and "Traceback" not in log, log
+        assert emulator.present_position(2) == held and not any(emulator.torque_enabled(i) for i in (1, 3, 4))
 
 
 def test_torque_off_not_confirmed_on_shutdown_is_an_error(ros):

@@ -8,6 +8,11 @@ and joint velocity is Present Velocity (0.229 rev/min per unit of the servo
 shaft, 4096 ticks/rev) divided by ticks_per_rad [rad/s]. Arrays are (N,) in the
 order of ``DynamixelConfig.joints``.
 
+A servo whose torque is off (switched off from outside, or rebooted) takes goals silently and
+never moves: it is found on each ``command()``, and on a ``read()`` that finds a servo still,
+off its goal (at most every TORQUE_CHECK_PERIOD, so a servo holding a few ticks short costs
+little), and reported as a fault.
+
 Every communication failure stops the arm (torque off, best effort) and raises
 :class:`DynamixelError` with one line naming the servo and the fault; the packet
 exchange, its retries and status checks are dynamixel_bus.DynamixelBus's. Sync
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 import fcntl
 import logging
+import time
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Sequence
@@ -38,6 +44,9 @@ STATE_ADDRESS = ADDR_PRESENT_VELOCITY
 STATE_LENGTH = 8
 
 VELOCITY_UNIT = 0.229 * 4096 / 60.0  # [ticks/s] per Present Velocity unit
+ARRIVAL_TOLERANCE = 2  # [ticks] about the settle rule's 0.003 rad at 4096 ticks/rev
+STILL_VELOCITY = 1  # [Present Velocity units] a unit of jitter allowed
+TORQUE_CHECK_PERIOD = 1.0  # [s] between two checks of Torque Enable while a servo is still off its goal
 
 
 @dataclass(frozen=True)
@@ -98,6 +107,8 @@ class DynamixelArm(DynamixelBus):
         for servo_id in self._ids:
             self._reader.addParam(servo_id)
         self._writer = dxl.GroupSyncWrite(self._port, self._packet, ADDR_GOAL_POSITION, 4)
+        self._goal_ticks = np.full(len(self._ids), np.nan)  # NaN: no goal yet, nothing to arrive at
+        self._torque_checked = -np.inf  # time.monotonic() of the last check while still off the goal
 
     def __enter__(self) -> "DynamixelArm":
         try:
@@ -183,6 +194,7 @@ class DynamixelArm(DynamixelBus):
         with self._lock:
             self._require_open()
             with self._io_errors():
+                self._check_torque()
                 self._write_goal(ticks)
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
@@ -191,6 +203,9 @@ class DynamixelArm(DynamixelBus):
             self._require_open()
             with self._io_errors():
                 ticks, velocity_units = self._read_state()
+                if self._stopped_short(ticks, velocity_units):
+                    self._torque_checked = time.monotonic()
+                    self._check_torque()
         q = (ticks - self._zero_ticks) / self._ticks_per_rad
         return q, velocity_units * VELOCITY_UNIT / self._ticks_per_rad
 
@@ -207,8 +222,15 @@ class DynamixelArm(DynamixelBus):
         if not self._port.is_open:
             raise DynamixelError(f"Dynamixel port {self.config.port}: not open")
 
+    def _stopped_short(self, ticks: np.ndarray, velocity_units: np.ndarray) -> bool:
+        """Whether a servo stands still off its goal, where a servo without torque ends up, and
+        Torque Enable was not checked in the last TORQUE_CHECK_PERIOD."""
+        short = (np.abs(ticks - self._goal_ticks) > ARRIVAL_TOLERANCE) & (np.abs(velocity_units) <= STILL_VELOCITY)
+        return bool(short.any()) and time.monotonic() - self._torque_checked >= TORQUE_CHECK_PERIOD
+
     def _write_goal(self, ticks: np.ndarray) -> None:
         """Sync write Goal Position ``ticks`` (N,) to all servos; no status packets come back."""
+        self._goal_ticks = np.asarray(ticks, dtype=float)
         self._writer.clearParam()
         for servo_id, goal in zip(self._ids, ticks):
             self._writer.addParam(servo_id, list(int(goal).to_bytes(4, "little", signed=True)))

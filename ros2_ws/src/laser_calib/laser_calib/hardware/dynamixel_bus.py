@@ -67,6 +67,9 @@ class DynamixelBus:
         self._port = dxl.PortHandler(port)
         self._packet = StuffedPacketHandler()
         self._lock = threading.RLock()
+        self._torque_reader = dxl.GroupSyncRead(self._port, self._packet, ADDR_TORQUE_ENABLE, 1)
+        for servo_id in ids:
+            self._torque_reader.addParam(servo_id)
 
     def stop(self) -> list[int]:
         """Torque off on every servo, best effort: never raises (it runs on error paths and must
@@ -100,6 +103,16 @@ class DynamixelBus:
             if result == dxl.COMM_SUCCESS:
                 return True
         return False
+
+    def _check_torque(self) -> None:
+        """Raise, the servos stopped, naming those whose torque is off, from one sync read: torque
+        switched off by someone else (Dynamixel Wizard), a brown-out reboot or an overload shutdown
+        the status packets did not flag leaves a servo taking goals silently and never moving."""
+        off = [servo_id for servo_id, data in zip(self._ids, self._sync_read(self._torque_reader)) if not data[0]]
+        if off:
+            servos = f"servo {off[0]}" if len(off) == 1 else f"servos {', '.join(map(str, off))}"
+            raise self._fail(f"Dynamixel {servos}: torque is off (switched off from outside this driver, or the "
+                             "servo rebooted)", off[0] if len(off) == 1 else None)
 
     def _fail(self, message: str, servo_id: int | None = None, kind: type[DynamixelError] = DynamixelError
               ) -> DynamixelError:
