@@ -412,9 +412,10 @@ def test_a_servo_of_another_family_is_refused_before_anything_is_written(
     assert str(error).startswith(f"Dynamixel servo {servo_id}: model number {model} is not") and "\n" not in str(error)
     assert not any(emulator.torque_enabled(i) for i in IDS)
     assert writes_but_torque_off(emulator) == []
-    with DynamixelEmulator(IDS, model_number=1060) as xl430_w250:
-        with DynamixelArm(arm_config(xl430_w250.port)):
-            assert all(xl430_w250.torque_enabled(i) for i in IDS)
+    for x_series in (1060, 1200):  # XL430-W250, XL330-M288
+        with DynamixelEmulator(IDS, model_number=x_series) as other:
+            with DynamixelArm(arm_config(other.port)):
+                assert all(other.torque_enabled(i) for i in IDS)
 
 
 TORQUE_OFF = "torque is off (switched off from outside this driver, or the servo rebooted)"

@@ -30,8 +30,11 @@ ADDR_PRESENT_VELOCITY = 128
 ADDR_PRESENT_POSITION = 132
 
 # Model Number -> name of the servos whose control table has the addresses above: ROBOTIS e-Manual
-# control tables, Dynamixel2Arduino src/actuator.h and dynamixel-workbench dynamixel_item.h.
+# control tables, Dynamixel2Arduino src/actuator.h and dynamixel-workbench dynamixel_item.h; the XL330s
+# (the small arms' servo) as LeRobot drives them, with its X-series table. The XC330s are left out:
+# their model numbers are known, their tables unchecked here.
 MODELS = {
+    1190: "XL330-M077", 1200: "XL330-M288",
     1060: "XL430-W250", 1090: "2XL430-W250", 1070: "XC430-W150", 1080: "XC430-W240", 1160: "2XC430-W250",
     1030: "XM430-W210", 1020: "XM430-W350", 1130: "XM540-W150", 1120: "XM540-W270",
     1010: "XH430-W210", 1000: "XH430-W350", 1050: "XH430-V210", 1040: "XH430-V350",
