@@ -10,6 +10,8 @@ import signal
 import time
 from pathlib import Path
 
+import pytest
+
 from ros_harness import ROOT, Ros, children
 from test_crash_resume import csv_rows
 
@@ -71,7 +73,11 @@ def test_lock_held_by_the_parent_is_the_sessions_own(tmp_path):
     held.release()
 
 
-def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
+@pytest.mark.parametrize("stop", ["ctrl-c", "kill"])
+def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path, stop):
+    """ctrl-c: the terminal's, SIGINT to the whole process group: the runner forwards it, the nodes
+    get it twice. kill: a supervisor's or `kill PID`'s SIGTERM to run-session alone, which bash held
+    until its foreground child ended: the session went on to its end."""
     out = tmp_path / "session"
     proc = ros.start_command("run-session", [RUN_SESSION, "--no-setup", "--out", str(out), "--poses", "10",
                                              "--speed", "4.0"])
@@ -86,7 +92,10 @@ def test_ctrl_c_stops_every_node_cleanly(ros: Ros, tmp_path):
         assert proc.poll() is None and time.monotonic() < deadline, ros.log("run-session")
         time.sleep(0.1)
     nodes = [pid for pid in children(proc.pid) if b"lib/laser_calib_nodes/" in Path(f"/proc/{pid}/cmdline").read_bytes()]
-    ros.interrupt("run-session")  # the terminal's Ctrl-C: the runner forwards it, the nodes get it twice
+    if stop == "ctrl-c":
+        ros.interrupt("run-session")
+    else:
+        os.kill(proc.pid, signal.SIGTERM)
     assert ros.wait_exit("run-session", 30) == 130, ros.log("run-session")
     assert not [pid for pid in nodes if alive(pid)]
     logs = {path.name: path.read_text() for path in (out / "logs").glob("*.log")}
