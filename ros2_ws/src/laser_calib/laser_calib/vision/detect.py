@@ -13,7 +13,13 @@ Per laser (1: red, 2: green, see render.py):
    ``max_other_ratio`` above the background): white or warm light, such as a
    glint off the arm, whose small blob demosaicing fringes with colour. Nor
    are two lasers whose maxima are within ``exclusion_px``: each one's
-   crosstalk is in the other's fit.
+   crosstalk is in the other's fit. A spot on or 1-5 px beside the other
+   laser's, up to half as bright, has no maximum of its own: the other's light
+   outshines it in its contrast. It is found in the other's fit window
+   instead (its channel's light there is off the other's centre, where that
+   one's crosstalk is not; or, on one another, a spot of both colours without
+   the blue of white light): neither laser is seen, each reason names the
+   other. Unsaid, it had pulled the brighter one's centre by up to 0.4 mm.
 3. locate: weighted least-squares fit of an elliptical Gaussian (an oblique
    beam's footprint is stretched along its plane of incidence) on a tilted
    plane to the laser's own channel in a window around the maximum, using only photosites
@@ -52,9 +58,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
+from scipy.special import chdtri
 
 from laser_calib.vision.camera import ScreenCalibration
 from laser_calib.vision.spot_fit import background_and_width, fit_spot
@@ -130,6 +138,16 @@ class DetectorOptions:
 _OWN_CHANNEL = (2, 1)
 _OTHER_CHANNEL = (1, 2)
 _COLOUR = ("R", "G")
+_WHITE = "white light (a glint, a lamp), not the laser's colour"
+
+
+class _Spot(NamedTuple):
+    """A laser's fitted spot: centre (u, v) px (2,), its covariance (2, 2) px^2, and the window it was
+    fitted in: (u, v) pixel of its centre, w its half side."""
+
+    centre: np.ndarray
+    covariance: np.ndarray
+    window: tuple[int, int, int]
 
 
 class SpotDetector:
@@ -161,21 +179,87 @@ class SpotDetector:
             # each laser's crosstalk is in the other's fit: both centres pulled
             centres = (f"the other laser's spot is {apart:.0f} px away, within exclusion_px: each one's light is in "
                        "the other's fit",) * 2
+        elif not all(isinstance(centre, _Spot) for centre in centres):
+            centres = self._masked(channels, centres)
         why = tuple(c if isinstance(c, str) else None for c in centres)
         spots = np.full((2, 2), np.nan)
-        found = [j for j in range(2) if isinstance(centres[j], np.ndarray)]
+        found = [j for j in range(2) if isinstance(centres[j], _Spot)]
         if found:
-            spots[found] = calibration.pixels_to_screen(np.array([centres[j] for j in found]))
+            spots[found] = calibration.pixels_to_screen(np.array([centres[j].centre for j in found]))
         inside = (np.abs(spots[:, 0]) <= self.options.half_y) & (np.abs(spots[:, 1]) <= self.options.half_z)
         why = tuple(reason if reason or inside[j] or j not in found else "outside the screen's measuring area"
                     for j, reason in enumerate(why))
         spots[~inside] = np.nan
         return spots, inside, why
 
+    def _masked(self, channels: tuple[np.ndarray, ...], centres: tuple) -> tuple:
+        """centres (a _Spot, a reason or None per laser), with reasons where a laser not seen is there, its
+        colour contrast masked by the other's light: the contrast saturates at 0 where the other laser's
+        channel outshines its own, so a spot on or 1-5 px beside the other's (up to half its radiance) was lost
+        unsaid, and its crosstalk in the other's fit window pulled that one's centre by up to 0.2 mm."""
+        for j, k in ((0, 1), (1, 0)):
+            if isinstance(centres[j], _Spot):
+                continue
+            if isinstance(centres[k], _Spot) and (mm := self._neighbour(channels[_OWN_CHANNEL[j]], _COLOUR[j],
+                                                                         centres[k])) is not None:
+                said = [None, None]
+                said[j] = (f"within {mm:.0f} mm of laser {k + 1}'s spot, whose light masks its colour contrast: "
+                           "the two cannot be told apart")
+                said[k] = (f"laser {j + 1}'s spot, masked in its colour contrast, is in its fit window (within "
+                           f"{mm:.0f} mm): its light pulls the centre")
+                return tuple(said)
+        if all(centre is None or centre == _WHITE for centre in centres) and self._both_colours(channels):
+            return tuple(f"on laser {k + 1}'s spot, one spot of both colours: the two cannot be told apart"
+                         for k in (1, 0))
+        return centres
+
+    def _neighbour(self, own: np.ndarray, colour: str, spot: _Spot) -> float | None:
+        """Half the side (mm on the screen) of ``spot``'s fit window if this laser's channel ``own`` holds light
+        of its own there, else None. Its channel holds the other laser's crosstalk, a spot of the same centre;
+        a spot of this laser beside it moves the centre fitted to this channel. Moved beyond the upper quantile
+        of chi^2 with 2 dof at half false_refusal_rate (the two fits' covariances): this laser is there. No test
+        without a bayer_pattern: the covariances are the noise model's, not that of interpolated pixels."""
+        if self._refusal_rate is None:
+            return None
+        o = self.options
+        u, v, w = spot.window
+        window = own[v - w:v + w + 1, u - w:u + w + 1].astype(float)
+        fit = fit_spot(window, background_and_width(window), self._photosites(u - w, v - w, w, colour),
+                       (o.read_noise_dn, o.gain_e_per_dn, o.speckle_contrast), None)
+        if isinstance(fit, str):  # no spot in this channel: the crosstalk is lost in the noise, and so is this laser
+            return None
+        shift = fit[0] + (u, v) - spot.centre
+        if shift @ np.linalg.solve(fit[2] + spot.covariance, shift) <= chdtri(2, self._refusal_rate / 2):
+            return None
+        corners = self.calibration.pixels_to_screen(spot.centre + np.array([[0.0, 0.0], [w, 0.0], [0.0, w]]))
+        return 1000.0 * float(np.max(np.linalg.norm(corners[1:] - corners[0], axis=1)))
+
+    def _both_colours(self, channels: tuple[np.ndarray, ...]) -> bool:
+        """Whether the frame (B, G, R channels) holds a spot of both lasers' colours: the two lasers' spots on
+        one another, each one's colour contrast cancelled by the other's light. Neither laser's light has blue,
+        white light does (blue rises 0.8 of red and green): at the maximum of min(R, G) - B, the box's mean of
+        min(R, G) rises above all of the fit window's rim by min_peak_dn, its blue by under max_other_ratio of
+        that. Above the rim's maximum, not its median: a white fiducial cell's corner on black ink rises above
+        the median, and bilinear demosaicing blurs its blue edge (0.56 of red and green, not 0.84)."""
+        o = self.options
+        blue, lasers = channels[0], cv2.min(channels[1], channels[2])
+        contrast = cv2.blur(cv2.subtract(lasers, blue), (o.smooth_px, o.smooth_px))
+        _, peak, _, (u, v) = cv2.minMaxLoc(contrast)
+        w, h = o.window_half_px, o.smooth_px // 2
+        height, width = blue.shape
+        if peak < o.min_peak_dn or u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
+            return False
+        rises = []
+        for channel in (lasers, blue):
+            window = channel[v - w:v + w + 1, u - w:u + w + 1].astype(float)
+            rim = np.concatenate([window[0], window[-1], window[1:-1, 0], window[1:-1, -1]])
+            rises.append(window[w - h:w + h + 1, w - h:w + h + 1].mean() - rim.max())
+        return rises[0] >= o.min_peak_dn and rises[1] <= o.max_other_ratio * rises[0]
+
     def _locate(self, own: np.ndarray, other: np.ndarray, colour: str
-                ) -> tuple[tuple[int, int] | None, np.ndarray | str | None]:
-        """(Pixel of the maximum of this laser's colour contrast, None if too dim; sub-pixel (u, v) of its
-        spot, None if there is none, or why it is refused: ambiguous, not one clean spot, ...)."""
+                ) -> tuple[tuple[int, int] | None, _Spot | str | None]:
+        """(Pixel of the maximum of this laser's colour contrast, None if too dim; its fitted spot, None if
+        there is none, or why it is refused: ambiguous, not one clean spot, ...)."""
         o = self.options
         contrast = cv2.blur(cv2.subtract(own, other), (o.smooth_px, o.smooth_px))
         _, peak, _, (u, v) = cv2.minMaxLoc(contrast)
@@ -184,8 +268,8 @@ class SpotDetector:
         return (u, v), self._centre(own, other, contrast, peak, u, v, colour)
 
     def _centre(self, own: np.ndarray, other: np.ndarray, contrast: np.ndarray, peak: float, u: int, v: int,
-                colour: str) -> np.ndarray | str:
-        """Sub-pixel (u, v) of the spot whose contrast peaks at pixel (u, v), or why it is refused."""
+                colour: str) -> _Spot | str:
+        """The fitted spot whose contrast peaks at pixel (u, v), or why it is refused."""
         o = self.options
         r = o.exclusion_px
         contrast[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1] = 0
@@ -198,7 +282,7 @@ class SpotDetector:
             return edge
         own_rise, other_rise = self._rises(own, other, u, v)
         if other_rise > o.max_other_ratio * own_rise:
-            return "white light (a glint, a lamp), not the laser's colour"
+            return _WHITE
         width_px = 0.0
         for _ in range(4):  # the window grows with the spot until it holds 5 of its sigmas
             if u - w < 0 or v - w < 0 or u + w >= width or v + w >= height:
@@ -211,9 +295,9 @@ class SpotDetector:
                                (o.read_noise_dn, o.gain_e_per_dn, o.speckle_contrast), self._refusal_rate)
                 if isinstance(fit, str):
                     return fit  # no spot, or not one clean spot: its centre would be biased
-                offset, width_px = fit
+                offset, width_px, covariance = fit
                 if 5.0 * width_px <= w:
-                    return offset + (u, v)
+                    return _Spot(offset + (u, v), covariance, (u, v, w))
             w = int(math.ceil(5.0 * width_px))
             if w > o.max_window_half_px:
                 return (f"a spot of sigma {width_px:.1f} px (defocused?) is larger than the largest fit window "

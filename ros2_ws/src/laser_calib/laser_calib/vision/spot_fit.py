@@ -63,9 +63,9 @@ def _moments(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_spot(window: np.ndarray, spread: tuple[float, np.ndarray, float], photosites: np.ndarray,
-             noise: tuple[float, float, float], rate: float | None) -> tuple[np.ndarray, float] | str:
-    """(offset (du, dv) of the spot from the window centre, its sigma px along its major axis) by a weighted
-    Gaussian fit.
+             noise: tuple[float, float, float], rate: float | None) -> tuple[np.ndarray, float, np.ndarray] | str:
+    """(offset (du, dv) of the spot from the window centre, its sigma px along its major axis, the offset's
+    covariance (2, 2) px^2 under the noise model) by a weighted Gaussian fit.
 
     Model: A exp(-(a x^2 + 2 b x y + c y^2) / 2) + b0 + bu du + bv dv, (x, y) the
     offset from the centre and [[a, b], [b, c]] the inverse of the spot's
@@ -87,7 +87,7 @@ def fit_spot(window: np.ndarray, spread: tuple[float, np.ndarray, float], photos
 
 
 def _fit(window: np.ndarray, spread: tuple[float, np.ndarray, float], photosites: np.ndarray,
-         noise: tuple[float, float, float], rate: float | None) -> tuple[np.ndarray, float] | str:
+         noise: tuple[float, float, float], rate: float | None) -> tuple[np.ndarray, float, np.ndarray] | str:
     """fit_spot, but for the word on saturation."""
     read, gain, speckle = noise
     w = window.shape[0] // 2
@@ -130,8 +130,10 @@ def _fit(window: np.ndarray, spread: tuple[float, np.ndarray, float], photosites
     residual = residual - jacobian @ step
     chi2 = float(residual @ residual)
     dof = int(use.sum()) - _PARAMETERS
+    # the jacobian is whitened: the inverse of its normal matrix is the parameters' covariance (Cramer-Rao)
+    found = q[1:3], float(1.0 / math.sqrt(inverse[0])), np.linalg.inv(jacobian.T @ jacobian)[1:3, 1:3]
     if rate is None:
-        return q[1:3], float(1.0 / math.sqrt(inverse[0]))
+        return found
     # two tests at half the rate each: the family's false refusals stay at the rate
     if chi2 > (limit := float(chdtri(dof, rate / 2))):
         return (f"not one clean spot: its fit's chi^2 is {chi2:.0f} on {dof} dof, beyond {limit:.0f} (a second "
@@ -140,7 +142,7 @@ def _fit(window: np.ndarray, spread: tuple[float, np.ndarray, float], photosites
     if (skew := _skewness(residual, jacobian, spot / sigma, x, y, precision)) > (limit := float(chdtri(4, rate / 2))):
         return (f"not one symmetric spot: its skewness (score chi^2 {skew:.0f} on 4 dof, beyond {limit:.0f}) says a "
                 "second spot or a reflection overlaps it, or an edge cuts it")
-    return q[1:3], float(1.0 / math.sqrt(inverse[0]))
+    return found
 
 
 def _skewness(residual: np.ndarray, jacobian: np.ndarray, spot: np.ndarray, x: np.ndarray, y: np.ndarray,
