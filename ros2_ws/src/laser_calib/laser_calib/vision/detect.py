@@ -65,7 +65,7 @@ import numpy as np
 from scipy.special import chdtri
 
 from laser_calib.vision.camera import ScreenCalibration
-from laser_calib.vision.spot_fit import background_and_width, fit_spot
+from laser_calib.vision.spot_fit import SpotFit, background_and_width, fit_spot, off_centre
 
 
 @dataclass(frozen=True)
@@ -107,8 +107,12 @@ class DetectorOptions:
         70 deg oblique; bench/results/spot_refusal.md), 1 of 1000 in vision_bench's main run. Of the spots a
         touching spot, a reflection or JPEG (quality <= 90) moved by > 0.3 px, 4 of 192 still pass (a
         reflection of 35 % 3 px off, 0.9 px, that the round model's chi^2 refused; JPEG at quality 50).
-        Only with a bayer_pattern: without one the pixels
-        are interpolations (demosaiced, 4:2:2 chroma) whose noise is not the model's (chi^2 / dof 1.4-2.5).
+        With one laser not seen, a third test at half the rate: is its colour's light in the other's fit
+        window off that spot's centre (a spot masked in its colour contrast; spot_fit.off_centre)? 1 of 600
+        spots of one laser, the other off, refused by it (bench/results/spot_refusal.md); it refuses JPEG
+        frames' spots too (4 more of 80 at quality 95, and that at quality 50 above). Only with a
+        bayer_pattern: without one the pixels are interpolations (demosaiced, 4:2:2 chroma) whose noise
+        is not the model's (chi^2 / dof 1.4-2.5).
     gain_e_per_dn, read_noise_dn, speckle_contrast: the noise model that
         weights the fit: variance = read^2 + signal / gain + (contrast * spot)^2.
         read_noise_dn includes the 8-bit quantisation (0.29 DN). Defaults are
@@ -142,11 +146,11 @@ _WHITE = "white light (a glint, a lamp), not the laser's colour"
 
 
 class _Spot(NamedTuple):
-    """A laser's fitted spot: centre (u, v) px (2,), its covariance (2, 2) px^2, and the window it was
-    fitted in: (u, v) pixel of its centre, w its half side."""
+    """A laser's spot: centre (u, v) px (2,) in the image, its fit, and the window it was fitted in: (u, v)
+    pixel of its centre, w its half side."""
 
     centre: np.ndarray
-    covariance: np.ndarray
+    fit: SpotFit
     window: tuple[int, int, int]
 
 
@@ -196,17 +200,19 @@ class SpotDetector:
         """centres (a _Spot, a reason or None per laser), with reasons where a laser not seen is there, its
         colour contrast masked by the other's light: the contrast saturates at 0 where the other laser's
         channel outshines its own, so a spot on or 1-5 px beside the other's (up to half its radiance) was lost
-        unsaid, and its crosstalk in the other's fit window pulled that one's centre by up to 0.2 mm."""
+        unsaid, and its light in the other's fit window pulled that one's centre toward it by up to 0.4 mm
+        (0.13 mm on average for laser 1, 0.06 mm for laser 2, at 10-50 % of its radiance 2-8 mm away)."""
         for j, k in ((0, 1), (1, 0)):
             if isinstance(centres[j], _Spot):
                 continue
             if isinstance(centres[k], _Spot) and (mm := self._neighbour(channels[_OWN_CHANNEL[j]], _COLOUR[j],
                                                                          centres[k])) is not None:
+                # a reason of its own stands (compression, say, moves the other colour's light too)
                 said = [None, None]
-                said[j] = (f"within {mm:.0f} mm of laser {k + 1}'s spot, whose light masks its colour contrast: "
-                           "the two cannot be told apart")
-                said[k] = (f"laser {j + 1}'s spot, masked in its colour contrast, is in its fit window (within "
-                           f"{mm:.0f} mm): its light pulls the centre")
+                said[j] = centres[j] or (f"within {mm:.0f} mm of laser {k + 1}'s spot, whose light masks its colour "
+                                         "contrast: the two cannot be told apart")
+                said[k] = (f"light of laser {j + 1}'s colour off its centre in the fit window (laser {j + 1}'s spot "
+                           f"within {mm:.0f} mm, masked by this one's light?): it pulls the centre")
                 return tuple(said)
         if all(centre is None or centre == _WHITE for centre in centres) and self._both_colours(channels):
             return tuple(f"on laser {k + 1}'s spot, one spot of both colours: the two cannot be told apart"
@@ -215,21 +221,18 @@ class SpotDetector:
 
     def _neighbour(self, own: np.ndarray, colour: str, spot: _Spot) -> float | None:
         """Half the side (mm on the screen) of ``spot``'s fit window if this laser's channel ``own`` holds light
-        of its own there, else None. Its channel holds the other laser's crosstalk, a spot of the same centre;
-        a spot of this laser beside it moves the centre fitted to this channel. Moved beyond the upper quantile
-        of chi^2 with 2 dof at half false_refusal_rate (the two fits' covariances): this laser is there. No test
-        without a bayer_pattern: the covariances are the noise model's, not that of interpolated pixels."""
+        of its own there, else None. Its channel holds the other laser's crosstalk, of the same centre; a spot
+        of this laser beside it shifts that light off the centre (spot_fit.off_centre), beyond the upper
+        quantile of chi^2 with 2 dof at half false_refusal_rate. No test without a bayer_pattern: the noise is
+        not the model's in interpolated pixels."""
         if self._refusal_rate is None:
             return None
         o = self.options
         u, v, w = spot.window
         window = own[v - w:v + w + 1, u - w:u + w + 1].astype(float)
-        fit = fit_spot(window, background_and_width(window), self._photosites(u - w, v - w, w, colour),
-                       (o.read_noise_dn, o.gain_e_per_dn, o.speckle_contrast), None)
-        if isinstance(fit, str):  # no spot in this channel: the crosstalk is lost in the noise, and so is this laser
-            return None
-        shift = fit[0] + (u, v) - spot.centre
-        if shift @ np.linalg.solve(fit[2] + spot.covariance, shift) <= chdtri(2, self._refusal_rate / 2):
+        score = off_centre(window, self._photosites(u - w, v - w, w, colour), spot.fit,
+                           (o.read_noise_dn, o.gain_e_per_dn, o.speckle_contrast))
+        if score <= chdtri(2, self._refusal_rate / 2):
             return None
         corners = self.calibration.pixels_to_screen(spot.centre + np.array([[0.0, 0.0], [w, 0.0], [0.0, w]]))
         return 1000.0 * float(np.max(np.linalg.norm(corners[1:] - corners[0], axis=1)))
@@ -295,9 +298,9 @@ class SpotDetector:
                                (o.read_noise_dn, o.gain_e_per_dn, o.speckle_contrast), self._refusal_rate)
                 if isinstance(fit, str):
                     return fit  # no spot, or not one clean spot: its centre would be biased
-                offset, width_px, covariance = fit
+                width_px = fit.sigma_px
                 if 5.0 * width_px <= w:
-                    return _Spot(offset + (u, v), covariance, (u, v, w))
+                    return _Spot(fit.offset + (u, v), fit, (u, v, w))
             w = int(math.ceil(5.0 * width_px))
             if w > o.max_window_half_px:
                 return (f"a spot of sigma {width_px:.1f} px (defocused?) is larger than the largest fit window "
