@@ -5,21 +5,25 @@ centre against the projection of the true spot) and whether SpotDetector reporte
 
 - clean: random spots over the screen (the two lasers >= 0.1 m apart) with the default RenderOptions,
   the calibration-light room, the screen's corners (vignetting, fiducials near the window), 5x
-  over-exposed spots and the elongated spots of beams up to 70 deg oblique; a refusal here is a false
-  refusal;
+  over-exposed spots, the elongated spots of beams up to 70 deg oblique, and one laser with the other off
+  (its channel in the first's fit window tested for a masked spot); a refusal here is a false refusal;
 - touching: the two lasers' spots d px apart (each laser's channel sees the other's crosstalk);
 - jpeg: clean frames JPEG-compressed at a quality;
 - edge: a camera of twice the focal length (the screen overfills the frame), laser 1 at e px from the
   frame's left edge;
 - reflection: a second red blob of a fraction of laser 1's radiance d px from it;
-- defocus: lens blur psf sigma s px, the radiance raised by (s / 1.3)^2 to keep the image peak.
+- defocus: lens blur psf sigma s px, the radiance raised by (s / 1.3)^2 to keep the image peak;
+- beside: the brighter laser (each in turn), the other at a fraction of its radiance d mm away, masked in
+  its colour contrast (its light pulls the brighter one's centre).
 
 A spot is "biased" when its error exceeds 0.3 px (the noise is 0.03-0.04 px rms).
 
     .venv/bin/python bench/spot_refusal_probe.py [--spots 600] [--name spot_refusal] [--before NAME]
 
 spot_refusal_before: this probe with the detector before the chi^2 test (commit 1824110);
-spot_refusal_round: with the round spot model, before the elliptical one and its skewness test.
+spot_refusal_round: with the round spot model, before the elliptical one and its skewness test;
+spot_refusal_masked_before: this probe with the detector before the test for a spot masked in its colour
+contrast (commit 3c9331d): the 'beside' cases' brighter spots reported, pulled toward the other.
 """
 
 from __future__ import annotations
@@ -84,7 +88,8 @@ def clean(camera, detector, spots: int, seed: int) -> dict:
     variants = {"default": (RenderOptions(), 0.95), "calibration light": (RenderOptions(ambient_dn=150.0), 0.95),
                 "corners": (RenderOptions(), None), "over-exposed 5x": (RenderOptions(laser_radiance_dn=(3000.0,
                                                                                                       3000.0)), 0.95),
-                "oblique beams 0-70 deg": (RenderOptions(), 0.95)}
+                "oblique beams 0-70 deg": (RenderOptions(), 0.95),
+                "one laser, the other off": (RenderOptions(), 0.95)}
     results = {}
     for k, (name, (options, half)) in enumerate(variants.items()):
         rng = np.random.default_rng(seed + k)
@@ -96,6 +101,11 @@ def clean(camera, detector, spots: int, seed: int) -> dict:
                     truth = rng.choice([-1.0, 1.0], (2, 2)) * rng.uniform(0.8, 0.99, (2, 2))
                 else:
                     truth = rng.uniform(-half, half, (2, 2))
+            if name.startswith("one laser"):
+                for on in range(2):
+                    frame = render_frame(camera, truth, np.arange(2) == on, rng, options)
+                    errors += outcome(camera, detector, frame, truth, lasers=(on,))
+                continue
             beams = oblique_beams(rng, 70.0) if name.startswith("oblique") else None
             errors += outcome(camera, detector, render_frame(camera, truth, BOTH, rng, options, beams=beams), truth)
         results[name] = summary(errors)
@@ -155,6 +165,19 @@ def cases(camera, detector, count: int, seed: int) -> dict:
             truth = rng.uniform(-0.8, 0.8, (2, 2))
             errors += outcome(camera, detector, render_frame(camera, truth, BOTH, rng, options), truth)
         results[f"defocus psf {psf:g} px"] = summary(errors)
+    for ratio in (0.2, 0.5):
+        for mm in (2.0, 4.0, 8.0):
+            errors = []
+            for k in range(count):
+                bright, angle = k % 2, rng.uniform(0, 2 * np.pi)
+                truth = np.empty((2, 2))
+                truth[bright] = rng.uniform(-0.8, 0.8, 2)
+                truth[1 - bright] = truth[bright] + mm / 1000.0 * np.array([np.cos(angle), np.sin(angle)])
+                radiance = [600.0, 600.0]
+                radiance[1 - bright] *= ratio
+                frame = render_frame(camera, truth, BOTH, rng, RenderOptions(laser_radiance_dn=tuple(radiance)))
+                errors += outcome(camera, detector, frame, truth, lasers=(bright,))
+            results[f"beside, {ratio:g} as bright, {mm:g} mm"] = summary(errors)
     return results
 
 
