@@ -228,3 +228,30 @@ def test_the_hardware_graph_takes_held_out_poses_and_refuses_files_it_would_misr
         "keys: arm): the arm_driver would take none of it")
     assert graph(calibration=tmp_path / "broken.yaml") == (
         f"refused: {tmp_path / 'broken.yaml'}: line 2: not valid YAML (expected ',' or ']', but got ':')")
+
+
+def test_resume_with_other_spot_frames_is_refused(ros, tmp_path):
+    """frames (spot frames averaged per pose) sets each sample's noise, and the estimate gives every
+    pose one spot sigma: a resume with frames:=1 on a session of 3 measured its remaining poses with
+    sqrt(3) times the noise, unsaid. Now it is refused as another plan is; the default given (a
+    resume with its arguments left out) takes the recorded value, and says so; settle.hold_time,
+    which does not change a sample's noise, is used with a WARN as the other settings are."""
+    out = tmp_path / "session"
+    ros.start("first", *ros_params(f"robot:={ROBOT}", f"output_dir:={out}", "wait_timeout:=1.0", *FIRST,
+                                   "frames:=5"), node="sequencer")
+    assert ros.wait_exit("first", 60) == 3, ros.log("first")
+    ros.start("fewer", *ros_params(f"robot:={ROBOT}", f"output_dir:={out}", "wait_timeout:=1.0", "frames:=1"),
+              node="sequencer")
+    assert ros.wait_exit("fewer", 60) == 2, ros.log("fewer")
+    lines = [line for line in ros.log("fewer").splitlines() if line.strip()]
+    assert lines[-1] == (f"error: {out} holds a partial session whose poses average 5 spot frames each, given "
+                         "frames:=1: the poses left would carry another noise than those measured, which the "
+                         "estimate cannot tell apart; resume with frames:=5 (or leave it out) or choose another "
+                         "output_dir"), ros.log("fewer")
+    ros.start("defaults", *ros_params(f"robot:={ROBOT}", f"output_dir:={out}", "wait_timeout:=1.0",
+                                      "settle.hold_time:=0.5"), node="sequencer")
+    assert ros.wait_exit("defaults", 60) == 3, ros.log("defaults")
+    log = ros.log("defaults")
+    assert "resume: 5 spot frames per pose, as the session's poses were measured" in log, log
+    warnings = [line for line in log.splitlines() if "WARN" in line]
+    assert len(warnings) == 1 and "settle.hold_time is 0.5, the session's previous run used 0.2" in warnings[0], log

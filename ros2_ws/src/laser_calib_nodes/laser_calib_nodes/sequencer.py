@@ -35,7 +35,7 @@ from laser_calib.session.average import FrameCollector
 from laser_calib.session.folder import POSES_FILE, Progress
 from laser_calib.session.settle import SettleDetector, SettleRule
 
-from laser_calib_nodes import common, parameters, sequencer_parts, sole_owner
+from laser_calib_nodes import common, parameters, sequencer_parts, session_open, sole_owner
 from laser_calib_nodes.joint_states import ArmJointStates
 from laser_calib_nodes.recorder import Recorder
 
@@ -60,7 +60,7 @@ class Sequencer(Node):
         # each checked at the start, not when the first pose is reached
         self.settle_timeout = d("settle.timeout", 30.0, "Give up on a pose not settled after this long, s.",
                                 rule=parameters.positive)
-        self.frames = d("frames", 3, "Spot frames averaged per pose.", rule=parameters.at_least(1))
+        self.frames = d("frames", session_open.FRAMES, "Spot frames averaged per pose.", rule=parameters.at_least(1))
         self.frame_timeout = d("frame_timeout", 10.0, "Give up when the frames of a pose take longer, s.",
                                rule=parameters.positive)
         self.sync_tol = d("sync_tolerance", 0.02, "Max stamp difference pairing a frame with a joint state, s "
@@ -79,7 +79,7 @@ class Sequencer(Node):
         self.owner_watch = sole_owner.declare(self)
         self.exit_code, self.done, self.created = 0, False, time.monotonic()
 
-        self.session, self.lock, self.robot, self.poses, state = sequencer_parts.open_session(self)
+        self.session, self.lock, self.robot, self.poses, state = session_open.open_session(self)
         # a URDF arm's joints are named: found by name among joint_states' (which may hold more)
         self.joint_names = (list(names) if names else
                             default_joint_names(self.robot) if self.robot.chain else None)

@@ -1,16 +1,14 @@
-"""The sequencer's parts around its measuring loop: the session folder opened (one
-owner, new or resumed), its estimate parameters, the Estimate service call (or
-the in-process estimate), the held-out and truth comparison after it, the
-worker's error handling, and the Sample message of a core sample."""
+"""The sequencer's parts around its measuring loop: its estimate parameters, the
+Estimate service call (or the in-process estimate), the held-out and truth
+comparison after it, the worker's error handling, and the Sample message of a
+core sample. The session folder is opened by session_open.py."""
 
 from __future__ import annotations
 
 import json
 import math
-import os
 import threading
 import time
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -22,12 +20,8 @@ from laser_calib.io.joint_names import default_joint_names
 from laser_calib.io.samples import Samples
 from laser_calib.measurement.noise_bounds import JOINT_SIGMA_NOT_GIVEN
 from laser_calib.model.robot_file import load_robot
-from laser_calib.planning import values_and_determined
 from laser_calib.report import truth
-from laser_calib.session.folder import (PLAN_DEFAULTS, ROBOT_FILE, SAMPLES_FILE, TEST_SAMPLES_FILE, SessionDir,
-                                       plan_value, refuse_finished)
-from laser_calib.session.lock import SessionLock
-from laser_calib.session.poses import generate_poses, load_poses, with_test_poses
+from laser_calib.session.folder import ROBOT_FILE, SAMPLES_FILE, TEST_SAMPLES_FILE
 
 from laser_calib_nodes import common, parameters, sole_owner
 
@@ -36,101 +30,8 @@ TRUE_ROBOT_FILE = "robot_true.yaml"   # where launch and run-session let the sim
 STALE_STATES = 1.0
 
 
-PLAN_HELP = {   # the parameters of the pose plan (defaults: folder.PLAN_DEFAULTS)
-    "poses_file": "Pose list (YAML or CSV, rad); empty: generate 'poses' poses.",
-    "poses": "Number of poses to generate when poses_file is empty.",
-    "span": "Generated poses: 'whole' (joint ranges) or 'small' (+-10 deg around zero).",
-    "seed": "Seed of the pose generator.",
-    "repeats": "Generated poses measured a second time at the end (same pose id).",
-    "test_poses": "Held-out poses over the whole workspace, measured after the others and never fitted "
-                  "(test_samples.csv, the report's held-out figures).",
-    "margin": "Generated poses keep both spots this far inside the screen edge, m.",
-}
-
-
 class Stop(Exception):
     """The node is shutting down: leave the sequence."""
-
-
-def open_session(node):
-    """(session, lock, robot, poses, state) from the session parameters; the lock is held.
-    A partial session is resumed on its own pose plan and in its own ROS namespace: other plan
-    arguments and another namespace are refused (SessionDir.check_plan, check_namespace), other
-    settings are used with a warning (warn_settings)."""
-    d = lambda *a, **k: parameters.declare(node, *a, **k)  # noqa: E731
-    robot_source = common.robot_source(node)
-    output_dir = d("output_dir", "", "Session directory: samples.csv, bag/, report (created; resumed "
-                                     "when it holds a partial session).")
-    plan = {name: d(name, PLAN_DEFAULTS[name], text) for name, text in PLAN_HELP.items()}
-    resume = d("resume", "auto", "'auto': resume a partial session in output_dir, else start one; "
-                                 "'yes': resume (error if none); 'no': never (error if output_dir holds a session).")
-    if not output_dir:
-        raise parameters.NodeError("parameter output_dir is empty: give the session directory", 2)
-    if resume not in ("auto", "yes", "no"):
-        raise parameters.NodeError(f"parameter resume: expected 'auto', 'yes' or 'no', got {resume!r}", 2)
-    session = SessionDir(Path(output_dir).resolve())
-    lock = SessionLock(session.path)
-    lock.acquire()
-    refuse_finished(session.path, "output_dir")
-    state = session.state()
-    if state == "partial" and resume == "no":
-        raise parameters.NodeError(f"{session.path} holds a partial session and resume is 'no'", 2)
-    if state == "new" and resume == "yes":
-        raise parameters.NodeError(f"{session.path}: no session to resume", 2)
-    if state == "partial":
-        if robot_source.path:  # a robot given must be the session's (its poses, samples, report are of it)
-            session.check_robot(*robot_source.load(node, lasers=True))
-        session.check_plan(plan)
-        session.check_namespace(node.get_namespace())
-        warn_settings(node, session)
-        robot, poses = session.load_for_resume()
-        return session, lock, robot, poses, state
-    robot, robot_label = robot_source.load(node, lasers=True)
-    poses = (load_poses(plan["poses_file"], robot) if plan["poses_file"] else
-             generate_poses(robot, plan["poses"], plan["span"], plan["seed"], plan["repeats"], plan["margin"]))
-    poses = with_test_poses(poses, robot, plan["test_poses"], plan["seed"], plan["margin"])
-    if node.end.mode != "none" and not node.end.prior:
-        enough_poses(robot, poses.q[~poses.test])
-    source = plan["poses_file"] or (f"generated: {plan['poses']} poses, span {plan['span']}, seed {plan['seed']}, "
-                                   f"repeats {plan['repeats']}")
-    session.start(robot, poses, {"robot": robot_label, "poses": source, "test_poses": plan["test_poses"],
-                                 "plan": {name: plan_value(name, value) for name, value in plan.items()},
-                                 "namespace": node.get_namespace(), "settings": settings(node)})
-    return session, lock, robot, poses, state
-
-
-def enough_poses(robot, q: np.ndarray) -> None:
-    """NodeError (exit 2) when the calibration poses q (P,N) give no more spot values than the
-    errors they determine at the nominal model: the estimate after the last pose would refuse
-    them (a session measured in full, then failed, and its plan, fixed by what was measured,
-    could not grow on a resume)."""
-    values, determined = values_and_determined(robot, q)
-    if values <= determined:
-        raise parameters.NodeError(f"the plan's {len(q)} poses give {values} spot values for the {determined} errors "
-                                   "they determine: as many fit exactly, and the estimate after the last pose would "
-                                   f"refuse them; plan more poses (poses:={robot.n_params // 4 + 1} or more), or "
-                                   "estimate.prior:=true, or estimate.mode:=none", 2)
-
-
-def settings(node) -> dict:
-    """The session's parameters that do not change its pose plan, recorded to say on a resume
-    which differ (a resume may change them): the sigmas as declared, so "not given" (0, -1)
-    compares equal to itself."""
-    end = node.end
-    return {"estimate.method": end.method, "estimate.spot_sigma": end.spot_sigma,
-            "estimate.joint_sigma": end.joint_sigma, "move.joint_speed": node.joint_speed}
-
-
-def warn_settings(node, session: SessionDir) -> None:
-    """One WARN line per setting that differs from the session's record (which then holds
-    this run's value): the user sees which value this run uses."""
-    recorded, current = (session.info() or {}).get("settings") or {}, settings(node)
-    changed = [name for name, value in current.items() if name in recorded and recorded[name] != value]
-    for name in changed:
-        node.get_logger().warning(f"resume: {name} is {current[name]}, the session's previous run used "
-                                  f"{recorded[name]}: this run uses {current[name]}")
-    if changed:
-        session.set_info(settings=current)
 
 
 def declare(node) -> SimpleNamespace:
