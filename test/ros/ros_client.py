@@ -14,6 +14,7 @@
     ros_client.py calibrate [diagnose] [cancel]  a goal of the estimator/calibrate action
     ros_client.py calibrate-until-diagnosis ROBOT  a goal of 80 poses, until its diagnosis starts
     ros_client.py samples-named-twice ROBOT   Estimate requests whose samples name joint1 twice, then once
+    ros_client.py longer-arm-samples N         N samples of 7 joints on /samples, then Estimate with use_accumulated
     ros_client.py set-param NODE NAME JSON [NODE NAME JSON ...]   set each parameter in turn to a JSON
                                                value (its type: int, float, ...) through the node's
                                                set_parameters service, then get it back; a list of results
@@ -431,6 +432,27 @@ def samples_named_twice(robot_path: str) -> dict:
     return out
 
 
+def longer_arm_samples(count: int) -> dict:
+    """``count`` samples of a 7-joint arm published on /samples as the sequencer publishes them (a bag
+    of another robot replayed), then an Estimate with use_accumulated: its answer."""
+    from laser_calib_nodes.common import SAMPLES_QOS  # the sequencer's, as a replay publishes with
+    node = rclpy.create_node("test_longer_arm_samples")
+    publisher = node.create_publisher(Sample, "samples", SAMPLES_QOS)
+    deadline = time.monotonic() + TIMEOUT
+    while publisher.get_subscription_count() < 2 and time.monotonic() < deadline:  # the estimator's two
+        rclpy.spin_once(node, timeout_sec=0.05)
+    for k in range(count):
+        msg = sample(k, [0.1 * (j + 1) for j in range(7)], np.array([[0.01, 0.02], [0.03, 0.04]]))
+        msg.joint_names = [f"joint{j + 1}" for j in range(7)]
+        publisher.publish(msg)
+    time.sleep(1.0)
+    request = Estimate.Request()
+    request.use_accumulated, request.method = True, "lm"
+    out = response_dict(call(node, node.create_client(Estimate, "estimator/estimate"), request))
+    node.destroy_node()
+    return out
+
+
 def set_params(settings: list[tuple[str, str, object]]) -> list[dict]:
     """For each (node, name, value) in turn, as `ros2 param set NODE NAME VALUE` does (an integer
     stays an integer), then as `ros2 param get`: one process for them all (each costs ~2 s)."""
@@ -604,6 +626,8 @@ def main() -> int:
             result = stream_replay(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), *map(int, sys.argv[5:7]))
         elif command == "samples-named-twice":
             result = samples_named_twice(sys.argv[2])
+        elif command == "longer-arm-samples":
+            result = longer_arm_samples(int(sys.argv[2]))
         elif command == "samples-by-name":
             result = samples_by_name(sys.argv[2])
         elif command == "bad-and-concurrent":

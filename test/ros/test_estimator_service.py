@@ -345,3 +345,18 @@ def test_a_calibrate_goal_canceled_while_it_waited_computes_nothing():
     """)
     assert out["success"] is False and out["ended"] == "canceled", out
     assert out["message"] == "canceled before the estimate started; nothing was computed", out
+
+
+def test_samples_of_a_longer_arm_are_refused_once_each_and_the_answer_says_so(ros):
+    """A bag of another (longer) arm replayed into the estimator: each sample arrives on both of its
+    subscriptions (transient local and volatile) and its refusal was logged twice; the request then
+    said only that no samples had been accumulated, not that all had been refused."""
+    four = ROBOT.parent / "manipulator_4dof.yaml"
+    ros.start("estimator", "-p", f"robot:={four}")
+    out = ros.client("longer-arm-samples", "3")
+    assert out["success"] is False, out
+    assert out["message"] == ("request: use_accumulated is true but no samples have been accumulated yet; the 3 "
+                              "received were refused, the first: sample (pose 0): joint 'joint5' is beyond the 4 "
+                              "joints of parameter joint_names (joint1 .. joint4): the readings of a longer arm?"), out
+    refusals = [line for line in ros.log("estimator").splitlines() if "ignored: sample" in line]
+    assert len(refusals) == 3, ros.log("estimator")

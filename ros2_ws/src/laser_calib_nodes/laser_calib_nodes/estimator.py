@@ -41,6 +41,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from laser_calib.io.errors import InputError
+from laser_calib.io.bag import stamp_seconds
 
 from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
@@ -90,6 +91,7 @@ class Estimator(Node):
         self.keys: set[tuple[int, float]] = set()
         self.test_rows: list[Row] = []  # held out: never fitted
         self.test_keys: set[tuple[int, float]] = set()
+        self.refused: list[str] = []  # why each (test) sample was refused, said again when a request finds none
         self.online = self.make_online()
 
         self.param_pub = self.create_publisher(DhParameters, common.DH_PARAMETERS, common.LATCHED_QOS)
@@ -142,18 +144,21 @@ class Estimator(Node):
                 self.test_rows = sorted(self.test_rows + [row], key=lambda r: r[1])
 
     def new_row(self, msg, what: str, keys: set):
-        """The message's row, or None when it is bad (said) or already counted."""
-        try:
-            row = row_from_msg(msg, f"{what} (pose {msg.pose})", self.joints, self.robot)
-        except InputError as exc:
-            self.get_logger().error(f"ignored: {exc}")
-            return None
-        key = (row[0], row[1])  # (pose id, stamp): a sample published again (sequencer resumed) counts once
+        """The message's row, or None when it is bad (said once) or already counted."""
+        # (pose id, stamp): a sample published again (sequencer resumed), or delivered by both subscriptions,
+        # counts once, and a bad one is said once (it was said twice)
+        key = (int(msg.pose), stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec))
         with self.lock:
             if key in keys:
                 return None
             keys.add(key)
-        return row
+        try:
+            return row_from_msg(msg, f"{what} (pose {msg.pose})", self.joints, self.robot)
+        except InputError as exc:
+            with self.lock:
+                self.refused.append(str(exc))
+            self.get_logger().error(f"ignored: {exc}")
+            return None
 
     def accumulated(self) -> tuple[list[Row], list[Row]]:
         """The rows and test rows a request with use_accumulated takes; 'stream': the pose being measured
@@ -183,7 +188,7 @@ class Estimator(Node):
     def on_reset(self, request, response):
         with self.lock:
             self.rows, self.test_rows = [], []
-            self.keys, self.test_keys = set(), set()
+            self.keys, self.test_keys, self.refused = set(), set(), []
             self.online = self.make_online()
             if self.input == "stream":
                 self.stream.reset()

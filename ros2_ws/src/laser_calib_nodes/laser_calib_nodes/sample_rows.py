@@ -41,9 +41,12 @@ def request_sets(node, request) -> tuple[Samples, Samples | None, dict]:
                          f"and {len(request.test_samples)} test samples: send samples or use_accumulated, not both")
     if request.use_accumulated:
         rows, test_rows = node.accumulated()
+        refused = list(node.refused)
         if not rows:
-            raise InputError("request", "use_accumulated is true but no samples have been accumulated yet")
-        by = f"accumulated by {node.get_fully_qualified_name()}"
+            said = f"; the {len(refused)} received were refused, the first: {refused[0]}" if refused else ""
+            raise InputError("request", f"use_accumulated is true but no samples have been accumulated yet{said}")
+        by = f"accumulated by {node.get_fully_qualified_name()}" + (
+            f" ({len(refused)} (test) samples refused besides, said in its log)" if refused else "")
     else:
         if not request.samples:
             raise InputError("request", "no samples (and use_accumulated is false)")
