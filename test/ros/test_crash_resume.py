@@ -69,7 +69,16 @@ def test_kill_and_resume(ros, tmp_path):
     csv = load_samples(out / "samples.csv")
     np.testing.assert_array_equal(csv.stamp, after.stamp)
     assert (out / "report.md").exists() and (out / "robot_calibrated.yaml").exists()
-    assert "finished" in (out / "session.yaml").read_text()
+    info = yaml.safe_load((out / "session.yaml").read_text())
+    assert info["state"] == "finished"
+    # the resume and what it mended are in the session's record and its report: they were said in the
+    # log only, and the report read as one run's
+    [resume] = info["resumes"]
+    assert resume["measured"] == k, info
+    report = (out / "report.md").read_text()
+    said = f"with {k} of {POSES} poses measured" + (f"; repaired: {'; '.join(resume['repairs'])}"
+                                                       if resume["repairs"] else "")
+    assert "Measured in 2 runs" in report and said in report, report
 
     # the estimator (which lived through the crash) has every pose once, in order: the online EKF
     # equals the offline one over samples.csv

@@ -49,13 +49,14 @@ class Recorder:
         self.said = False  # whether check() raised it
         self.bag: SegmentedBagWriter | None = SegmentedBagWriter(
             bag_dir, work_dir, topics, custom_data={"robot": robot_name}, max_segment_seconds=segment_seconds)
-        for name in self.bag.recovered:
-            node.get_logger().warning(f"bag: adopted segment {name} closed just before a crash")
-        for name in self.bag.missing:
-            node.get_logger().warning(f"bag: segment {name} is listed in metadata.yaml but gone: struck from the list "
-                                      "(rosbag2 refuses a bag with a listed file missing)")
-        for name in self.bag.discarded:
-            node.get_logger().warning(f"bag: discarded unfinished segment {name} (the pose in progress at the crash)")
+        # what opening the bag mended after a crash, said now and in the session's history (session_open)
+        self.repairs = ([f"bag: adopted segment {name} closed just before a crash" for name in self.bag.recovered]
+                        + [f"bag: segment {name} is listed in metadata.yaml but gone: struck from the list (rosbag2 "
+                           "refuses a bag with a listed file missing)" for name in self.bag.missing]
+                        + [f"bag: discarded unfinished segment {name} (the pose in progress at the crash)"
+                           for name in self.bag.discarded])
+        for line in self.repairs:
+            node.get_logger().warning(line)
         self.recent_frames: deque = deque(maxlen=40)
         self.subscriptions: list = []  # drained at close
         for name, msg_type, _, qos in recorded:

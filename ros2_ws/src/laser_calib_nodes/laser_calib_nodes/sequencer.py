@@ -32,7 +32,7 @@ from laser_calib.hardware.trajectory import move_time
 from laser_calib.io import bag
 from laser_calib.io.joint_names import RobotJoints, default_joint_names
 from laser_calib.session.average import FrameCollector
-from laser_calib.session.folder import POSES_FILE, Progress
+from laser_calib.session.folder import Progress
 from laser_calib.session.settle import SettleDetector, SettleRule
 
 from laser_calib_nodes import common, parameters, sequencer_parts, session_open, sole_owner
@@ -98,13 +98,8 @@ class Sequencer(Node):
                                  segment_seconds)
         joints = RobotJoints(self.robot, self.joint_names or (), "parameter joint_names")  # as estimate --bag
         found = self.session.reconcile(self.robot, self.poses, joints)  # after the recorder adopted closed segments
-        for line in found.repairs:
-            self.get_logger().warning(f"resume repaired: {line}")
         self.done_steps, self.resumed = found.done, found
-        if state == "partial":
-            plan = ", ".join(f"{name} {value}" for name, value in self.session.recorded_plan().items() if value != "")
-            self.get_logger().info(f"resuming {self.session.path}: {int(found.done.sum())} of {len(self.poses)} "
-                                   f"poses already measured (pose list from {POSES_FILE}; plan: {plan})")
+        session_open.say_resume(self, found, state)
 
         # ---- state shared with the worker thread ----
         self.cond = threading.Condition()

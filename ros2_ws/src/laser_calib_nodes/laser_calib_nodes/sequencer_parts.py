@@ -23,7 +23,7 @@ from laser_calib.model.robot_file import load_robot
 from laser_calib.report import truth
 from laser_calib.session.folder import ROBOT_FILE, SAMPLES_FILE, TEST_SAMPLES_FILE
 
-from laser_calib_nodes import common, parameters, sole_owner
+from laser_calib_nodes import common, parameters, session_open, sole_owner
 
 TRUE_ROBOT_FILE = "robot_true.yaml"   # where launch and run-session let the sim arm_driver write the truth
 # s without a joint state after which a timeout says they stopped: a driver publishes at 10 Hz or more
@@ -181,6 +181,9 @@ def finish(node) -> None:
             raise parameters.NodeError(f"estimate failed: {message}; its files are in {session.path}", 4)
         common.log_warned(log, warned, message)
         compare_with_truth(node)
+        if history := session_open.history_lines(session, len(node.poses)):
+            with open(session.path / "report.md", "a") as report:
+                report.write("\n".join(history))
         log.info(f"report: {session.path / 'report.md'}; calibrated robot: {session.path / 'robot_calibrated.yaml'}")
     session.set_info(state="finished")
     node.publish_progress("finished", -1)

@@ -5,12 +5,13 @@ changed)."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
 
 from laser_calib.planning import values_and_determined
-from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, plan_value, refuse_finished
+from laser_calib.session.folder import POSES_FILE, PLAN_DEFAULTS, Reconciled, SessionDir, plan_value, refuse_finished
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import generate_poses, load_poses, with_test_poses
 
@@ -129,3 +130,38 @@ def warn_settings(node, session: SessionDir) -> None:
                                   f"{recorded[name]}: this run uses {current[name]}")
     if changed:
         session.set_info(settings=current)
+
+
+def say_resume(node, found: Reconciled, state: str) -> None:
+    """The resume line and each repair the folder needed (found by reconcile, and by the recorder in
+    the bag), logged and kept in session.yaml's ``resumes``: the report says in how many runs the
+    session was measured and what was mended (said only in the log, a resumed or repaired session's
+    report read as one run's)."""
+    for line in found.repairs:
+        node.get_logger().warning(f"resume repaired: {line}")
+    if state != "partial":
+        return
+    session = node.session
+    plan = ", ".join(f"{name} {value}" for name, value in session.recorded_plan().items() if value != "")
+    measured = int(found.done.sum())
+    node.get_logger().info(f"resuming {session.path}: {measured} of {len(node.poses)} poses already measured "
+                           f"(pose list from {POSES_FILE}; plan: {plan})")
+    resumes = (session.info() or {}).get("resumes") or []
+    session.set_info(resumes=resumes + [{"at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "measured": measured,
+                                         "repairs": node.recorder.repairs + found.repairs}])
+
+
+def history_lines(session: SessionDir, poses: int) -> list[str]:
+    """report.md's section on how the session was measured, when it was resumed: each run's start,
+    the poses measured before it, and the repairs it made."""
+    info = session.info() or {}
+    resumes = info.get("resumes") or []
+    if not resumes:
+        return []
+    lines = ["", "## Session history", "", f"Measured in {len(resumes) + 1} runs (session.yaml `resumes`):",
+             f"- started {info.get('started', '(unrecorded)')}"]
+    for resume in resumes:
+        repairs = resume.get("repairs") or []
+        lines.append(f"- resumed {resume['at']} with {resume['measured']} of {poses} poses measured"
+                     + (f"; repaired: {'; '.join(repairs)}" if repairs else ""))
+    return lines + [""]
