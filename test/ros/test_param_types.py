@@ -84,3 +84,13 @@ def test_a_run_time_parameter_is_checked_by_its_declared_rule_and_none_is_left_w
 def ros_domain() -> int:
     """A DDS domain of this worker no node of the other tests uses (ros_harness's blocks start at 10)."""
     return 2 + int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+
+
+@pytest.mark.parametrize("node", ["sequencer", "estimator", "arm_driver", "spot_detector", "camera_sim"])
+def test_help_prints_what_the_node_does_and_exits_0(ros, node):
+    """`ros2 run laser_calib_nodes sequencer --help` started the node, which stopped on its first
+    missing parameter ('error: parameter output_dir is empty', exit 2) with no usage at all."""
+    from ros_harness import INSTALL
+    result = ros.run([str(INSTALL / "laser_calib_nodes" / "lib" / "laser_calib_nodes" / node), "--help"], timeout=60)
+    assert result.returncode == 0 and result.stderr == "", result
+    assert result.stdout.startswith(f"{node}: ") and "--ros-args" in result.stdout, result.stdout

@@ -285,6 +285,13 @@ def run(make_node: Callable[[], Node], args: Sequence[str] | None = None,
     while cleaning up; an earlier fault keeps its own code, the cause).
     """
     global _executor
+    given = list(sys.argv[1:] if args is None else args)
+    if {"-h", "--help"} & set(given[:given.index("--ros-args")] if "--ros-args" in given else given):
+        # rclpy takes no --help: the node started and stopped on its first missing parameter
+        print(f"{sys.modules[make_node.__module__].__doc__.strip()}\n\nParameters: the package README "
+              "(laser_calib_nodes), or `ros2 param describe` on the running node; set them after --ros-args "
+              "(-p NAME:=VALUE, --params-file FILE).")
+        return 0
     die_with_parent()
     watchdog = ExitWatchdog(Path(sys.argv[0]).name)
     # rclpy's signal handlers call the one installed before them: this one notes the
