@@ -65,3 +65,24 @@ def test_launch_resume_with_another_robot_is_refused_before_any_node_starts(ros,
     assert "process started" not in log and "Traceback" not in log, log
     errors = [line for line in log.splitlines() if "ERROR" in line]
     assert len(errors) == 1 and str(out) in errors[0] and str(OTHER) in errors[0], log
+
+
+def test_a_resumed_simulation_with_another_true_robot_is_refused(ros, tmp_path):
+    """The sim arm_driver writes its true robot into the session (robot_true.yaml, the report's truth):
+    resumed with other sim.errors it measured the remaining poses on another arm and overwrote the
+    truth, unsaid. Now refused in one line, exit 2, the file kept; the same simulation runs on."""
+    truth = tmp_path / "robot_true.yaml"
+    args = ("-p", f"robot:={ROBOT}", "-p", f"sim.true_robot_out:={truth}")
+    ros.start("first", *args, node="arm_driver")
+    ros.wait_log("first", "publishing at", 60)
+    written = truth.read_text()
+    ros.stop("first")
+    ros.start("other", *args, "-p", "sim.errors:=random", node="arm_driver")
+    assert ros.wait_exit("other", 60) == 2, ros.log("other")
+    lines = error_lines(ros.log("other"))
+    assert lines[-1] == (f"error: sim.true_robot_out {truth} holds another true robot (the session's, resumed with "
+                         "other sim.errors or sim.seed?): its poses were measured on that arm; give the session's "
+                         "simulation or another output folder"), ros.log("other")
+    assert truth.read_text() == written
+    ros.start("same", *args, node="arm_driver")
+    ros.wait_log("same", "publishing at", 60)

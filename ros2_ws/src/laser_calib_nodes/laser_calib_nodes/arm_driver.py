@@ -29,7 +29,8 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from laser_calib.model.robot_file import load_robot, save_robot
+from laser_calib.io.errors import InputError
+from laser_calib.model.robot_file import dump_robot, load_robot, save_robot
 from laser_calib.sim.simulation import NoiseSpec, true_errors
 
 from laser_calib_nodes import common, parameters
@@ -68,7 +69,8 @@ class ArmDriver(Node):
                               "(the paper's 0.1 deg).", rule=parameters.JOINT_NOISE)
         read_noise = declare("sim.read_noise", 0.0, "Sim: joint reading noise, rad (one sigma).",
                              rule=parameters.JOINT_NOISE)
-        true_out = declare("sim.true_robot_out", "", "Sim: write the true robot model to this file (for evaluation).")
+        true_out = declare("sim.true_robot_out", "", "Sim: write the true robot model to this file (for evaluation); "
+                           "one holding another true robot (a resumed session's) is refused.")
 
         # dynamixel
         port = declare("dynamixel.port", "/dev/ttyUSB0", "Dynamixel: serial port.")
@@ -104,6 +106,7 @@ class ArmDriver(Node):
             else:
                 raise parameters.NodeError(f"parameter sim.errors: expected 'paper' or 'random', got {errors_kind!r}", 2)
             if true_out:
+                keep_truth(true_out, true_robot)
                 save_robot(true_robot, true_out, header=f"True robot of the simulation: {robot_path} + "
                                                         f"sim.errors={errors_kind}, seed {seed}")
             self.sim = SimArm(true_robot, self.joint_names, rng, speed, tau, disturbance, read_noise)
@@ -191,6 +194,20 @@ class ArmDriver(Node):
         self.get_logger().error(f"servo {ids} did not confirm torque off (write retried): it may still hold "
                                 f"torque; secure the arm before approaching it")
         return TORQUE_NOT_CONFIRMED
+
+
+def keep_truth(path: str, true_robot) -> None:
+    """NodeError (exit 2) when ``path`` holds another true robot: a session resumed with other sim.errors
+    or sim.seed measured its remaining poses on another arm, and the truth its report compares with was
+    overwritten, unsaid."""
+    try:
+        written = load_robot(path)
+    except InputError:  # none yet, or not a robot: this run's truth is written
+        return
+    if dump_robot(written) != dump_robot(true_robot):
+        raise parameters.NodeError(f"sim.true_robot_out {path} holds another true robot (the session's, resumed "
+                                   "with other sim.errors or sim.seed?): its poses were measured on that arm; give "
+                                   "the session's simulation or another output folder", 2)
 
 
 def main(args=None) -> int:
