@@ -4,6 +4,7 @@ report, the online parameters, replay and the offline estimate from the bag."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -215,6 +216,28 @@ def test_replay_bad_bag_is_one_line(session, tmp_path):
         assert result.returncode == 2, args
         assert result.stderr.strip().count("\n") == 0 and reason in result.stderr, args
         assert "Traceback" not in result.stderr
+
+
+def test_a_bag_with_a_lost_segment_is_replayed_without_it(session, tmp_path):
+    """A bag whose one segment is gone was refused whole by replay ('Some database files are missing'),
+    while estimate --bag skipped the segment and said so: replay now plays the intact segments and
+    says which one it skipped, and the estimator takes the samples they hold, as estimate --bag reads."""
+    from laser_calib.io import bag
+    ros, out = session
+    damaged = tmp_path / "bag"
+    shutil.copytree(out / "bag", damaged)
+    segments = sorted(damaged.glob("*.mcap"), key=bag.segment_index)
+    gone = segments[len(segments) // 2]
+    gone.unlink()
+    intact, lost = bag.read_samples_checked(damaged)
+    assert len(lost) == 1 and 0 < len(intact) <= POSES
+    assert ros.client("reset")["success"]
+    result = ros.run([str(ros_bin("replay")), str(damaged), "--rate", "1000", "--topics", "/samples",
+                      "--wait-for", "/samples"], timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert f"replay: warning: {damaged}: segment {gone.name} (" in result.stderr, result.stderr
+    assert f"replayed {len(intact)} messages" in result.stdout, result.stdout
+    assert ros.client("params", str(len(intact)))["sample_count"] == len(intact)
 
 
 def test_a_replay_no_one_listened_to_is_a_warning(session):

@@ -23,6 +23,7 @@ import signal
 import sys
 import time
 from collections import Counter
+from itertools import chain
 
 import rclpy
 from rclpy.duration import Duration
@@ -82,7 +83,24 @@ def main(argv: list[str] | None = None) -> int:
     args.topics, args.exclude, args.wait_for = ([absolute(t) for t in names] if names is not None else None
                                                 for names in (args.topics, args.exclude, args.wait_for))
     try:
-        topics = bag.bag_topics(args.bag)
+        with bag.intact_parts(args.bag) as (parts, lost):
+            return replay(args, ros_args, parts, lost)
+    except InputError as exc:  # no segment of the bag opens
+        print(f"replay: {exc}", file=sys.stderr)
+        return 2
+
+
+def replay(args: argparse.Namespace, ros_args: list[str], parts: list, lost: list[str]) -> int:
+    """Play ``parts`` (bag.intact_parts) in turn; the damaged segments ``lost`` are said, as estimate --bag
+    says them, and the others played (a bag with one segment lost was refused whole)."""
+    for segment in lost:
+        print(f"replay: warning: {args.bag}: segment {segment} is damaged and skipped: its messages are not "
+              "replayed", file=sys.stderr, flush=True)
+    try:
+        topics = {}
+        for part in parts:
+            for topic, (kind, count, profiles) in bag.bag_topics(part).items():
+                topics[topic] = (kind, topics.get(topic, (kind, 0))[1] + count, profiles)
         chosen = {t: v for t, v in topics.items()
                   if (t in args.topics if args.topics else v[0] not in COMMANDS) and t not in args.exclude}
         # said when left out by default; topics named (--topics) or excluded were the user's choice
@@ -129,15 +147,17 @@ def main(argv: list[str] | None = None) -> int:
                     if time.monotonic() > deadline:
                         raise InputError(topic, f"no subscriber after {args.wait_timeout:g} s")
                     rclpy.spin_once(node, timeout_sec=0.05)
-            total = sum(count for t, (_, count, _) in chosen.items())
+            # a segment read alone reports the whole bag's counts per topic: no total then
+            total = (f"{sum(count for _, count, _ in chosen.values())} messages" if not lost else
+                     f"the messages of {len(parts)} intact segments")
             if not args.quiet:
-                print(f"replaying {total} messages on {len(chosen)} topics from {args.bag} at rate {args.rate:g}",
-                      flush=True)
+                print(f"replaying {total} on {len(chosen)} topics from {args.bag} at rate {args.rate:g}", flush=True)
             start_wall = None
             first = None
             sent = 0
             unheard = Counter()  # topic: messages published while no subscriber had matched (lost)
-            for topic, _, timestamp, raw in bag.read_messages(args.bag, list(chosen)):
+            for topic, _, timestamp, raw in chain.from_iterable(bag.read_messages(part, list(chosen))
+                                                                for part in parts):
                 if first is None:
                     first, start_wall = timestamp, time.monotonic()
                 target = start_wall + (timestamp - first) * 1e-9 / args.rate

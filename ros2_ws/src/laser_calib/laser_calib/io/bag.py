@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -114,6 +115,34 @@ def read_messages(path: str | Path, topics: Sequence[str] | None = None) -> Iter
                 yield connection.topic, connection.msgtype, timestamp, raw
     finally:
         reader.close()
+
+
+@contextmanager
+def intact_parts(path: str | Path) -> Iterator[tuple[list[Path], list[str]]]:
+    """(the parts to read in turn, the damaged segments each as 'file (problem)'): the bag itself when
+    it opens whole, else each segment that opens on its own (a one-segment bag in a temporary folder,
+    removed on exit), as read_samples_checked keeps the intact segments' samples. InputError, the
+    whole bag's, when none opens."""
+    path = Path(path)
+    try:
+        _reader(path).close()
+        whole = None
+    except InputError as exc:
+        whole = exc
+    if whole is None:
+        yield [path], []
+        return
+    with tempfile.TemporaryDirectory(prefix="bag-segments-") as root:
+        parts, lost = [], []
+        for name, single in _segments(path, Path(root)):
+            try:
+                _reader(single).close()
+                parts.append(single)
+            except InputError as exc:  # said of the bag's own file, not of the link made to read it alone
+                lost.append(f"{name} ({exc.problem.replace(str(single), str(path))})")
+        if not parts:
+            raise whole
+        yield parts, lost
 
 
 def bag_topics(path: str | Path) -> dict[str, tuple[str, int, list[Qos]]]:
