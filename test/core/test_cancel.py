@@ -54,3 +54,21 @@ def test_a_cancel_reaches_only_its_own_work():
         other.start()
         other.join()
     assert results and results[0].fit.converged
+
+
+def test_an_estimate_canceled_or_refused_leaves_no_folder_it_made(tmp_path):
+    """run_calibration makes its output folder before the estimate (one that cannot be made is refused
+    first); a canceled goal's, or a refused request's, folder was left behind empty."""
+    from laser_calib.io.errors import InputError
+    from laser_calib.session.estimate import run_calibration
+    session = paper_session("paper-4dof", 0)
+    options = EstimateOptions(spot_sigma=session.noise.spot_sigma, joint_sigma=session.noise.joint_sigma)
+    with pytest.raises(Cancelled), cancellable(lambda: True):
+        run_calibration(session.nominal, session.samples, options, tmp_path / "new" / "out")
+    with pytest.raises(InputError):  # two poses: too few spots for the errors
+        run_calibration(session.nominal, session.samples.subset(slice(0, 2)), options, tmp_path / "new" / "out")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "kept").mkdir()  # a folder that was there stays
+    with pytest.raises(Cancelled), cancellable(lambda: True):
+        run_calibration(session.nominal, session.samples, options, tmp_path / "kept")
+    assert (tmp_path / "kept").is_dir()

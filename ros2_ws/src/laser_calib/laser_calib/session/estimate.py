@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -92,6 +93,15 @@ def warned(estimate_warnings, diagnosis_json: str) -> bool:
     return bool(estimate_warnings) or bool(diagnosis_json and json.loads(diagnosis_json).get("warnings"))
 
 
+def missing_from(folder: Path) -> Path | None:
+    """The outermost folder that making ``folder`` creates, None when it exists."""
+    if folder.exists():
+        return None
+    while not folder.parent.exists():
+        folder = folder.parent
+    return folder
+
+
 def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
                     diagnose: bool = False, sources: dict | None = None, compensator: Compensator | None = None,
                     test: Samples | None = None) -> Outcome:
@@ -107,15 +117,19 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
             source = (sources or {}).get(name) or name
             check_spot_units(checked.spots, robot, source)
             check_spot_columns(robot, checked.q, checked.spots, source)
+    made = None  # the outermost folder this call creates, removed again if the estimate writes nothing
     with writing(out_dir):  # a folder that cannot be made: refused before the estimate
         if out_dir:
             refuse_finished(out_dir, "output_dir")
+            made = missing_from(Path(out_dir).absolute())
             Path(out_dir).mkdir(parents=True, exist_ok=True)
     try:
         calibration = calibrate(robot, samples, options, test, sources=sources, compensator=compensator)
-    except ValueError as exc:
-        if isinstance(exc, (InputError, np.linalg.LinAlgError)):  # LinAlgError: our numerics, not the input
-            raise
+    except BaseException as exc:  # refused, canceled (estimation.cancel), interrupted: no empty folder left
+        if made is not None and not any(path.is_file() for path in made.rglob("*")):
+            shutil.rmtree(made, ignore_errors=True)
+        if not isinstance(exc, ValueError) or isinstance(exc, (InputError, np.linalg.LinAlgError)):
+            raise  # LinAlgError: our numerics, not the input
         raise InputError("estimate", str(exc)) from None
     with writing(out_dir):
         if out_dir:
