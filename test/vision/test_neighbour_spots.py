@@ -7,20 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from laser_calib.vision import RenderOptions, SpotDetector, default_camera, render_fiducial_frame, render_frame
+from laser_calib.vision import RenderOptions, render_fiducial_frame, render_frame
 from laser_calib.vision.render import AMBIENT_BGR
 
 BOTH = np.array([True, True])
-
-
-@pytest.fixture(scope="module")
-def camera():
-    return default_camera()
-
-
-@pytest.fixture(scope="module")
-def detector(camera):
-    return SpotDetector(camera.ideal_calibration())
 
 
 def _beside(yz: np.ndarray, mm: float, rng: np.random.Generator) -> np.ndarray:

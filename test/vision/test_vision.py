@@ -11,23 +11,13 @@ import pytest
 
 from laser_calib.io.errors import InputError
 from laser_calib.vision import (DetectorOptions, RenderOptions, ScreenCalibration, SpotDetector, board_poses,
-                                calibrate_screen, default_camera, detect_fiducials, load_calibration,
+                                calibrate_screen, detect_fiducials, load_calibration,
                                 render_board_frame, render_fiducial_frame, render_frame, save_calibration)
 from laser_calib.vision.render import AMBIENT_BGR
 
 BOTH = np.array([True, True])
 # Calibration images are taken with the room lights up (brighter, lower-noise corners).
 CALIBRATION_LIGHT = RenderOptions(ambient_dn=150.0)
-
-
-@pytest.fixture(scope="module")
-def camera():
-    return default_camera()
-
-
-@pytest.fixture(scope="module")
-def detector(camera):
-    return SpotDetector(camera.ideal_calibration())
 
 
 @pytest.fixture(scope="module")
