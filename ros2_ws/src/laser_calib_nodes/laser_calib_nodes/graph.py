@@ -32,7 +32,7 @@ from ament_index_python.packages import get_package_prefix, get_package_share_di
 from laser_calib.estimation.estimate import METHODS
 from laser_calib.io.errors import InputError
 from laser_calib.model.robot_file import load_robot
-from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, refuse_finished
+from laser_calib.session.folder import PLAN_DEFAULTS, SessionDir, outermost_missing, refuse_finished
 from laser_calib.session.lock import SessionLock
 from laser_calib.session.poses import check_plan
 from laser_calib_nodes.arguments import (arm_section, existing_files, integer, loadable_robot, namespace,
@@ -298,14 +298,6 @@ def parse(argv: list[str], spec: dict) -> tuple[dict, list[str]]:
 def last_line(path: Path) -> str:
     lines = [line for line in path.read_text(errors="replace").splitlines() if line.strip()]
     return lines[-1] if lines else "(no output)"
-
-
-def outermost_missing(folder: Path) -> Path | None:
-    """The outermost folder that creating ``folder`` makes (None: it exists)."""
-    missing = None
-    while not folder.exists():
-        missing, folder = folder, folder.parent
-    return missing
 
 
 def run_session(values: dict, extra: list[str]) -> int:

@@ -31,7 +31,7 @@ from laser_calib.measurement.noise_bounds import (JOINT_SIGMA_NOT_GIVEN, joint_s
 from laser_calib.model.robot import Robot
 from laser_calib.report.calibration import Calibration, calibrate
 from laser_calib.report.files import write_outputs
-from laser_calib.session.folder import refuse_finished
+from laser_calib.session.folder import outermost_missing, refuse_finished
 
 
 def estimate_options(method: str, spot_sigma: float, prior: bool, robust: bool,
@@ -93,15 +93,6 @@ def warned(estimate_warnings, diagnosis_json: str) -> bool:
     return bool(estimate_warnings) or bool(diagnosis_json and json.loads(diagnosis_json).get("warnings"))
 
 
-def missing_from(folder: Path) -> Path | None:
-    """The outermost folder that making ``folder`` creates, None when it exists."""
-    if folder.exists():
-        return None
-    while not folder.parent.exists():
-        folder = folder.parent
-    return folder
-
-
 def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, out_dir: str | Path | None,
                     diagnose: bool = False, sources: dict | None = None, compensator: Compensator | None = None,
                     test: Samples | None = None) -> Outcome:
@@ -121,7 +112,7 @@ def run_calibration(robot: Robot, samples: Samples, options: EstimateOptions, ou
     with writing(out_dir):  # a folder that cannot be made: refused before the estimate
         if out_dir:
             refuse_finished(out_dir, "output_dir")
-            made = missing_from(Path(out_dir).absolute())
+            made = outermost_missing(Path(out_dir).absolute())
             Path(out_dir).mkdir(parents=True, exist_ok=True)
     try:
         calibration = calibrate(robot, samples, options, test, sources=sources, compensator=compensator)

@@ -339,6 +339,15 @@ def _duration(seconds: float) -> str:
     return f"{seconds // 60} min {seconds % 60:02d} s"
 
 
+def outermost_missing(folder: Path) -> Path | None:
+    """The outermost folder that creating ``folder`` makes (None: it exists): what to remove again
+    when a run that made it leaves nothing in it."""
+    missing = None
+    while not folder.exists():
+        missing, folder = folder, folder.parent
+    return missing
+
+
 def refuse_finished(folder: str | Path, name: str) -> None:
     """Refuse to write into a finished session's folder (InputError naming the argument
     ``name``): an estimate there replaced the session's report, result.json and calibrated
