@@ -156,23 +156,26 @@ def at_least(minimum: int) -> Rule:
     return Rule(f">= {minimum}", lambda value: None if value >= minimum else f"expected >= {minimum}, got {value}")
 
 
-def up_to(maximum: float, unit: str, why: str) -> Rule:
-    """Above 0 and at most ``maximum`` (in ``unit``); ``why``: what a larger value is (units typed wrong)."""
-    return Rule(f"> 0 and <= {maximum:g} {unit}", lambda value: None if math.isfinite(value) and 0 < value <= maximum
-                else f"expected > 0 and <= {maximum:g} {unit} ({why}), got {value}")
+def up_to(maximum: float, unit: str, why: str, zero: bool = False) -> Rule:
+    """Above 0 (or from 0, with ``zero``) and at most ``maximum`` (in ``unit``); ``why``: what a larger
+    value is (units typed wrong)."""
+    text = f"{'>=' if zero else '>'} 0 and <= {maximum:g} {unit}"
+
+    def problem(value) -> str | None:
+        inside = math.isfinite(value) and (value >= 0 if zero else value > 0) and value <= maximum
+        return None if inside else f"expected {text} ({why}), got {value}"
+    return Rule(text, problem)
 
 
 def at_most(maximum: float, unit: str, why: str) -> Rule:
     """0 up to ``maximum`` (in ``unit``)."""
-    return Rule(f">= 0 and <= {maximum:g} {unit}", lambda value: None if math.isfinite(value) and 0 <= value <= maximum
-                else f"expected >= 0 and <= {maximum:g} {unit} ({why}), got {value}")
+    return up_to(maximum, unit, why, zero=True)
 
 
 # a joint's noise or disturbance beyond 2 deg is degrees typed as radians (noise_bounds.MAX_SIGMA_ANGLE)
 JOINT_NOISE = at_most(MAX_SIGMA_ANGLE, "rad", "more is degrees typed as radians")
 # a commanded joint speed: industrial arms' fastest joints turn 3-7 rad/s; 100 was taken, unsaid
-JOINT_SPEED = Rule("> 0 and <= 10 rad/s", lambda value: None if math.isfinite(value) and 0 < value <= 10.0
-                   else f"expected > 0 and <= 10 rad/s (no arm's joints turn faster), got {value}")
+JOINT_SPEED = up_to(10.0, "rad/s", "no arm's joints turn faster")
 # a frame paired with a joint state half a second away shows another instant of a moving arm
 SYNC_TOLERANCE = at_most(0.5, "s", "a pair further apart shows two instants")
 
