@@ -41,7 +41,6 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from laser_calib.io.errors import InputError
-from laser_calib.io.bag import stamp_seconds
 
 from laser_calib_nodes import common, parameters, responses
 from laser_calib_nodes.calibrate import CalibrateServer
@@ -147,7 +146,7 @@ class Estimator(Node):
         """The message's row, or None when it is bad (said once) or already counted."""
         # (pose id, stamp): a sample published again (sequencer resumed), or delivered by both subscriptions,
         # counts once, and a bad one is said once (it was said twice)
-        key = (int(msg.pose), stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec))
+        key = (int(msg.pose), common.stamp_seconds(msg.header.stamp))
         with self.lock:
             if key in keys:
                 return None

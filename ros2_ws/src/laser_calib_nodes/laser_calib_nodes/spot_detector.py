@@ -100,12 +100,13 @@ class SpotDetectorNode(Node):
             self.get_logger().info("calibration: the simulated camera's exact one (parameter calibration is empty)")
         self.options = DetectorOptions(half_y=half_y, half_z=half_z, min_peak_dn=min_peak, **noise,
                                        bayer_pattern=None if pattern.lower() == "none" else pattern.upper())
+        checked = {}
         for name, value in (("bayer_pattern", self.options.bayer_pattern), ("mono_pattern", self.mono_pattern)):
             try:  # as the detector checks it (a bad mono_pattern was refused frame by frame)
-                SpotDetector(self.calibration, dataclasses.replace(self.options, bayer_pattern=value))
+                checked[name] = SpotDetector(self.calibration, dataclasses.replace(self.options, bayer_pattern=value))
             except ValueError as exc:
                 raise parameters.NodeError(f"parameter {name}: {exc}", 2) from None
-        self.detectors = {None: SpotDetector(self.calibration, self.options)}
+        self.detectors = {None: checked["bayer_pattern"]}
         parameters.dynamic(self, {"min_peak_dn": "min_peak_dn"})
         try:
             if self.capture_dir:
