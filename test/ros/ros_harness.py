@@ -34,6 +34,11 @@ NODES = ("arm_driver", "camera_sim", "spot_detector", "sequencer", "estimator", 
 # Ctrl-C to exit, s: generous for eight Python processes shutting down at once on two loaded
 # cores; a node that hangs on Ctrl-C still fails
 STOP_TIMEOUT = 30.0
+# ros2param waits a fixed 5 s for a node's parameter services once `--timeout` has found the node
+# (ros2param/api/__init__.py, Jazzy); a new process on a loaded machine can take longer to discover
+# them (seen once in CI). A user would run the command again; so does Ros.ros2, PARAM_TRIES times.
+PARAM_SERVICES_LATE = "Wait for service timed out waiting for parameter services"
+PARAM_TRIES = 3
 
 # each test its own domain of 10..209; a random start keeps clear of a killed earlier run's leftovers,
 # and each pytest-xdist worker (PYTEST_XDIST_WORKER=gwN of PYTEST_XDIST_WORKER_COUNT) its own block
@@ -145,6 +150,14 @@ class Ros:
     def run(self, args: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
         self.ros2_used |= args[0] == "ros2"
         return subprocess.run(args, env=self.env, capture_output=True, text=True, timeout=timeout)
+
+    def ros2(self, *args: str, timeout: float = 90) -> subprocess.CompletedProcess:
+        """``ros2 *args``; a `ros2 param` verb is run again when its parameter services were late."""
+        for _ in range(PARAM_TRIES if args[0] == "param" else 1):
+            done = self.run(["ros2", *args], timeout=timeout)
+            if PARAM_SERVICES_LATE not in done.stderr:
+                break
+        return done
 
     def client(self, *args: str, timeout: float = 150) -> dict:
         result = self.run([sys.executable, str(CLIENT), *args], timeout=timeout)

@@ -106,8 +106,7 @@ def test_the_joint_sigma_parameter_and_request_field_give_the_joint_reading_nois
               "-p", "markers:=false")
     ros.wait_log("estimator", "input 'samples'", 60)
     # --no-daemon: one process discovers the node (--timeout: waits for it), without starting the daemon (2 s more)
-    refused = ros.run(["ros2", "param", "set", "--no-daemon", "--timeout", "30", "/estimator", "joint_sigma", "-3"],
-                      timeout=90)
+    refused = ros.ros2("param", "set", "--no-daemon", "--timeout", "30", "/estimator", "joint_sigma", "-3")
     said = refused.stdout + refused.stderr
     assert "Setting parameter failed: joint_sigma: -3 rad is not a plausible joint-reading noise" in said, refused
     assert "or 0 for none, or -1 for not given" in said, refused

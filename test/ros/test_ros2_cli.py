@@ -15,7 +15,6 @@ import json
 import os
 import re
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -222,10 +221,6 @@ def test_a_node_that_stops_cleanly_mid_session_ends_the_launch_with_exit_1(tmp_p
     assert "Traceback" not in log, log[-4000:]
 
 
-def ros2(ros: Ros, *args: str, timeout: float = 90) -> subprocess.CompletedProcess:
-    return ros.run(["ros2", *args], timeout=timeout)
-
-
 def test_ros2_run_service_param_and_topics(tmp_path):
     ros = Ros(tmp_path)
     run = ["ros2", "run", "laser_calib_nodes"]
@@ -237,54 +232,54 @@ def test_ros2_run_service_param_and_topics(tmp_path):
     try:
         wait_for(lambda: "input 'samples'" in ros.log("estimator"), 120, "the estimator", ros, "estimator")
         # the wheels' packages are on AMENT_PREFIX_PATH (scripts/env.sh), and the action is built
-        header = ros2(ros, "interface", "show", "std_msgs/msg/Header")
+        header = ros.ros2("interface", "show", "std_msgs/msg/Header")
         assert header.returncode == 0 and "builtin_interfaces/Time stamp" in header.stdout, header
-        action = ros2(ros, "interface", "show", "laser_calib_interfaces/action/Calibrate")
+        action = ros.ros2("interface", "show", "laser_calib_interfaces/action/Calibrate")
         assert action.returncode == 0 and "fraction_done" in action.stdout, action
         # --timeout: wait for the node until it is seen (--spin-time would spin its whole length, every call);
         # each `ros2 param` is a new process that discovers the graph anew, and its default (1 s) is too short
         # for that on a loaded machine ('Node not found' from a `param set` right after a `param get` worked)
         spin = ["--timeout", "30"]
-        got = ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin)
+        got = ros.ros2("param", "get", "/estimator", "spot_sigma", *spin)
         assert got.returncode == 0 and "0.0" in got.stdout, got
         # run-time parameter: validated
-        changed = ros2(ros, "param", "set", "/estimator", "spot_sigma", "0.001", *spin)
+        changed = ros.ros2("param", "set", "/estimator", "spot_sigma", "0.001", *spin)
         assert "Set parameter successful" in changed.stdout, changed
-        assert "0.001" in ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin).stdout
-        refused = ros2(ros, "param", "set", "/estimator", "spot_sigma", "0.5", *spin)  # 0.5 mm typed as m
+        assert "0.001" in ros.ros2("param", "get", "/estimator", "spot_sigma", *spin).stdout
+        refused = ros.ros2("param", "set", "/estimator", "spot_sigma", "0.5", *spin)  # 0.5 mm typed as m
         assert "0.5 m is not a plausible spot noise" in refused.stdout + refused.stderr, refused
-        assert "0.001" in ros2(ros, "param", "get", "/estimator", "spot_sigma", *spin).stdout
-        read_only = ros2(ros, "param", "set", "/estimator", "robot", "x.yaml", *spin)
+        assert "0.001" in ros.ros2("param", "get", "/estimator", "spot_sigma", *spin).stdout
+        read_only = ros.ros2("param", "set", "/estimator", "robot", "x.yaml", *spin)
         assert "read-only" in (read_only.stdout + read_only.stderr).lower(), read_only
         # the detector's threshold is tuned while the camera runs; a bad value changes nothing
-        changed = ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "30", *spin)
+        changed = ros.ros2("param", "set", "/spot_detector", "min_peak_dn", "30", *spin)
         assert "Set parameter successful" in changed.stdout, changed
-        refused = ros2(ros, "param", "set", "/spot_detector", "min_peak_dn", "0.0", *spin)
+        refused = ros.ros2("param", "set", "/spot_detector", "min_peak_dn", "0.0", *spin)
         assert "expected 0..255" in refused.stdout + refused.stderr, refused
-        assert "30" in ros2(ros, "param", "get", "/spot_detector", "min_peak_dn", *spin).stdout
+        assert "30" in ros.ros2("param", "get", "/spot_detector", "min_peak_dn", *spin).stdout
         # what a value must be, as `param describe` says it (it said the description alone)
-        described = ros2(ros, "param", "describe", "/spot_detector", "min_peak_dn", "false_refusal_rate", *spin)
+        described = ros.ros2("param", "describe", "/spot_detector", "min_peak_dn", "false_refusal_rate", *spin)
         assert "Additional constraints: 0 < value < 255\n" in described.stdout, described
         assert "Additional constraints: 0 < value < 1\n" in described.stdout, described
-        described = ros2(ros, "param", "describe", "/estimator", "spot_sigma", *spin)
+        described = ros.ros2("param", "describe", "/estimator", "spot_sigma", *spin)
         assert "Additional constraints: 0 (estimated) or 1e-09 .. 0.05 m" in described.stdout, described
         spots = ["topic", "echo", "--once", "/spots", "laser_calib_interfaces/msg/SpotPair"]
-        seen = ros2(ros, *spots, timeout=60)
+        seen = ros.ros2(*spots, timeout=60)
         assert seen.returncode == 0 and seen.stdout.count("seen: true") == 2, seen
-        assert "Set parameter successful" in ros2(ros, "param", "set", "/spot_detector", "min_peak_dn",
+        assert "Set parameter successful" in ros.ros2("param", "set", "/spot_detector", "min_peak_dn",
                                                   "254.0", *spin).stdout
-        unseen = ros2(ros, *spots, timeout=60)  # a frame after the set: no spot's contrast is that high
+        unseen = ros.ros2(*spots, timeout=60)  # a frame after the set: no spot's contrast is that high
         assert unseen.returncode == 0 and unseen.stdout.count("seen: false") == 2, unseen
         # private service names
-        reset = ros2(ros, "service", "call", "/estimator/reset", "std_srvs/srv/Trigger")
+        reset = ros.ros2("service", "call", "/estimator/reset", "std_srvs/srv/Trigger")
         assert reset.returncode == 0 and "success=True" in reset.stdout, reset
-        state = ros2(ros, "topic", "echo", "--once", "/joint_states", "sensor_msgs/msg/JointState", timeout=60)
+        state = ros.ros2("topic", "echo", "--once", "/joint_states", "sensor_msgs/msg/JointState", timeout=60)
         assert state.returncode == 0 and "joint1" in state.stdout, state
         # a sample from a default-QoS publisher reaches the estimator
         sample = ("{pose: 0, joint_positions: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7], "
                   "spots: [{y: 0.1, z: 0.2, seen: true}, {y: -0.1, z: 0.2, seen: true}]}")
         # (sent 5 times: the same (pose, stamp) counts once)
-        pub = ros2(ros, "topic", "pub", "-w", "1", "-t", "5", "-r", "5", "/samples",
+        pub = ros.ros2("topic", "pub", "-w", "1", "-t", "5", "-r", "5", "/samples",
                    "laser_calib_interfaces/msg/Sample", sample)
         assert pub.returncode == 0, pub
         assert ros.client("params", "1")["sample_count"] == 1
