@@ -71,7 +71,9 @@ ERR_DATA_LIMIT = 0x06
 ERR_ACCESS = 0x07
 ERRBIT_ALERT = 0x80
 
-# X-series control table (e.g. XM430-W350).
+# X-series control table (e.g. XM430-W350), from the ROBOTIS e-Manual. Written here again, not imported
+# from laser_calib.hardware.dynamixel_table: the emulator stands for the servo, and an address wrong
+# in the driver's table must not be mirrored by the servo it is tested against.
 ADDR_MODEL_NUMBER = 0
 ADDR_FIRMWARE_VERSION = 6
 ADDR_ID = 7
