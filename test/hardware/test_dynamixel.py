@@ -412,7 +412,7 @@ def test_a_servo_of_another_family_is_refused_before_anything_is_written(
     assert str(error).startswith(f"Dynamixel servo {servo_id}: model number {model} is not") and "\n" not in str(error)
     assert not any(emulator.torque_enabled(i) for i in IDS)
     assert writes_but_torque_off(emulator) == []
-    for x_series in (1060, 1200):  # XL430-W250, XL330-M288
+    for x_series in (1060, 1200, 1240, 1001):  # XL430-W250, XL330-M288, XC330-M288, XD430-T350
         with DynamixelEmulator(IDS, model_number=x_series) as other:
             with DynamixelArm(arm_config(other.port)):
                 assert all(other.torque_enabled(i) for i in IDS)

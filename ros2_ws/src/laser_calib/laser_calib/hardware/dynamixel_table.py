@@ -31,15 +31,18 @@ ADDR_PRESENT_POSITION = 132
 
 # Model Number -> name of the servos whose control table has the addresses above: ROBOTIS e-Manual
 # control tables, Dynamixel2Arduino src/actuator.h and dynamixel-workbench dynamixel_item.h; the XL330s
-# (the small arms' servo) as LeRobot drives them, with its X-series table. The XC330s are left out:
-# their model numbers are known, their tables unchecked here.
+# (the small arms' servo) as LeRobot drives them, with its X-series table; the XC330s and the XD430-T350
+# as ROBOTIS's dynamixel_hardware_interface lists them (param/dxl_model/dynamixel.model) and its control
+# tables for them put each address above where it is here. The XD540-T270 (1101) is left out: its table
+# was not seen.
 MODELS = {
     1190: "XL330-M077", 1200: "XL330-M288",
+    1210: "XC330-T181", 1220: "XC330-T288", 1230: "XC330-M181", 1240: "XC330-M288",
     1060: "XL430-W250", 1090: "2XL430-W250", 1070: "XC430-W150", 1080: "XC430-W240", 1160: "2XC430-W250",
     1030: "XM430-W210", 1020: "XM430-W350", 1130: "XM540-W150", 1120: "XM540-W270",
     1010: "XH430-W210", 1000: "XH430-W350", 1050: "XH430-V210", 1040: "XH430-V350",
     1110: "XH540-W150", 1100: "XH540-W270", 1150: "XH540-V150", 1140: "XH540-V270",
-    1011: "XD430-T210", 1111: "XD540-T150",
+    1001: "XD430-T350", 1011: "XD430-T210", 1111: "XD540-T150",
     1280: "XW430-T200", 1270: "XW430-T333", 1180: "XW540-T140", 1170: "XW540-T260",
 }
 
