@@ -2,7 +2,7 @@
 sees the true arm, for a session of the real arm_driver and sequencer; run as a subprocess in
 the workspace environment.
 
-    glitching_arm.py ROBOT_YAML IDS GLITCH_TICKS
+    glitching_arm.py ROBOT_YAML IDS GLITCH_TICKS [OVERLOAD_POSE]
 
 Prints the emulator's port (test/dynamixel_emulator.py: Protocol 2.0 servos IDS, e.g. 1,2,3,4,
 on a pty) on its first line, then publishes /spots, 10 Hz: the robot's spots at the servos'
@@ -10,6 +10,8 @@ true positions, as Present Position reports them unglitched (q = (ticks - 2048) 
 the sequencer says a pose is 'measuring' (/session/progress: the arm has settled), the last
 servo's next two reads of Present Position are GLITCH_TICKS off while it stays put, as a glitch
 of its encoder or bus; the joint readings the driver publishes show it, the spots do not.
+With OVERLOAD_POSE, the second servo overloads (Hardware Error Status 0x20, torque dropped) as the
+arm moves to that pose (0-based step).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ def main() -> None:
     robot = load_robot(sys.argv[1])
     ids = [int(i) for i in sys.argv[2].split(",")]
     glitch_ticks = int(sys.argv[3])
+    overload_pose = int(sys.argv[4]) if len(sys.argv) > 4 else None
     with DynamixelEmulator(ids=ids) as emulator:
         print(emulator.port, flush=True)
         rclpy.init()
@@ -53,6 +56,9 @@ def main() -> None:
             spots.publish(pair)
 
         def on_progress(msg: SessionProgress) -> None:
+            if msg.state == "moving" and msg.done == overload_pose:
+                emulator.set_hardware_error(ids[1], 0x20)
+                print(f"overloaded servo {ids[1]}", flush=True)
             if msg.state == "measuring" and msg.pose not in glitched:
                 glitched.add(msg.pose)
                 emulator.glitch(ids[-1], 2, glitch_ticks)

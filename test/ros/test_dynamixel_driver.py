@@ -1,7 +1,7 @@
 """arm_driver over the Dynamixel backend, against the Protocol 2.0 servo
 emulator on a pseudo-terminal (test/dynamixel_emulator.py): joint states,
 a goal reached, and a servo fault giving one log line, torque off, exit 1 (so does a servo whose
-torque was switched off from outside, at the next goal);
+torque was switched off from outside, at the next goal), and ending a session's pose at once, named;
 a servo that never confirms torque off on shutdown: one ERROR line, exit 5; a Ctrl-C
 while the driver starts, after the servos' torque is on: torque off; a port or baud rate that
 cannot be used: one line, exit 2."""
@@ -87,11 +87,12 @@ def test_torque_off_not_confirmed_on_shutdown_is_an_error(ros):
         assert emulator.torque_enabled(1) and not any(emulator.torque_enabled(i) for i in (2, 3, 4))
 
 
-def start_glitching_session(ros, ticks: int, out, poses: int, *sequencer_args: str) -> None:
+def start_glitching_session(ros, ticks: int, out, poses: int, *sequencer_args: str, overload: str = "") -> None:
     """glitching_arm.py (servos whose last one's reading glitches by ``ticks`` as each pose is
-    measured, and a camera of the true arm), arm_driver on its servos, and a sequencer."""
+    measured, the second overloading on the way to step ``overload`` if given, and a camera of the
+    true arm), arm_driver on its servos, and a sequencer."""
     ros.start_command("glitching_arm", [sys.executable, str(Path(__file__).with_name("glitching_arm.py")),
-                                        str(ROBOT_4DOF), "1,2,3,4", str(ticks)])
+                                        str(ROBOT_4DOF), "1,2,3,4", str(ticks), *([overload] if overload else [])])
     ros.wait_log("glitching_arm", "\n", 60)
     port = ros.log("glitching_arm").splitlines()[0]
     ros.start("arm_driver", "-p", f"robot:={ROBOT_4DOF}", "-p", "backend:=dynamixel", "-p", f"dynamixel.port:={port}",
@@ -140,6 +141,20 @@ def test_an_arm_driver_that_died_is_named_when_the_pose_times_out(ros, tmp_path)
     last = [line for line in ros.log("sequencer").splitlines() if line.strip()][-1]
     assert "arm not settled after 3 s" in last and "no joint state for" in last, last
     assert last.endswith("s: has the arm driver stopped?"), last
+
+
+def test_a_fault_that_stops_the_arm_ends_the_pose_at_once_naming_it(ros, tmp_path):
+    """A servo overloads on the way to the second pose: arm_driver stops the arm, names the fault
+    in its own log and exits 1. The sequencer waited out settle.timeout (60 s here) and said 'arm
+    not settled ... has the arm driver stopped?', the cause in another log. The driver's ERROR on
+    /diagnostics now ends the wait at once, and the sequencer's last line names the fault."""
+    start_glitching_session(ros, 0, tmp_path / "out", 4, "-p", "settle.timeout:=60.0", overload="1")
+    ros.wait_log("sequencer", "1/4 poses done", 120)
+    assert ros.wait_exit("arm_driver", 60) == 1, ros.log("arm_driver")[-3000:]
+    assert ros.wait_exit("sequencer", 20) == 3, ros.log("sequencer")[-3000:]   # well within settle.timeout
+    last = [line for line in ros.log("sequencer").splitlines() if line.strip()][-1]
+    assert "pose 2/4 (id 1): the arm stopped on a fault, /arm_driver: arm: Dynamixel servo 2" in last, last
+    assert "overload" in last and "arm stopped (no joint state for" in last, last
 
 
 STARTS_INTERRUPTED = """import sys, rclpy

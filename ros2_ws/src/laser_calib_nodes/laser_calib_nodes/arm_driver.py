@@ -16,6 +16,9 @@ Publishes   joint_states (sensor_msgs/JointState) at ``rate`` Hz: position
             angles, laser_calib.model.kinematics.predict), stamped like the joint
             state of the same instant. Private to the simulation: camera_sim
             renders them; nothing else may use them.
+            /diagnostics (diagnostic_msgs/DiagnosticArray): the status '<node>: arm',
+            OK once a second, ERROR with the cause when a fault stops the arm
+            (arm_status.py).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from laser_calib.model.robot_file import dump_robot, load_robot, save_robot
 from laser_calib.sim.simulation import NoiseSpec, true_errors
 
 from laser_calib_nodes import common, parameters
+from laser_calib_nodes.arm_status import ArmStatus
 from laser_calib.hardware.backends import SimArm, dynamixel_backend
 from laser_calib.hardware.trajectory import TrajectoryPoint, trajectory_goal
 from laser_calib.io.joint_names import RobotJoints
@@ -133,6 +137,7 @@ class ArmDriver(Node):
             self.state_pub = self.create_publisher(JointState, common.JOINT_STATES, common.STREAM_QOS)
             self.create_subscription(JointTrajectory, common.JOINT_TRAJECTORY, self.on_trajectory,
                                      common.COMMAND_QOS)
+            self.status = ArmStatus(self, f"dynamixel {port}" if backend == "dynamixel" else backend)
             self.timer = self.create_timer(1.0 / rate, self.on_timer)
             self.exit_code = 0
             self.get_logger().info(f"{backend} arm '{self.robot.name}', {n} joints, publishing at {rate:g} Hz")
@@ -166,6 +171,7 @@ class ArmDriver(Node):
         msg.position = [float(v) for v in q]
         msg.velocity = [float(v) for v in velocity]
         self.state_pub.publish(msg)
+        self.status.ok(f"{len(q)} joints read")
         if self.sim is not None:
             from laser_calib_interfaces.msg import TrueSpots
             spots, seen, beams = self.sim.true_spots()
@@ -177,8 +183,9 @@ class ArmDriver(Node):
             self.true_pub.publish(true)
 
     def fail(self, message: str) -> None:
-        """Hardware fault: the arm stopped, then one line and exit code 1."""
+        """Hardware fault: the arm stopped, the fault on /diagnostics, then one line and exit code 1."""
         self.backend.stop()
+        self.status.fault(f"{message}; arm stopped")
         raise parameters.NodeError(f"{message}; arm stopped", 1)
 
     def close(self) -> int:

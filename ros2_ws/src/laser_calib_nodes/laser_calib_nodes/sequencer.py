@@ -36,6 +36,7 @@ from laser_calib.session.folder import Progress
 from laser_calib.session.settle import SettleDetector, SettleRule
 
 from laser_calib_nodes import common, parameters, sequencer_parts, session_open, sole_owner
+from laser_calib_nodes.arm_status import ArmFaults
 from laser_calib_nodes.joint_states import ArmJointStates
 from laser_calib_nodes.recorder import Recorder
 
@@ -94,6 +95,7 @@ class Sequencer(Node):
         self.create_subscription(JointState, common.JOINT_STATES, self.on_joint_state, common.STREAM_QOS)
         self.create_subscription(SpotPair, common.SPOTS, self.on_spots, common.STREAM_QOS)
         self.estimate_client = sequencer_parts.client(self)
+        self.arm_faults = ArmFaults(self)
         self.recorder = Recorder(self, self.session.bag_dir, self.session.work_dir, self.robot.name, record_images,
                                  segment_seconds)
         joints = RobotJoints(self.robot, self.joint_names or (), "parameter joint_names")  # as estimate --bag
@@ -146,7 +148,7 @@ class Sequencer(Node):
             while not predicate():
                 if self.stopping.is_set():
                     raise sequencer_parts.Stop()
-                self.recorder.check()  # a full disk: the session ends, what was measured kept
+                sequencer_parts.check(self)  # a full disk, a faulted arm: the session ends, what was measured kept
                 if time.monotonic() > deadline:
                     raise parameters.NodeError(what() if callable(what) else what, 3)
                 self.cond.wait(0.1)

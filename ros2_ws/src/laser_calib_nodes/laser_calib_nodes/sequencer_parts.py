@@ -120,6 +120,19 @@ def warn_disturbed(node, collector) -> None:
         "are taken again once it has settled anew")
 
 
+def check(node) -> None:
+    """Within a wait for the arm or the camera: NodeError (exit 3) when the arm stopped on a fault its
+    driver reported on /diagnostics (an ERROR, then no joint state for STALE_STATES s), naming it at
+    once; and the recorder's check (a full disk)."""
+    node.recorder.check()
+    last = node.last_state[3] if node.last_state else node.created
+    fault = node.arm_faults.stopped(last, STALE_STATES)
+    if fault:
+        where = getattr(node, "where", None) or "waiting for the arm"
+        raise parameters.NodeError(f"{where}: the arm stopped on a fault, {fault} (no joint state for "
+                                   f"{time.monotonic() - last:.1f} s)", 3)
+
+
 def stale(node) -> str:
     """'; no joint state for T s ...' when the arm's joint states stopped coming (a driver that
     died leaves the sequencer waiting for a settling that cannot come), else ''."""
