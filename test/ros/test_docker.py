@@ -1,6 +1,7 @@
 """docker/Dockerfile builds what scripts/setup builds (Docker cannot run here, so
 the file itself is checked): the same colcon packages, every entry point's module
-imported by its build-time smoke check, the Python libraries of requirements.txt,
+imported by its build-time smoke check, the Python libraries of requirements.txt and the ROS
+packages of the package.xml files,
 and a build context that keeps what the build needs."""
 
 from __future__ import annotations
@@ -64,6 +65,16 @@ def test_python_libraries_of_the_requirements_are_installed():
         if apt not in DOCKERFILE and not re.search(rf"pip3 install[^&]*\b{re.escape(name)}\b", DOCKERFILE):
             missing.append(name)
     assert not missing, f"requirements.txt names {missing}, which docker/Dockerfile does not install"
+
+
+def test_ros_packages_the_packages_depend_on_are_installed():
+    """Each ROS package a package.xml depends on (the nodes' diagnostic_msgs was missing) is in the
+    image's apt list, not left to what the base image's variant happens to hold."""
+    ours = packages()
+    wanted = {element.text for path in SRC.glob("*/package.xml") for element in ET.parse(path).getroot()
+              if element.tag in ("depend", "exec_depend") and not element.text.startswith("python3-")}
+    missing = sorted(name for name in wanted - ours if f"ros-jazzy-{name.replace('_', '-')}" not in DOCKERFILE)
+    assert not missing, f"package.xml files depend on {missing}, which docker/Dockerfile does not install"
 
 
 def test_build_context_keeps_the_sources():
