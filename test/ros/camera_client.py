@@ -67,6 +67,7 @@ def main() -> None:
 
     if info_mode.startswith("once"):
         info_pub.publish(info(node.get_clock().now().to_msg()))
+        print("camera info sent", flush=True)
     rng = np.random.default_rng(5)
     data, step = encode(render_frame(camera, TRUE, np.ones(2, bool), rng, RenderOptions()), encoding)
     other, _ = encode(render_frame(camera, TRUE, np.ones(2, bool), rng, RenderOptions()), encoding)
