@@ -57,7 +57,7 @@ combination names only f and the kept parameters that carry it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -164,6 +164,9 @@ class Identifiability:
     # (n,) per kept parameter, the sum over the held ones it carries of |its coefficient| in their
     # combination, in tolerance scales per tolerance scale (0 where it carries none)
     carry: np.ndarray | None = None
+    # held (or carried --fix) name -> {kept name: how far that kept value moves per unit of the held one's error,
+    # in its own unit per the held one's}: each kept value is its own error plus these shares of the held ones'
+    shares: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def carried(self) -> dict[str, tuple[str, ...]]:
@@ -308,34 +311,59 @@ def analyse(jacobian: np.ndarray, scales: np.ndarray, names: tuple[str, ...],
     free = np.zeros(n, bool)
     free[kept] = True
 
-    combinations, merged, carriers, carry = [], {}, {}, np.zeros(n)
-    for j in np.flatnonzero(~free & ~fixed):
+    # A parameter the user holds that the kept ones could not be told from is carried by them too: with
+    # wrist_3_joint.offset held by --fix, wrist_3_joint.rz was written with no note, and its value was the sum.
+    carried_fixed = [j for j in np.flatnonzero(fixed)
+                     if kept and np.linalg.svd(r_factor[:, kept + [j]], compute_uv=False)[-1] <= threshold]
+    kept_singular = np.linalg.svd(r_factor[:, kept], compute_uv=False) if kept else np.zeros(0)
+    condition = float(kept_singular[0] / kept_singular[-1]) if kept else float("inf")
+    return Identifiability(tuple(names), singular, len(kept), condition, free, min_singular=float(threshold),
+                           by_noise=int(np.count_nonzero((singular > numerical) & (singular <= threshold))),
+                           **_combinations(r_factor, names, scales, kept, np.flatnonzero(~free & ~fixed),
+                                           carried_fixed))
+
+
+def _combinations(r_factor: np.ndarray, names, scales: np.ndarray, kept: list[int], held, carried_fixed) -> dict:
+    """Identifiability's fields that say what the kept columns ``kept`` of r_factor (scaled) carry of the
+    ``held`` ones and of the user's ``carried_fixed`` (indices): null_combinations, merged, carriers, carry
+    and shares."""
+    n = len(names)
+    combinations, merged, carriers, carry, shares = [], {}, {}, np.zeros(n), {}
+    for j in [*held, *carried_fixed]:
         direction = np.zeros(n)
-        direction[j] = 1.0
-        if kept:
-            direction[kept] = -np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0]
-        combinations.append(describe(direction, names, held=j))
+        direction[kept] = -np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0] if kept else 0.0
         carry[kept] += np.abs(direction[kept])
+        # a kept value moves by -direction (scaled) when j is off by one scale; below REL_TOL it is rounding
+        shares[names[j]] = {names[i]: float(-direction[i] * scales[i] / scales[j]) for i in kept
+                            if abs(direction[i]) > REL_TOL}
+        if j in carried_fixed:  # its own 0 weighs nothing: a carrier is one that carries more than 5 % of it
+            weight = np.abs(direction) / max(np.abs(direction).max(), 1.0)
+            carriers[names[j]] = tuple(names[i] for i in kept if weight[i] > TERM_THRESHOLD)
+            continue
+        direction[j] = 1.0
+        combinations.append(describe(direction, names, held=j))
         weight = np.abs(direction) / np.abs(direction).max()
         partners = [names[i] for i in kept if weight[i] > TERM_THRESHOLD]
         carriers[names[j]] = tuple(partners)
         merged[names[j]] = ("not separable from " + ", ".join(partners) + "; fixed at nominal, "
                             "those parameters carry the combination") if partners else \
             "not determined by the data; fixed at nominal"
-    # A parameter the user holds that the kept ones could not be told from is carried by them too: with
-    # wrist_3_joint.offset held by --fix, wrist_3_joint.rz was written with no note, and its value was the sum.
-    for j in np.flatnonzero(fixed):
-        if kept and np.linalg.svd(r_factor[:, kept + [j]], compute_uv=False)[-1] <= threshold:
-            direction = np.zeros(n)
-            direction[kept] = -np.linalg.lstsq(r_factor[:, kept], r_factor[:, j], rcond=None)[0]
-            carry[kept] += np.abs(direction[kept])
-            weight = np.abs(direction) / max(np.abs(direction).max(), 1.0)
-            carriers[names[j]] = tuple(names[i] for i in kept if weight[i] > TERM_THRESHOLD)
-    kept_singular = np.linalg.svd(r_factor[:, kept], compute_uv=False) if kept else np.zeros(0)
-    condition = float(kept_singular[0] / kept_singular[-1]) if kept else float("inf")
-    return Identifiability(tuple(names), singular, len(kept), condition, free, tuple(combinations), merged,
-                           float(threshold), carriers,
-                           int(np.count_nonzero((singular > numerical) & (singular <= threshold))), carry)
+    return {"null_combinations": tuple(combinations), "merged": merged, "carriers": carriers, "carry": carry,
+            "shares": shares}
+
+
+def at_values(ident: Identifiability, factor: np.ndarray, scales: np.ndarray) -> Identifiability:
+    """ident, the same parameters held and kept, with what the kept ones carry of the held ones taken from
+    ``factor`` (whitened_factor's R (m,n)) at other values, the calibrated ones: the values were fitted
+    there. The 4-DOF arm's d1 carries d2 alone at nominal, alpha1 = 0; at a true alpha1 of 1 deg a 10 mm
+    d2 also moves the arm 0.17 mm sideways, which theta4 and slm_ry carry in part (and slm_z's, theta3
+    and theta4 at 0.09 deg per 10 mm, 0.6 of theta3's std at 0.3 mm spot noise): those values are
+    combinations as much as d1's is."""
+    index = {name: i for i, name in enumerate(ident.names)}
+    held = [index[name] for name in ident.merged]
+    carried_fixed = [index[name] for name in ident.carriers if name not in ident.merged]
+    return replace(ident, **_combinations(np.asarray(factor) * scales, ident.names, scales,
+                                          list(np.flatnonzero(ident.free)), held, carried_fixed))
 
 
 def weak_warnings(names: tuple[str, ...], std: np.ndarray, scales: np.ndarray, own: np.ndarray,

@@ -31,8 +31,8 @@ from laser_calib.effects.screen import Surface, extrapolation_note
 from laser_calib.estimation.estimate import Estimate, EstimateOptions, estimate
 from laser_calib.estimation.failures import UNDETERMINED, first_failure
 from laser_calib.estimation.folds import test_range_warnings
-from laser_calib.estimation.identifiability import FIXED_NOTE, carried_note, weak_and_large
-from laser_calib.estimation.problem import residuals_at
+from laser_calib.estimation.identifiability import FIXED_NOTE, at_values, carried_note, weak_and_large
+from laser_calib.estimation.problem import residuals_at, whitened_factor
 from laser_calib.io.revisits import repeat_warnings
 from laser_calib.io.samples import Samples, reading_warnings
 from laser_calib.measurement.base import NoiseModel, RobotModel
@@ -210,7 +210,8 @@ class Calibration:
             "errors": errors,
             "identifiability": {"rank": ident.rank, "parameters": len(ident.names),
                                 "condition_number": finite_or_none(ident.condition),
-                                "unseen_combinations": list(ident.null_combinations), "merged": ident.merged},
+                                "unseen_combinations": list(ident.null_combinations), "merged": ident.merged,
+                                "shares": ident.shares},
             "spot_sigma_m": est.sigma,
             "spot_sigma_estimated": est.sigma_estimated,
             "joint_sigma_rad": est.joint_sigma,
@@ -320,6 +321,10 @@ def calibrate(robot: Robot, samples: Samples, options: EstimateOptions, test: Sa
     model = spot_model(robot, samples, effects, compensator)
     start = np.concatenate([np.zeros(robot.n_params), *values])
     est = estimate(robot, samples, options, model, start)
+    if est.identifiability.carriers:  # what each kept value stands for, where it was fitted (identifiability.at_values)
+        factor, _ = whitened_factor(model, NoiseModel(max(est.sigma, 1e-9), est.joint_sigma), est.values,
+                                    est.fit.excluded)
+        est = replace(est, identifiability=at_values(est.identifiability, factor, model.scales))
     said = reading_warnings(samples, test) + repeat_warnings(samples, test, robot.joint_names, sources)
     if test is not None:  # a test pose beyond the joint ranges calibrated on is an extrapolation: said with the fit's
         said += test_range_warnings(samples.q, test.q, "test", robot.joint_names)

@@ -171,7 +171,9 @@ def report_markdown(calibration: Calibration, truth_drawn: bool = False) -> str:
     lines += ["", "## Identifiability", "",
               f"Rank {ident.rank} of {len(ident.names)}, scaled condition number {ident.condition:.3g}."]
     if ident.merged:
-        lines += ["", "Combinations the spots cannot see (coefficients per 10 mm / 1 deg):", ""]
+        lines += ["", "Combinations the spots cannot determine, at the calibrated values (coefficients per 10 mm / "
+                  "1 deg; result.json's identifiability.shares: each kept value's share of each held error, in full):",
+                  ""]
         lines += [f"- {c}" for c in ident.null_combinations]
         lines += ["", "Held at nominal, reported without a value:", ""]
         lines += [f"- {k}: {v}" for k, v in ident.merged.items()]
